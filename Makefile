@@ -1,0 +1,25 @@
+# make test: set up .venv (once) and run the test suite.  make demo: same set-up, then the demo.
+PYTHON ?= python3
+VENV := .venv
+PY := $(VENV)/bin/python
+STAMP := $(VENV)/.installed
+
+.PHONY: test demo bench clean
+
+$(STAMP): pyproject.toml
+	test -x $(PY) || $(PYTHON) -m venv $(VENV)
+	$(PY) -m pip install -q --upgrade pip
+	$(PY) -m pip install -q -e ".[test]"
+	touch $(STAMP)
+
+test: $(STAMP)
+	$(PY) -m pytest -q
+
+demo: $(STAMP)
+	$(PY) -m jaxdeform.demo --out out/demo
+
+bench: $(STAMP)
+	$(PY) -m benchmarks.acap --data ../shared/data/horse-gallop --json out/bench/acap.json
+
+clean:
+	rm -rf $(VENV) out .pytest_cache

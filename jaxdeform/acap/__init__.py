@@ -1,0 +1,9 @@
+"""The ACAP representation (Gao et al. 2019) and its temporal variant TS-ACAP (seed 002).
+
+Public API: :func:`encode`, :func:`decode`, :class:`Scaler`, :func:`prepare` (an :class:`Acap` to reuse
+for many calls on one reference).
+"""
+
+from jaxdeform.acap.features import Acap, Scaler, cached, decode, encode, features_from, gradients_from_features, prepare, split_features
+
+__all__ = ["Acap", "Scaler", "cached", "decode", "encode", "features_from", "gradients_from_features", "prepare", "split_features"]

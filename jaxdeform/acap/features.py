@@ -1,0 +1,232 @@
+"""ACAP features: encode meshes to 9-d per-vertex features, decode features to meshes, and the Scaler.
+
+Feature layout per vertex (official order): (logR_01, logR_02, logR_12, S_00, S_01, S_02, S_11, S_12, S_22)
+where logR is the skew matrix of the consistent axis-angle vector v: logR_01 = -v_z, logR_02 = v_y,
+logR_12 = -v_x.
+
+:class:`Acap` holds everything computed once per (reference, connectivity, weighting): topology, reference
+frame of the local fits, the host graph for consistency, and a jitted local step. ``encode``/``decode`` keep
+a small cache of these, keyed by the bytes of the reference and faces, so repeated calls do not refactor
+or recompile.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import hashlib
+from collections import OrderedDict
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from jaxdeform.acap import consistency as cons
+from jaxdeform.acap.gradients import RestFrame, Weighting, deformation_gradients, rest_frame
+from jaxdeform.acap.reconstruct import Reconstructor
+from jaxdeform.acap.rotations import exp_rotation, log_rotation, polar, skew
+from jaxdeform.errors import ConnectivityError, DegenerateMeshError
+from jaxdeform.mesh.topology import Topology, build_topology
+
+_S_IDX = (np.array([0, 0, 0, 1, 1, 2]), np.array([0, 1, 2, 1, 2, 2]))
+
+
+def features_from(v: Float[Array, "... 3"], s: Float[Array, "... 3 3"]) -> Float[Array, "... 9"]:
+    """9-d features from axis-angle vectors and symmetric S."""
+    rot = jnp.stack([-v[..., 2], v[..., 1], -v[..., 0]], axis=-1)
+    return jnp.concatenate([rot, s[..., _S_IDX[0], _S_IDX[1]]], axis=-1)
+
+
+def split_features(f: Float[Array, "... 9"]) -> tuple[Array, Array]:
+    """Inverse of :func:`features_from`: (axis-angle vectors (..., 3), S (..., 3, 3))."""
+    v = jnp.stack([-f[..., 2], f[..., 1], -f[..., 0]], axis=-1)
+    s = jnp.zeros((*f.shape[:-1], 3, 3), f.dtype)
+    s = s.at[..., _S_IDX[0], _S_IDX[1]].set(f[..., 3:])
+    s = s.at[..., _S_IDX[1], _S_IDX[0]].set(f[..., 3:])
+    return v, s
+
+
+def gradients_from_features(f: Float[Array, "... 9"]) -> Float[Array, "... 3 3"]:
+    """T = exp(log R) S."""
+    v, s = split_features(f)
+    return exp_rotation(v) @ s
+
+
+@functools.partial(jax.jit, static_argnames=())
+def _local(frame: RestFrame, vertices):
+    t = deformation_gradients(frame, vertices)
+    r, s = polar(t)
+    return log_rotation(r), s
+
+
+def _check_vertices(vertices: np.ndarray, n: int) -> None:
+    if vertices.ndim != 3 or vertices.shape[-1] != 3:
+        raise ValueError(f"vertices must be (N, V, 3), got {vertices.shape}.")
+    if vertices.shape[1] != n:
+        raise ConnectivityError(f"the meshes have {vertices.shape[1]} vertices but the reference has {n}.")
+    if not np.all(np.isfinite(vertices)):
+        raise DegenerateMeshError("a vertex coordinate is NaN or infinite.")
+
+
+@dataclasses.dataclass
+class Acap:
+    """ACAP machinery for one reference mesh and connectivity (build once with :func:`prepare`)."""
+
+    rest: np.ndarray
+    faces: np.ndarray
+    topo: Topology
+    frame: RestFrame
+    graph: cons.Graph
+    weighting: Weighting
+    _reconstructors: dict = dataclasses.field(default_factory=dict)
+
+    def local(self, vertices) -> tuple[Array, Array]:
+        """(axis-angle vectors (N,V,3) with angles in [0, pi], S (N,V,3,3)): jitted, no consistency."""
+        return _local(self.frame, jnp.asarray(vertices, dtype=self.frame.ring_edges.dtype))
+
+    def encode_parts(self, vertices, consistency: cons.Consistency | None = "spatial") -> tuple[Array, Array]:
+        """(consistent axis-angle vectors (N,V,3), S (N,V,3,3))."""
+        vertices = np.asarray(vertices)
+        if vertices.ndim == 2:
+            vertices = vertices[None]
+        _check_vertices(vertices, self.topo.n_vertices)
+        v, s = self.local(vertices.astype(self.rest.dtype, copy=False))
+        if consistency in (None, "none"):
+            return v, s
+        vn = np.asarray(v, dtype=np.float64)
+        angle = np.linalg.norm(vn, axis=-1)
+        axis = vn / np.where(angle > 0, angle, 1.0)[..., None]
+        phi, o = cons.consistent_angles(axis, angle, self.graph, consistency)
+        v_cons = (phi * o)[..., None] * axis
+        return jnp.asarray(v_cons, dtype=v.dtype), s
+
+    def encode(self, vertices, consistency: cons.Consistency | None = "spatial") -> Float[Array, "n v 9"]:
+        v, s = self.encode_parts(vertices, consistency)
+        return features_from(v, s)
+
+    def reconstructor(self, anchors=None) -> Reconstructor:
+        key = None if anchors is None else tuple(np.atleast_1d(np.asarray(anchors)).tolist())
+        if key not in self._reconstructors:
+            self._reconstructors[key] = Reconstructor.build(self.rest, self.topo, self.frame.weights, anchors)
+        return self._reconstructors[key]
+
+    def decode(self, features, *, anchors=None, targets=None) -> Float[Array, "... v 3"]:
+        """Positions (..., V, 3) from features (..., V, 9); differentiable in features and targets."""
+        return _decode(self.reconstructor(anchors), features, targets)
+
+
+@jax.jit
+def _decode(rec: Reconstructor, features, targets):
+    return rec(gradients_from_features(features), targets)
+
+
+def prepare(rest, faces, weighting: Weighting = "official") -> Acap:
+    """Build the :class:`Acap` of a reference mesh (host work: topology, graph, reference fits)."""
+    rest = np.asarray(rest)
+    if rest.dtype not in (np.float32, np.float64):
+        rest = rest.astype(np.float64)
+    if rest.ndim != 2 or rest.shape[1] != 3:
+        raise ValueError(f"the reference must be (V, 3), got {rest.shape}.")
+    if not np.all(np.isfinite(rest)):
+        raise DegenerateMeshError("a reference vertex coordinate is NaN or infinite.")
+    faces = np.asarray(faces)
+    topo = build_topology(faces, rest.shape[0])
+    frame = rest_frame(jnp.asarray(rest), topo, weighting)
+    graph = cons.build_graph(np.asarray(topo.edges), topo.n_vertices)
+    return Acap(rest=rest, faces=faces.astype(np.int32), topo=topo, frame=frame, graph=graph, weighting=weighting)
+
+
+_CACHE: OrderedDict = OrderedDict()
+_CACHE_SIZE = 8
+
+
+def cached(rest, faces, weighting: Weighting = "official") -> Acap:
+    """:func:`prepare` with a small LRU cache keyed by the reference and faces bytes."""
+    rest = np.asarray(rest)
+    faces = np.asarray(faces)
+    key = (hashlib.sha1(rest.tobytes()).hexdigest(), rest.shape, str(rest.dtype),
+           hashlib.sha1(faces.astype(np.int64).tobytes()).hexdigest(), weighting)
+    if key in _CACHE:
+        _CACHE.move_to_end(key)
+        return _CACHE[key]
+    acap = prepare(rest, faces, weighting)
+    _CACHE[key] = acap
+    if len(_CACHE) > _CACHE_SIZE:
+        _CACHE.popitem(last=False)
+    return acap
+
+
+def encode(rest, faces, vertices, *, consistency: cons.Consistency | None = "spatial",
+           weighting: Weighting = "official") -> Float[Array, "n v 9"]:
+    """ACAP features (N, V, 9) of ``vertices`` (N, V, 3) relative to ``rest`` (V, 3).
+
+    ``consistency``: "spatial" (ACAP), "temporal" (TS-ACAP, frames in order) or None/"none" (angles in
+    [0, pi]).
+    """
+    return cached(rest, faces, weighting).encode(vertices, consistency)
+
+
+def decode(features, rest, faces, *, anchors=None, targets=None, weighting: Weighting = "official"):
+    """Vertex positions (..., V, 3) from features (..., V, 9); differentiable in ``features``.
+
+    ``anchors``: vertex indices held at ``targets`` (default: their reference positions); without anchors
+    vertex 0 is held at its reference position (the features carry no translation).
+    """
+    return cached(rest, faces, weighting).decode(features, anchors=anchors, targets=targets)
+
+
+# --------------------------------------------------------------------------------------------------
+# Scaler
+# --------------------------------------------------------------------------------------------------
+
+SCALE_LIMIT = 0.95
+SCALE_PAD = 1e-6
+
+
+@dataclasses.dataclass(frozen=True)
+class Scaler:
+    """Maps rotation entries (features 0-2) and S entries (3-8) linearly to [-0.95, 0.95].
+
+    One global min/max over all rotation entries and one over all S entries (all shapes and vertices),
+    each padded by 1e-6 (the official convention).
+    """
+
+    rot_min: float
+    rot_max: float
+    s_min: float
+    s_max: float
+
+    @staticmethod
+    def fit(features) -> "Scaler":
+        f = np.asarray(features)
+        return Scaler(float(f[..., :3].min()) - SCALE_PAD, float(f[..., :3].max()) + SCALE_PAD,
+                      float(f[..., 3:].min()) - SCALE_PAD, float(f[..., 3:].max()) + SCALE_PAD)
+
+    def _bounds(self, dtype):
+        lo = jnp.asarray([self.rot_min] * 3 + [self.s_min] * 6, dtype)
+        hi = jnp.asarray([self.rot_max] * 3 + [self.s_max] * 6, dtype)
+        return lo, hi
+
+    def transform(self, features):
+        f = jnp.asarray(features)
+        lo, hi = self._bounds(f.dtype)
+        return (2.0 * (f - lo) / (hi - lo) - 1.0) * SCALE_LIMIT
+
+    def inverse(self, scaled):
+        x = jnp.asarray(scaled)
+        lo, hi = self._bounds(x.dtype)
+        return (x / SCALE_LIMIT + 1.0) * 0.5 * (hi - lo) + lo
+
+    def to_array(self) -> np.ndarray:
+        return np.array([self.rot_min, self.rot_max, self.s_min, self.s_max])
+
+    @staticmethod
+    def from_array(a) -> "Scaler":
+        a = np.asarray(a, dtype=np.float64).ravel()
+        return Scaler(*map(float, a[:4]))
+
+
+def log_matrices(v: Float[Array, "... 3"]) -> Float[Array, "... 3 3"]:
+    """Full 3x3 log(R) (skew) from axis-angle vectors."""
+    return skew(v)

@@ -1,0 +1,5 @@
+"""Data sources of jaxdeform: deterministic synthetic sequences (``synthetic``) needing no download."""
+
+from jaxdeform.data import synthetic
+
+__all__ = ["synthetic"]

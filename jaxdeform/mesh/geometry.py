@@ -1,0 +1,100 @@
+"""Differentiable per-mesh geometry on a fixed :class:`Topology`: cotangents, areas, normals, Laplacian.
+
+All functions are pure jnp, work in float32 and float64 (the dtype of ``vertices``), and use segment sums
+over the static-size index arrays of the topology (no Python loops over elements).
+
+Degenerate (zero-area) faces: their corner cotangents are defined as 0 (the face adds nothing to the
+cotangent weights) instead of +-inf, so weights stay finite; normals of such faces are zero vectors.
+"""
+
+from __future__ import annotations
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Float
+
+from jaxdeform.mesh.topology import Topology
+
+#: A face whose doubled area is below this fraction of its squared longest edge counts as degenerate.
+DEGENERATE_RELATIVE_AREA = 1e-10
+
+
+def _safe_norm(x: Array, axis: int = -1, keepdims: bool = False) -> Array:
+    sq = jnp.sum(x * x, axis=axis, keepdims=keepdims)
+    ok = sq > 0
+    return jnp.where(ok, jnp.sqrt(jnp.where(ok, sq, 1.0)), 0.0)
+
+
+def safe_normalize(x: Array, axis: int = -1) -> Array:
+    """x / |x| with 0 for zero vectors and finite gradients everywhere."""
+    n = _safe_norm(x, axis=axis, keepdims=True)
+    return x / jnp.where(n > 0, n, 1.0)
+
+
+def face_cross(vertices: Float[Array, "v 3"], faces) -> Float[Array, "f 3"]:
+    """(p1 - p0) x (p2 - p0): normal direction with length = twice the face area."""
+    p = vertices[faces]
+    return jnp.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
+
+
+def face_areas(vertices: Float[Array, "v 3"], topo: Topology) -> Float[Array, " f"]:
+    return 0.5 * _safe_norm(face_cross(vertices, topo.faces))
+
+
+def face_normals(vertices: Float[Array, "v 3"], topo: Topology) -> Float[Array, "f 3"]:
+    return safe_normalize(face_cross(vertices, topo.faces))
+
+
+def vertex_normals(vertices: Float[Array, "v 3"], topo: Topology) -> Float[Array, "v 3"]:
+    """Area-weighted vertex normals (unit length; zero only if every incident face is degenerate)."""
+    cross = face_cross(vertices, topo.faces)
+    acc = jax.ops.segment_sum(jnp.repeat(cross, 3, axis=0), topo.faces.reshape(-1), topo.n_vertices)
+    return safe_normalize(acc)
+
+
+def corner_cotangents(vertices: Float[Array, "v 3"], topo: Topology) -> Float[Array, "f 3"]:
+    """cot of the angle at each corner k of each face (0 for degenerate faces)."""
+    p = vertices[topo.faces]
+    u = jnp.roll(p, -1, axis=1) - p  # p[k+1] - p[k]
+    w = jnp.roll(p, -2, axis=1) - p  # p[k+2] - p[k]
+    dot = jnp.sum(u * w, axis=-1)
+    cross = _safe_norm(jnp.cross(u, w))
+    longest = jnp.max(jnp.sum(u * u, axis=-1), axis=1, keepdims=True)
+    ok = cross > DEGENERATE_RELATIVE_AREA * longest
+    return jnp.where(ok, dot / jnp.where(ok, cross, 1.0), 0.0)
+
+
+def cotangent_weights(vertices: Float[Array, "v 3"], topo: Topology) -> Float[Array, " e"]:
+    """Per undirected edge c_ij = (cot a + cot b) / 2 (one term on boundary edges)."""
+    cot = corner_cotangents(vertices, topo)
+    return jax.ops.segment_sum(0.5 * cot.reshape(-1), topo.face_edge.reshape(-1), topo.n_edges)
+
+
+def laplacian_coo(topo: Topology, weights: Float[Array, " e"]):
+    """Graph Laplacian L = D - W (positive semidefinite) as COO ``(rows, cols, vals)``.
+
+    ``(L p)_i = sum_j w_ij (p_i - p_j)``; with cotangent weights this is the negated libigl ``cotmatrix``.
+    Row/col index arrays are numpy (host), values follow ``weights``.
+    """
+    e = np.asarray(topo.edges)
+    n = topo.n_vertices
+    rows = np.concatenate([e[:, 0], e[:, 1], np.arange(n)])
+    cols = np.concatenate([e[:, 1], e[:, 0], np.arange(n)])
+    diag = jax.ops.segment_sum(jnp.concatenate([weights, weights]), jnp.concatenate([topo.edges[:, 0], topo.edges[:, 1]]), n)
+    vals = jnp.concatenate([-weights, -weights, diag])
+    return rows, cols, vals
+
+
+def cot_laplacian(vertices: Float[Array, "v 3"], topo: Topology):
+    """Cotangent Laplacian (PSD convention) as a ``scipy.sparse.csr_matrix`` (host)."""
+    import scipy.sparse as sp
+
+    rows, cols, vals = laplacian_coo(topo, cotangent_weights(vertices, topo))
+    n = topo.n_vertices
+    return sp.csr_matrix((np.asarray(vals), (rows, cols)), shape=(n, n))
+
+
+def bounding_box_diagonal(vertices) -> float:
+    v = np.asarray(vertices).reshape(-1, 3)
+    return float(np.linalg.norm(v.max(axis=0) - v.min(axis=0)))

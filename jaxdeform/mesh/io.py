@@ -1,0 +1,292 @@
+"""Mesh and mesh-sequence I/O: OBJ, PLY, OFF and .npz sequences.
+
+Every loader returns ``vertices`` as float64 ``(V, 3)`` and ``faces`` as int32 ``(F, 3)`` (polygons are
+fan-triangulated). Files are read strictly: an empty, truncated or non-numeric file, a face that indexes a
+missing vertex, or a non-finite coordinate raises :class:`~jaxdeform.errors.MeshFormatError` with one
+sentence. Sequences (a folder in natural order, a list of files, or one ``.npz``) must share one
+connectivity, else :class:`~jaxdeform.errors.ConnectivityError`. Writers go through a temporary file and an
+atomic rename, so a failed write never leaves half a file.
+"""
+
+from __future__ import annotations
+
+import os
+import re
+import tempfile
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from jaxdeform.errors import ConnectivityError, MeshFormatError
+
+MESH_SUFFIXES = (".obj", ".ply", ".off")
+SEQUENCE_SUFFIXES = MESH_SUFFIXES + (".npz",)
+
+
+def natural_key(name: str) -> list:
+    """Sort key that orders 'frame2' before 'frame10'."""
+    return [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", name)]
+
+
+def _suffix(path: Path) -> str:
+    suffix = path.suffix.lower()
+    if suffix not in SEQUENCE_SUFFIXES:
+        raise MeshFormatError(
+            f"{path}: unknown mesh format '{path.suffix or '(none)'}'; expected one of "
+            f"{', '.join(SEQUENCE_SUFFIXES)}."
+        )
+    return suffix
+
+
+def _read_text(path: Path) -> str:
+    if not path.is_file():
+        raise MeshFormatError(f"{path}: no such file.")
+    text = path.read_text(errors="replace")
+    if not text.strip():
+        raise MeshFormatError(f"{path}: the file is empty.")
+    return text
+
+
+def _finish(path: Path, vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Shared validation of a parsed mesh."""
+    if vertices.shape[0] == 0:
+        raise MeshFormatError(f"{path}: the file holds no vertices.")
+    if faces.shape[0] == 0:
+        raise MeshFormatError(f"{path}: the file holds no faces.")
+    if not np.all(np.isfinite(vertices)):
+        bad = int(np.argwhere(~np.isfinite(vertices))[0, 0])
+        raise MeshFormatError(f"{path}: vertex {bad} has a NaN or infinite coordinate.")
+    if faces.min() < 0 or faces.max() >= vertices.shape[0]:
+        raise MeshFormatError(
+            f"{path}: a face refers to vertex {int(faces.max()) if faces.max() >= vertices.shape[0] else int(faces.min())}"
+            f" but the file has {vertices.shape[0]} vertices (truncated or corrupt file)."
+        )
+    return vertices.astype(np.float64), faces.astype(np.int32)
+
+
+def _triangulate(polys: list[list[int]], path: Path) -> np.ndarray:
+    tris = []
+    for poly in polys:
+        if len(poly) < 3:
+            raise MeshFormatError(f"{path}: a face has fewer than 3 vertices (truncated or corrupt file).")
+        for k in range(1, len(poly) - 1):
+            tris.append((poly[0], poly[k], poly[k + 1]))
+    return np.asarray(tris, dtype=np.int64).reshape(-1, 3)
+
+
+def _parse_floats(rows: list[str], width: int, path: Path, what: str) -> np.ndarray:
+    try:
+        arr = np.array([r.split()[:width] for r in rows], dtype=np.float64)
+    except ValueError:
+        raise MeshFormatError(f"{path}: a {what} line is truncated or not numeric.") from None
+    if arr.ndim != 2 or arr.shape[1] != width:
+        raise MeshFormatError(f"{path}: a {what} line has fewer than {width} numbers (truncated file).")
+    return arr
+
+
+def read_obj(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
+    """Read vertex positions and faces of a Wavefront OBJ (texture/normal indices ignored)."""
+    path = Path(path)
+    text = _read_text(path)
+    vrows, frows = [], []
+    for line in text.splitlines():
+        if line.startswith("v "):
+            vrows.append(line[2:])
+        elif line.startswith("f "):
+            frows.append(line[2:])
+    vertices = _parse_floats(vrows, 3, path, "vertex") if vrows else np.zeros((0, 3))
+    n = vertices.shape[0]
+    polys = []
+    try:
+        for row in frows:
+            idx = [int(tok.split("/")[0]) for tok in row.split()]
+            polys.append([i - 1 if i > 0 else n + i for i in idx])
+    except ValueError:
+        raise MeshFormatError(f"{path}: a face line is truncated or not numeric.") from None
+    return _finish(path, vertices, _triangulate(polys, path))
+
+
+def read_off(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
+    """Read an ASCII OFF file."""
+    path = Path(path)
+    lines = [ln.split("#")[0].strip() for ln in _read_text(path).splitlines()]
+    lines = [ln for ln in lines if ln]
+    if not lines[0].upper().startswith("OFF"):
+        raise MeshFormatError(f"{path}: missing the 'OFF' header.")
+    header = lines[0][3:].split() or (lines.pop(1).split() if len(lines) > 1 else [])
+    try:
+        nv, nf = int(header[0]), int(header[1])
+    except (IndexError, ValueError):
+        raise MeshFormatError(f"{path}: the OFF counts line is missing or not numeric.") from None
+    body = lines[1:]
+    if len(body) < nv + nf:
+        raise MeshFormatError(f"{path}: expected {nv} vertices and {nf} faces but the file ends early (truncated).")
+    vertices = _parse_floats(body[:nv], 3, path, "vertex")
+    polys = []
+    try:
+        for row in body[nv : nv + nf]:
+            toks = row.split()
+            k = int(toks[0])
+            if len(toks) < k + 1:
+                raise MeshFormatError(f"{path}: a face line is truncated.")
+            polys.append([int(t) for t in toks[1 : k + 1]])
+    except ValueError:
+        raise MeshFormatError(f"{path}: a face line is not numeric.") from None
+    return _finish(path, vertices, _triangulate(polys, path))
+
+
+def read_ply(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
+    """Read an ASCII or binary PLY file (through trimesh, vertex order kept)."""
+    import trimesh
+
+    path = Path(path)
+    if not path.is_file():
+        raise MeshFormatError(f"{path}: no such file.")
+    if path.stat().st_size == 0:
+        raise MeshFormatError(f"{path}: the file is empty.")
+    try:
+        mesh = trimesh.load(str(path), file_type="ply", process=False, force="mesh")
+        vertices = np.asarray(mesh.vertices, dtype=np.float64)
+        faces = np.asarray(mesh.faces, dtype=np.int64).reshape(-1, 3)
+    except Exception as exc:  # trimesh raises many types for corrupt files
+        raise MeshFormatError(f"{path}: not a readable PLY mesh ({type(exc).__name__}).") from None
+    return _finish(path, vertices, faces)
+
+
+def load_mesh(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
+    """Load one mesh (OBJ, PLY, OFF) as ``(vertices (V,3) float64, faces (F,3) int32)``."""
+    path = Path(path)
+    suffix = _suffix(path)
+    if suffix == ".npz":
+        vertices, faces = load_sequence(path)
+        if vertices.shape[0] != 1:
+            raise MeshFormatError(f"{path}: holds {vertices.shape[0]} shapes where one mesh was expected.")
+        return vertices[0], faces
+    return {".obj": read_obj, ".off": read_off, ".ply": read_ply}[suffix](path)
+
+
+def _expand(paths: Sequence[str | os.PathLike] | str | os.PathLike) -> list[Path]:
+    if isinstance(paths, (str, os.PathLike)):
+        paths = [paths]
+    out: list[Path] = []
+    for p in map(Path, paths):
+        if p.is_dir():
+            files = [f for f in p.iterdir() if f.is_file() and f.suffix.lower() in SEQUENCE_SUFFIXES]
+            if not files:
+                raise MeshFormatError(f"{p}: the folder holds no mesh files ({', '.join(SEQUENCE_SUFFIXES)}).")
+            out.extend(sorted(files, key=lambda f: natural_key(f.name)))
+        else:
+            out.append(p)
+    if not out:
+        raise MeshFormatError("no input meshes were given.")
+    return out
+
+
+def check_same_connectivity(faces_ref: np.ndarray, faces: np.ndarray, n_ref: int, n: int, where: str) -> None:
+    """Raise ConnectivityError unless two meshes have the same vertex count and identical faces."""
+    if n != n_ref:
+        raise ConnectivityError(f"{where} has {n} vertices but the first mesh has {n_ref}; meshes must share one connectivity.")
+    if faces.shape != faces_ref.shape or not np.array_equal(faces, faces_ref):
+        raise ConnectivityError(f"{where} has different faces from the first mesh; meshes must share one connectivity.")
+
+
+def load_sequence(paths: Sequence[str | os.PathLike] | str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
+    """Load meshes that share one connectivity as ``(vertices (N,V,3) float64, faces (F,3) int32)``.
+
+    ``paths`` is a folder (its mesh files in natural order), one file, or a list of files/folders.
+    A ``.npz`` holds ``vertices`` ``(N,V,3)`` or ``(V,3)`` and ``faces``.
+    """
+    frames: list[np.ndarray] = []
+    faces_ref: np.ndarray | None = None
+    for path in _expand(paths):
+        if _suffix(path) == ".npz":
+            verts, faces = _read_npz(path)
+        else:
+            v, faces = load_mesh(path)
+            verts = v[None]
+        if faces_ref is None:
+            faces_ref = faces
+            n_ref = verts.shape[1]
+        else:
+            check_same_connectivity(faces_ref, faces, n_ref, verts.shape[1], str(path))
+        frames.append(verts)
+    assert faces_ref is not None
+    return np.concatenate(frames, axis=0), faces_ref
+
+
+def _read_npz(path: Path) -> tuple[np.ndarray, np.ndarray]:
+    if not path.is_file():
+        raise MeshFormatError(f"{path}: no such file.")
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            if "vertices" not in data or "faces" not in data:
+                raise MeshFormatError(f"{path}: a mesh .npz needs arrays 'vertices' and 'faces'.")
+            verts = np.asarray(data["vertices"], dtype=np.float64)
+            faces = np.asarray(data["faces"], dtype=np.int64)
+    except MeshFormatError:
+        raise
+    except Exception as exc:
+        raise MeshFormatError(f"{path}: not a readable .npz archive ({type(exc).__name__}).") from None
+    if verts.ndim == 2:
+        verts = verts[None]
+    if verts.ndim != 3 or verts.shape[-1] != 3 or faces.ndim != 2 or faces.shape[1] != 3:
+        raise MeshFormatError(f"{path}: 'vertices' must be (N,V,3) and 'faces' (F,3).")
+    for k in range(verts.shape[0]):
+        _finish(Path(f"{path}[{k}]"), verts[k], faces)
+    return verts, faces.astype(np.int32)
+
+
+def atomic_path(path: Path):
+    """Context manager yielding a temporary path beside ``path`` that is renamed onto it on success."""
+    import contextlib
+
+    @contextlib.contextmanager
+    def _cm():
+        path.parent.mkdir(parents=True, exist_ok=True)
+        fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix, dir=path.parent)
+        os.close(fd)
+        try:
+            yield Path(tmp)
+            os.replace(tmp, path)
+        except BaseException:
+            with contextlib.suppress(FileNotFoundError):
+                os.unlink(tmp)
+            raise
+
+    return _cm()
+
+
+def save_mesh(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray) -> None:
+    """Write one mesh as OBJ, OFF or PLY (chosen by suffix), atomically."""
+    path = Path(path)
+    suffix = _suffix(path)
+    vertices = np.asarray(vertices, dtype=np.float64)
+    faces = np.asarray(faces, dtype=np.int64)
+    if suffix == ".npz":
+        save_sequence(path, vertices[None], faces)
+        return
+    with atomic_path(path) as tmp:
+        if suffix == ".ply":
+            import trimesh
+
+            trimesh.Trimesh(vertices, faces, process=False).export(str(tmp), file_type="ply")
+            return
+        with open(tmp, "w") as fh:
+            if suffix == ".off":
+                fh.write(f"OFF\n{len(vertices)} {len(faces)} 0\n")
+                np.savetxt(fh, vertices, fmt="%.9g")
+                np.savetxt(fh, np.c_[np.full(len(faces), 3), faces], fmt="%d")
+            else:
+                np.savetxt(fh, vertices, fmt="v %.9g %.9g %.9g")
+                np.savetxt(fh, faces + 1, fmt="f %d %d %d")
+
+
+def save_sequence(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray) -> None:
+    """Write a sequence ``(N,V,3)`` as one ``.npz`` (arrays ``vertices``, ``faces``), atomically."""
+    path = Path(path)
+    if path.suffix.lower() != ".npz":
+        raise MeshFormatError(f"{path}: a sequence is saved as .npz.")
+    with atomic_path(path) as tmp:
+        with open(tmp, "wb") as fh:
+            np.savez(fh, vertices=np.asarray(vertices), faces=np.asarray(faces, dtype=np.int32))

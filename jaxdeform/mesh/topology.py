@@ -1,0 +1,117 @@
+"""Topology: everything about one connectivity, built once on the host with static sizes.
+
+A :class:`Topology` is a JAX pytree whose array leaves are int32/bool arrays and whose sizes are static
+metadata, so jitted functions that take it compile once per connectivity and never retrace.
+
+Conventions
+- ``edges`` (E, 2): undirected edges with ``i < j``, sorted lexicographically.
+- ``face_edge`` (F, 3): the undirected edge *opposite* corner k of each face, i.e. edge
+  (f[k+1], f[k+2]); the cotangent of the angle at corner k belongs to that edge.
+- half-edges ``half_src -> half_dst`` (2E,): both directions of every edge, sorted by source, so the
+  one-ring of vertex i is the contiguous block ``half_src == i``; ``half_edge`` maps each to its edge.
+- ``neighbors`` (V, K) padded one-rings with ``mask`` and ``degree``; padding index is the vertex itself.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jaxtyping import Array, Bool, Int
+
+from jaxdeform.errors import ConnectivityError
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Topology:
+    faces: Int[Array, "f 3"]
+    edges: Int[Array, "e 2"]
+    face_edge: Int[Array, "f 3"]
+    half_src: Int[Array, " h"]
+    half_dst: Int[Array, " h"]
+    half_edge: Int[Array, " h"]
+    neighbors: Int[Array, "v k"]
+    mask: Bool[Array, "v k"]
+    degree: Int[Array, " v"]
+    boundary_vertex: Bool[Array, " v"]
+    n_vertices: int = dataclasses.field(metadata=dict(static=True))
+    n_faces: int = dataclasses.field(metadata=dict(static=True))
+    n_edges: int = dataclasses.field(metadata=dict(static=True))
+    max_degree: int = dataclasses.field(metadata=dict(static=True))
+
+    @property
+    def n_half_edges(self) -> int:
+        return 2 * self.n_edges
+
+    def faces_numpy(self) -> np.ndarray:
+        return np.asarray(self.faces)
+
+
+def build_topology(faces: np.ndarray, n_vertices: int | None = None) -> Topology:
+    """Build the :class:`Topology` of a triangle mesh on the host (numpy), once per connectivity."""
+    faces = np.asarray(faces)
+    if faces.ndim != 2 or faces.shape[1] != 3 or faces.shape[0] == 0:
+        raise ConnectivityError(f"faces must be a non-empty (F, 3) integer array, got shape {faces.shape}.")
+    if not np.issubdtype(faces.dtype, np.integer):
+        raise ConnectivityError("faces must hold integer vertex indices.")
+    faces = faces.astype(np.int64)
+    n = int(faces.max()) + 1 if n_vertices is None else int(n_vertices)
+    if faces.min() < 0 or faces.max() >= n:
+        raise ConnectivityError(f"faces index vertex {int(faces.max())} but the mesh has {n} vertices.")
+    repeated = (faces[:, 0] == faces[:, 1]) | (faces[:, 1] == faces[:, 2]) | (faces[:, 0] == faces[:, 2])
+    if repeated.any():
+        raise ConnectivityError(f"face {int(np.argmax(repeated))} repeats a vertex index; faces must have 3 distinct vertices.")
+    used = np.zeros(n, dtype=bool)
+    used[faces.ravel()] = True
+    if not used.all():
+        raise ConnectivityError(f"vertex {int(np.argmin(used))} belongs to no face; remove unreferenced vertices first.")
+
+    # Edge opposite corner k: (f[k+1], f[k+2]).
+    a = faces[:, [1, 2, 0]].ravel()
+    b = faces[:, [2, 0, 1]].ravel()
+    lo, hi = np.minimum(a, b), np.maximum(a, b)
+    keys = lo * n + hi
+    uniq, inverse, counts = np.unique(keys, return_inverse=True, return_counts=True)
+    if counts.max() > 2:
+        raise ConnectivityError("the mesh is non-manifold: an edge is shared by more than two faces.")
+    edges = np.stack([uniq // n, uniq % n], axis=1)
+    face_edge = inverse.reshape(-1, 3)
+    boundary_edge = counts == 1
+    boundary_vertex = np.zeros(n, dtype=bool)
+    boundary_vertex[edges[boundary_edge].ravel()] = True
+
+    n_edges = edges.shape[0]
+    src = np.concatenate([edges[:, 0], edges[:, 1]])
+    dst = np.concatenate([edges[:, 1], edges[:, 0]])
+    hedge = np.concatenate([np.arange(n_edges), np.arange(n_edges)])
+    order = np.lexsort((dst, src))
+    src, dst, hedge = src[order], dst[order], hedge[order]
+    degree = np.bincount(src, minlength=n)
+    kmax = int(degree.max())
+    start = np.concatenate([[0], np.cumsum(degree)[:-1]])
+    slot = np.arange(src.shape[0]) - start[src]
+    neighbors = np.repeat(np.arange(n)[:, None], kmax, axis=1)
+    neighbors[src, slot] = dst
+    mask = np.zeros((n, kmax), dtype=bool)
+    mask[src, slot] = True
+
+    i32 = lambda x: jnp.asarray(x, dtype=jnp.int32)  # noqa: E731
+    return Topology(
+        faces=i32(faces),
+        edges=i32(edges),
+        face_edge=i32(face_edge),
+        half_src=i32(src),
+        half_dst=i32(dst),
+        half_edge=i32(hedge),
+        neighbors=i32(neighbors),
+        mask=jnp.asarray(mask),
+        degree=i32(degree),
+        boundary_vertex=jnp.asarray(boundary_vertex),
+        n_vertices=n,
+        n_faces=int(faces.shape[0]),
+        n_edges=int(n_edges),
+        max_degree=kmax,
+    )
