@@ -201,13 +201,20 @@ def spatial(axis: np.ndarray, angle: np.ndarray, g: Graph) -> tuple[np.ndarray, 
     o = _jump(rel, p, mul=True)
     s_edge = edge_signs(axis, angle, g.edges[:, 0], g.edges[:, 1])
     o = _improve_orientation(o, s_edge, g, fixed=roots)
-    phi = o * angle
-    # 2. turns: whole turns relative to the parent, summed along the path to the root.
+    return spatial_turns(o * angle, g), o
+
+
+def spatial_turns(phi: np.ndarray, g: Graph) -> np.ndarray:
+    """Stage 2 of :func:`spatial`: phi + 2 pi r with the integer turns r made consistent (N, V)."""
+    roots = np.zeros(g.n, dtype=bool)
+    roots[g.roots] = True
+    p = g.parent
+    # whole turns relative to the BFS parent, summed along the path to the root, then local improvement
     d = np.rint((phi[:, p] - phi) / TWO_PI)
     d[:, roots] = 0.0
     r = _jump(d, p, mul=False)
     r = _improve_turns(phi, r, g, fixed=roots)
-    return phi + TWO_PI * r, o
+    return phi + TWO_PI * r
 
 
 def temporal(axis: np.ndarray, angle: np.ndarray, g: Graph) -> tuple[np.ndarray, np.ndarray]:

@@ -33,7 +33,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from jaxdeform.acap.rotations import inv3
-from jaxdeform.mesh.geometry import cotangent_weights, vertex_normals
+from jaxdeform.mesh.geometry import cotangent_weights, safe_norm, vertex_normals
 from jaxdeform.mesh.topology import Topology
 
 Weighting = Literal["official", "cotangent"]
@@ -64,7 +64,7 @@ def _ring_vectors(x: Float[Array, "... v 3"], topo: Topology) -> Float[Array, ".
 def _normal_rows(x: Float[Array, "... v 3"], topo: Topology) -> Float[Array, "... v 3"]:
     """s_i n_i: unit vertex normal times 0.3 times the mean one-ring edge length."""
     e = _ring_vectors(x, topo)
-    length = jnp.sqrt(jnp.sum(e * e, axis=-1) + 0.0)
+    length = safe_norm(e)  # padding slots are zero vectors: keep their gradient finite
     mean_len = jnp.sum(jnp.where(topo.mask, length, 0.0), axis=-1) / topo.degree
     if x.ndim == 2:
         n = vertex_normals(x, topo)

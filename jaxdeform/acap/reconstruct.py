@@ -69,25 +69,27 @@ def register_factor(n: int, rows: np.ndarray, cols: np.ndarray, vals: np.ndarray
 
 def solve_factor(key: int, b: np.ndarray) -> np.ndarray:
     """Host solve with a registered factor; ``b`` is (n,) or (n, k)."""
-    b64 = np.ascontiguousarray(b, dtype=np.float64)
+    b64 = np.require(b, dtype=np.float64, requirements=["C", "W"])  # nanobind rejects read-only views
     x = np.empty_like(b64)
     _FACTORS[key].solve(b64, x)
     return x
 
 
 def _callback_solve(key: int, rhs: Array) -> Array:
-    """Solve M x = rhs for rhs of shape (..., n, 3) through the host factor (any batch shape)."""
+    """Solve M x = rhs through the host factor; rhs is vertex-major (n, ...) with any trailing shape."""
     n = _FACTOR_SIZES[key]
 
-    def host(b):
+    def host_any(b):
         b = np.asarray(b)
-        lead = b.shape[:-2]
-        cols = np.moveaxis(b.reshape(-1, n, b.shape[-1]), 1, 0).reshape(n, -1)
-        x = solve_factor(key, cols)
-        out = np.moveaxis(x.reshape(n, -1, b.shape[-1]), 0, 1).reshape(*lead, n, b.shape[-1])
-        return out.astype(b.dtype)
+        if b.shape[0] == n:  # unbatched: (n, ...)
+            return solve_factor(key, b.reshape(n, -1)).reshape(b.shape).astype(b.dtype)
+        # vmapped: (B..., n, ...) with the batch dims in front
+        lead = b.shape[: b.ndim - rhs.ndim]
+        cols = np.moveaxis(b.reshape(-1, *rhs.shape), 0, -1).reshape(n, -1)
+        x = solve_factor(key, cols).reshape(*rhs.shape, -1)
+        return np.moveaxis(x, -1, 0).reshape(*lead, *rhs.shape).astype(b.dtype)
 
-    return jax.pure_callback(host, jax.ShapeDtypeStruct(rhs.shape, rhs.dtype), rhs, vmap_method="broadcast_all")
+    return jax.pure_callback(host_any, jax.ShapeDtypeStruct(rhs.shape, rhs.dtype), rhs, vmap_method="broadcast_all")
 
 
 class PrefactoredCholesky(lx.AbstractLinearSolver):
@@ -123,13 +125,54 @@ class PrefactoredCholesky(lx.AbstractLinearSolver):
         return True
 
 
+class LinearLeastSquares(optx.AbstractLeastSquaresSolver):
+    """Least squares for residuals that are affine in y: one exact Gauss-Newton step, then stop.
+
+    ``optx.GaussNewton`` needs a second step (and a second solve) only to notice that the first step
+    already solved an affine problem; this solver takes that one step and terminates.
+    """
+
+    linear_solver: lx.AbstractLinearSolver
+    rtol: float = 0.0
+    atol: float = 0.0
+    norm: object = eqx.field(static=True, default=optx.max_norm)
+
+    def init(self, fn, y, args, options, f_struct, aux_struct, tags):
+        del fn, y, args, options, f_struct, tags
+        return (jnp.array(False), jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), aux_struct))
+
+    def step(self, fn, y, args, options, state, tags):
+        del options, state
+        residual_fn = lambda _y: fn(_y, args)[0]  # noqa: E731
+        (residual, jvp) = jax.linearize(residual_fn, y)
+        aux = fn(y, args)[1]
+        operator = lx.FunctionLinearOperator(jvp, jax.eval_shape(lambda: y), tags)
+        neg = jax.tree_util.tree_map(jnp.negative, residual)
+        sol = lx.linear_solve(operator, neg, self.linear_solver, throw=False)
+        y_new = jax.tree_util.tree_map(jnp.add, y, sol.value)
+        return y_new, (jnp.array(True), aux), aux
+
+    def terminate(self, fn, y, args, options, state, tags):
+        del fn, y, args, options, tags
+        return state[0], optx.RESULTS.successful
+
+    def postprocess(self, fn, y, aux, args, options, state, tags, result):
+        del fn, args, options, state, tags, result
+        return y, aux, {}
+
+
 def _residuals(y, args):
-    t, targets, rest_edges, sqrt_w, i, j, anchors, sqrt_a = args
-    # (T_i + T_j)/2 (q_i - q_j) per edge and frame.
-    guide = 0.5 * jnp.einsum("...eab,eb->...ea", t[..., i, :, :] + t[..., j, :, :], rest_edges)
-    r_edge = sqrt_w[:, None] * ((y[..., i, :] - y[..., j, :]) - guide)
-    r_anchor = sqrt_a * (y[..., anchors, :] - targets)
+    """Vertex-major residuals: y (V, B, 3); edge rows (E, B, 3) and anchor rows (A, B, 3)."""
+    target, targets, sqrt_w, i, j, anchors, sqrt_a = args
+    r_edge = sqrt_w[:, None, None] * (y[i] - y[j]) - target
+    r_anchor = sqrt_a * (y[anchors] - targets)
     return r_edge, r_anchor
+
+
+def edge_targets(t_vm: Float[Array, "v b 3 3"], rest_edges, sqrt_w, i, j) -> Float[Array, "e b 3"]:
+    """sqrt(w_ij) (T_i + T_j)/2 (q_i - q_j) per edge, from vertex-major gradients (V, B, 3, 3)."""
+    tsum = t_vm[i] + t_vm[j]  # (E, B, 3, 3): contiguous row gathers
+    return (0.5 * sqrt_w)[:, None, None] * jnp.einsum("ebxy,ey->ebx", tsum, rest_edges)
 
 
 class Reconstructor(eqx.Module):
@@ -147,7 +190,6 @@ class Reconstructor(eqx.Module):
     anchors: Array
     sqrt_a: Array
     key: int = eqx.field(static=True)
-    rtol: float = eqx.field(static=True, default=1e-6)
 
     @staticmethod
     def build(rest, topo: Topology, weights, anchors=None, anchor_weight: float = ANCHOR_WEIGHT) -> "Reconstructor":
@@ -183,21 +225,26 @@ class Reconstructor(eqx.Module):
 
     def __call__(self, t: Float[Array, "... v 3 3"], targets: Float[Array, "... a 3"] | None = None):
         dtype = t.dtype
+        lead = t.shape[:-3]
+        v = self.rest.shape[0]
+        t_vm = jnp.moveaxis(t.reshape(-1, v, 3, 3), 1, 0)  # (V, B, 3, 3)
+        b = t_vm.shape[1]
         if targets is None:
             targets = self.rest[self.anchors].astype(dtype)
-        targets = jnp.broadcast_to(targets, (*t.shape[:-3], self.anchors.shape[0], 3)).astype(dtype)
-        y0 = jnp.broadcast_to(self.rest.astype(dtype), (*t.shape[:-3], *self.rest.shape))
-        args = (t, targets, self.rest_edges.astype(dtype), self.sqrt_w.astype(dtype), self.edge_i, self.edge_j,
-                self.anchors, self.sqrt_a.astype(dtype))
+        targets = jnp.broadcast_to(jnp.asarray(targets, dtype), (*lead, self.anchors.shape[0], 3))
+        targets_vm = jnp.moveaxis(targets.reshape(b, -1, 3), 1, 0)  # (A, B, 3)
+        sqrt_w = self.sqrt_w.astype(dtype)
+        target = edge_targets(t_vm, self.rest_edges.astype(dtype), sqrt_w, self.edge_i, self.edge_j)
+        y0 = jnp.broadcast_to(self.rest.astype(dtype)[:, None, :], (v, b, 3))
+        args = (target, targets_vm, sqrt_w, self.edge_i, self.edge_j, self.anchors, self.sqrt_a.astype(dtype))
         linsolve = PrefactoredCholesky(self.key)
-        tol = self.rtol if dtype == jnp.float64 else 1e-4
         sol = optx.least_squares(
             _residuals,
-            optx.GaussNewton(rtol=tol, atol=tol, linear_solver=linsolve),
+            LinearLeastSquares(linear_solver=linsolve),
             y0,
             args,
-            max_steps=8,
+            max_steps=2,
             adjoint=optx.ImplicitAdjoint(linear_solver=linsolve),
             throw=False,
         )
-        return sol.value
+        return jnp.moveaxis(sol.value, 1, 0).reshape(*lead, v, 3)

@@ -21,6 +21,8 @@ from __future__ import annotations
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
+from jaxdeform.mesh.geometry import safe_norm
+
 NEWTON_STEPS = 9
 
 
@@ -94,22 +96,16 @@ def vee(k: Float[Array, "... 3 3"]) -> Float[Array, "... 3"]:
     )
 
 
-def _safe_norm(v: Array) -> Array:
-    sq = jnp.sum(v * v, axis=-1)
-    ok = sq > 0
-    return jnp.where(ok, jnp.sqrt(jnp.where(ok, sq, 1.0)), 0.0)
-
-
 def rotation_angle(r: Float[Array, "... 3 3"]) -> Float[Array, "..."]:
     w = vee(r)
     c = 0.5 * (r[..., 0, 0] + r[..., 1, 1] + r[..., 2, 2] - 1.0)
-    return jnp.arctan2(_safe_norm(w), c)
+    return jnp.arctan2(safe_norm(w), c)
 
 
 def log_rotation(r: Float[Array, "... 3 3"]) -> Float[Array, "... 3"]:
     """Axis-angle vector theta * axis with theta in [0, pi]."""
     w = vee(r)
-    sin = _safe_norm(w)
+    sin = safe_norm(w)
     c = 0.5 * (r[..., 0, 0] + r[..., 1, 1] + r[..., 2, 2] - 1.0)
     theta = jnp.arctan2(sin, c)
     # Small and medium angles: theta / sin(theta) * w.
@@ -137,6 +133,7 @@ def exp_rotation(v: Float[Array, "... 3"]) -> Float[Array, "... 3 3"]:
     th = jnp.sqrt(th2s)
     a = jnp.where(small, 1.0 - th2 / 6.0 + th2 * th2 / 120.0, jnp.sin(th) / th)
     b = jnp.where(small, 0.5 - th2 / 24.0 + th2 * th2 / 720.0, (1.0 - jnp.cos(th)) / th2s)
-    k = skew(v)
+    # K^2 = v v^T - theta^2 I, so R = (1 - b theta^2) I + a K + b v v^T.
     eye = jnp.eye(3, dtype=v.dtype)
-    return eye + a[..., None, None] * k + b[..., None, None] * (k @ k)
+    return ((1.0 - b * th2)[..., None, None] * eye + a[..., None, None] * skew(v)
+            + b[..., None, None] * (v[..., :, None] * v[..., None, :]))

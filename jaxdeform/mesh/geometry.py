@@ -20,7 +20,8 @@ from jaxdeform.mesh.topology import Topology
 DEGENERATE_RELATIVE_AREA = 1e-10
 
 
-def _safe_norm(x: Array, axis: int = -1, keepdims: bool = False) -> Array:
+def safe_norm(x: Array, axis: int = -1, keepdims: bool = False) -> Array:
+    """|x| with value 0 and finite (zero) gradient at zero vectors."""
     sq = jnp.sum(x * x, axis=axis, keepdims=keepdims)
     ok = sq > 0
     return jnp.where(ok, jnp.sqrt(jnp.where(ok, sq, 1.0)), 0.0)
@@ -28,7 +29,7 @@ def _safe_norm(x: Array, axis: int = -1, keepdims: bool = False) -> Array:
 
 def safe_normalize(x: Array, axis: int = -1) -> Array:
     """x / |x| with 0 for zero vectors and finite gradients everywhere."""
-    n = _safe_norm(x, axis=axis, keepdims=True)
+    n = safe_norm(x, axis=axis, keepdims=True)
     return x / jnp.where(n > 0, n, 1.0)
 
 
@@ -39,7 +40,7 @@ def face_cross(vertices: Float[Array, "v 3"], faces) -> Float[Array, "f 3"]:
 
 
 def face_areas(vertices: Float[Array, "v 3"], topo: Topology) -> Float[Array, " f"]:
-    return 0.5 * _safe_norm(face_cross(vertices, topo.faces))
+    return 0.5 * safe_norm(face_cross(vertices, topo.faces))
 
 
 def face_normals(vertices: Float[Array, "v 3"], topo: Topology) -> Float[Array, "f 3"]:
@@ -59,7 +60,7 @@ def corner_cotangents(vertices: Float[Array, "v 3"], topo: Topology) -> Float[Ar
     u = jnp.roll(p, -1, axis=1) - p  # p[k+1] - p[k]
     w = jnp.roll(p, -2, axis=1) - p  # p[k+2] - p[k]
     dot = jnp.sum(u * w, axis=-1)
-    cross = _safe_norm(jnp.cross(u, w))
+    cross = safe_norm(jnp.cross(u, w))
     longest = jnp.max(jnp.sum(u * u, axis=-1), axis=1, keepdims=True)
     ok = cross > DEGENERATE_RELATIVE_AREA * longest
     return jnp.where(ok, dot / jnp.where(ok, cross, 1.0), 0.0)

@@ -1,0 +1,379 @@
+"""Command-line interface: ``jaxdeform acap encode|decode`` and ``jaxdeform render``.
+
+Every expected failure (a :class:`~jaxdeform.errors.JaxDeformError`, a ``ValueError`` from bad arguments, a
+missing file or another ``OSError``) prints exactly one line ``jaxdeform: error: <sentence>`` to stderr and
+returns 2, leaving no output behind: files are written through a temporary sibling and renamed into place,
+and ``acap decode`` builds its folder beside the target and renames it at the end. Unexpected exceptions
+propagate with their traceback. Argument errors are argparse's (usage on stderr, exit 2).
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import os
+import shutil
+import sys
+import tempfile
+import time
+import zipfile
+from collections.abc import Sequence
+from pathlib import Path
+
+import numpy as np
+
+from jaxdeform.errors import ConnectivityError, JaxDeformError, MeshFormatError
+
+PROG = "jaxdeform"
+CONSISTENCY_MODES = ("spatial", "temporal", "none")
+WEIGHTINGS = ("official", "cotangent")
+CMAPS = ("viridis", "coolwarm", "viridis_r", "coolwarm_r")
+
+
+# ------------------------------------------------------------------------------------------- helpers
+
+
+def _check_exists(paths: Sequence[str]) -> None:
+    for p in paths:
+        if not Path(p).exists():
+            raise FileNotFoundError(f"{p}: no such file or folder.")
+
+
+@contextlib.contextmanager
+def _writing(path: Path):
+    """Re-raise a system error met while writing ``path`` as one sentence naming ``path``, not a temporary."""
+    try:
+        yield
+    except OSError as exc:
+        if exc.strerror is None:
+            raise
+        raise OSError(f"cannot write {path}: {exc.strerror}.") from None
+
+
+def _shape(a) -> str:
+    return "x".join(str(d) for d in np.shape(a))
+
+
+def _load_npz(path: Path) -> dict[str, np.ndarray]:
+    """All arrays of a .npz (no pickles), with a one-sentence error for anything unreadable."""
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such file.")
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            if not hasattr(data, "files"):
+                raise MeshFormatError(f"{path}: is a single .npy array, not a .npz archive.")
+            return {k: np.asarray(data[k]) for k in data.files}
+    except JaxDeformError:
+        raise
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, KeyError) as exc:
+        raise MeshFormatError(f"{path}: not a readable .npz archive ({type(exc).__name__}).") from None
+
+
+def _string(data: dict, key: str, default: str, allowed: Sequence[str], path: Path) -> str:
+    if key not in data:
+        return default
+    value = data[key]
+    if value.ndim != 0 or value.dtype.kind not in "US":
+        raise MeshFormatError(f"{path}: '{key}' must be a 0-d string array.")
+    text = str(value.item().decode() if value.dtype.kind == "S" else value.item())
+    if text not in allowed:
+        raise MeshFormatError(f"{path}: '{key}' is {text!r}; expected one of {', '.join(allowed)}.")
+    return text
+
+
+# ------------------------------------------------------------------------------------------ commands
+
+
+def cmd_encode(args: argparse.Namespace) -> int:
+    from jaxdeform.acap.features import Scaler, features_from, log_matrices, prepare
+    from jaxdeform.mesh.io import atomic_path, check_same_connectivity, load_mesh, load_sequence
+
+    _check_exists(list(args.inputs) + [args.reference])
+    out = Path(args.out)
+    if out.is_dir():
+        raise IsADirectoryError(f"--out {out} is a folder; give the path of the .npz file to write.")
+    vertices, faces = load_sequence(list(args.inputs))
+    ref_v, ref_f = load_mesh(args.reference)
+    try:
+        check_same_connectivity(ref_f, faces, ref_v.shape[0], vertices.shape[1], "the input meshes")
+    except ConnectivityError:
+        what = (f"{vertices.shape[1]} vertices against {ref_v.shape[0]}" if vertices.shape[1] != ref_v.shape[0]
+                else "different faces")
+        raise ConnectivityError(
+            f"the input meshes do not share the connectivity of the reference {args.reference} ({what})."
+        ) from None
+    dtype = np.float32 if args.float32 else np.float64
+    vertices, ref_v = vertices.astype(dtype), ref_v.astype(dtype)
+
+    t0 = time.perf_counter()
+    acap = prepare(ref_v, ref_f, weighting=args.weighting)
+    v, s = acap.encode_parts(vertices, args.consistency)
+    v, s = np.asarray(v), np.asarray(s)
+    features = np.asarray(features_from(v, s))
+    scaler = Scaler.fit(features)
+    scaled = np.asarray(scaler.transform(features))
+    log_r = np.asarray(log_matrices(v))
+    elapsed = time.perf_counter() - t0
+    if not (np.all(np.isfinite(features)) and np.all(np.isfinite(scaled))):
+        raise JaxDeformError("the encoded features are not finite (degenerate meshes?); nothing was written.")
+
+    arrays = {
+        "log_r": log_r,
+        "s": s,
+        "features": features,
+        "scaled": scaled,
+        "scaler": scaler.to_array(),
+        "faces": np.asarray(ref_f, dtype=np.int32),
+        "reference": ref_v,
+        "consistency": np.array(args.consistency),
+        "weighting": np.array(args.weighting),
+    }
+    with _writing(out), atomic_path(out) as tmp:
+        with open(tmp, "wb") as fh:
+            np.savez(fh, **arrays)
+    max_angle = float(np.linalg.norm(v, axis=-1).max())
+    n, nv = features.shape[:2]
+    print(
+        f"encoded {n} frames x {nv} vertices ({args.consistency} consistency, {args.weighting} weighting, "
+        f"{np.dtype(dtype).name}) in {elapsed:.2f} s; max rotation angle {max_angle:.4f} rad; wrote {out} "
+        f"(log_r {_shape(log_r)}, s {_shape(s)}, features {_shape(features)}, scaled {_shape(scaled)}, "
+        f"faces {_shape(ref_f)})"
+    )
+    return 0
+
+
+def _read_features(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, str]:
+    from jaxdeform.acap.features import Scaler
+
+    data = _load_npz(path)
+    if "features" in data:
+        features = data["features"]
+    elif "scaled" in data and "scaler" in data:
+        if data["scaler"].size < 4:
+            raise MeshFormatError(f"{path}: 'scaler' must hold 4 numbers (rot_min, rot_max, s_min, s_max).")
+        features = np.asarray(Scaler.from_array(data["scaler"]).inverse(data["scaled"]))
+    else:
+        raise MeshFormatError(f"{path}: holds neither 'features' nor 'scaled' with 'scaler'.")
+    for key in ("reference", "faces"):
+        if key not in data:
+            raise MeshFormatError(f"{path}: the array '{key}' is missing.")
+    reference, faces = data["reference"], data["faces"]
+    if features.ndim == 2:
+        features = features[None]
+    if features.ndim != 3 or features.shape[-1] != 9 or features.dtype.kind != "f":
+        raise MeshFormatError(f"{path}: features must be a float (N, V, 9) array, got {features.dtype} {features.shape}.")
+    if reference.ndim != 2 or reference.shape[1] != 3 or reference.dtype.kind != "f":
+        raise MeshFormatError(f"{path}: 'reference' must be a float (V, 3) array, got {reference.dtype} {reference.shape}.")
+    if faces.ndim != 2 or faces.shape[1] != 3 or faces.dtype.kind not in "iu" or faces.shape[0] == 0:
+        raise MeshFormatError(f"{path}: 'faces' must be a non-empty integer (F, 3) array, got {faces.dtype} {faces.shape}.")
+    if features.shape[1] != reference.shape[0]:
+        raise ConnectivityError(
+            f"{path}: the features have {features.shape[1]} vertices but the reference has {reference.shape[0]}."
+        )
+    if faces.min() < 0 or faces.max() >= reference.shape[0]:
+        raise ConnectivityError(f"{path}: 'faces' index vertices outside the reference's {reference.shape[0]}.")
+    if not (np.all(np.isfinite(features)) and np.all(np.isfinite(reference))):
+        raise MeshFormatError(f"{path}: the features or the reference hold NaN or infinite values.")
+    weighting = _string(data, "weighting", "official", WEIGHTINGS, path)
+    dtype = np.result_type(features.dtype, np.float32)
+    return features.astype(dtype), reference.astype(dtype), faces.astype(np.int32), weighting
+
+
+def cmd_decode(args: argparse.Namespace) -> int:
+    from jaxdeform.acap.features import prepare
+    from jaxdeform.mesh.io import save_mesh
+
+    path = Path(args.features)
+    out = Path(args.out)
+    if out.exists() and not out.is_dir():
+        raise FileExistsError(f"--out {out} exists and is not a folder.")
+    if out.is_dir() and any(out.iterdir()) and not args.force:
+        raise FileExistsError(f"--out {out} exists and is not empty; use --force to replace it.")
+    features, reference, faces, weighting = _read_features(path)
+    n, nv = features.shape[:2]
+    if args.refine is not None and not 0 <= args.refine <= 100:
+        raise ValueError(f"--refine must be between 0 and 100, got {args.refine}.")
+    anchors = None
+    if args.anchors:
+        anchors = np.asarray(args.anchors, dtype=np.int64)
+        bad = anchors[(anchors < 0) | (anchors >= nv)]
+        if bad.size:
+            raise ValueError(f"anchor {int(bad[0])} is not a vertex index (the mesh has {nv} vertices).")
+        anchors = np.unique(anchors)
+
+    t0 = time.perf_counter()
+    acap = prepare(reference, faces, weighting=weighting)
+    extra = {} if args.refine is None else {"refine": args.refine}
+    positions = np.asarray(acap.decode(features, anchors=anchors, **extra))
+    elapsed = time.perf_counter() - t0
+    if not np.all(np.isfinite(positions)):
+        raise JaxDeformError("the decoded positions are not finite (degenerate reference?); nothing was written.")
+
+    width = max(3, len(str(n - 1)))
+    with _writing(out):
+        out.parent.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent))
+    trash = None
+    try:
+        with _writing(out):
+            for k in range(n):
+                save_mesh(tmp / f"{k:0{width}d}.obj", positions[k], faces)
+            if out.exists():
+                if any(out.iterdir()):  # only with --force (checked above): move aside, swap in, then delete
+                    trash = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".old", dir=out.parent))
+                    os.replace(out, trash / out.name)
+                else:
+                    out.rmdir()
+            os.replace(tmp, out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        if trash is not None:
+            if not out.exists() and (trash / out.name).exists():
+                os.replace(trash / out.name, out)  # put the old folder back
+            shutil.rmtree(trash, ignore_errors=True)
+        raise
+    if trash is not None:
+        shutil.rmtree(trash, ignore_errors=True)
+    print(
+        f"decoded {n} frames x {nv} vertices ({weighting} weighting, "
+        f"{'anchors ' + ' '.join(map(str, anchors.tolist())) if anchors is not None else 'vertex 0 anchored'}"
+        f"{'' if args.refine is None else f', {args.refine} refinement steps'}) "
+        f"in {elapsed:.2f} s; wrote {out}/{0:0{width}d}.obj .. {n - 1:0{width}d}.obj"
+    )
+    return 0
+
+
+def cmd_render(args: argparse.Namespace) -> int:
+    from jaxdeform.mesh.io import load_mesh
+    from jaxdeform.mesh.render import auto_camera, render, save_png
+
+    mesh = Path(args.mesh)
+    _check_exists([args.mesh] + ([args.scalar] if args.scalar else []))
+    out = Path(args.out) if args.out else mesh.with_suffix(".png")
+    if out.is_dir():
+        raise IsADirectoryError(f"--out {out} is a folder; give the path of the .png file to write.")
+    vertices, faces = load_mesh(mesh)
+    scalar = None
+    if args.scalar:
+        try:
+            scalar = np.load(args.scalar, allow_pickle=False)
+        except (ValueError, EOFError, zipfile.BadZipFile) as exc:
+            raise MeshFormatError(f"{args.scalar}: not a readable .npy array ({type(exc).__name__}).") from None
+        if not isinstance(scalar, np.ndarray):
+            scalar.close()
+            raise MeshFormatError(f"{args.scalar}: is a .npz archive; give a .npy array of one value per vertex.")
+        if scalar.dtype.kind not in "biuf":
+            raise MeshFormatError(f"{args.scalar}: holds {scalar.dtype} values; expected numbers.")
+        if scalar.size != vertices.shape[0] or scalar.squeeze().ndim > 1:
+            raise MeshFormatError(
+                f"{args.scalar}: holds {scalar.size} values of shape {scalar.shape} but {mesh} has "
+                f"{vertices.shape[0]} vertices; expected one value per vertex."
+            )
+    if args.width < 1 or args.height < 1:
+        raise ValueError(f"--width and --height must be positive, got {args.width} x {args.height}.")
+    camera = auto_camera(vertices, azimuth_deg=args.azimuth, elevation_deg=args.elevation, up_axis=args.up)
+    t0 = time.perf_counter()
+    image = render(
+        vertices, faces, scalar=scalar, camera=camera, width=args.width, height=args.height, cmap=args.cmap,
+        vmin=args.vmin, vmax=args.vmax, label=args.label,
+    )
+    with _writing(out):
+        save_png(image, out)
+    print(
+        f"rendered {mesh} ({vertices.shape[0]} vertices, {faces.shape[0]} faces"
+        f"{', coloured by ' + str(args.scalar) if scalar is not None else ''}) at {args.width}x{args.height} "
+        f"in {time.perf_counter() - t0:.2f} s; wrote {out}"
+    )
+    return 0
+
+
+# -------------------------------------------------------------------------------------------- parser
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog=PROG,
+        description="Mesh deformation representations (ACAP, TS-ACAP) in JAX: encode, decode, render.",
+    )
+    from jaxdeform import __version__
+
+    parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
+    sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
+
+    acap = sub.add_parser("acap", help="ACAP features: encode meshes, decode features.",
+                          description="ACAP features (Gao et al. 2019) and their temporal variant TS-ACAP.")
+    acap_sub = acap.add_subparsers(dest="acap_command", metavar="ACTION", required=True)
+
+    enc = acap_sub.add_parser(
+        "encode", help="Encode meshes to ACAP features (.npz).",
+        description="Encode meshes sharing the reference's connectivity to ACAP features, written as one .npz "
+                    "with arrays log_r, s, features, scaled, scaler, faces, reference, consistency, weighting.",
+    )
+    enc.add_argument("inputs", nargs="+", metavar="INPUT",
+                     help="mesh files (.obj, .ply, .off, .npz) or folders of them (natural order)")
+    enc.add_argument("--reference", "-r", required=True, metavar="REF", help="the reference (rest) mesh file")
+    enc.add_argument("--out", "-o", required=True, metavar="F.npz", help="the .npz file to write")
+    enc.add_argument("--consistency", choices=CONSISTENCY_MODES, default="spatial",
+                     help="rotation-angle consistency: spatial (ACAP, default), temporal (TS-ACAP, frames in "
+                          "order) or none (angles in [0, pi])")
+    enc.add_argument("--weighting", choices=WEIGHTINGS, default="official",
+                     help="one-ring edge weights (default: official)")
+    enc.add_argument("--float32", action="store_true", help="compute in float32 (default: float64)")
+    enc.set_defaults(func=cmd_encode)
+
+    dec = acap_sub.add_parser(
+        "decode", help="Decode ACAP features (.npz) to OBJ meshes.",
+        description="Decode the features of an .npz written by 'acap encode' (or one with 'scaled' and "
+                    "'scaler', inverse-scaled) to DIR/000.obj, DIR/001.obj, ...",
+    )
+    dec.add_argument("features", metavar="F.npz", help="features file written by 'jaxdeform acap encode'")
+    dec.add_argument("--out", "-o", required=True, metavar="DIR", help="folder to create with one OBJ per frame")
+    dec.add_argument("--anchors", type=int, nargs="+", metavar="I",
+                     help="vertex indices held at their reference positions (default: vertex 0)")
+    dec.add_argument("--refine", type=int, metavar="K",
+                     help="refinement steps after the least-squares solve (default: the library's)")
+    dec.add_argument("--force", action="store_true", help="replace DIR if it exists and is not empty")
+    dec.set_defaults(func=cmd_decode)
+
+    ren = sub.add_parser("render", help="Render a mesh to PNG, optionally coloured by a per-vertex scalar.",
+                         description="Ray-cast a mesh to a PNG image (CPU, Embree).")
+    ren.add_argument("mesh", metavar="MESH", help="mesh file (.obj, .ply, .off, or a one-frame .npz)")
+    ren.add_argument("--scalar", metavar="FILE.npy", help="per-vertex values (.npy, one per vertex) to colour by")
+    ren.add_argument("--out", "-o", metavar="FILE.png", help="image to write (default: MESH with .png suffix)")
+    ren.add_argument("--width", type=int, default=800, help="image width in pixels (default 800)")
+    ren.add_argument("--height", type=int, default=600, help="image height in pixels (default 600)")
+    ren.add_argument("--azimuth", type=float, default=30.0, metavar="DEG",
+                     help="camera azimuth about the up axis in degrees (default 30)")
+    ren.add_argument("--elevation", type=float, default=20.0, metavar="DEG",
+                     help="camera elevation in degrees (default 20)")
+    ren.add_argument("--up", choices=("y", "z"), default="y", help="the world's up axis (default y)")
+    ren.add_argument("--cmap", choices=CMAPS, default="viridis", help="colormap for --scalar (default viridis)")
+    ren.add_argument("--vmin", type=float, help="scalar value at the bottom of the colormap (default: min)")
+    ren.add_argument("--vmax", type=float, help="scalar value at the top of the colormap (default: max)")
+    ren.add_argument("--label", metavar="TEXT", help="label of the colour bar")
+    ren.set_defaults(func=cmd_render)
+    return parser
+
+
+def _message(exc: BaseException) -> str:
+    if isinstance(exc, OSError) and exc.strerror:  # a system error: "[Errno 2] ..." -> "path: reason."
+        where = f"{exc.filename}: " if exc.filename else ""
+        text = f"{where}{exc.strerror}."
+    else:
+        text = str(exc) or type(exc).__name__
+    return " ".join(text.split())
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Run the CLI on ``argv`` (default ``sys.argv[1:]``); returns the exit status."""
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        return int(args.func(args) or 0)
+    except (JaxDeformError, ValueError, OSError) as exc:  # FileNotFoundError is an OSError
+        print(f"{PROG}: error: {_message(exc)}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

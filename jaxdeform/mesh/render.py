@@ -1,0 +1,485 @@
+"""A small CPU ray-cast renderer (Embree through ``embreex``) for quick looks and figures.
+
+One primary ray per pixel (or ``supersample``\\ :sup:`2` per pixel), no shadows: smooth per-vertex normals
+interpolated with the hit's barycentric coordinates, two-sided Lambert shading with a headlight at the
+camera plus ambient light. A per-vertex ``scalar`` is interpolated per pixel and mapped through a colormap
+implemented here in NumPy (``viridis`` and the diverging ``coolwarm``, append ``_r`` to reverse), with an
+optional colour bar drawn by PIL in a strip at the right of the image (the mesh viewport is narrowed so the
+bar never covers the mesh).
+
+Conventions: images are ``(H, W, 3)`` uint8; colours given as arguments are RGB floats in [0, 1];
+``Camera.fov_deg`` is the angle spanned by the *shorter* side of the viewport, so a camera frames a mesh the
+same way at any aspect ratio. Everything is vectorized over pixels (Embree traces the rays in one call).
+"""
+
+from __future__ import annotations
+
+import math
+import os
+import tempfile
+from dataclasses import dataclass, field
+from pathlib import Path
+
+import numpy as np
+from embreex import rtcore_scene as rtcs
+from embreex.mesh_construction import TriangleMesh
+from PIL import Image, ImageDraw, ImageFont
+
+from jaxdeform.errors import ConnectivityError, DegenerateMeshError, MeshFormatError
+
+#: Fraction of light that is ambient; the rest is the (two-sided) Lambert headlight.
+AMBIENT = 0.25
+
+# Anchor colours (RGB 0-255), evenly spaced over [0, 1] and interpolated linearly.
+_CMAP_ANCHORS: dict[str, np.ndarray] = {
+    # Perceptually uniform dark blue -> green -> yellow (samples of matplotlib's viridis).
+    "viridis": np.array(
+        [
+            [68, 1, 84], [72, 40, 120], [62, 73, 137], [49, 104, 142], [38, 130, 142],
+            [31, 158, 137], [53, 183, 121], [110, 206, 88], [181, 222, 43], [253, 231, 37],
+        ],
+        dtype=np.float64,
+    ),
+    # Diverging blue -> light grey/white -> red (close to Moreland's "cool to warm").
+    "coolwarm": np.array(
+        [
+            [59, 76, 192], [98, 130, 234], [141, 176, 254], [184, 208, 249], [221, 221, 221],
+            [245, 196, 173], [244, 154, 123], [222, 96, 77], [180, 4, 38],
+        ],
+        dtype=np.float64,
+    ),
+}
+
+COLORMAPS = tuple(sorted(_CMAP_ANCHORS)) + tuple(sorted(name + "_r" for name in _CMAP_ANCHORS))
+
+
+def _cmap_anchors(name: str) -> np.ndarray:
+    base, reverse = (name[:-2], True) if name.endswith("_r") else (name, False)
+    if base not in _CMAP_ANCHORS:
+        raise ValueError(f"unknown colormap {name!r}; expected one of {', '.join(COLORMAPS)}.")
+    anchors = _CMAP_ANCHORS[base] / 255.0
+    return anchors[::-1] if reverse else anchors
+
+
+def colormap(t, cmap: str = "viridis") -> np.ndarray:
+    """Map values ``t`` in [0, 1] (clipped) to RGB floats in [0, 1]: shape ``t.shape + (3,)``."""
+    anchors = _cmap_anchors(cmap)
+    t = np.clip(np.asarray(t, dtype=np.float64), 0.0, 1.0)
+    x = t * (anchors.shape[0] - 1)
+    i = np.minimum(np.floor(x).astype(np.int64), anchors.shape[0] - 2)
+    w = (x - i)[..., None]
+    return anchors[i] * (1.0 - w) + anchors[i + 1] * w
+
+
+# ----------------------------------------------------------------------------------------------- camera
+
+
+def _vec3(x, name: str) -> tuple[float, float, float]:
+    a = np.asarray(x, dtype=np.float64).reshape(-1)
+    if a.shape != (3,) or not np.all(np.isfinite(a)):
+        raise ValueError(f"camera {name} must be 3 finite numbers, got {x!r}.")
+    return (float(a[0]), float(a[1]), float(a[2]))
+
+
+@dataclass(frozen=True)
+class Camera:
+    """A pinhole camera at ``eye`` looking at ``target``; ``up`` need not be orthogonal to the view.
+
+    ``fov_deg`` is the field of view across the shorter side of the viewport. Vectors are stored as tuples of
+    floats (the dataclass is hashable).
+    """
+
+    eye: tuple[float, float, float]
+    target: tuple[float, float, float]
+    up: tuple[float, float, float] = (0.0, 1.0, 0.0)
+    fov_deg: float = 35.0
+
+    def __post_init__(self):
+        for name in ("eye", "target", "up"):
+            object.__setattr__(self, name, _vec3(getattr(self, name), name))
+        fov = float(self.fov_deg)
+        if not 0.0 < fov < 180.0:
+            raise ValueError(f"camera fov_deg must lie strictly between 0 and 180, got {self.fov_deg}.")
+        object.__setattr__(self, "fov_deg", fov)
+        if np.linalg.norm(np.subtract(self.target, self.eye)) == 0.0:
+            raise ValueError("camera eye and target must differ.")
+        if np.linalg.norm(self.up) == 0.0:
+            raise ValueError("camera up must be a non-zero vector.")
+
+    def basis(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """(forward, right, up) orthonormal vectors; up is re-chosen if it is parallel to the view."""
+        fwd = np.subtract(self.target, self.eye)
+        fwd = fwd / np.linalg.norm(fwd)
+        up = np.asarray(self.up) / np.linalg.norm(self.up)
+        right = np.cross(fwd, up)
+        if np.linalg.norm(right) < 1e-9:
+            alt = np.eye(3)[int(np.argmin(np.abs(fwd)))]
+            right = np.cross(fwd, alt)
+        right = right / np.linalg.norm(right)
+        return fwd, right, np.cross(right, fwd)
+
+
+def auto_camera(
+    vertices,
+    *,
+    azimuth_deg: float = 30.0,
+    elevation_deg: float = 20.0,
+    fov_deg: float = 35.0,
+    up_axis: str = "y",
+    margin: float = 1.08,
+) -> Camera:
+    """A camera looking at the bounding-box centre from where the bounding sphere fits the view.
+
+    ``up_axis`` ("y", the graphics convention of most mesh data sets, or "z") is the world's vertical;
+    azimuth turns around it (0 looks from +z for y-up, from -y for z-up), elevation lifts the eye above the
+    horizontal plane. ``margin`` > 1 leaves a little room around the sphere.
+    """
+    v = _check_vertices(vertices)
+    centre = 0.5 * (v.min(axis=0) + v.max(axis=0))
+    radius = float(np.sqrt(np.max(np.sum((v - centre) ** 2, axis=1))))
+    if radius == 0.0:
+        radius = 1.0
+    az, el = math.radians(azimuth_deg), math.radians(elevation_deg)
+    horizontal, vertical = math.cos(el), math.sin(el)
+    if up_axis == "y":
+        direction = np.array([horizontal * math.sin(az), vertical, horizontal * math.cos(az)])
+        up = (0.0, 1.0, 0.0)
+    elif up_axis == "z":
+        direction = np.array([horizontal * math.sin(az), -horizontal * math.cos(az), vertical])
+        up = (0.0, 0.0, 1.0)
+    else:
+        raise ValueError(f"up_axis must be 'y' or 'z', got {up_axis!r}.")
+    distance = margin * radius / math.sin(math.radians(fov_deg) / 2.0)
+    return Camera(eye=tuple(centre + distance * direction), target=tuple(centre), up=up, fov_deg=fov_deg)
+
+
+# ----------------------------------------------------------------------------------------- ray casting
+
+
+@dataclass(frozen=True, eq=False)
+class RayHits:
+    """Per-pixel result of :func:`cast_rays` (row 0 is the top of the image).
+
+    ``triangle`` (H, W) int64 face index, -1 for background; ``barycentric`` (H, W, 3) weights of the face's
+    three vertices (sum 1; zeros on background); ``points`` (H, W, 3) hit positions (NaN on background);
+    ``depth`` (H, W) distance from the eye along the ray (inf on background); ``directions`` (H, W, 3) unit
+    ray directions.
+    """
+
+    triangle: np.ndarray
+    barycentric: np.ndarray
+    points: np.ndarray
+    depth: np.ndarray
+    directions: np.ndarray = field(repr=False)
+
+    @property
+    def hit(self) -> np.ndarray:
+        return self.triangle >= 0
+
+
+def _check_vertices(vertices) -> np.ndarray:
+    v = np.asarray(vertices, dtype=np.float64)
+    if v.ndim != 2 or v.shape[1] != 3 or v.shape[0] == 0:
+        raise MeshFormatError(f"vertices must be a non-empty (V, 3) array, got shape {v.shape}.")
+    if not np.all(np.isfinite(v)):
+        bad = int(np.argwhere(~np.isfinite(v))[0, 0])
+        raise MeshFormatError(f"vertex {bad} has a NaN or infinite coordinate; cannot render it.")
+    return v
+
+
+def _check_mesh(vertices, faces) -> tuple[np.ndarray, np.ndarray]:
+    v = _check_vertices(vertices)
+    f = np.asarray(faces)
+    if f.ndim != 2 or f.shape[1] != 3:
+        raise MeshFormatError(f"faces must be an (F, 3) array, got shape {f.shape}.")
+    if f.shape[0] == 0:
+        raise DegenerateMeshError("the mesh has no faces, so there is nothing to render.")
+    if not np.issubdtype(f.dtype, np.integer):
+        raise MeshFormatError(f"faces must hold integer vertex indices, got dtype {f.dtype}.")
+    if f.min() < 0 or f.max() >= v.shape[0]:
+        bad = int(f.max()) if f.max() >= v.shape[0] else int(f.min())
+        raise ConnectivityError(f"faces index vertex {bad} but the mesh has {v.shape[0]} vertices.")
+    return v, f.astype(np.int64)
+
+
+def _ray_directions(camera: Camera, width: int, height: int) -> np.ndarray:
+    """Unit ray directions, (height * width, 3) float32, row-major from the top-left pixel."""
+    fwd, right, up = camera.basis()
+    half = math.tan(math.radians(camera.fov_deg) / 2.0) / (min(width, height) / 2.0)
+    xs = ((np.arange(width) + 0.5 - width / 2.0) * half).astype(np.float32)
+    ys = ((height / 2.0 - (np.arange(height) + 0.5)) * half).astype(np.float32)
+    d = fwd.astype(np.float32) + xs[None, :, None] * right.astype(np.float32)
+    d = d + ys[:, None, None] * up.astype(np.float32)
+    d = d.reshape(-1, 3)
+    d /= np.sqrt(np.einsum("nc,nc->n", d, d))[:, None]
+    return d
+
+
+@dataclass(frozen=True, eq=False)
+class _Trace:
+    """Compact ray-cast result: only the hit pixels (flat indices into the image)."""
+
+    width: int
+    height: int
+    directions: np.ndarray  # (H * W, 3) float32
+    pixel: np.ndarray  # (m,) flat indices of the hit pixels
+    triangle: np.ndarray  # (m,) int64
+    barycentric: np.ndarray  # (m, 3) float64
+
+
+def _trace(v: np.ndarray, f: np.ndarray, camera: Camera, width: int, height: int) -> _Trace:
+    if int(width) < 1 or int(height) < 1:
+        raise ValueError(f"image size must be at least 1 x 1 pixels, got {width} x {height}.")
+    width, height = int(width), int(height)
+    dirs = _ray_directions(camera, width, height)
+    # Embree works in float32: shift the scene so that the camera target is at the origin.
+    shift = np.asarray(camera.target)
+    scene = rtcs.EmbreeScene()
+    TriangleMesh(scene, np.ascontiguousarray(v - shift, dtype=np.float32), np.ascontiguousarray(f, dtype=np.int32))
+    eye = (np.asarray(camera.eye) - shift).astype(np.float32)
+    origins = np.ascontiguousarray(np.broadcast_to(eye, dirs.shape))
+    res = scene.run(origins, dirs, output=1)
+    prim = np.asarray(res["primID"])
+    pixel = np.flatnonzero(prim >= 0)
+    # Embree's (u, v) weight the face's 2nd and 3rd vertex: p = (1 - u - v) p0 + u p1 + v p2.
+    u = np.asarray(res["u"])[pixel].astype(np.float64)
+    w = np.asarray(res["v"])[pixel].astype(np.float64)
+    bary = np.clip(np.stack([1.0 - u - w, u, w], axis=-1), 0.0, None)
+    bary /= np.maximum(bary.sum(axis=-1, keepdims=True), 1e-30)
+    return _Trace(width, height, dirs, pixel, prim[pixel].astype(np.int64), bary)
+
+
+def cast_rays(vertices, faces, camera: Camera, width: int, height: int) -> RayHits:
+    """Trace one ray through the centre of every pixel of a ``width`` x ``height`` image."""
+    v, f = _check_mesh(vertices, faces)
+    tr = _trace(v, f, camera, width, height)
+    n = tr.width * tr.height
+    tri = np.full(n, -1, dtype=np.int64)
+    tri[tr.pixel] = tr.triangle
+    bary = np.zeros((n, 3))
+    bary[tr.pixel] = tr.barycentric
+    pts = np.einsum("nk,nkc->nc", tr.barycentric, v[f[tr.triangle]])
+    points = np.full((n, 3), np.nan)
+    points[tr.pixel] = pts
+    depth = np.full(n, np.inf)
+    depth[tr.pixel] = np.linalg.norm(pts - np.asarray(camera.eye), axis=-1)
+    shape = (tr.height, tr.width)
+    return RayHits(
+        triangle=tri.reshape(shape),
+        barycentric=bary.reshape(shape + (3,)),
+        points=points.reshape(shape + (3,)),
+        depth=depth.reshape(shape),
+        directions=tr.directions.astype(np.float64).reshape(shape + (3,)),
+    )
+
+
+# ------------------------------------------------------------------------------------------- rendering
+
+
+def _vertex_normals(v: np.ndarray, f: np.ndarray) -> np.ndarray:
+    cross = np.cross(v[f[:, 1]] - v[f[:, 0]], v[f[:, 2]] - v[f[:, 0]])  # area-weighted face normals
+    n = np.zeros_like(v)
+    for c in range(3):
+        for k in range(3):
+            n[:, c] += np.bincount(f[:, k], weights=cross[:, c], minlength=v.shape[0])
+    return n
+
+
+def _shade(v, f, tr: _Trace, ambient: float) -> np.ndarray:
+    """Two-sided Lambert with a headlight, per hit pixel: values in [ambient, 1]."""
+    tri = tr.triangle
+    vn = _vertex_normals(v, f)
+    n = np.einsum("nk,nkc->nc", tr.barycentric, vn[f[tri]])
+    norm = np.linalg.norm(n, axis=-1)
+    bad = norm < 1e-12
+    if np.any(bad):  # vertex normals cancel out (e.g. a fold): use the face normal instead
+        fv = v[f[tri[bad]]]
+        n[bad] = np.cross(fv[:, 1] - fv[:, 0], fv[:, 2] - fv[:, 0])
+        norm = np.linalg.norm(n, axis=-1)
+    n = n / np.maximum(norm, 1e-30)[:, None]
+    lambert = np.abs(np.einsum("nc,nc->n", n, tr.directions[tr.pixel]))
+    return ambient + (1.0 - ambient) * lambert
+
+
+def _rgb(color, name: str) -> np.ndarray:
+    c = np.asarray(color, dtype=np.float64).reshape(-1)
+    if c.shape != (3,) or not np.all(np.isfinite(c)) or c.min() < 0.0 or c.max() > 1.0:
+        raise ValueError(f"{name} must be 3 RGB floats in [0, 1], got {color!r}.")
+    return c
+
+
+def _font(size: int):
+    try:
+        return ImageFont.load_default(size=size)
+    except (TypeError, ValueError, OSError):  # Pillow without FreeType: fixed-size bitmap font
+        return ImageFont.load_default()
+
+
+def _fmt(x: float) -> str:
+    s = f"{x:.3g}"
+    return "0" if s in ("-0", "0") else s
+
+
+def _text_size(draw: ImageDraw.ImageDraw, text: str, font) -> tuple[int, int]:
+    box = draw.textbbox((0, 0), text, font=font)
+    return box[2] - box[0], box[3] - box[1]
+
+
+def _colorbar_layout(width: int, height: int, vmin: float, vmax: float, label: str | None):
+    font = _font(max(10, round(height / 42)))
+    probe = ImageDraw.Draw(Image.new("RGB", (1, 1)))
+    ticks = [vmax, 0.5 * (vmin + vmax), vmin] if vmax > vmin else [vmax]
+    texts = [_fmt(t) for t in ticks]
+    text_w = max(_text_size(probe, t, font)[0] for t in texts)
+    bar_w = max(12, round(height / 30))
+    pad = max(6, round(height / 60))
+    strip = pad + bar_w + pad // 2 + 4 + text_w + pad
+    if label:
+        strip = max(strip, _text_size(probe, label, font)[0] + 2 * pad)
+    if strip > width // 2 or height < 60:
+        return None  # too small an image to hold a readable colour bar
+    return font, ticks, texts, bar_w, pad, strip
+
+
+def _draw_colorbar(image: np.ndarray, strip: int, layout, vmin, vmax, cmap, label, background) -> np.ndarray:
+    font, ticks, texts, bar_w, pad, _ = layout
+    height, width = image.shape[:2]
+    pil = Image.fromarray(image)
+    draw = ImageDraw.Draw(pil)
+    ink = (20, 20, 20) if float(np.dot(background, [0.299, 0.587, 0.114])) > 0.5 else (235, 235, 235)
+    text_h = _text_size(draw, "0.9e+09", font)[1]
+    top = round(0.12 * height) + (text_h + pad if label else 0)
+    bottom = height - round(0.12 * height)
+    if bottom - top < 8:
+        top, bottom = pad, height - pad
+    x0 = width - strip + pad
+    x1 = x0 + bar_w
+    rows = np.arange(top, bottom)
+    t = 1.0 - (rows - top) / max(bottom - top - 1, 1)  # vmax at the top
+    colours = (np.clip(colormap(t, cmap), 0, 1) * 255 + 0.5).astype(np.uint8)
+    bar = np.repeat(colours[:, None, :], x1 - x0, axis=1)
+    out = np.asarray(pil).copy()
+    out[top:bottom, x0:x1] = bar
+    pil = Image.fromarray(out)
+    draw = ImageDraw.Draw(pil)
+    draw.rectangle([x0 - 1, top - 1, x1, bottom], outline=ink, width=1)
+    for value, text in zip(ticks, texts):
+        frac = 0.5 if vmax <= vmin else (vmax - value) / (vmax - vmin)
+        y = round(top + frac * (bottom - top - 1))
+        draw.line([(x1, y), (x1 + 4, y)], fill=ink, width=1)
+        draw.text((x1 + 4 + pad // 2, y), text, font=font, fill=ink, anchor="lm")
+    if label:
+        draw.text((width - strip / 2, top - pad), label, font=font, fill=ink, anchor="mb")
+    return np.asarray(pil)
+
+
+def render(
+    vertices,
+    faces,
+    *,
+    scalar=None,
+    camera: Camera | None = None,
+    width: int = 800,
+    height: int = 600,
+    cmap: str = "viridis",
+    vmin: float | None = None,
+    vmax: float | None = None,
+    colorbar: bool = True,
+    label: str | None = None,
+    base_color=(0.75, 0.78, 0.85),
+    background=(1.0, 1.0, 1.0),
+    shading: bool = True,
+    supersample: int = 1,
+) -> np.ndarray:
+    """Render a mesh to an ``(height, width, 3)`` uint8 image.
+
+    Without ``scalar`` the mesh is drawn in ``base_color``; with a per-vertex ``scalar`` (length V) each
+    pixel gets the scalar interpolated at its hit point, mapped through ``cmap`` over [vmin, vmax] (default:
+    the scalar's range; values outside are clipped), and a colour bar is drawn at the right unless
+    ``colorbar=False`` (or the image is too small to hold one: under 60 pixels high, or the bar and its labels
+would take more than half the width). ``camera`` defaults to :func:`auto_camera`. ``shading=False`` draws flat colours
+    (no lighting); ``supersample=k`` traces k x k rays per pixel and averages them (anti-aliasing).
+    """
+    v, f = _check_mesh(vertices, faces)
+    if cmap not in COLORMAPS:
+        _cmap_anchors(cmap)  # raises with the list of names
+    base = _rgb(base_color, "base_color")
+    bg = _rgb(background, "background")
+    width, height, k = int(width), int(height), int(supersample)
+    if width < 1 or height < 1:
+        raise ValueError(f"image size must be at least 1 x 1 pixels, got {width} x {height}.")
+    if k < 1:
+        raise ValueError(f"supersample must be a positive integer, got {supersample}.")
+    s = None
+    if scalar is not None:
+        s = np.asarray(scalar, dtype=np.float64).reshape(-1)
+        if s.shape[0] != v.shape[0]:
+            raise MeshFormatError(f"scalar has {s.shape[0]} values but the mesh has {v.shape[0]} vertices.")
+        if not np.all(np.isfinite(s)):
+            bad = int(np.argwhere(~np.isfinite(s))[0, 0])
+            raise MeshFormatError(f"scalar value of vertex {bad} is NaN or infinite; cannot colour by it.")
+        lo = float(s.min()) if vmin is None else float(vmin)
+        hi = float(s.max()) if vmax is None else float(vmax)
+        if not (np.isfinite(lo) and np.isfinite(hi)) or hi < lo:
+            raise ValueError(f"vmin and vmax must be finite with vmin <= vmax, got {lo} and {hi}.")
+    if camera is None:
+        camera = auto_camera(v)
+
+    strip, layout = 0, None
+    if s is not None and colorbar:
+        layout = _colorbar_layout(width, height, lo, hi, label)
+        strip = 0 if layout is None else layout[-1]
+    view_w = width - strip
+
+    tr = _trace(v, f, camera, view_w * k, height * k)
+    image = np.empty((height * k * view_w * k, 3))
+    image[...] = bg
+    if s is not None:
+        value = np.einsum("nk,nk->n", tr.barycentric, s[f[tr.triangle]])
+        t = np.full_like(value, 0.5) if hi == lo else (value - lo) / (hi - lo)
+        colour = colormap(t, cmap)
+    else:
+        colour = np.broadcast_to(base, (tr.pixel.size, 3))
+    if shading:
+        colour = colour * _shade(v, f, tr, AMBIENT)[:, None]
+    image[tr.pixel] = colour
+    image = image.reshape(height * k, view_w * k, 3)
+    if k > 1:
+        image = image.reshape(height, k, view_w, k, 3).mean(axis=(1, 3))
+    full = np.empty((height, width, 3))
+    full[...] = bg
+    full[:, :view_w] = image
+    out = (np.clip(full, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+    if layout is not None:
+        out = _draw_colorbar(out, strip, layout, lo, hi, cmap, label, bg)
+    return out
+
+
+def save_png(image, path) -> Path:
+    """Write an (H, W, 3) or (H, W) uint8 image as PNG atomically (temporary file + rename); returns the path."""
+    img = np.asarray(image)
+    if img.dtype != np.uint8 or not (img.ndim == 2 or (img.ndim == 3 and img.shape[2] in (3, 4))):
+        raise ValueError(f"image must be a uint8 (H, W), (H, W, 3) or (H, W, 4) array, got {img.dtype} {img.shape}.")
+    path = Path(path)
+    path.parent.mkdir(parents=True, exist_ok=True)
+    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
+    try:
+        with os.fdopen(fd, "wb") as fh:
+            Image.fromarray(img).save(fh, format="PNG")
+            fh.flush()
+            os.fsync(fh.fileno())
+        os.replace(tmp, path)
+    except BaseException:
+        try:
+            os.unlink(tmp)
+        except FileNotFoundError:
+            pass
+        raise
+    return path
+
+
+def render_png(path, vertices, faces, **kwargs) -> np.ndarray:
+    """:func:`render` the mesh with ``kwargs`` and :func:`save_png` it to ``path``; returns the image."""
+    image = render(vertices, faces, **kwargs)
+    save_png(image, path)
+    return image

@@ -1,0 +1,238 @@
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+from scipy.linalg import expm
+
+from jaxdeform import acap
+from jaxdeform.acap import consistency as cons
+from jaxdeform.errors import ConnectivityError, DegenerateMeshError
+
+IDENTITY_FEATURE = np.array([0, 0, 0, 1, 0, 0, 1, 0, 1.0])
+
+
+def thin_tube(n_around=8, n_along=60, radius=0.05, length=6.0):
+    ang = np.linspace(0, 2 * np.pi, n_around, endpoint=False)
+    s = np.linspace(0, length, n_along)
+    v = np.stack([np.repeat(s, n_around), np.tile(radius * np.cos(ang), n_along), np.tile(radius * np.sin(ang), n_along)], 1)
+    faces = []
+    for i in range(n_along - 1):
+        for j in range(n_around):
+            a, b = i * n_around + j, i * n_around + (j + 1) % n_around
+            c, d = a + n_around, b + n_around
+            faces += [[a, b, d], [a, d, c]]
+    return v, np.asarray(faces)
+
+
+def bend(v, total_angle, length=6.0):
+    """Bend along x into an arc in the x-y plane; the local rotation at arclength s is total*s/L about z."""
+    radius = length / total_angle
+    th = v[:, 0] / radius
+    rr = radius - v[:, 1]
+    return np.stack([rr * np.sin(th), radius - rr * np.cos(th), v[:, 2]], 1), th
+
+
+@pytest.mark.parametrize("dtype", [np.float32, np.float64])
+def test_identity_gives_identity_features(dtype):
+    v, f = thin_tube()
+    feats = np.asarray(acap.encode(v.astype(dtype), f, v[None].astype(dtype)))
+    assert feats.dtype == dtype
+    np.testing.assert_allclose(feats[0], np.broadcast_to(IDENTITY_FEATURE, feats[0].shape), atol=1e-5 if dtype == np.float32 else 1e-10)
+
+
+def test_rigid_motion_gives_unit_stretch_and_constant_rotation():
+    v, f = thin_tube()
+    rvec = np.array([0.4, -1.0, 2.2])
+    r = expm(np.array([[0, -rvec[2], rvec[1]], [rvec[2], 0, -rvec[0]], [-rvec[1], rvec[0], 0]]))
+    moved = v @ r.T + [3.0, -1.0, 2.0]
+    a = acap.prepare(v, f)
+    vecs, s = a.encode_parts(moved[None], "spatial")
+    np.testing.assert_allclose(np.asarray(s[0]), np.broadcast_to(np.eye(3), s[0].shape), atol=1e-9)
+    np.testing.assert_allclose(np.asarray(vecs[0]), np.broadcast_to(rvec, vecs[0].shape), atol=1e-9)
+
+
+def test_known_bend_angle_and_consistency_past_pi():
+    v, f = thin_tube(n_around=16, n_along=80)
+    total = 1.4 * 2 * np.pi
+    bent, th = bend(v, total)
+    a = acap.prepare(v, f)
+    vec, _ = a.encode_parts(bent[None], "spatial")
+    vec = np.asarray(vec[0])
+    interior = (v[:, 0] > 0.2) & (v[:, 0] < 5.8)  # one-ring fits at the open ends see half a ring
+    # The angle follows the bend continuously past pi and 2 pi. (Near 2 pi the rotation is close to the
+    # identity and its axis ill-defined, so the axis direction is not compared there.)
+    np.testing.assert_allclose(np.linalg.norm(vec[interior], axis=-1), th[interior], atol=4e-2)
+    clear = interior & (np.abs(th - 2 * np.pi) > 0.5)
+    np.testing.assert_allclose(vec[clear, 2], th[clear], atol=4e-2)
+    assert vec[:, 2].max() > 2 * np.pi
+    raw, _ = a.encode_parts(bent[None], "none")
+    assert np.linalg.norm(np.asarray(raw), axis=-1).max() <= np.pi + 1e-9
+
+
+def _angles(log_mats):
+    return np.linalg.norm(np.stack([log_mats[..., 2, 1], log_mats[..., 0, 2], log_mats[..., 1, 0]], -1), axis=-1)
+
+
+def test_acap_bar_matches_official_outputs(acap_bar):
+    verts, faces, gt = acap_bar
+    a = acap.prepare(verts[0], faces)
+    vec, s = a.encode_parts(verts, "none")
+    r_ours = np.asarray(jax.vmap(acap.features.exp_rotation)(vec))
+    r_gt = np.array([[expm(m) for m in frame] for frame in gt("LOGRNEW_GT.txt")])
+    assert np.abs(r_ours - r_gt).max() <= 2e-2
+    s_err = np.abs(np.asarray(s) - gt("S_GT.txt"))
+    assert np.quantile(s_err, 0.99) <= 1e-2
+    assert np.linalg.norm(np.asarray(vec), axis=-1).max() <= np.pi + 1e-9
+
+    vec_c, _ = a.encode_parts(verts, "spatial")
+    ang = np.linalg.norm(np.asarray(vec_c), axis=-1)
+    ang_gt = _angles(gt("LOGRNEW_withopt_GT.txt"))
+    assert np.quantile(np.abs(ang - ang_gt), 0.99) <= 2e-2
+    assert ang.max() >= 5.9
+
+
+def test_fast_consistency_equals_exact_milp_on_acap_bar(acap_bar):
+    verts, faces, _ = acap_bar
+    a = acap.prepare(verts[0], faces)
+    vec, _ = a.local(verts[1:2])
+    vec = np.asarray(vec[0], dtype=np.float64)
+    angle = np.linalg.norm(vec, axis=-1)
+    axis = vec / np.maximum(angle, 1e-300)[:, None]
+    phi_fast, o_fast = cons.spatial(axis[None], angle[None], a.graph)
+    phi_milp, o_milp = cons.milp_spatial(axis, angle, a.graph)
+    s_edge = cons.edge_signs(axis, angle, a.graph.edges[:, 0], a.graph.edges[:, 1])
+    assert cons.orientation_energy(o_fast[0], s_edge, a.graph) == pytest.approx(cons.orientation_energy(o_milp, s_edge, a.graph))
+    assert cons.turn_energy(phi_fast[0], a.graph) == pytest.approx(cons.turn_energy(phi_milp, a.graph), rel=1e-9, abs=1e-9)
+
+
+def test_fast_consistency_is_optimal_on_random_small_meshes():
+    """Given the same orientations, the fast turns reach the MILP optimum on a noisy bend past 2 pi."""
+    v, f = thin_tube(n_around=6, n_along=25)
+    bent, _ = bend(v, 2.3 * np.pi)
+    rng = np.random.default_rng(3)
+    bent = bent + 0.01 * rng.normal(size=bent.shape)
+    a = acap.prepare(v, f)
+    vec = np.asarray(a.local(bent[None])[0][0], dtype=np.float64)
+    angle = np.linalg.norm(vec, axis=-1)
+    axis = vec / np.maximum(angle, 1e-300)[:, None]
+    o = cons.milp_orientation(axis, angle, a.graph)
+    phi_fast = cons.spatial_turns((o * angle)[None], a.graph)[0]
+    phi_milp = o * angle + 2 * np.pi * cons.milp_turns(o * angle, a.graph)
+    assert np.abs(phi_milp).max() > 2 * np.pi
+    assert cons.turn_energy(phi_fast, a.graph) <= cons.turn_energy(phi_milp, a.graph) + 1e-6
+
+
+def test_temporal_consistency_is_continuous_in_time():
+    v, f = thin_tube()
+    frames = np.stack([bend(v, ang)[0] for ang in np.linspace(0.3, 2.6 * np.pi, 16)])
+    a = acap.prepare(v, f)
+    vec_t, _ = a.encode_parts(frames, "temporal")
+    ang_t = np.linalg.norm(np.asarray(vec_t), axis=-1)  # (near 2 pi the axis itself is ill-defined)
+    assert np.abs(np.diff(ang_t, axis=0)).max() < 0.6  # each step adds ~0.52 rad at the far end
+    assert ang_t[-1].max() > 2 * np.pi
+
+
+def test_scaler_range_and_inverse(acap_bar):
+    verts, faces, _ = acap_bar
+    feats = acap.encode(verts[0], faces, verts)
+    sc = acap.Scaler.fit(feats)
+    scaled = np.asarray(sc.transform(feats))
+    assert scaled.min() >= -0.95 and scaled.max() <= 0.95
+    assert scaled[..., :3].min() == pytest.approx(-0.95, abs=1e-5)
+    np.testing.assert_allclose(np.asarray(sc.inverse(scaled)), np.asarray(feats), atol=1e-10)
+    np.testing.assert_allclose(acap.Scaler.from_array(sc.to_array()).to_array(), sc.to_array())
+
+
+def test_round_trip_acap_bar(acap_bar):
+    verts, faces, _ = acap_bar
+    a = acap.prepare(verts[0], faces)
+    out = np.asarray(a.decode(a.encode(verts)))
+    diag = np.linalg.norm(np.ptp(verts[0], axis=0))
+    err = np.linalg.norm((out - out.mean(1, keepdims=True)) - (verts - verts.mean(1, keepdims=True)), axis=-1) / diag
+    assert err.mean() < 1e-3 and err.max() < 1e-2
+
+
+@pytest.mark.slow
+def test_round_trip_horse_gallop(horse):
+    verts, faces = horse
+    a = acap.prepare(verts[0], faces)
+    out = np.asarray(a.decode(a.encode(verts, "spatial")))
+    diag = np.linalg.norm(np.ptp(verts[0], axis=0))
+    err = np.linalg.norm((out - out.mean(1, keepdims=True)) - (verts - verts.mean(1, keepdims=True)), axis=-1) / diag
+    assert err.mean() <= 1e-3, err.mean()
+    assert err.max() <= 1e-2, err.max()
+
+
+def test_decode_gradient_matches_finite_differences(acap_bar):
+    verts, faces, _ = acap_bar
+    a = acap.prepare(verts[0], faces)
+    feats = a.encode(verts[1:2])
+    w = jnp.asarray(np.random.default_rng(0).normal(size=(1, verts.shape[1], 3)))
+    loss = lambda f: jnp.sum(w * a.decode(f)) + 0.1 * jnp.sum(a.decode(f) ** 2)  # noqa: E731
+    g = jax.grad(loss)(feats)
+    assert np.all(np.isfinite(np.asarray(g)))
+    rng = np.random.default_rng(1)
+    for _ in range(3):
+        d = jnp.asarray(rng.normal(size=feats.shape))
+        eps = 1e-5
+        fd = (loss(feats + eps * d) - loss(feats - eps * d)) / (2 * eps)
+        an = jnp.sum(g * d)
+        assert abs(float(an - fd)) <= 1e-4 * abs(float(fd)), (float(an), float(fd))
+
+
+def test_decode_gradient_finite_at_identity(acap_bar):
+    verts, faces, _ = acap_bar
+    a = acap.prepare(verts[0], faces)
+    feats = jnp.broadcast_to(jnp.asarray(IDENTITY_FEATURE), (1, verts.shape[1], 9))
+    g = jax.grad(lambda f: jnp.sum(a.decode(f) ** 2))(feats)
+    assert np.all(np.isfinite(np.asarray(g)))
+    np.testing.assert_allclose(np.asarray(a.decode(feats))[0], verts[0], atol=1e-8)
+
+
+def test_anchors_hold_targets():
+    v, f = thin_tube()
+    bent, _ = bend(v, np.pi)
+    a = acap.prepare(v, f)
+    feats = a.encode(bent[None])
+    anchors = [0, len(v) - 1]
+    out = np.asarray(a.decode(feats, anchors=anchors, targets=bent[anchors]))
+    np.testing.assert_allclose(out[0, anchors], bent[anchors], atol=1e-3)
+    np.testing.assert_allclose(out[0], bent, atol=5e-3)
+
+
+def test_jit_matches_no_jit_and_no_retracing(acap_bar):
+    from jaxdeform.acap.features import _decode, _local
+
+    verts, faces, _ = acap_bar
+    a = acap.prepare(verts[0], faces)
+    vec_jit, s_jit = a.local(verts)
+    with jax.disable_jit():
+        vec_eager, s_eager = a.local(verts)
+    np.testing.assert_allclose(np.asarray(vec_jit), np.asarray(vec_eager), atol=1e-10)
+    np.testing.assert_allclose(np.asarray(s_jit), np.asarray(s_eager), atol=1e-10)
+    feats = a.encode(verts)
+    a.decode(feats)
+    n_local, n_decode = _local._cache_size(), _decode._cache_size()
+    a.local(verts + 0.01)
+    a.decode(feats * 1.001)
+    assert _local._cache_size() == n_local and _decode._cache_size() == n_decode
+
+
+def test_degenerate_faces_give_finite_features():
+    v, f = thin_tube(n_around=6, n_along=10)
+    v = v.copy()
+    v[f[5, 2]] = 0.5 * (v[f[5, 0]] + v[f[5, 1]])  # collapse one face onto its edge
+    feats = np.asarray(acap.encode(v, f, v[None] * 1.1))
+    assert np.all(np.isfinite(feats))
+
+
+def test_bad_inputs():
+    v, f = thin_tube(n_around=6, n_along=10)
+    bad = v.copy()
+    bad[3, 1] = np.nan
+    with pytest.raises(DegenerateMeshError, match="NaN"):
+        acap.encode(v, f, bad[None])
+    with pytest.raises(ConnectivityError):
+        acap.encode(v, f, v[None, :-1])
+    with pytest.raises(ValueError, match="consistency"):
+        acap.encode(v, f, v[None], consistency="sideways")
