@@ -219,6 +219,9 @@ def bench_case(case: str, frames: np.ndarray, faces: np.ndarray, dtype, repeats:
     decoded, first, times = timed(lambda: [a.decode(f) for f in feats], repeats)
     dec = summary(first, times, n)
     log(f"  decode        {dec['per_frame_ms_median']:.3f} ms/frame")
+    _, first, times = timed(lambda: [a.decode(f, refine=0) for f in feats], repeats)
+    dec0 = summary(first, times, n)
+    log(f"  decode plain  {dec0['per_frame_ms_median']:.3f} ms/frame (refine=0)")
 
     rng = np.random.default_rng(0)
     b = rng.standard_normal((v, 3))
@@ -256,6 +259,8 @@ def bench_case(case: str, frames: np.ndarray, faces: np.ndarray, dtype, repeats:
         "decode": dec,
         "cholespy_solve_3rhs_ms": round(solve_ms, 4),
         "decode_over_solve": round(dec["per_frame_ms_median"] / solve_ms, 3) if solve_ms > 0 else None,
+        "decode_plain": dec0,
+        "decode_plain_over_solve": round(dec0["per_frame_ms_median"] / solve_ms, 3) if solve_ms > 0 else None,
         "roundtrip": rt,
         "output_dtype": {"features": str(feats[0].dtype), "decoded": str(decoded.dtype)},
         "peak_rss_mb": round(peak_rss_mb(), 1),

@@ -201,21 +201,22 @@ def test_anchors_hold_targets():
 
 
 def test_jit_matches_no_jit_and_no_retracing(acap_bar):
-    from jaxdeform.acap.features import _decode, _local
+    from jaxdeform.acap.features import _decode, _gradients_stage, _output_stage, _polar_stage
 
     verts, faces, _ = acap_bar
     a = acap.prepare(verts[0], faces)
-    vec_jit, s_jit = a.local(verts)
+    vec_jit, s_jit = a.encode_parts(verts, "spatial")
     with jax.disable_jit():
-        vec_eager, s_eager = a.local(verts)
+        vec_eager, s_eager = a.encode_parts(verts, "spatial")
     np.testing.assert_allclose(np.asarray(vec_jit), np.asarray(vec_eager), atol=1e-10)
     np.testing.assert_allclose(np.asarray(s_jit), np.asarray(s_eager), atol=1e-10)
     feats = a.encode(verts)
     a.decode(feats)
-    n_local, n_decode = _local._cache_size(), _decode._cache_size()
-    a.local(verts + 0.01)
+    jitted = (_gradients_stage, _polar_stage, _output_stage, cons.consistent_cm, _decode)
+    sizes = [f._cache_size() for f in jitted]
+    a.encode(verts + 0.01)
     a.decode(feats * 1.001)
-    assert _local._cache_size() == n_local and _decode._cache_size() == n_decode
+    assert [f._cache_size() for f in jitted] == sizes
 
 
 def test_degenerate_faces_give_finite_features():

@@ -17,7 +17,7 @@ from jaxdeform.mesh import save_mesh
 TIMING_KEYS = {"compile_s", "per_frame_ms_median", "per_frame_ms_min"}
 RECORD_KEYS = {
     "case", "vertices", "faces", "frames", "dtype", "device", "cpu", "prepare_s", "encode", "encode_local",
-    "encode_temporal", "decode", "cholespy_solve_3rhs_ms", "cholespy_factor_s", "decode_over_solve", "roundtrip",
+    "encode_temporal", "decode", "decode_plain", "cholespy_solve_3rhs_ms", "cholespy_factor_s", "decode_over_solve", "roundtrip",
 }
 
 
@@ -45,7 +45,7 @@ def test_benchmark_script_smoke(tmp_path):
         assert RECORD_KEYS <= set(r), RECORD_KEYS - set(r)
         assert (r["vertices"], r["faces"], r["frames"]) == (verts.shape[1], faces.shape[0], 3)
         assert {"platform", "name"} <= set(r["device"])
-        for key in ("encode", "encode_local", "encode_temporal", "decode"):
+        for key in ("encode", "encode_local", "encode_temporal", "decode", "decode_plain"):
             assert TIMING_KEYS <= set(r[key]), (key, r[key])
             assert all(math.isfinite(r[key][k]) and r[key][k] >= 0 for k in TIMING_KEYS)
         assert r["encode"]["consistency"] == "spatial"

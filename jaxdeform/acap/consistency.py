@@ -8,11 +8,11 @@ giving the axis-angle vector (o_i theta_i + 2 pi r_i) w_i, so that neighbours ag
    s = 0 where |w_i . w_j| <= EPS_DOT or either angle < EPS_ANGLE, else sign(w_i . w_j);
 2. turns: minimize  sum_(i,j in E) (u_i - u_j)^2  (+ sum_i (u_t,i - u_t-1,i)^2), u = o theta + 2 pi r.
 
-Fast path (default, all numpy, vectorized over vertices and frames): a breadth-first tree from the root of
-each connected component gives an initial solution by path products (orientation) and path sums (turns)
-computed with pointer jumping; then local improvement by Gauss-Seidel sweeps over colour classes of a
-greedy graph colouring, each vertex taking its best value given its neighbours, which never increases the
-energy and stops when no vertex improves.
+Fast path (default, jitted jnp, batched over frames; TS-ACAP scans over frames): a breadth-first tree from
+the root of each connected component gives an initial solution by path products (orientation) and path
+sums (turns) computed with pointer jumping over precomputed ancestor tables; then local improvement by
+Gauss-Seidel sweeps over the colour classes of a graph colouring, each vertex taking its best value given
+its neighbours, which never worsens the energy and stops when no vertex improves (or after MAX_SWEEPS).
 
 Exact path (``method="milp"``, small meshes, one frame): both integer programs through
 ``scipy.optimize.milp`` (HiGHS): orientation as a max-cut with XOR variables; turns with a piecewise-linear
@@ -25,10 +25,14 @@ temporal solve of frames after the first the previous frame fixes the gauge and 
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import Literal
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 import scipy.sparse as sp
+from jaxtyping import Array, Bool, Float, Int
 from scipy.sparse import csgraph
 
 EPS_DOT = 1e-2
@@ -42,25 +46,38 @@ Consistency = Literal["spatial", "temporal", "none"]
 
 @dataclasses.dataclass(frozen=True)
 class Graph:
-    """Host-side graph structures of one connectivity (built once)."""
+    """Graph structures of one connectivity, built once on the host.
+
+    ``edges`` serve the exact (MILP) path and the energies; ``rings`` is the device-side pytree of the fast
+    path (padded one-rings, tree ancestors for pointer jumping, colour classes).
+    """
 
     n: int
     edges: np.ndarray  # (E, 2)
-    adjacency: sp.csr_matrix  # (V, V) 0/1
-    degree: np.ndarray  # (V,)
-    parent: np.ndarray  # BFS parent, roots point to themselves
     roots: np.ndarray  # (C,) one root per connected component
-    colour_classes: tuple[np.ndarray, ...]
-    out_edges: sp.csr_matrix  # (V, 2E): 1 at (src_h, h), sums directed-edge values per source vertex
-    src: np.ndarray  # (2E,) directed edges
-    dst: np.ndarray
-    hedge: np.ndarray
+    rings: "Rings"
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class Rings:
+    """Static-size device arrays of the fast path (a pytree: jit compiles once per connectivity)."""
+
+    nbr: Int[Array, "v k"]  # padded one-rings (padding = the vertex itself)
+    mask: Bool[Array, "v k"]
+    degree: Float[Array, " v"]
+    parent: Int[Array, " v"]  # BFS parent; roots point to themselves
+    is_root: Bool[Array, " v"]
+    jumps: tuple  # ancestor tables parent, parent^2, parent^4, ... (pointer jumping)
+    classes: tuple  # colour classes: independent vertex sets covering all vertices
 
 
 def build_graph(edges: np.ndarray, n: int) -> Graph:
     edges = np.asarray(edges, dtype=np.int64)
     e = edges.shape[0]
-    adj = sp.coo_matrix((np.ones(2 * e), (np.r_[edges[:, 0], edges[:, 1]], np.r_[edges[:, 1], edges[:, 0]])), shape=(n, n)).tocsr()
+    src = np.r_[edges[:, 0], edges[:, 1]]
+    dst = np.r_[edges[:, 1], edges[:, 0]]
+    adj = sp.coo_matrix((np.ones(2 * e), (src, dst)), shape=(n, n)).tocsr()
     adj.data[:] = 1.0
     ncomp, labels = csgraph.connected_components(adj, directed=False)
     parent = np.arange(n)
@@ -68,56 +85,229 @@ def build_graph(edges: np.ndarray, n: int) -> Graph:
     for root in roots:
         order, pred = csgraph.breadth_first_order(adj, int(root), directed=False, return_predecessors=True)
         parent[order[1:]] = pred[order[1:]]
-    src = np.r_[edges[:, 0], edges[:, 1]]
-    dst = np.r_[edges[:, 1], edges[:, 0]]
-    hedge = np.r_[np.arange(e), np.arange(e)]
-    out_edges = sp.coo_matrix((np.ones(2 * e), (src, np.arange(2 * e))), shape=(n, 2 * e)).tocsr()
-    return Graph(
-        n=n, edges=edges, adjacency=adj, degree=np.asarray(adj.sum(axis=1)).ravel(), parent=parent, roots=roots,
-        colour_classes=_colour_classes(src, dst, n), out_edges=out_edges, src=src, dst=dst, hedge=hedge,
+    jumps = [parent]
+    while not np.array_equal(jumps[-1][jumps[-1]], jumps[-1]):
+        jumps.append(jumps[-1][jumps[-1]])
+    order = np.lexsort((dst, src))
+    src_s, dst_s = src[order], dst[order]
+    degree = np.bincount(src_s, minlength=n)
+    kmax = int(degree.max()) if n else 0
+    slot = np.arange(src_s.size) - np.r_[0, np.cumsum(degree)[:-1]][src_s]
+    nbr = np.repeat(np.arange(n)[:, None], kmax, axis=1)
+    nbr[src_s, slot] = dst_s
+    mask = np.zeros((n, kmax), bool)
+    mask[src_s, slot] = True
+    is_root = np.zeros(n, bool)
+    is_root[roots] = True
+    i32 = lambda x: jnp.asarray(x, jnp.int32)  # noqa: E731
+    rings = Rings(
+        nbr=i32(nbr), mask=jnp.asarray(mask), degree=jnp.asarray(degree, jnp.float64), parent=i32(parent),
+        is_root=jnp.asarray(is_root), jumps=tuple(i32(j) for j in jumps),
+        classes=tuple(i32(c) for c in _colour_classes(nbr, mask)),
     )
+    return Graph(n=n, edges=edges, roots=roots, rings=rings)
 
 
-def _colour_classes(src: np.ndarray, dst: np.ndarray, n: int) -> tuple[np.ndarray, ...]:
-    """Independent sets covering all vertices (Jones-Plassmann rounds with fixed random priorities)."""
-    prio = np.random.default_rng(0).permutation(n)
-    uncoloured = np.ones(n, dtype=bool)
-    classes = []
-    while uncoloured.any():
-        nbr = np.full(n, -1)
-        live = uncoloured[dst] & uncoloured[src]
-        np.maximum.at(nbr, src[live], prio[dst[live]])
-        chosen = uncoloured & (prio > nbr)
-        classes.append(np.flatnonzero(chosen))
-        uncoloured &= ~chosen
-    return tuple(classes)
+def _colour_classes(nbr: np.ndarray, mask: np.ndarray) -> list[np.ndarray]:
+    """A proper vertex colouring in few colours, vectorized (Jones-Plassmann rounds, smallest free colour).
 
-
-def _jump(rel: np.ndarray, parent: np.ndarray, mul: bool) -> np.ndarray:
-    """Combine ``rel`` along each vertex's tree path to its root (pointer jumping).
-
-    Roots must have the identity element in ``rel`` (1 for products, 0 for sums).
+    In each round the uncoloured vertices whose random priority beats every uncoloured neighbour take the
+    smallest colour none of their neighbours has; colour classes are returned as index arrays.
     """
-    val = rel.copy()
-    anc = parent.copy()
-    while True:
-        val = val * val[..., anc] if mul else val + val[..., anc]
-        nxt = anc[anc]
-        if np.array_equal(nxt, anc):
-            return val
-        anc = nxt
+    n, k = nbr.shape
+    prio = np.random.default_rng(0).permutation(n)
+    colour = np.full(n, -1)
+    palette = np.arange(k + 1)
+    while (colour < 0).any():
+        unc = colour < 0
+        rival = np.where(mask & unc[nbr], prio[nbr], -1).max(axis=1, initial=-1)
+        pick = np.flatnonzero(unc & (prio > rival))
+        used = np.where(mask[pick], colour[nbr[pick]], -1)  # (P, K)
+        free = ~(used[:, :, None] == palette[None, None, :]).any(axis=1)  # (P, K + 1)
+        colour[pick] = np.argmax(free, axis=1)
+    return [np.flatnonzero(colour == c) for c in range(colour.max() + 1)]
+
+
+# ------------------------------------------------------------------------------ fast path (jitted jnp)
+
+
+def _signs(d, angle_a, angle_b):
+    ok = (jnp.abs(d) > EPS_DOT) & (angle_a >= EPS_ANGLE) & (angle_b >= EPS_ANGLE)
+    return jnp.where(ok, jnp.sign(d), 0.0).astype(d.dtype)
+
+
+def _pair_signs(axis_a, angle_a, axis_b, angle_b):
+    """s between two vertex fields (axes (3, ...), angles (...)): sign of the axes' dot product, 0 when ill-defined."""
+    return _signs(axis_a[0] * axis_b[0] + axis_a[1] * axis_b[1] + axis_a[2] * axis_b[2], angle_a, angle_b)
+
+
+# The fast path works vertex-major and component-major: angles (V, N), axes (3, V, N), so that gathers over
+# the one-rings and tree ancestors move whole contiguous rows (all frames of a vertex) at once, and no
+# reduction runs over a short trailing axis (XLA on CPU is slow at both).
+
+
+def _ring_signs(axis, angle, rings: Rings):
+    """s_ij on the padded one-rings (V, K, N); 0 on padding."""
+    nb = rings.nbr
+    d = sum(axis[c][:, None] * axis[c][nb] for c in range(3))
+    return jnp.where(rings.mask[:, :, None], _signs(d, angle[:, None], angle[nb]), 0.0)
+
+
+def _path_combine(rel, rings: Rings, mul: bool):
+    """Combine ``rel`` (V, N) along each vertex's tree path to its root (roots hold the identity)."""
+    val = rel
+    for anc in rings.jumps:
+        val = val * val[anc] if mul else val + val[anc]
+    return val
+
+
+def _sweeps(step, x, max_sweeps: int = MAX_SWEEPS):
+    """Repeat ``step(x) -> (x, changed)`` until nothing changes (at most ``max_sweeps`` times)."""
+
+    def cond(state):
+        return state[1] & (state[2] < max_sweeps)
+
+    def body(state):
+        x, _, it = state
+        x, changed = step(x)
+        return x, changed, it + 1
+
+    return jax.lax.while_loop(cond, body, (x, jnp.array(True), jnp.array(0)))[0]
+
+
+def _ring_sum(x: Array) -> Array:
+    """Sum over the ring axis (axis 1, static length K) as K elementwise adds (fast on XLA CPU)."""
+    total = x[:, 0]
+    for k in range(1, x.shape[1]):
+        total = total + x[:, k]
+    return total
+
+
+def _improve_orientation(o, s_ring, rings: Rings, fixed, s_time=None, o_prev=None):
+    """Gauss-Seidel over colour classes: o_i <- sign(sum_j s_ij o_j [+ s_time_i o_prev_i])."""
+    s_cls = [s_ring[cls] for cls in rings.classes]  # gathered once, outside the sweeps
+
+    def step(o):
+        changed = jnp.array(False)
+        for cls, s_c in zip(rings.classes, s_cls):
+            field = _ring_sum(s_c * o[rings.nbr[cls]])
+            if s_time is not None:
+                field = field + s_time[cls] * o_prev[cls]
+            flip = (o[cls] * field < 0) & ~fixed[cls][:, None]
+            o = o.at[cls].set(jnp.where(flip, -o[cls], o[cls]))
+            changed = changed | jnp.any(flip)
+        return o, changed
+
+    return _sweeps(step, o)
+
+
+def _improve_turns(phi, r, rings: Rings, fixed, u_prev=None):
+    """Gauss-Seidel over colour classes: r_i <- the integer minimizing the vertex's quadratic terms."""
+    deg = rings.degree.astype(phi.dtype) + (0.0 if u_prev is None else 1.0)
+    tol = 1e-9 if phi.dtype == jnp.float64 else 1e-4
+
+    def step(r):
+        changed = jnp.array(False)
+        for cls in rings.classes:
+            nb = rings.nbr[cls]
+            u_nb = phi[nb] + TWO_PI * r[nb]
+            total = jnp.sum(jnp.where(rings.mask[cls][:, :, None], u_nb, 0.0), axis=1)
+            if u_prev is not None:
+                total = total + u_prev[cls]
+            mean = total / deg[cls][:, None]
+            ph, cur = phi[cls], r[cls]
+            best = jnp.round((mean - ph) / TWO_PI)
+            # move only on a strict decrease (ties would let a vertex oscillate between equal choices)
+            gain = (ph + TWO_PI * cur - mean) ** 2 - (ph + TWO_PI * best - mean) ** 2
+            move = (best != cur) & (gain > tol) & ~fixed[cls][:, None]
+            r = r.at[cls].set(jnp.where(move, best, cur))
+            changed = changed | jnp.any(move)
+        return r, changed
+
+    return _sweeps(step, r)
+
+
+def _spatial_orientation(axis, angle, rings: Rings):
+    p = rings.parent
+    rel = _pair_signs(axis, angle, axis[:, p], angle[p])
+    rel = jnp.where((rel == 0) | rings.is_root[:, None], 1.0, rel).astype(angle.dtype)
+    o = _path_combine(rel, rings, mul=True)
+    return _improve_orientation(o, _ring_signs(axis, angle, rings), rings, fixed=rings.is_root)
+
+
+def _spatial_turns(phi, rings: Rings):
+    p = rings.parent
+    d = jnp.where(rings.is_root[:, None], 0.0, jnp.round((phi[p] - phi) / TWO_PI)).astype(phi.dtype)
+    r = _improve_turns(phi, _path_combine(d, rings, mul=False), rings, fixed=rings.is_root)
+    return phi + TWO_PI * r
+
+
+def _spatial_vm(axis, angle, rings: Rings):
+    o = _spatial_orientation(axis, angle, rings)
+    return _spatial_turns(o * angle, rings), o
+
+
+def _temporal_vm(axis, angle, rings: Rings):
+    phi0, o0 = _spatial_vm(axis[..., :1], angle[:, :1], rings)
+    free = jnp.zeros_like(rings.is_root)
+
+    def frame(carry, x):
+        o_prev, u_prev = carry
+        ax, an, ax_prev, an_prev = (a[..., None] for a in x)
+        s_time = _pair_signs(ax, an, ax_prev, an_prev)
+        o = jnp.where(s_time == 0, 1.0, s_time).astype(an.dtype) * o_prev
+        o = _improve_orientation(o, _ring_signs(ax, an, rings), rings, free, s_time=s_time, o_prev=o_prev)
+        phi = o * an
+        r = _improve_turns(phi, jnp.round((u_prev - phi) / TWO_PI), rings, free, u_prev=u_prev)
+        u = phi + TWO_PI * r
+        return (o, u), (u[:, 0], o[:, 0])
+
+    xs = (jnp.moveaxis(axis[:, :, 1:], 2, 0), angle[:, 1:].T, jnp.moveaxis(axis[:, :, :-1], 2, 0), angle[:, :-1].T)
+    _, (phis, os_) = jax.lax.scan(frame, (o0, phi0), xs)
+    return jnp.concatenate([phi0, phis.T], axis=1), jnp.concatenate([o0, os_.T], axis=1)
+
+
+@jax.jit
+def spatial_jax(axis, angle, rings: Rings):
+    """(phi, o) (N, V) for axes (N, V, 3) and angles (N, V): each frame on its own, gauge fixed at the roots."""
+    phi, o = _spatial_vm(jnp.moveaxis(axis, (0, 1, 2), (2, 1, 0)), angle.T, rings)
+    return phi.T, o.T
+
+
+@jax.jit
+def temporal_jax(axis, angle, rings: Rings):
+    """TS-ACAP (phi, o) (N, V): frame 0 as in :func:`spatial_jax`; later frames also agree with their predecessor."""
+    phi, o = _temporal_vm(jnp.moveaxis(axis, (0, 1, 2), (2, 1, 0)), angle.T, rings)
+    return phi.T, o.T
+
+
+def consistent_vectors(v: Float[Array, "n v 3"], g: Graph, mode: Consistency | None) -> Float[Array, "n v 3"]:
+    """Consistent axis-angle vectors (phi * o) * axis from raw ones (angles in [0, pi]); jnp in, jnp out."""
+    if mode in ("none", None):
+        return v
+    if mode not in ("spatial", "temporal"):
+        raise ValueError(f"unknown consistency '{mode}'; expected 'spatial', 'temporal' or 'none'.")
+    out = consistent_cm(jnp.moveaxis(v, (0, 1, 2), (2, 1, 0)), g.rings, mode)
+    return jnp.moveaxis(out, (0, 1, 2), (2, 1, 0))
+
+
+@functools.partial(jax.jit, static_argnames=("mode",))
+def consistent_cm(v: Float[Array, "3 v n"], rings: Rings, mode: str) -> Float[Array, "3 v n"]:
+    """:func:`consistent_vectors` in the component-major, vertex-major layout (3, V, N) (jit-able)."""
+    sq = v[0] * v[0] + v[1] * v[1] + v[2] * v[2]
+    angle = jnp.where(sq > 0, jnp.sqrt(jnp.where(sq > 0, sq, 1.0)), 0.0)
+    axis = v / jnp.where(angle > 0, angle, 1.0)
+    phi, o = (_spatial_vm if mode == "spatial" else _temporal_vm)(axis, angle, rings)
+    return (phi * o) * axis
+
+
+# ------------------------------------------------------------------------------ numpy-facing wrappers
 
 
 def edge_signs(axis: np.ndarray, angle: np.ndarray, i: np.ndarray, j: np.ndarray) -> np.ndarray:
     """s of eq. (3) of seed 002 between (i) and (j) (index arrays or slices along the vertex axis)."""
     d = np.sum(axis[..., i, :] * axis[..., j, :], axis=-1)
     ok = (np.abs(d) > EPS_DOT) & (angle[..., i] >= EPS_ANGLE) & (angle[..., j] >= EPS_ANGLE)
-    return np.where(ok, np.sign(d), 0.0)
-
-
-def _pair_signs(axis_a, angle_a, axis_b, angle_b) -> np.ndarray:
-    d = np.sum(axis_a * axis_b, axis=-1)
-    ok = (np.abs(d) > EPS_DOT) & (angle_a >= EPS_ANGLE) & (angle_b >= EPS_ANGLE)
     return np.where(ok, np.sign(d), 0.0)
 
 
@@ -129,111 +319,27 @@ def turn_energy(u: np.ndarray, g: Graph) -> np.ndarray:
     return np.sum((u[..., g.edges[:, 0]] - u[..., g.edges[:, 1]]) ** 2, axis=-1)
 
 
-def _neighbour_sum(x: np.ndarray, g: Graph) -> np.ndarray:
-    """sum_j x_j over neighbours, for x of shape (N, V)."""
-    return np.asarray((g.adjacency @ x.T).T)
-
-
-def _signed_neighbour_sum(o: np.ndarray, s_edge: np.ndarray, g: Graph) -> np.ndarray:
-    """sum_j s_ij o_j for o (N, V), s_edge (N, E)."""
-    vals = s_edge[:, g.hedge] * o[:, g.dst]  # (N, 2E)
-    return np.asarray((g.out_edges @ vals.T).T)
-
-
-def _improve_orientation(o, s_edge, g: Graph, s_time=None, o_prev=None, fixed=None):
-    """Gauss-Seidel over colour classes: o_i <- sign(sum_j s_ij o_j [+ s_time_i o_prev_i])."""
-    for _ in range(MAX_SWEEPS):
-        changed = False
-        for cls in g.colour_classes:
-            field = _signed_neighbour_sum(o, s_edge, g)
-            if s_time is not None:
-                field += s_time * o_prev
-            f = field[:, cls]
-            flip = (o[:, cls] * f) < 0
-            if fixed is not None:
-                flip &= ~fixed[cls]
-            if flip.any():
-                o[:, cls] = np.where(flip, -o[:, cls], o[:, cls])
-                changed = True
-        if not changed:
-            break
-    return o
-
-
-def _improve_turns(phi, r, g: Graph, u_prev=None, fixed=None):
-    """Gauss-Seidel over colour classes: r_i <- argmin over integers of the vertex's quadratic terms."""
-    deg = g.degree + (1 if u_prev is not None else 0)
-    for _ in range(MAX_SWEEPS):
-        changed = False
-        for cls in g.colour_classes:
-            u = phi + TWO_PI * r
-            total = _neighbour_sum(u, g)
-            if u_prev is not None:
-                total = total + u_prev
-            best = np.rint((total[:, cls] / deg[cls] - phi[:, cls]) / TWO_PI)
-            cur = r[:, cls]
-            # Move only on a strict decrease (ties would let a vertex oscillate between equal choices).
-            mean = total[:, cls] / deg[cls]
-            gain = (phi[:, cls] + TWO_PI * cur - mean) ** 2 - (phi[:, cls] + TWO_PI * best - mean) ** 2
-            move = (best != cur) & (gain > 1e-9)
-            if fixed is not None:
-                move &= ~fixed[cls]
-            if move.any():
-                r[:, cls] = np.where(move, best, cur)
-                changed = True
-        if not changed:
-            break
-    return r
-
-
 def spatial(axis: np.ndarray, angle: np.ndarray, g: Graph) -> tuple[np.ndarray, np.ndarray]:
     """Consistent (phi, o) for axes (N, V, 3) and angles (N, V) in [0, pi], each frame on its own.
 
     The consistent axis-angle vector of vertex i is ``phi_i * o_i * axis_i``.
     """
-    roots = np.zeros(g.n, dtype=bool)
-    roots[g.roots] = True
-    p = g.parent
-    # 1. orientation: sign relative to the BFS parent, multiplied along the path to the root.
-    rel = _pair_signs(axis, angle, axis[:, p], angle[:, p])
-    rel = np.where(rel == 0, 1.0, rel)
-    rel[:, roots] = 1.0
-    o = _jump(rel, p, mul=True)
-    s_edge = edge_signs(axis, angle, g.edges[:, 0], g.edges[:, 1])
-    o = _improve_orientation(o, s_edge, g, fixed=roots)
-    return spatial_turns(o * angle, g), o
+    phi, o = spatial_jax(jnp.asarray(axis), jnp.asarray(angle), g.rings)
+    return np.asarray(phi), np.asarray(o)
+
+
+_spatial_turns_jit = jax.jit(_spatial_turns)
 
 
 def spatial_turns(phi: np.ndarray, g: Graph) -> np.ndarray:
     """Stage 2 of :func:`spatial`: phi + 2 pi r with the integer turns r made consistent (N, V)."""
-    roots = np.zeros(g.n, dtype=bool)
-    roots[g.roots] = True
-    p = g.parent
-    # whole turns relative to the BFS parent, summed along the path to the root, then local improvement
-    d = np.rint((phi[:, p] - phi) / TWO_PI)
-    d[:, roots] = 0.0
-    r = _jump(d, p, mul=False)
-    r = _improve_turns(phi, r, g, fixed=roots)
-    return phi + TWO_PI * r
+    return np.asarray(_spatial_turns_jit(jnp.asarray(phi).T, g.rings)).T
 
 
 def temporal(axis: np.ndarray, angle: np.ndarray, g: Graph) -> tuple[np.ndarray, np.ndarray]:
-    """TS-ACAP: frame 0 as in :func:`spatial`; each later frame adds the terms to its previous frame."""
-    phi_out = np.empty_like(angle)
-    o_out = np.empty_like(angle)
-    phi_out[:1], o_out[:1] = spatial(axis[:1], angle[:1], g)
-    for t in range(1, axis.shape[0]):  # each frame depends on its predecessor: sequential by nature
-        cur = slice(t, t + 1)
-        o_prev, u_prev = o_out[t - 1 : t], phi_out[t - 1 : t]
-        s_time = _pair_signs(axis[cur], angle[cur], axis[t - 1 : t], angle[t - 1 : t])
-        o = np.where(s_time == 0, 1.0, s_time) * o_prev
-        s_edge = edge_signs(axis[cur], angle[cur], g.edges[:, 0], g.edges[:, 1])
-        o = _improve_orientation(o, s_edge, g, s_time=s_time, o_prev=o_prev)
-        phi = o * angle[cur]
-        r = np.rint((u_prev - phi) / TWO_PI)
-        r = _improve_turns(phi, r, g, u_prev=u_prev)
-        phi_out[t], o_out[t] = (phi + TWO_PI * r)[0], o[0]
-    return phi_out, o_out
+    """TS-ACAP (phi, o): frame 0 as in :func:`spatial`, each later frame also agrees with its predecessor."""
+    phi, o = temporal_jax(jnp.asarray(axis), jnp.asarray(angle), g.rings)
+    return np.asarray(phi), np.asarray(o)
 
 
 def consistent_angles(axis: np.ndarray, angle: np.ndarray, g: Graph, mode: Consistency) -> tuple[np.ndarray, np.ndarray]:

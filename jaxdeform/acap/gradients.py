@@ -30,9 +30,10 @@ from typing import Literal
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jaxtyping import Array, Float
 
-from jaxdeform.acap.rotations import inv3
+from jaxdeform.acap.rotations import cross_cm, inv3
 from jaxdeform.mesh.geometry import cotangent_weights, safe_norm, vertex_normals
 from jaxdeform.mesh.topology import Topology
 
@@ -61,29 +62,49 @@ def _ring_vectors(x: Float[Array, "... v 3"], topo: Topology) -> Float[Array, ".
     return x[..., :, None, :] - x[..., topo.neighbors, :]
 
 
-def _normal_rows(x: Float[Array, "... v 3"], topo: Topology) -> Float[Array, "... v 3"]:
-    """s_i n_i: unit vertex normal times 0.3 times the mean one-ring edge length."""
-    e = _ring_vectors(x, topo)
-    length = safe_norm(e)  # padding slots are zero vectors: keep their gradient finite
+def _normal_rows(x: Float[Array, "v 3"], topo: Topology) -> Float[Array, "v 3"]:
+    """s_i n_i of one mesh: unit vertex normal times 0.3 times the mean one-ring edge length."""
+    length = safe_norm(_ring_vectors(x, topo))  # padding slots are zero vectors: keep their gradient finite
     mean_len = jnp.sum(jnp.where(topo.mask, length, 0.0), axis=-1) / topo.degree
-    if x.ndim == 2:
-        n = vertex_normals(x, topo)
-    else:
-        n = jax.vmap(vertex_normals, in_axes=(0, None))(x.reshape(-1, *x.shape[-2:]), topo).reshape(x.shape)
-    return NORMAL_ROW_SCALE * mean_len[..., None] * n
+    return NORMAL_ROW_SCALE * mean_len[..., None] * vertex_normals(x, topo)
+
+
+def _vertex_faces(topo: Topology) -> tuple[np.ndarray, np.ndarray]:
+    """Padded vertex -> incident faces table (V, L) and its mask (host, once)."""
+    f = np.asarray(topo.faces).reshape(-1)
+    face = np.repeat(np.arange(topo.n_faces), 3)
+    order = np.argsort(f, kind="stable")
+    f, face = f[order], face[order]
+    count = np.bincount(f, minlength=topo.n_vertices)
+    slot = np.arange(f.size) - np.r_[0, np.cumsum(count)[:-1]][f]
+    table = np.zeros((topo.n_vertices, int(count.max())), np.int32)
+    table[f, slot] = face
+    mask = np.zeros(table.shape, bool)
+    mask[f, slot] = True
+    return table, mask
 
 
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class RestFrame:
-    """Reference-side quantities of the local fits, computed once per (reference, connectivity)."""
+    """Reference-side quantities of the local fits, computed once per (reference, connectivity).
+
+    With B_i = sum_k w_ik e_ik e_ik^T + n_i n_i^T (reference side), the fit is
+    T_i = (sum_k w_ik e'_ik e_ik^T + n'_i n_i^T) B_i^-1 = sum_k e'_ik c_ik^T + n'_i cn_i^T
+    with the constants c_ik = B_i^-1 w_ik e_ik and cn_i = B_i^-1 n_i, stored component-major ((3, V, K),
+    (3, V)) for the per-frame kernel.
+    """
 
     topo: Topology
     weights: Float[Array, " e"]  # per undirected edge
-    ring_weights: Float[Array, "v k"]  # w on the padded one-rings (0 on padding)
-    ring_edges: Float[Array, "v k 3"]  # reference e_ik
-    normal_row: Float[Array, "v 3"]  # s_i n_i on the reference
-    inv_b: Float[Array, "v 3 3"]  # (sum w e e^T + s^2 n n^T)^-1
+    c_ring: Float[Array, "3 v k"]
+    c_normal: Float[Array, "3 v"]
+    vertex_faces: Array  # (V, L) padded incident faces
+    vertex_faces_mask: Array  # (V, L)
+
+    @property
+    def dtype(self):
+        return self.c_ring.dtype
 
 
 def rest_frame(rest: Float[Array, "v 3"], topo: Topology, weighting: Weighting = "official") -> RestFrame:
@@ -99,14 +120,56 @@ def rest_frame(rest: Float[Array, "v 3"], topo: Topology, weighting: Weighting =
     # A tiny relative ridge keeps pathological one-rings (all faces degenerate) invertible.
     tr = jnp.trace(b, axis1=-2, axis2=-1)
     b = b + (1e-12 * tr)[:, None, None] * jnp.eye(3, dtype=rest.dtype)
-    return RestFrame(topo=topo, weights=w, ring_weights=ring_w, ring_edges=e, normal_row=nrow, inv_b=inv3(b))
+    inv_b = inv3(b)
+    c_ring = jnp.einsum("vab,vk,vkb->avk", inv_b, ring_w, e)
+    vf, vf_mask = _vertex_faces(topo)
+    return RestFrame(
+        topo=topo, weights=w, c_ring=c_ring,
+        c_normal=jnp.einsum("vab,vb->av", inv_b, nrow), vertex_faces=jnp.asarray(vf),
+        vertex_faces_mask=jnp.asarray(vf_mask),
+    )
+
+
+def _normal_rows_cm(frame: RestFrame, x: Float[Array, "3 v b"]) -> Float[Array, "3 v b"]:
+    """s'_i n'_i for a batch of meshes in the (3, V, B) layout (see :func:`_normal_rows`)."""
+    topo = frame.topo
+    i, j = topo.edges[:, 0], topo.edges[:, 1]
+    d = x[:, i] - x[:, j]  # (3, E, B); explicit component sums: XLA on CPU is slow at short reductions
+    sq = d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
+    length = jnp.where(sq > 0, jnp.sqrt(jnp.where(sq > 0, sq, 1.0)), 0.0)
+    total = jax.ops.segment_sum(jnp.concatenate([length, length]), jnp.concatenate([i, j]), topo.n_vertices)
+    mean_len = total / topo.degree[:, None]
+    f = topo.faces
+    p0, p1, p2 = x[:, f[:, 0]], x[:, f[:, 1]], x[:, f[:, 2]]
+    cross = cross_cm(p1 - p0, p2 - p0)  # (3, F, B): twice the area times the unit normal
+    acc = jnp.zeros_like(x)
+    for k in range(frame.vertex_faces.shape[1]):
+        acc = acc + jnp.where(frame.vertex_faces_mask[:, k, None], cross[:, frame.vertex_faces[:, k]], 0.0)
+    nsq = acc[0] * acc[0] + acc[1] * acc[1] + acc[2] * acc[2]
+    scale = jnp.where(nsq > 0, jax.lax.rsqrt(jnp.where(nsq > 0, nsq, 1.0)), 0.0)
+    return (NORMAL_ROW_SCALE * mean_len * scale) * acc
+
+
+def deformation_gradients_cm(frame: RestFrame, x: Float[Array, "3 v b"]) -> Float[Array, "3 3 v b"]:
+    """T_i of a batch of meshes in the component-major, vertex-major layout (3, V, B) -> (3, 3, V, B)."""
+    topo = frame.topo
+    cr = frame.c_ring[:, :, :, None]
+    acc = jnp.zeros((3, 3) + x.shape[1:], x.dtype)
+    for k in range(topo.max_degree):  # unrolled over the (static) ring slots; padding has c = 0
+        # edge vectors first (not x_i c0 - sum x_k c_k): no cancellation for meshes far from the origin
+        acc = acc + (x - x[:, topo.neighbors[:, k]])[:, None] * cr[None, :, :, k]
+    n_def = jax.lax.optimization_barrier(_normal_rows_cm(frame, x))
+    return acc + n_def[:, None] * frame.c_normal[None, :, :, None]
+
+
+def to_vertex_major(vertices: Float[Array, "... v 3"]) -> Float[Array, "3 v b"]:
+    """(..., V, 3) -> (3, V, B) with the leading batch dimensions flattened into B."""
+    v = vertices.shape[-2]
+    return jnp.moveaxis(vertices.reshape(-1, v, 3), (0, 2), (2, 0))
 
 
 def deformation_gradients(frame: RestFrame, vertices: Float[Array, "... v 3"]) -> Float[Array, "... v 3 3"]:
     """T_i for each frame (any leading batch shape) relative to the reference of ``frame``."""
-    vertices = jnp.asarray(vertices, dtype=frame.ring_edges.dtype)
-    e_def = _ring_vectors(vertices, frame.topo)
-    nrow_def = _normal_rows(vertices, frame.topo)
-    a = jnp.einsum("vk,...vka,vkb->...vab", frame.ring_weights, e_def, frame.ring_edges)
-    a = a + nrow_def[..., :, None] * frame.normal_row[:, None, :]
-    return a @ frame.inv_b
+    vertices = jnp.asarray(vertices, dtype=frame.dtype)
+    t = deformation_gradients_cm(frame, to_vertex_major(vertices))  # (3, 3, V, B)
+    return jnp.moveaxis(t, (0, 1, 2, 3), (2, 3, 1, 0)).reshape(*vertices.shape[:-1], 3, 3)

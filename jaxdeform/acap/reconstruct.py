@@ -162,17 +162,21 @@ class LinearLeastSquares(optx.AbstractLeastSquaresSolver):
 
 
 def _residuals(y, args):
-    """Vertex-major residuals: y (V, B, 3); edge rows (E, B, 3) and anchor rows (A, B, 3)."""
+    """Residuals in the vertex-major layout: y (V, 3, B); edge rows (E, 3, B) and anchor rows (A, 3, B)."""
     target, targets, sqrt_w, i, j, anchors, sqrt_a = args
     r_edge = sqrt_w[:, None, None] * (y[i] - y[j]) - target
     r_anchor = sqrt_a * (y[anchors] - targets)
     return r_edge, r_anchor
 
 
-def edge_targets(t_vm: Float[Array, "v b 3 3"], rest_edges, sqrt_w, i, j) -> Float[Array, "e b 3"]:
-    """sqrt(w_ij) (T_i + T_j)/2 (q_i - q_j) per edge, from vertex-major gradients (V, B, 3, 3)."""
-    tsum = t_vm[i] + t_vm[j]  # (E, B, 3, 3): contiguous row gathers
-    return (0.5 * sqrt_w)[:, None, None] * jnp.einsum("ebxy,ey->ebx", tsum, rest_edges)
+def edge_targets(t_vm: Float[Array, "v 3 3 b"], rest_edges, sqrt_w, i, j) -> Float[Array, "e 3 b"]:
+    """sqrt(w_ij) (T_i + T_j)/2 (q_i - q_j) per edge, from vertex-major gradients (V, 3, 3, B).
+
+    The 3x3 products are written out entry by entry: XLA on CPU runs small einsums far slower.
+    """
+    tsum = t_vm[i] + t_vm[j]  # (E, 3, 3, B): contiguous row gathers
+    q = ((0.5 * sqrt_w)[:, None] * rest_edges)[:, :, None]  # (E, 3, 1)
+    return tsum[:, :, 0] * q[:, None, 0] + tsum[:, :, 1] * q[:, None, 1] + tsum[:, :, 2] * q[:, None, 2]
 
 
 class Reconstructor(eqx.Module):
@@ -224,18 +228,25 @@ class Reconstructor(eqx.Module):
         )
 
     def __call__(self, t: Float[Array, "... v 3 3"], targets: Float[Array, "... a 3"] | None = None):
-        dtype = t.dtype
+        """Positions (..., V, 3) from gradients (..., V, 3, 3) (see :meth:`solve_vm` for the fast layout)."""
         lead = t.shape[:-3]
         v = self.rest.shape[0]
-        t_vm = jnp.moveaxis(t.reshape(-1, v, 3, 3), 1, 0)  # (V, B, 3, 3)
-        b = t_vm.shape[1]
-        if targets is None:
-            targets = self.rest[self.anchors].astype(dtype)
-        targets = jnp.broadcast_to(jnp.asarray(targets, dtype), (*lead, self.anchors.shape[0], 3))
-        targets_vm = jnp.moveaxis(targets.reshape(b, -1, 3), 1, 0)  # (A, B, 3)
+        t_vm = jnp.moveaxis(t.reshape(-1, v, 3, 3), 0, -1)  # (V, 3, 3, B)
+        if targets is not None:
+            targets = jnp.broadcast_to(jnp.asarray(targets, t.dtype), (*lead, self.anchors.shape[0], 3))
+            targets = jnp.moveaxis(targets.reshape(-1, self.anchors.shape[0], 3), 0, -1)
+        y = self.solve_vm(t_vm, targets)
+        return jnp.moveaxis(y, -1, 0).reshape(*lead, v, 3)
+
+    def solve_vm(self, t_vm: Float[Array, "v 3 3 b"], targets_vm: Float[Array, "a 3 b"] | None = None):
+        """Positions (V, 3, B) from gradients (V, 3, 3, B) and anchor targets (A, 3, B) (default: rest)."""
+        dtype = t_vm.dtype
+        v, b = self.rest.shape[0], t_vm.shape[-1]
+        if targets_vm is None:
+            targets_vm = jnp.broadcast_to(self.rest[self.anchors].astype(dtype)[:, :, None], (self.anchors.shape[0], 3, b))
         sqrt_w = self.sqrt_w.astype(dtype)
         target = edge_targets(t_vm, self.rest_edges.astype(dtype), sqrt_w, self.edge_i, self.edge_j)
-        y0 = jnp.broadcast_to(self.rest.astype(dtype)[:, None, :], (v, b, 3))
+        y0 = jnp.broadcast_to(self.rest.astype(dtype)[:, :, None], (v, 3, b))
         args = (target, targets_vm, sqrt_w, self.edge_i, self.edge_j, self.anchors, self.sqrt_a.astype(dtype))
         linsolve = PrefactoredCholesky(self.key)
         sol = optx.least_squares(
@@ -247,4 +258,4 @@ class Reconstructor(eqx.Module):
             adjoint=optx.ImplicitAdjoint(linear_solver=linsolve),
             throw=False,
         )
-        return jnp.moveaxis(sol.value, 1, 0).reshape(*lead, v, 3)
+        return sol.value

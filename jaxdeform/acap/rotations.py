@@ -1,7 +1,11 @@
 """Batched 3x3 algebra in closed form: inverse, polar decomposition, rotation log/exp.
 
-Per-matrix LAPACK calls dominate batched 3x3 work on CPU (jnp.linalg.svd costs ~19 ms per frame of 8k
-vertices), so everything here is written with elementwise jnp only and vectorizes over any leading shape.
+Layout. Per-matrix LAPACK calls dominate batched 3x3 work on CPU (jnp.linalg.svd costs ~19 ms per frame of
+8k vertices), and so do XLA's small matrix products and reductions over a trailing axis of size 3. The
+kernels here therefore work "component-major": a matrix is a ``(3, 3, *batch)`` array and a vector a
+``(3, *batch)`` array, so that every operation is an elementwise loop over the (long, contiguous) batch
+that XLA fuses. The functions named ``*_cm`` take and return that layout; the public functions without the
+suffix take the usual ``(..., 3, 3)`` / ``(..., 3)`` layout and move the axes around the same kernels.
 
 Numerics
 - ``polar``: scaled Newton iteration X <- (g X + (g X)^-T) / 2 (fixed count, differentiable), giving the
@@ -18,122 +22,215 @@ Numerics
 
 from __future__ import annotations
 
+import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from jaxdeform.mesh.geometry import safe_norm
+NEWTON_STEPS = 7
 
-NEWTON_STEPS = 9
-
-
-def det3(a: Float[Array, "... 3 3"]) -> Float[Array, "..."]:
-    return (
-        a[..., 0, 0] * (a[..., 1, 1] * a[..., 2, 2] - a[..., 1, 2] * a[..., 2, 1])
-        - a[..., 0, 1] * (a[..., 1, 0] * a[..., 2, 2] - a[..., 1, 2] * a[..., 2, 0])
-        + a[..., 0, 2] * (a[..., 1, 0] * a[..., 2, 1] - a[..., 1, 1] * a[..., 2, 0])
-    )
+# ------------------------------------------------------------------------------- layout conversion
 
 
-def adjugate3(a: Float[Array, "... 3 3"]) -> Float[Array, "... 3 3"]:
-    """adj(A) with A adj(A) = det(A) I, from cross products of the columns."""
-    c0, c1, c2 = a[..., :, 0], a[..., :, 1], a[..., :, 2]
-    # Rows of adj(A) are the cross products of pairs of columns of A.
-    return jnp.stack([jnp.cross(c1, c2), jnp.cross(c2, c0), jnp.cross(c0, c1)], axis=-2)
+def to_cm(a: Array, rank: int = 2) -> Array:
+    """(..., 3, 3) -> (3, 3, ...) for rank 2, (..., 3) -> (3, ...) for rank 1."""
+    return jnp.moveaxis(a, tuple(range(a.ndim - rank, a.ndim)), tuple(range(rank)))
 
 
-def inv3(a: Float[Array, "... 3 3"]) -> Float[Array, "... 3 3"]:
-    return adjugate3(a) / det3(a)[..., None, None]
+def from_cm(a: Array, rank: int = 2) -> Array:
+    """Inverse of :func:`to_cm`."""
+    return jnp.moveaxis(a, tuple(range(rank)), tuple(range(a.ndim - rank, a.ndim)))
 
 
-def sym(a: Array) -> Array:
-    return 0.5 * (a + jnp.swapaxes(a, -1, -2))
+# ------------------------------------------------------------------------ component-major kernels
 
 
-def _frob(a: Array) -> Array:
-    return jnp.sqrt(jnp.sum(a * a, axis=(-1, -2)))
+def eye_cm(batch: tuple, dtype) -> Array:
+    """The identity, (3, 3, *batch)."""
+    eye = jnp.eye(3, dtype=dtype).reshape((3, 3) + (1,) * len(batch))
+    return jnp.broadcast_to(eye, (3, 3) + tuple(batch))
 
 
-def _smallest_eigvec_spd(p: Float[Array, "... 3 3"]) -> Float[Array, "... 3"]:
-    """Eigenvector of the smallest eigenvalue of an SPD 3x3 matrix (repeated squaring of adj(P))."""
-    m = adjugate3(p)  # eigenvalues s2 s3, s1 s3, s1 s2: the largest belongs to the smallest of P
+def mv_cm(a: Array, v: Array) -> Array:
+    """(3, 3, *batch) @ (3, *batch), written out entry by entry (XLA fuses it into one elementwise loop)."""
+    return jnp.stack([a[i, 0] * v[0] + a[i, 1] * v[1] + a[i, 2] * v[2] for i in range(3)])
+
+
+def mm_cm(a: Array, b: Array) -> Array:
+    """Matrix product of (3, 3, *batch) arrays, entry by entry."""
+    return jnp.stack([mv_cm(a, b[:, k]) for k in range(3)], axis=1)
+
+
+def t_cm(a: Array) -> Array:
+    return jnp.swapaxes(a, 0, 1)
+
+
+def outer_cm(u: Array, v: Array) -> Array:
+    return u[:, None] * v[None]
+
+
+def cross_cm(u: Array, v: Array) -> Array:
+    return jnp.stack([u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0]])
+
+
+def det_cm(a: Array) -> Array:
+    return (a[0, 0] * (a[1, 1] * a[2, 2] - a[1, 2] * a[2, 1])
+            - a[0, 1] * (a[1, 0] * a[2, 2] - a[1, 2] * a[2, 0])
+            + a[0, 2] * (a[1, 0] * a[2, 1] - a[1, 1] * a[2, 0]))
+
+
+def adjugate_cm(a: Array) -> Array:
+    """adj(A): its rows are the cross products of pairs of columns of A."""
+    c0, c1, c2 = a[:, 0], a[:, 1], a[:, 2]
+    return jnp.stack([cross_cm(c1, c2), cross_cm(c2, c0), cross_cm(c0, c1)])
+
+
+def inv_cm(a: Array) -> Array:
+    return adjugate_cm(a) / det_cm(a)
+
+
+def _sum3(x: Array) -> Array:
+    """x[0] + x[1] + x[2]: a sum over a leading axis of size 3 as elementwise adds (XLA on CPU runs short
+    reductions and argmaxes much slower than the same arithmetic written out)."""
+    return x[0] + x[1] + x[2]
+
+
+def frob_cm(a: Array) -> Array:
+    return jnp.sqrt(_sum3(_sum3(a * a)))
+
+
+def sym_cm(a: Array) -> Array:
+    return 0.5 * (a + t_cm(a))
+
+
+def _smallest_eigvec_cm(p: Array) -> Array:
+    """Eigenvector of the smallest eigenvalue of an SPD matrix (repeated squaring of adj(P))."""
+    m = adjugate_cm(p)  # eigenvalues s2 s3, s1 s3, s1 s2: the largest belongs to the smallest of P
     for _ in range(6):
-        m = m @ m
-        m = m / jnp.maximum(_frob(m), 1e-30)[..., None, None]
-    norms = jnp.sum(m * m, axis=-2)  # column norms^2
-    col = jnp.take_along_axis(m, jnp.argmax(norms, axis=-1)[..., None, None], axis=-1)[..., 0]
-    return col / jnp.sqrt(jnp.maximum(jnp.sum(col * col, axis=-1, keepdims=True), 1e-30))
+        m = mm_cm(m, m)
+        m = m / jnp.maximum(frob_cm(m), 1e-30)
+    norms = _sum3(m * m)  # (3, *batch): squared column norms
+    first = (norms[0] >= norms[1]) & (norms[0] >= norms[2])  # argmax, written out (see _sum3)
+    second = ~first & (norms[1] >= norms[2])
+    col = jnp.where(first, m[:, 0], jnp.where(second, m[:, 1], m[:, 2]))
+    return col / jnp.sqrt(jnp.maximum(_sum3(col * col), 1e-30))
 
 
-def polar(t: Float[Array, "... 3 3"], steps: int = NEWTON_STEPS) -> tuple[Array, Array]:
-    """T = R S with R a proper rotation and S symmetric (official ACAP sign convention)."""
+def polar_cm(t: Array, steps: int = NEWTON_STEPS) -> tuple[Array, Array]:
+    """T = R S (component-major) with R a proper rotation and S symmetric (official sign convention)."""
     x = t
     for _ in range(steps):
-        xinv = inv3(x)
-        g = jnp.sqrt(_frob(xinv) / _frob(x))[..., None, None]
-        x = 0.5 * (g * x + jnp.swapaxes(xinv, -1, -2) / g)
-    q = x
-    p = sym(jnp.swapaxes(q, -1, -2) @ t)
-    neg = (det3(t) < 0)[..., None, None]
-    v = _smallest_eigvec_spd(jnp.where(neg, p, jnp.eye(3, dtype=t.dtype)))
-    house = jnp.eye(3, dtype=t.dtype) - 2.0 * v[..., :, None] * v[..., None, :]
-    r = jnp.where(neg, q @ house, q)
-    s = jnp.where(neg, house @ p, p)
-    return r, s
+        xinv = inv_cm(x)
+        g = jnp.sqrt(frob_cm(xinv) / frob_cm(x))
+        x = 0.5 * (g * x + t_cm(xinv) / g)
+    p = sym_cm(mm_cm(t_cm(x), t))
+    neg = det_cm(t) < 0
+
+    def reflect(x, p):
+        v = _smallest_eigvec_cm(jnp.where(neg, p, eye_cm(t.shape[2:], t.dtype)))
+        house = eye_cm(t.shape[2:], t.dtype) - 2.0 * outer_cm(v, v)
+        return jnp.where(neg, mm_cm(x, house), x), jnp.where(neg, mm_cm(house, p), p)
+
+    # Reflections are rare: skip their (costly) eigenvector unless the batch has one.
+    return jax.lax.cond(jnp.any(neg), reflect, lambda x, p: (x, p), x, p)
 
 
-def skew(v: Float[Array, "... 3"]) -> Float[Array, "... 3 3"]:
-    z = jnp.zeros_like(v[..., 0])
-    x, y, w = v[..., 0], v[..., 1], v[..., 2]
-    return jnp.stack(
-        [jnp.stack([z, -w, y], -1), jnp.stack([w, z, -x], -1), jnp.stack([-y, x, z], -1)], axis=-2
-    )
+def skew_cm(v: Array) -> Array:
+    z = jnp.zeros_like(v[0])
+    x, y, w = v[0], v[1], v[2]
+    return jnp.stack([jnp.stack([z, -w, y]), jnp.stack([w, z, -x]), jnp.stack([-y, x, z])])
 
 
-def vee(k: Float[Array, "... 3 3"]) -> Float[Array, "... 3"]:
+def vee_cm(k: Array) -> Array:
     """(K_21, K_02, K_10) of a skew matrix (antisymmetric part taken first)."""
-    return 0.5 * jnp.stack(
-        [k[..., 2, 1] - k[..., 1, 2], k[..., 0, 2] - k[..., 2, 0], k[..., 1, 0] - k[..., 0, 1]], axis=-1
-    )
+    return 0.5 * jnp.stack([k[2, 1] - k[1, 2], k[0, 2] - k[2, 0], k[1, 0] - k[0, 1]])
 
 
-def rotation_angle(r: Float[Array, "... 3 3"]) -> Float[Array, "..."]:
-    w = vee(r)
-    c = 0.5 * (r[..., 0, 0] + r[..., 1, 1] + r[..., 2, 2] - 1.0)
-    return jnp.arctan2(safe_norm(w), c)
+def _safe_norm0(v: Array) -> Array:
+    """|v| over axis 0 with value 0 and a finite gradient at zero vectors."""
+    sq = _sum3(v * v)
+    ok = sq > 0
+    return jnp.where(ok, jnp.sqrt(jnp.where(ok, sq, 1.0)), 0.0)
 
 
-def log_rotation(r: Float[Array, "... 3 3"]) -> Float[Array, "... 3"]:
-    """Axis-angle vector theta * axis with theta in [0, pi]."""
-    w = vee(r)
-    sin = safe_norm(w)
-    c = 0.5 * (r[..., 0, 0] + r[..., 1, 1] + r[..., 2, 2] - 1.0)
+def log_rotation_cm(r: Array) -> Array:
+    """Axis-angle vectors (3, *batch), theta in [0, pi]."""
+    w = vee_cm(r)
+    sin = _safe_norm0(w)
+    c = 0.5 * (r[0, 0] + r[1, 1] + r[2, 2] - 1.0)
     theta = jnp.arctan2(sin, c)
     # Small and medium angles: theta / sin(theta) * w.
     small = sin < 1e-4
     ratio = jnp.where(small, 1.0 + sin * sin / 6.0, theta / jnp.where(small, 1.0, sin))
-    v_mid = w * ratio[..., None]
+    v_mid = w * ratio
     # Large angles: axis from the symmetric part.
     one_minus_c = jnp.maximum(1.0 - c, 0.5)  # only used where c < -0.5
-    aat = (sym(r) - c[..., None, None] * jnp.eye(3, dtype=r.dtype)) / one_minus_c[..., None, None]
-    diag = jnp.diagonal(aat, axis1=-2, axis2=-1)
-    k = jnp.argmax(diag, axis=-1)
-    col = jnp.take_along_axis(aat, k[..., None, None], axis=-1)[..., 0]
-    dk = jnp.take_along_axis(diag, k[..., None], axis=-1)
+    aat = (sym_cm(r) - c * eye_cm(r.shape[2:], r.dtype)) / one_minus_c
+    diag = jnp.stack([aat[0, 0], aat[1, 1], aat[2, 2]])
+    first = (diag[0] >= diag[1]) & (diag[0] >= diag[2])
+    second = ~first & (diag[1] >= diag[2])
+    col = jnp.where(first, aat[:, 0], jnp.where(second, aat[:, 1], aat[:, 2]))
+    dk = jnp.where(first, diag[0], jnp.where(second, diag[1], diag[2]))
     axis = col / jnp.sqrt(jnp.maximum(dk, 1e-12))
-    sign = jnp.where(jnp.sum(axis * w, axis=-1) < 0, -1.0, 1.0).astype(r.dtype)
-    v_big = axis * (sign * theta)[..., None]
-    return jnp.where((c < -0.5)[..., None], v_big, v_mid)
+    sign = jnp.where(_sum3(axis * w) < 0, -1.0, 1.0).astype(r.dtype)
+    return jnp.where(c < -0.5, axis * (sign * theta), v_mid)
 
 
-def exp_rotation(v: Float[Array, "... 3"]) -> Float[Array, "... 3 3"]:
-    """Rodrigues' formula for the rotation of axis-angle vector v (any angle)."""
-    th2 = jnp.sum(v * v, axis=-1)
+def exp_rotation_cm(v: Array) -> Array:
+    """Rodrigues' formula (3, 3, *batch) for axis-angle vectors (3, *batch), any angle."""
+    th2 = _sum3(v * v)
     small = th2 < 1e-6
     th2s = jnp.where(small, 1.0, th2)
     th = jnp.sqrt(th2s)
     a = jnp.where(small, 1.0 - th2 / 6.0 + th2 * th2 / 120.0, jnp.sin(th) / th)
     b = jnp.where(small, 0.5 - th2 / 24.0 + th2 * th2 / 720.0, (1.0 - jnp.cos(th)) / th2s)
     # K^2 = v v^T - theta^2 I, so R = (1 - b theta^2) I + a K + b v v^T.
-    eye = jnp.eye(3, dtype=v.dtype)
-    return ((1.0 - b * th2)[..., None, None] * eye + a[..., None, None] * skew(v)
-            + b[..., None, None] * (v[..., :, None] * v[..., None, :]))
+    return (1.0 - b * th2) * eye_cm(v.shape[1:], v.dtype) + a * skew_cm(v) + b * outer_cm(v, v)
+
+
+# ------------------------------------------------------------------------------ public (..., 3, 3)
+
+
+def det3(a: Float[Array, "... 3 3"]) -> Float[Array, "..."]:
+    return det_cm(to_cm(a))
+
+
+def adjugate3(a: Float[Array, "... 3 3"]) -> Float[Array, "... 3 3"]:
+    return from_cm(adjugate_cm(to_cm(a)))
+
+
+def inv3(a: Float[Array, "... 3 3"]) -> Float[Array, "... 3 3"]:
+    return from_cm(inv_cm(to_cm(a)))
+
+
+def sym(a: Array) -> Array:
+    return 0.5 * (a + jnp.swapaxes(a, -1, -2))
+
+
+def polar(t: Float[Array, "... 3 3"], steps: int = NEWTON_STEPS) -> tuple[Array, Array]:
+    """T = R S with R a proper rotation and S symmetric (official ACAP sign convention)."""
+    r, s = polar_cm(to_cm(t), steps)
+    return from_cm(r), from_cm(s)
+
+
+def skew(v: Float[Array, "... 3"]) -> Float[Array, "... 3 3"]:
+    return from_cm(skew_cm(to_cm(v, 1)))
+
+
+def vee(k: Float[Array, "... 3 3"]) -> Float[Array, "... 3"]:
+    return from_cm(vee_cm(to_cm(k)), 1)
+
+
+def rotation_angle(r: Float[Array, "... 3 3"]) -> Float[Array, "..."]:
+    rc = to_cm(r)
+    c = 0.5 * (rc[0, 0] + rc[1, 1] + rc[2, 2] - 1.0)
+    return jnp.arctan2(_safe_norm0(vee_cm(rc)), c)
+
+
+def log_rotation(r: Float[Array, "... 3 3"]) -> Float[Array, "... 3"]:
+    """Axis-angle vector theta * axis with theta in [0, pi]."""
+    return from_cm(log_rotation_cm(to_cm(r)), 1)
+
+
+def exp_rotation(v: Float[Array, "... 3"]) -> Float[Array, "... 3 3"]:
+    """Rodrigues' formula for the rotation of axis-angle vector v (any angle)."""
+    return from_cm(exp_rotation_cm(to_cm(v, 1)))
