@@ -13,7 +13,6 @@ or recompile.
 from __future__ import annotations
 
 import dataclasses
-import functools
 import hashlib
 from collections import OrderedDict
 
@@ -31,7 +30,7 @@ from jaxdeform.acap.gradients import (
     to_vertex_major,
 )
 from jaxdeform.acap.reconstruct import Reconstructor
-from jaxdeform.acap.rotations import exp_rotation, exp_rotation_cm, log_rotation_cm, mm_cm, polar_cm, skew
+from jaxdeform.acap.rotations import exp_rotation_cm, from_cm, log_rotation_cm, mm_cm, polar_cm, skew, to_cm
 from jaxdeform.errors import ConnectivityError, DegenerateMeshError
 from jaxdeform.mesh.topology import Topology, build_topology
 
@@ -45,18 +44,28 @@ def features_from(v: Float[Array, "... 3"], s: Float[Array, "... 3 3"]) -> Float
     return jnp.concatenate([rot, s[..., _S_IDX[0], _S_IDX[1]]], axis=-1)
 
 
+def split_features_cm(f: Float[Array, "9 ..."]) -> tuple[Array, Array]:
+    """Features in the component-major layout (9, *batch) -> (axis-angle (3, *batch), S (3, 3, *batch))."""
+    v = jnp.stack([-f[2], f[1], -f[0]])
+    s00, s01, s02, s11, s12, s22 = (f[k] for k in range(3, 9))
+    return v, jnp.stack([jnp.stack([s00, s01, s02]), jnp.stack([s01, s11, s12]), jnp.stack([s02, s12, s22])])
+
+
 def split_features(f: Float[Array, "... 9"]) -> tuple[Array, Array]:
     """Inverse of :func:`features_from`: (axis-angle vectors (..., 3), S (..., 3, 3))."""
-    v = jnp.stack([-f[..., 2], f[..., 1], -f[..., 0]], axis=-1)
-    s00, s01, s02, s11, s12, s22 = (f[..., k] for k in range(3, 9))
-    s = jnp.stack([jnp.stack([s00, s01, s02], -1), jnp.stack([s01, s11, s12], -1), jnp.stack([s02, s12, s22], -1)], -2)
-    return v, s
+    v, s = split_features_cm(to_cm(f, 1))
+    return from_cm(v, 1), from_cm(s)
+
+
+def gradients_from_features_cm(f: Float[Array, "9 ..."]) -> Float[Array, "3 3 ..."]:
+    """T = exp(log R) S in the component-major layout."""
+    v, s = split_features_cm(f)
+    return mm_cm(exp_rotation_cm(v), s)
 
 
 def gradients_from_features(f: Float[Array, "... 9"]) -> Float[Array, "... 3 3"]:
     """T = exp(log R) S."""
-    v, s = split_features(f)
-    return exp_rotation(v) @ s
+    return from_cm(gradients_from_features_cm(to_cm(f, 1)))
 
 
 # The encoder runs as a few separately jitted stages: compiled as one program, XLA on CPU picked layouts and
@@ -155,19 +164,12 @@ class Acap:
 
 
 @jax.jit
-def _decode_gradients(features, n_anchors_like, targets):
+def _decode_gradients(rec: Reconstructor, features, targets):
     """Features (..., V, 9) -> T (V, 3, 3, B) and anchor targets (A, 3, B) or None (vertex-major)."""
-    lead, v = features.shape[:-2], features.shape[-2]
-    f = jnp.moveaxis(features.reshape(-1, v, 9), (0, 1, 2), (2, 0, 1))  # (V, 9, B): vertex-major
-    rot = jnp.stack([-f[:, 2], f[:, 1], -f[:, 0]])  # axis-angle, (3, V, B)
-    s00, s01, s02, s11, s12, s22 = (f[:, k] for k in range(3, 9))
-    s = jnp.stack([jnp.stack([s00, s01, s02]), jnp.stack([s01, s11, s12]), jnp.stack([s02, s12, s22])])
-    t = jnp.moveaxis(mm_cm(exp_rotation_cm(rot), s), (0, 1), (1, 2))  # T = exp(log R) S, (V, 3, 3, B)
-    if targets is not None:
-        a = n_anchors_like.shape[0]
-        targets = jnp.broadcast_to(jnp.asarray(targets, t.dtype), (*lead, a, 3))
-        targets = jnp.moveaxis(targets.reshape(-1, a, 3), 0, -1)
-    return t, targets
+    v = features.shape[-2]
+    f = jnp.moveaxis(features.reshape(-1, v, 9), (0, 1, 2), (2, 1, 0))  # (9, V, B)
+    t = jnp.moveaxis(gradients_from_features_cm(f), (0, 1), (1, 2))  # (V, 3, 3, B)
+    return t, rec.targets_vm(targets, features.shape[:-2], t.dtype)
 
 
 @jax.jit
@@ -190,7 +192,7 @@ def _decode_output(p, features):
 
 def _decode(rec: Reconstructor, frame: RestFrame, features, targets, refine: int):
     # Separately jitted stages (see the encoder's note): one program was 2-4x slower on XLA CPU.
-    t, targets = _decode_gradients(features, rec.anchors, targets)
+    t, targets = _decode_gradients(rec, features, targets)
     p = _solve_stage(rec, t, targets)
     zero = jnp.zeros((rec.anchors.shape[0], 3, t.shape[-1]), t.dtype)
     for _ in range(refine):

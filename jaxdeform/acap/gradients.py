@@ -34,7 +34,7 @@ import numpy as np
 from jaxtyping import Array, Float
 
 from jaxdeform.acap.rotations import cross_cm, inv3
-from jaxdeform.mesh.geometry import cotangent_weights, safe_norm, vertex_normals
+from jaxdeform.mesh.geometry import cotangent_weights
 from jaxdeform.mesh.topology import Topology
 
 Weighting = Literal["official", "cotangent"]
@@ -60,13 +60,6 @@ def edge_weights(rest: Float[Array, "v 3"], topo: Topology, weighting: Weighting
 def _ring_vectors(x: Float[Array, "... v 3"], topo: Topology) -> Float[Array, "... v k 3"]:
     """e_ik = x_i - x_{neighbor k} on the padded one-rings (padding gives zero vectors)."""
     return x[..., :, None, :] - x[..., topo.neighbors, :]
-
-
-def _normal_rows(x: Float[Array, "v 3"], topo: Topology) -> Float[Array, "v 3"]:
-    """s_i n_i of one mesh: unit vertex normal times 0.3 times the mean one-ring edge length."""
-    length = safe_norm(_ring_vectors(x, topo))  # padding slots are zero vectors: keep their gradient finite
-    mean_len = jnp.sum(jnp.where(topo.mask, length, 0.0), axis=-1) / topo.degree
-    return NORMAL_ROW_SCALE * mean_len[..., None] * vertex_normals(x, topo)
 
 
 def _vertex_faces(topo: Topology) -> tuple[np.ndarray, np.ndarray]:
@@ -115,24 +108,23 @@ def rest_frame(rest: Float[Array, "v 3"], topo: Topology, weighting: Weighting =
     slot = jnp.arange(topo.n_half_edges) - jnp.cumsum(topo.degree)[topo.half_src] + topo.degree[topo.half_src]
     ring_w = ring_w.at[topo.half_src, slot].set(w[topo.half_edge])
     e = _ring_vectors(rest, topo)
-    nrow = _normal_rows(rest, topo)
+    vf, vf_mask = (jnp.asarray(a) for a in _vertex_faces(topo))
+    nrow = _normal_rows_cm(topo, vf, vf_mask, to_vertex_major(rest))[:, :, 0].T  # (V, 3)
     b = jnp.einsum("vk,vka,vkb->vab", ring_w, e, e) + nrow[:, :, None] * nrow[:, None, :]
     # A tiny relative ridge keeps pathological one-rings (all faces degenerate) invertible.
     tr = jnp.trace(b, axis1=-2, axis2=-1)
     b = b + (1e-12 * tr)[:, None, None] * jnp.eye(3, dtype=rest.dtype)
     inv_b = inv3(b)
     c_ring = jnp.einsum("vab,vk,vkb->avk", inv_b, ring_w, e)
-    vf, vf_mask = _vertex_faces(topo)
     return RestFrame(
         topo=topo, weights=w, c_ring=c_ring,
-        c_normal=jnp.einsum("vab,vb->av", inv_b, nrow), vertex_faces=jnp.asarray(vf),
-        vertex_faces_mask=jnp.asarray(vf_mask),
+        c_normal=jnp.einsum("vab,vb->av", inv_b, nrow), vertex_faces=vf, vertex_faces_mask=vf_mask,
     )
 
 
-def _normal_rows_cm(frame: RestFrame, x: Float[Array, "3 v b"]) -> Float[Array, "3 v b"]:
-    """s'_i n'_i for a batch of meshes in the (3, V, B) layout (see :func:`_normal_rows`)."""
-    topo = frame.topo
+def _normal_rows_cm(topo: Topology, vertex_faces, vertex_faces_mask, x: Float[Array, "3 v b"]) -> Float[Array, "3 v b"]:
+    """s_i n_i of a batch of meshes in the (3, V, B) layout: the unit area-weighted vertex normal times 0.3
+    times the mean one-ring edge length (the official "normal row"), for the reference and each frame alike."""
     i, j = topo.edges[:, 0], topo.edges[:, 1]
     d = x[:, i] - x[:, j]  # (3, E, B); explicit component sums: XLA on CPU is slow at short reductions
     sq = d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
@@ -143,8 +135,8 @@ def _normal_rows_cm(frame: RestFrame, x: Float[Array, "3 v b"]) -> Float[Array, 
     p0, p1, p2 = x[:, f[:, 0]], x[:, f[:, 1]], x[:, f[:, 2]]
     cross = cross_cm(p1 - p0, p2 - p0)  # (3, F, B): twice the area times the unit normal
     acc = jnp.zeros_like(x)
-    for k in range(frame.vertex_faces.shape[1]):
-        acc = acc + jnp.where(frame.vertex_faces_mask[:, k, None], cross[:, frame.vertex_faces[:, k]], 0.0)
+    for k in range(vertex_faces.shape[1]):
+        acc = acc + jnp.where(vertex_faces_mask[:, k, None], cross[:, vertex_faces[:, k]], 0.0)
     nsq = acc[0] * acc[0] + acc[1] * acc[1] + acc[2] * acc[2]
     scale = jnp.where(nsq > 0, jax.lax.rsqrt(jnp.where(nsq > 0, nsq, 1.0)), 0.0)
     return (NORMAL_ROW_SCALE * mean_len * scale) * acc
@@ -158,7 +150,7 @@ def deformation_gradients_cm(frame: RestFrame, x: Float[Array, "3 v b"]) -> Floa
     for k in range(topo.max_degree):  # unrolled over the (static) ring slots; padding has c = 0
         # edge vectors first (not x_i c0 - sum x_k c_k): no cancellation for meshes far from the origin
         acc = acc + (x - x[:, topo.neighbors[:, k]])[:, None] * cr[None, :, :, k]
-    n_def = jax.lax.optimization_barrier(_normal_rows_cm(frame, x))
+    n_def = _normal_rows_cm(topo, frame.vertex_faces, frame.vertex_faces_mask, x)
     return acc + n_def[:, None] * frame.c_normal[None, :, :, None]
 
 

@@ -232,11 +232,16 @@ class Reconstructor(eqx.Module):
         lead = t.shape[:-3]
         v = self.rest.shape[0]
         t_vm = jnp.moveaxis(t.reshape(-1, v, 3, 3), 0, -1)  # (V, 3, 3, B)
-        if targets is not None:
-            targets = jnp.broadcast_to(jnp.asarray(targets, t.dtype), (*lead, self.anchors.shape[0], 3))
-            targets = jnp.moveaxis(targets.reshape(-1, self.anchors.shape[0], 3), 0, -1)
-        y = self.solve_vm(t_vm, targets)
+        y = self.solve_vm(t_vm, self.targets_vm(targets, lead, t.dtype))
         return jnp.moveaxis(y, -1, 0).reshape(*lead, v, 3)
+
+    def targets_vm(self, targets: Float[Array, "... a 3"] | None, lead: tuple, dtype) -> Float[Array, "a 3 b"] | None:
+        """Anchor targets broadcast to the batch ``lead`` and laid out vertex-major (A, 3, B); None stays None."""
+        if targets is None:
+            return None
+        a = self.anchors.shape[0]
+        targets = jnp.broadcast_to(jnp.asarray(targets, dtype), (*lead, a, 3))
+        return jnp.moveaxis(targets.reshape(-1, a, 3), 0, -1)
 
     def solve_vm(self, t_vm: Float[Array, "v 3 3 b"], targets_vm: Float[Array, "a 3 b"] | None = None):
         """Positions (V, 3, B) from gradients (V, 3, 3, B) and anchor targets (A, 3, B) (default: rest)."""
