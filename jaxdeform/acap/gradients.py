@@ -19,8 +19,8 @@ Weighting (``weighting=``):
 Degenerate reference faces contribute no cotangent (see ``jaxdeform.mesh.geometry``), so weights and
 features stay finite.
 
-The reference-side quantities are computed once in :class:`RestFrame`; per-frame work is a gather and an
-einsum over the padded one-rings, batched over frames.
+The reference-side quantities are computed once in :class:`RestFrame`; per-frame work is one pass over the
+one-rings (slot by slot, see :class:`RingPlan`), batched over frames.
 """
 
 from __future__ import annotations
@@ -57,11 +57,6 @@ def edge_weights(rest: Float[Array, "v 3"], topo: Topology, weighting: Weighting
     raise ValueError(f"unknown weighting '{weighting}'; expected 'official' or 'cotangent'.")
 
 
-def _ring_vectors(x: Float[Array, "... v 3"], topo: Topology) -> Float[Array, "... v k 3"]:
-    """e_ik = x_i - x_{neighbor k} on the padded one-rings (padding gives zero vectors)."""
-    return x[..., :, None, :] - x[..., topo.neighbors, :]
-
-
 def _vertex_faces(topo: Topology) -> tuple[np.ndarray, np.ndarray]:
     """Padded vertex -> incident faces table (V, L) and its mask (host, once)."""
     f = np.asarray(topo.faces).reshape(-1)
@@ -77,6 +72,51 @@ def _vertex_faces(topo: Topology) -> tuple[np.ndarray, np.ndarray]:
     return table, mask
 
 
+def _prefix_counts(counts: np.ndarray, slots: int) -> tuple[int, ...]:
+    """For counts sorted in descending order: how many leading entries have more than k items, k < slots."""
+    return tuple(int(np.count_nonzero(counts > k)) for k in range(slots))
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class RingPlan:
+    """The one-rings laid out for the per-frame kernels (host-built, once per connectivity).
+
+    Vertices are ordered by degree, highest first (``order``: position -> vertex, ``position``: its
+    inverse), so that ring slot k concerns a prefix of ``ring_counts[k]`` vertices and the incident-face
+    slot l a prefix of ``face_counts[l]``. The kernels then touch each half-edge and each vertex-face pair
+    once, instead of padding every vertex to the largest degree (horse: 14 slots, mean degree 6).
+    """
+
+    order: Array  # (V,)
+    position: Array  # (V,)
+    neighbors: Array  # (V, K): one-ring of the vertex at each position (original vertex indices)
+    degree: Array  # (V,) at each position
+    faces: Array  # (V, L): incident faces at each position
+    faces_mask: Array  # (V, L)
+    ring_counts: tuple = dataclasses.field(metadata=dict(static=True))
+    face_counts: tuple = dataclasses.field(metadata=dict(static=True))
+
+
+def ring_plan(topo: Topology) -> RingPlan:
+    degree = np.asarray(topo.degree)
+    order = np.argsort(-degree, kind="stable")
+    position = np.empty_like(order)
+    position[order] = np.arange(order.size)
+    vf, vf_mask = _vertex_faces(topo)
+    vf, vf_mask = vf[order], vf_mask[order]
+    n_faces = vf_mask.sum(axis=1)
+    # faces per vertex are not exactly sorted in degree order (boundary vertices have one fewer):
+    # each face slot covers the prefix up to the last vertex that uses it, masked inside
+    last = [int(np.flatnonzero(n_faces > k).max()) + 1 for k in range(vf.shape[1])]
+    i32 = lambda a: jnp.asarray(a, jnp.int32)  # noqa: E731
+    return RingPlan(
+        order=i32(order), position=i32(position), neighbors=i32(np.asarray(topo.neighbors)[order]),
+        degree=i32(degree[order]), faces=i32(vf), faces_mask=jnp.asarray(vf_mask),
+        ring_counts=_prefix_counts(degree[order], topo.max_degree), face_counts=tuple(last),
+    )
+
+
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class RestFrame:
@@ -85,15 +125,14 @@ class RestFrame:
     With B_i = sum_k w_ik e_ik e_ik^T + n_i n_i^T (reference side), the fit is
     T_i = (sum_k w_ik e'_ik e_ik^T + n'_i n_i^T) B_i^-1 = sum_k e'_ik c_ik^T + n'_i cn_i^T
     with the constants c_ik = B_i^-1 w_ik e_ik and cn_i = B_i^-1 n_i, stored component-major ((3, V, K),
-    (3, V)) for the per-frame kernel.
+    (3, V)) in the vertex order of ``plan`` for the per-frame kernel.
     """
 
     topo: Topology
+    plan: RingPlan
     weights: Float[Array, " e"]  # per undirected edge
     c_ring: Float[Array, "3 v k"]
     c_normal: Float[Array, "3 v"]
-    vertex_faces: Array  # (V, L) padded incident faces
-    vertex_faces_mask: Array  # (V, L)
 
     @property
     def dtype(self):
@@ -103,55 +142,59 @@ class RestFrame:
 def rest_frame(rest: Float[Array, "v 3"], topo: Topology, weighting: Weighting = "official") -> RestFrame:
     rest = jnp.asarray(rest)
     w = edge_weights(rest, topo, weighting)
+    plan = ring_plan(topo)
     # Weight of the half-edge i -> neighbors[i, k]: look up the undirected edge.
     ring_w = jnp.zeros(topo.mask.shape, rest.dtype)
     slot = jnp.arange(topo.n_half_edges) - jnp.cumsum(topo.degree)[topo.half_src] + topo.degree[topo.half_src]
-    ring_w = ring_w.at[topo.half_src, slot].set(w[topo.half_edge])
-    e = _ring_vectors(rest, topo)
-    vf, vf_mask = (jnp.asarray(a) for a in _vertex_faces(topo))
-    nrow = _normal_rows_cm(topo, vf, vf_mask, to_vertex_major(rest))[:, :, 0].T  # (V, 3)
+    ring_w = ring_w.at[topo.half_src, slot].set(w[topo.half_edge])[plan.order]
+    e = rest[plan.order][:, None, :] - rest[plan.neighbors]  # (V, K, 3) at plan positions; padding: 0
+    _, nrow = _ring_pass(topo, plan, to_vertex_major(rest))
+    nrow = nrow[:, :, 0].T  # (V, 3)
     b = jnp.einsum("vk,vka,vkb->vab", ring_w, e, e) + nrow[:, :, None] * nrow[:, None, :]
     # A tiny relative ridge keeps pathological one-rings (all faces degenerate) invertible.
     tr = jnp.trace(b, axis1=-2, axis2=-1)
     b = b + (1e-12 * tr)[:, None, None] * jnp.eye(3, dtype=rest.dtype)
     inv_b = inv3(b)
     c_ring = jnp.einsum("vab,vk,vkb->avk", inv_b, ring_w, e)
-    return RestFrame(
-        topo=topo, weights=w, c_ring=c_ring,
-        c_normal=jnp.einsum("vab,vb->av", inv_b, nrow), vertex_faces=vf, vertex_faces_mask=vf_mask,
-    )
+    return RestFrame(topo=topo, plan=plan, weights=w, c_ring=c_ring, c_normal=jnp.einsum("vab,vb->av", inv_b, nrow))
 
 
-def _normal_rows_cm(topo: Topology, vertex_faces, vertex_faces_mask, x: Float[Array, "3 v b"]) -> Float[Array, "3 v b"]:
-    """s_i n_i of a batch of meshes in the (3, V, B) layout: the unit area-weighted vertex normal times 0.3
-    times the mean one-ring edge length (the official "normal row"), for the reference and each frame alike."""
-    i, j = topo.edges[:, 0], topo.edges[:, 1]
-    d = x[:, i] - x[:, j]  # (3, E, B); explicit component sums: XLA on CPU is slow at short reductions
-    sq = d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
-    length = jnp.where(sq > 0, jnp.sqrt(jnp.where(sq > 0, sq, 1.0)), 0.0)
-    total = jax.ops.segment_sum(jnp.concatenate([length, length]), jnp.concatenate([i, j]), topo.n_vertices)
-    mean_len = total / topo.degree[:, None]
+def _ring_pass(topo: Topology, plan: RingPlan, x: Float[Array, "3 v b"], c_ring=None):
+    """One pass over the one-rings of a batch of meshes (3, V, B), in the vertex order of ``plan``.
+
+    Returns sum_k e'_ik c_ik^T (3, 3, V, B) when ``c_ring`` is given (else None) and the normal rows
+    s_i n_i (3, V, B): the unit area-weighted vertex normal times 0.3 times the mean one-ring edge length
+    (the official "normal row"), for the reference and each frame alike. Slot k updates only the prefix of
+    vertices that have a k-th neighbour; components are summed explicitly (XLA on CPU is slow at short
+    reductions).
+    """
+    xp = x[:, plan.order]
+    acc = None if c_ring is None else jnp.zeros((3, 3) + xp.shape[1:], x.dtype)
+    length = jnp.zeros(xp.shape[1:], x.dtype)
+    for k, m in enumerate(plan.ring_counts):
+        # edge vectors first (not x_i c0 - sum x_k c_k): no cancellation for meshes far from the origin
+        d = xp[:, :m] - x[:, plan.neighbors[:m, k]]
+        sq = d[0] * d[0] + d[1] * d[1] + d[2] * d[2]
+        length = length.at[:m].add(jnp.where(sq > 0, jnp.sqrt(jnp.where(sq > 0, sq, 1.0)), 0.0))
+        if acc is not None:
+            acc = acc.at[:, :, :m].add(d[:, None] * c_ring[None, :, :m, k, None])
     f = topo.faces
-    p0, p1, p2 = x[:, f[:, 0]], x[:, f[:, 1]], x[:, f[:, 2]]
-    cross = cross_cm(p1 - p0, p2 - p0)  # (3, F, B): twice the area times the unit normal
-    acc = jnp.zeros_like(x)
-    for k in range(vertex_faces.shape[1]):
-        acc = acc + jnp.where(vertex_faces_mask[:, k, None], cross[:, vertex_faces[:, k]], 0.0)
-    nsq = acc[0] * acc[0] + acc[1] * acc[1] + acc[2] * acc[2]
+    p0 = x[:, f[:, 0]]
+    cross = cross_cm(x[:, f[:, 1]] - p0, x[:, f[:, 2]] - p0)  # (3, F, B): twice the area times the unit normal
+    normal = jnp.zeros_like(xp)
+    for k, m in enumerate(plan.face_counts):
+        normal = normal.at[:, :m].add(jnp.where(plan.faces_mask[:m, k, None], cross[:, plan.faces[:m, k]], 0.0))
+    nsq = normal[0] * normal[0] + normal[1] * normal[1] + normal[2] * normal[2]
     scale = jnp.where(nsq > 0, jax.lax.rsqrt(jnp.where(nsq > 0, nsq, 1.0)), 0.0)
-    return (NORMAL_ROW_SCALE * mean_len * scale) * acc
+    mean_len = length / plan.degree[:, None].astype(x.dtype)
+    return acc, (NORMAL_ROW_SCALE * mean_len * scale) * normal
 
 
 def deformation_gradients_cm(frame: RestFrame, x: Float[Array, "3 v b"]) -> Float[Array, "3 3 v b"]:
     """T_i of a batch of meshes in the component-major, vertex-major layout (3, V, B) -> (3, 3, V, B)."""
-    topo = frame.topo
-    cr = frame.c_ring[:, :, :, None]
-    acc = jnp.zeros((3, 3) + x.shape[1:], x.dtype)
-    for k in range(topo.max_degree):  # unrolled over the (static) ring slots; padding has c = 0
-        # edge vectors first (not x_i c0 - sum x_k c_k): no cancellation for meshes far from the origin
-        acc = acc + (x - x[:, topo.neighbors[:, k]])[:, None] * cr[None, :, :, k]
-    n_def = _normal_rows_cm(topo, frame.vertex_faces, frame.vertex_faces_mask, x)
-    return acc + n_def[:, None] * frame.c_normal[None, :, :, None]
+    acc, n_def = _ring_pass(frame.topo, frame.plan, x, frame.c_ring)
+    t = acc + n_def[:, None] * frame.c_normal[None, :, :, None]
+    return t[:, :, frame.plan.position]
 
 
 def to_vertex_major(vertices: Float[Array, "... v 3"]) -> Float[Array, "3 v b"]:
