@@ -165,7 +165,7 @@ class Acap:
 
 @jax.jit
 def _decode_gradients(rec: Reconstructor, features, targets):
-    """Features (..., V, 9) -> T (V, 3, 3, B) and anchor targets (A, 3, B) or None (vertex-major)."""
+    """Features (..., V, 9) -> T (V, 3, 3, B) and the anchor targets (A, 3, B) or None (vertex-major)."""
     v = features.shape[-2]
     f = jnp.moveaxis(features.reshape(-1, v, 9), (0, 1, 2), (2, 1, 0))  # (9, V, B)
     t = jnp.moveaxis(gradients_from_features_cm(f), (0, 1), (1, 2))  # (V, 3, 3, B)
@@ -173,15 +173,26 @@ def _decode_gradients(rec: Reconstructor, features, targets):
 
 
 @jax.jit
-def _solve_stage(rec: Reconstructor, t, targets):
-    return rec.solve_vm(t, targets)
+def _edge_stage(rec: Reconstructor, t):
+    """Edge targets (E, 3, B) of T (its own stage: fused with either neighbour, XLA on CPU ran 2x slower)."""
+    return rec.edge_targets_vm(t)
 
 
 @jax.jit
-def _defect_stage(frame: RestFrame, t, p):
-    """T - T(p): the gradients the current positions still miss (V, 3, 3, B)."""
-    t_p = deformation_gradients_cm(frame, jnp.swapaxes(p, 0, 1))  # (3, 3, V, B)
-    return t - jnp.moveaxis(t_p, (0, 1), (1, 2))
+def _solve_stage(rec: Reconstructor, target, targets):
+    return rec.solve_targets_vm(target, targets)
+
+
+@jax.jit
+def _refit_stage(frame: RestFrame, p):
+    """T(p) (V, 3, 3, B): the encoder's local fits of the current positions p (V, 3, B)."""
+    return jnp.moveaxis(deformation_gradients_cm(frame, jnp.swapaxes(p, 0, 1)), (0, 1), (1, 2))
+
+
+@jax.jit
+def _defect_stage(rec: Reconstructor, target, t_p):
+    """Edge targets of T - T(p), the gradients the current positions still miss (linear: a difference)."""
+    return target - rec.edge_targets_vm(t_p)
 
 
 @jax.jit
@@ -193,10 +204,11 @@ def _decode_output(p, features):
 def _decode(rec: Reconstructor, frame: RestFrame, features, targets, refine: int):
     # Separately jitted stages (see the encoder's note): one program was 2-4x slower on XLA CPU.
     t, targets = _decode_gradients(rec, features, targets)
-    p = _solve_stage(rec, t, targets)
-    zero = jnp.zeros((rec.anchors.shape[0], 3, t.shape[-1]), t.dtype)
+    target = _edge_stage(rec, t)
+    p = _solve_stage(rec, target, targets)
+    zero = jnp.zeros((rec.anchors.shape[0], 3, target.shape[-1]), target.dtype)
     for _ in range(refine):
-        p = p + _solve_stage(rec, _defect_stage(frame, t, p), zero)
+        p = p + _solve_stage(rec, _defect_stage(rec, target, _refit_stage(frame, p)), zero)
     return _decode_output(p, features)
 
 

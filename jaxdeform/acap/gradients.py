@@ -26,6 +26,7 @@ one-rings (slot by slot, see :class:`RingPlan`), batched over frames.
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import Literal
 
 import jax
@@ -141,8 +142,18 @@ class RestFrame:
 
 def rest_frame(rest: Float[Array, "v 3"], topo: Topology, weighting: Weighting = "official") -> RestFrame:
     rest = jnp.asarray(rest)
-    w = edge_weights(rest, topo, weighting)
+    if weighting not in ("official", "cotangent"):
+        raise ValueError(f"unknown weighting '{weighting}'; expected 'official' or 'cotangent'.")
     plan = ring_plan(topo)
+    w, c_ring, c_normal = _rest_constants(rest, topo, plan, weighting)
+    return RestFrame(topo=topo, plan=plan, weights=w, c_ring=c_ring, c_normal=c_normal)
+
+
+@functools.partial(jax.jit, static_argnames=("weighting",))
+def _rest_constants(rest, topo: Topology, plan: RingPlan, weighting: Weighting):
+    """Edge weights and the fit constants c_ring (3, V, K), c_normal (3, V) (one compiled program: run
+    op by op, the per-slot steps made the first call take 15 s on horse-gallop)."""
+    w = edge_weights(rest, topo, weighting)
     # Weight of the half-edge i -> neighbors[i, k]: look up the undirected edge.
     ring_w = jnp.zeros(topo.mask.shape, rest.dtype)
     slot = jnp.arange(topo.n_half_edges) - jnp.cumsum(topo.degree)[topo.half_src] + topo.degree[topo.half_src]
@@ -155,8 +166,7 @@ def rest_frame(rest: Float[Array, "v 3"], topo: Topology, weighting: Weighting =
     tr = jnp.trace(b, axis1=-2, axis2=-1)
     b = b + (1e-12 * tr)[:, None, None] * jnp.eye(3, dtype=rest.dtype)
     inv_b = inv3(b)
-    c_ring = jnp.einsum("vab,vk,vkb->avk", inv_b, ring_w, e)
-    return RestFrame(topo=topo, plan=plan, weights=w, c_ring=c_ring, c_normal=jnp.einsum("vab,vb->av", inv_b, nrow))
+    return w, jnp.einsum("vab,vk,vkb->avk", inv_b, ring_w, e), jnp.einsum("vab,vb->av", inv_b, nrow)
 
 
 def _ring_pass(topo: Topology, plan: RingPlan, x: Float[Array, "3 v b"], c_ring=None):

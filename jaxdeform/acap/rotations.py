@@ -22,6 +22,7 @@ Numerics
 
 from __future__ import annotations
 
+import functools
 import math
 
 import jax
@@ -29,7 +30,8 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 NEWTON_STEPS = 7
-REFLECTION_SHARE = 16  # the gathered reflection path handles up to 1/16 of the entries
+# gathered reflection fixes for up to 1/256 or 1/16 of the entries; beyond that the whole batch is fixed
+REFLECTION_SHARES = (256, 16)
 
 # ------------------------------------------------------------------------------- layout conversion
 
@@ -133,7 +135,6 @@ def polar_cm(t: Array, steps: int = NEWTON_STEPS) -> tuple[Array, Array]:
     neg = det_cm(t) < 0
     batch = t.shape[2:]
     n = math.prod(batch)
-    cap = max(1, n // REFLECTION_SHARE)
 
     def house(p):
         v = _smallest_eigvec_cm(p)
@@ -143,7 +144,7 @@ def polar_cm(t: Array, steps: int = NEWTON_STEPS) -> tuple[Array, Array]:
         h = house(jnp.where(neg, p, eye_cm(batch, t.dtype)))
         return jnp.where(neg, mm_cm(x, h), x), jnp.where(neg, mm_cm(h, p), p)
 
-    def reflect_few(x, p):
+    def reflect_few(cap, x, p):
         # gather the (rare) reflected entries, fix them, scatter back; padding indices n are dropped
         idx = jnp.nonzero(neg.reshape(n), size=cap, fill_value=n)[0]
         xf, pf = x.reshape(3, 3, n), p.reshape(3, 3, n)
@@ -153,10 +154,13 @@ def polar_cm(t: Array, steps: int = NEWTON_STEPS) -> tuple[Array, Array]:
         pf = pf.at[:, :, idx].set(mm_cm(h, ps), mode="drop")
         return xf.reshape(x.shape), pf.reshape(p.shape)
 
-    # Reflections are rare (horse-gallop: 0.3% of vertex-frames): fix only those entries when they are few.
+    # Reflections are rare (horse-gallop: 0.3% of vertex-frames): fix only those entries when they are few,
+    # with a gathered batch of one of a few static capacities.
+    caps = sorted({max(1, n // share) for share in REFLECTION_SHARES})
     count = jnp.sum(neg.astype(jnp.int32))
-    branch = jnp.where(count == 0, 0, jnp.where(count <= cap, 1, 2))
-    return jax.lax.switch(branch, [lambda x, p: (x, p), reflect_few, reflect_all], x, p)
+    branch = jnp.sum(jnp.asarray([count > c for c in caps], jnp.int32)) + jnp.where(count > 0, 1, 0)
+    branches = [lambda x, p: (x, p)] + [functools.partial(reflect_few, c) for c in caps] + [reflect_all]
+    return jax.lax.switch(branch, branches, x, p)
 
 
 def skew_cm(v: Array) -> Array:
