@@ -233,6 +233,22 @@ def bench_case(case: str, frames: np.ndarray, faces: np.ndarray, dtype, repeats:
         solve_times.append(time.perf_counter() - t0)
     solve_ms = 1e3 * statistics.median(solve_times)
 
+    # Paired: plain decode and the bare solve timed back to back, so that both see the same machine load
+    # (on a shared 2-core VM either one alone drifts by +-30% between measurements).
+    paired = []
+    for _ in range(max(repeats, SOLVE_MIN_REPEATS)):
+        t0 = time.perf_counter()
+        jax.block_until_ready([a.decode(f, refine=0) for f in feats])
+        dec_ms = 1e3 * (time.perf_counter() - t0) / n
+        one = []
+        for _ in range(5):
+            t0 = time.perf_counter()
+            reconstruct.solve_factor(rec.key, b)
+            one.append(time.perf_counter() - t0)
+        paired.append(dec_ms / (1e3 * statistics.median(one)))
+    paired_ratio = statistics.median(paired)
+    log(f"  decode plain / bare solve, paired: {paired_ratio:.2f} (median of {len(paired)})")
+
     decoded = np.concatenate([np.asarray(d) for d in decoded], axis=0)
     rt = roundtrip_error(frames, decoded, np.asarray(rest, np.float64))
     if decoded.dtype != dtype:
@@ -261,6 +277,7 @@ def bench_case(case: str, frames: np.ndarray, faces: np.ndarray, dtype, repeats:
         "decode_over_solve": round(dec["per_frame_ms_median"] / solve_ms, 3) if solve_ms > 0 else None,
         "decode_plain": dec0,
         "decode_plain_over_solve": round(dec0["per_frame_ms_median"] / solve_ms, 3) if solve_ms > 0 else None,
+        "decode_plain_over_solve_paired": round(paired_ratio, 3),
         "roundtrip": rt,
         "output_dtype": {"features": str(feats[0].dtype), "decoded": str(decoded.dtype)},
         "peak_rss_mb": round(peak_rss_mb(), 1),
@@ -286,6 +303,8 @@ _COLUMNS = [
     ("dec", 8, lambda r: f"{r['decode']['per_frame_ms_median']:.3f}"),
     ("solve3", 8, lambda r: f"{r['cholespy_solve_3rhs_ms']:.3f}"),
     ("dec/sol", 7, lambda r: "-" if r["decode_over_solve"] is None else f"{r['decode_over_solve']:.2f}"),
+    ("plain", 8, lambda r: f"{r['decode_plain']['per_frame_ms_median']:.3f}"),
+    ("pl/sol", 6, lambda r: f"{r['decode_plain_over_solve_paired']:.2f}"),
     ("rt mean", 9, lambda r: f"{r['roundtrip']['mean_rel']:.2e}"),
     ("rt max", 9, lambda r: f"{r['roundtrip']['max_rel']:.2e}"),
     ("RSS MB", 7, lambda r: f"{r['peak_rss_mb']:.0f}"),
@@ -304,7 +323,8 @@ def format_table(records: list[dict]) -> str:
                     f"{r['decode']['compile_s']:.2f}")
     notes = ["", "prep s: prepare + reconstructor, first (cold) call; warm s: the same again; fact s: cholespy factor;",
              "local/enc/enc tmp/dec/solve3: ms per frame (median); solve3 = bare cholespy solve, 3 rhs;",
-             "rt = round-trip vertex error / bbox diagonal (mean translation removed)"]
+             "plain: decode with refine=0 (rotation exp, right-hand side, one solve); pl/sol: plain / solve3 timed",
+             "back to back (median of the pairs); rt = round-trip vertex error / bbox diagonal (mean translation removed)"]
     return "\n".join(lines + comp + notes)
 
 

@@ -206,6 +206,7 @@ def test_jit_matches_no_jit_and_no_retracing(acap_bar):
         _decode_gradients,
         _defect_stage,
         _edge_stage,
+        _features_cm,
         _gradients_stage,
         _output_stage,
         _polar_stage,
@@ -222,8 +223,8 @@ def test_jit_matches_no_jit_and_no_retracing(acap_bar):
     np.testing.assert_allclose(np.asarray(s_jit), np.asarray(s_eager), atol=1e-10)
     feats = a.encode(verts)
     a.decode(feats)
-    jitted = (_gradients_stage, _polar_stage, _output_stage, *cons.STAGES, _decode_gradients, _edge_stage,
-              _solve_stage, _refit_stage, _defect_stage)
+    jitted = (_gradients_stage, _polar_stage, _output_stage, *cons.STAGES,
+              _features_cm, _decode_gradients, _edge_stage, _solve_stage, _refit_stage, _defect_stage)
     sizes = [f._cache_size() for f in jitted]
     a.encode(verts + 0.01)
     a.decode(feats * 1.001)
