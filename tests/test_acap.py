@@ -249,3 +249,21 @@ def test_bad_inputs():
         acap.encode(v, f, v[None, :-1])
     with pytest.raises(ValueError, match="consistency"):
         acap.encode(v, f, v[None], consistency="sideways")
+
+
+def test_explicit_jacobian_transpose_equals_autodiff_transpose():
+    """The solver's explicit J^T (segment sums) is the transpose JAX derives from the residuals."""
+    from jaxdeform.acap.reconstruct import _residuals
+
+    v, f = thin_tube(n_around=6, n_along=12)
+    a = acap.prepare(v, f)
+    rec = a.reconstructor(anchors=[0, 7, 40])
+    rng = np.random.default_rng(2)
+    b = 4
+    e, n_anchor = rec.edge_i.shape[0], rec.anchors.shape[0]
+    zero_args = (jnp.zeros((e, 3, b)), jnp.zeros((n_anchor, 3, b)), rec.sqrt_w, rec.edge_i, rec.edge_j,
+                 rec.anchors, rec.sqrt_a)
+    y = jnp.zeros((v.shape[0], 3, b))
+    r = (jnp.asarray(rng.normal(size=(e, 3, b))), jnp.asarray(rng.normal(size=(n_anchor, 3, b))))
+    (auto,) = jax.linear_transpose(lambda y: _residuals(y, zero_args), y)(r)
+    np.testing.assert_allclose(np.asarray(rec.normal_rhs()(r)), np.asarray(auto), rtol=1e-12, atol=1e-12)
