@@ -1,4 +1,5 @@
-"""Command-line interface: ``jaxdeform acap encode|decode`` and ``jaxdeform render``.
+"""Command-line interface: ``jaxdeform acap encode|decode``, ``jaxdeform parts fit|interpolate|show`` and
+``jaxdeform render``.
 
 Every expected failure (a :class:`~jaxdeform.errors.JaxDeformError`, a ``ValueError`` from bad arguments, a
 missing file or another ``OSError``) prints exactly one line ``jaxdeform: error: <sentence>`` to stderr and
@@ -48,6 +49,42 @@ def _writing(path: Path):
         if exc.strerror is None:
             raise
         raise OSError(f"cannot write {path}: {exc.strerror}.") from None
+
+
+def _check_out_folder(out: Path, force: bool) -> None:
+    if out.exists() and not out.is_dir():
+        raise FileExistsError(f"--out {out} exists and is not a folder.")
+    if out.is_dir() and any(out.iterdir()) and not force:
+        raise FileExistsError(f"--out {out} exists and is not empty; use --force to replace it.")
+
+
+@contextlib.contextmanager
+def _staged_folder(out: Path):
+    """Yield a temporary sibling folder to fill; on success it replaces ``out`` (an existing non-empty ``out``
+    only with --force, checked by the caller), on failure it is removed and ``out`` is left as it was."""
+    with _writing(out):
+        out.parent.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent))
+    trash = None
+    try:
+        with _writing(out):
+            yield tmp
+            if out.exists():
+                if any(out.iterdir()):  # move aside, swap in, then delete
+                    trash = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".old", dir=out.parent))
+                    os.replace(out, trash / out.name)
+                else:
+                    out.rmdir()
+            os.replace(tmp, out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        if trash is not None:
+            if not out.exists() and (trash / out.name).exists():
+                os.replace(trash / out.name, out)  # put the old folder back
+            shutil.rmtree(trash, ignore_errors=True)
+        raise
+    if trash is not None:
+        shutil.rmtree(trash, ignore_errors=True)
 
 
 def _shape(a) -> str:
@@ -185,10 +222,7 @@ def cmd_decode(args: argparse.Namespace) -> int:
 
     path = Path(args.features)
     out = Path(args.out)
-    if out.exists() and not out.is_dir():
-        raise FileExistsError(f"--out {out} exists and is not a folder.")
-    if out.is_dir() and any(out.iterdir()) and not args.force:
-        raise FileExistsError(f"--out {out} exists and is not empty; use --force to replace it.")
+    _check_out_folder(out, args.force)
     features, reference, faces, weighting = _read_features(path)
     n, nv = features.shape[:2]
     if args.refine is not None and not 0 <= args.refine <= 100:
@@ -210,30 +244,9 @@ def cmd_decode(args: argparse.Namespace) -> int:
         raise JaxDeformError("the decoded positions are not finite (degenerate reference?); nothing was written.")
 
     width = max(3, len(str(n - 1)))
-    with _writing(out):
-        out.parent.mkdir(parents=True, exist_ok=True)
-        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent))
-    trash = None
-    try:
-        with _writing(out):
-            for k in range(n):
-                save_mesh(tmp / f"{k:0{width}d}.obj", positions[k], faces)
-            if out.exists():
-                if any(out.iterdir()):  # only with --force (checked above): move aside, swap in, then delete
-                    trash = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".old", dir=out.parent))
-                    os.replace(out, trash / out.name)
-                else:
-                    out.rmdir()
-            os.replace(tmp, out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        if trash is not None:
-            if not out.exists() and (trash / out.name).exists():
-                os.replace(trash / out.name, out)  # put the old folder back
-            shutil.rmtree(trash, ignore_errors=True)
-        raise
-    if trash is not None:
-        shutil.rmtree(trash, ignore_errors=True)
+    with _staged_folder(out) as tmp:
+        for k in range(n):
+            save_mesh(tmp / f"{k:0{width}d}.obj", positions[k], faces)
     print(
         f"decoded {n} frames x {nv} vertices ({weighting} weighting, "
         f"{'anchors ' + ' '.join(map(str, anchors.tolist())) if anchors is not None else 'vertex 0 anchored'}"
@@ -287,13 +300,96 @@ def cmd_render(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_parts_fit(args: argparse.Namespace) -> int:
+    from jaxdeform.mesh.io import load_sequence
+    from jaxdeform.parts import hierarchy
+
+    _check_exists(args.data)
+    out = Path(args.out)
+    _check_out_folder(out, args.force)
+    if args.initial_parts < 1:
+        raise ValueError(f"--initial-parts must be at least 1, got {args.initial_parts}.")
+    if not args.threshold > 0:
+        raise ValueError(f"--threshold must be positive, got {args.threshold}.")
+    vertices, faces = load_sequence(args.data if len(args.data) > 1 else args.data[0])
+    if vertices.shape[0] < 2:
+        raise ValueError(f"a parts fit needs at least 2 shapes; {' '.join(args.data)} holds {vertices.shape[0]}.")
+    fit = hierarchy.fit(vertices, faces, initial_parts=args.initial_parts, threshold=args.threshold,
+                        log=lambda line: print(line, flush=True))
+    with _staged_folder(out) as tmp:
+        info = hierarchy.save_run(tmp, fit, vertices, faces, extra={"data": [str(d) for d in args.data]})
+    print(f"{info['parts']} parts from {vertices.shape[0]} shapes x {vertices.shape[1]} vertices in "
+          f"{info['seconds']:.1f} s (AECM iterations {info['iterations']}); rmse {info['rmse']:.4g} "
+          f"({info['rmse_over_diagonal']:.2e} of the bbox diagonal); wrote {out}/summary.json, {out}/model.npz")
+    return 0
+
+
+def _shape_index(value: int, n: int, name: str) -> int:
+    if not -n <= value < n:
+        raise ValueError(f"--{name} {value} is not a shape of the run (it has {n} shapes: 0..{n - 1}).")
+    return value % n
+
+
+def cmd_parts_interpolate(args: argparse.Namespace) -> int:
+    import json
+
+    from jaxdeform.mesh.io import save_mesh
+    from jaxdeform.parts import figures, hierarchy, interpolate
+
+    _check_exists([args.run])
+    out = Path(args.out)
+    _check_out_folder(out, args.force)
+    if args.steps < 2:
+        raise ValueError(f"--steps must be at least 2 (the two end shapes), got {args.steps}.")
+    fit, vertices, faces = hierarchy.load_run(args.run)
+    n = vertices.shape[0]
+    a, b = _shape_index(args.source, n, "source"), _shape_index(args.target, n, "target")
+    ts = np.linspace(0.0, 1.0, args.steps)
+    t0 = time.perf_counter()
+    frames = interpolate.interpolate(fit.params, fit.labels, fit.latent, faces, vertices, a, b, ts)
+    gaps = interpolate.contact_gaps(fit.params, fit.labels, fit.latent, faces, vertices, a, b, ts)
+    elapsed = time.perf_counter() - t0
+    diag = hierarchy.bbox_diagonal(vertices)
+    width = max(3, len(str(args.steps - 1)))
+    worst = float(np.max(gaps)) / diag if np.size(gaps) else 0.0
+    with _staged_folder(out) as tmp:
+        for k in range(args.steps):
+            save_mesh(tmp / f"{k:0{width}d}.obj", frames[k], faces)
+        figures.strip_figure(frames, faces, tmp / "strip.png", labels=fit.labels)
+        (tmp / "gaps.json").write_text(json.dumps({
+            "source": a, "target": b, "t": ts.tolist(), "joints": int(np.shape(gaps)[1]) if np.ndim(gaps) == 2 else 0,
+            "max_gap": float(np.max(gaps)) if np.size(gaps) else 0.0, "max_gap_over_diagonal": worst,
+            "gaps": np.asarray(gaps).tolist(), "seconds": round(elapsed, 4)}, indent=2))
+    print(f"interpolated shape {a} -> {b} in {args.steps} steps ({elapsed:.2f} s); largest joint gap "
+          f"{worst:.2e} of the bbox diagonal; wrote {out}/000.obj.., strip.png, gaps.json")
+    return 0
+
+
+def cmd_parts_show(args: argparse.Namespace) -> int:
+    from jaxdeform.parts import figures, hierarchy
+
+    _check_exists([args.run])
+    out = Path(args.out)
+    _check_out_folder(out, args.force)
+    fit, vertices, faces = hierarchy.load_run(args.run)
+    shape = _shape_index(args.shape, vertices.shape[0], "shape")
+    error = np.sqrt(np.mean(np.sum((vertices - fit.reconstruction) ** 2, axis=-1), axis=0))  # (V,) RMS over shapes
+    with _staged_folder(out) as tmp:
+        figures.segmentation_figure(vertices[shape], faces, fit.labels, tmp / "segmentation.png")
+        figures.error_figure(vertices[shape], faces, error, tmp / "error.png",
+                             label="RMS reconstruction error over the shapes")
+        figures.strip_figure(fit.reconstruction, faces, tmp / "reconstruction.png", labels=fit.labels)
+    print(f"{fit.n_parts} parts; wrote {out}/segmentation.png, error.png, reconstruction.png")
+    return 0
+
+
 # -------------------------------------------------------------------------------------------- parser
 
 
 def build_parser() -> argparse.ArgumentParser:
     parser = argparse.ArgumentParser(
         prog=PROG,
-        description="Mesh deformation representations (ACAP, TS-ACAP) in JAX: encode, decode, render.",
+        description="Mesh deformation in JAX: ACAP/TS-ACAP features, rigid parts (MFA), rendering.",
     )
     from jaxdeform import __version__
 
@@ -334,6 +430,36 @@ def build_parser() -> argparse.ArgumentParser:
                      help="refinement steps after the least-squares solve (default: the library's)")
     dec.add_argument("--force", action="store_true", help="replace DIR if it exists and is not empty")
     dec.set_defaults(func=cmd_decode)
+
+    parts = sub.add_parser("parts", help="Rigid parts of a shape population (mixtures of factor analyzers).",
+                           description="Pose variations by rotation-constrained mixtures of factor analyzers "
+                                       "(seed 003): fit, interpolate, show.")
+    parts_sub = parts.add_subparsers(dest="parts_command", metavar="ACTION", required=True)
+    pfit = parts_sub.add_parser("fit", help="Fit the hierarchy of part analyzers to shapes sharing one connectivity.",
+                                description="Fit Algorithm 1 and write RUN/summary.json and RUN/model.npz.")
+    pfit.add_argument("data", nargs="+", metavar="DATA", help="mesh files or folders of them (at least 2 shapes)")
+    pfit.add_argument("--out", "-o", required=True, metavar="RUN", help="run folder to create")
+    pfit.add_argument("--initial-parts", type=int, default=8, metavar="N", help="parts of the coarse stage (default 8)")
+    pfit.add_argument("--threshold", type=float, default=2.5e-5, metavar="X",
+                      help="average variance (unit-box units squared) under which a part is not split (default 2.5e-5)")
+    pfit.add_argument("--force", action="store_true", help="replace RUN if it exists and is not empty")
+    pfit.set_defaults(func=cmd_parts_fit)
+    pint = parts_sub.add_parser("interpolate", help="Interpolate the pose between two shapes of a run.",
+                                description="Algorithm 2: slerp of part rotations, joints kept in contact.")
+    pint.add_argument("run", metavar="RUN", help="run folder written by 'jaxdeform parts fit'")
+    pint.add_argument("--source", type=int, required=True, metavar="A", help="index of the first shape")
+    pint.add_argument("--target", type=int, required=True, metavar="B", help="index of the last shape")
+    pint.add_argument("--steps", type=int, default=8, metavar="N", help="frames including both ends (default 8)")
+    pint.add_argument("--out", "-o", required=True, metavar="DIR", help="folder to create (OBJ frames, strip.png, gaps.json)")
+    pint.add_argument("--force", action="store_true", help="replace DIR if it exists and is not empty")
+    pint.set_defaults(func=cmd_parts_interpolate)
+    pshow = parts_sub.add_parser("show", help="Render the segmentation and the reconstruction error of a run.",
+                                 description="Write segmentation.png (three views), error.png, reconstruction.png.")
+    pshow.add_argument("run", metavar="RUN", help="run folder written by 'jaxdeform parts fit'")
+    pshow.add_argument("--out", "-o", required=True, metavar="DIR", help="folder to create")
+    pshow.add_argument("--shape", type=int, default=0, metavar="M", help="shape to draw the parts on (default 0)")
+    pshow.add_argument("--force", action="store_true", help="replace DIR if it exists and is not empty")
+    pshow.set_defaults(func=cmd_parts_show)
 
     ren = sub.add_parser("render", help="Render a mesh to PNG, optionally coloured by a per-vertex scalar.",
                          description="Ray-cast a mesh to a PNG image (CPU, Embree).")

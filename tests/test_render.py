@@ -191,3 +191,67 @@ def test_constant_scalar_and_vrange(sphere):
     assert img.shape == (80, 120, 3)
     img2 = render(v, f, scalar=v[:, 0], vmin=-0.5, vmax=0.5, width=120, height=80, supersample=2)
     assert img2.shape == (80, 120, 3)
+
+
+# ------------------------------------------------------------------------------ categorical vertex colours
+
+
+def test_categorical_colors_distinct_and_deterministic():
+    from jaxdeform.mesh.render import categorical_colors
+
+    c = categorical_colors(12)
+    assert c.shape == (12, 3) and c.min() >= 0.0 and c.max() <= 1.0
+    np.testing.assert_array_equal(c, categorical_colors(12))
+    np.testing.assert_array_equal(c[:5], categorical_colors(5))  # a prefix does not depend on n
+    d = np.sqrt(((c[:, None] - c[None]) ** 2).sum(-1))
+    assert d[~np.eye(12, dtype=bool)].min() > 0.1
+    assert categorical_colors(0).shape == (0, 3)
+
+
+def _best_scaled_match(px, palette):
+    """Per pixel: distance (0-255 units) to the closest ``s * colour`` over colours and scales s >= 0."""
+    px = px.astype(float)
+    cols = palette * 255.0
+    s = np.clip((px @ cols.T) / (cols * cols).sum(-1), 0.0, None)  # (n, k) least-squares scale
+    res = np.linalg.norm(px[:, None, :] - s[..., None] * cols[None], axis=-1)
+    return res.min(axis=1), res.argmin(axis=1)
+
+
+@pytest.mark.parametrize("shading", [True, False])
+def test_vertex_colors_two_labels(sphere, shading):
+    from jaxdeform.mesh.render import categorical_colors
+
+    v, f = sphere
+    labels = (v[:, 0] > 0.1).astype(int)
+    palette = categorical_colors(2)
+    cam = auto_camera(v, azimuth_deg=0, elevation_deg=0)
+    img = render(v, f, vertex_colors=palette[labels], camera=cam, width=160, height=120, shading=shading)
+    assert img.shape == (120, 160, 3)
+    hits = cast_rays(v, f, cam, 160, 120)
+    px = img[hits.hit]
+    assert np.all(img[~hits.hit] == BG)
+    assert np.all(img[:, -10:] == BG)  # no colour bar
+    err, which = _best_scaled_match(px, palette)
+    assert err.max() < 2.5  # every pixel is a shade of one of the two colours: no blends, no other hues
+    assert (which == 0).sum() > 500 and (which == 1).sum() > 500
+    if not shading:  # flat: exactly the two colours
+        exact = np.round(palette * 255).astype(np.uint8)
+        assert {tuple(p) for p in px} == {tuple(c) for c in exact}
+    # left half of the image (x < 0 seen from +z) holds label 0, the far right label 1
+    row = img[60]
+    left, right = np.flatnonzero(hits.hit[60])[[2, -3]]
+    assert _best_scaled_match(row[[left]], palette)[1][0] == 0
+    assert _best_scaled_match(row[[right]], palette)[1][0] == 1
+
+
+def test_vertex_colors_errors(sphere):
+    v, f = sphere
+    good = np.full((len(v), 3), 0.5)
+    with pytest.raises(ValueError, match="scalar"):
+        render(v, f, scalar=v[:, 0], vertex_colors=good, width=20, height=20)
+    with pytest.raises(ValueError, match="shape"):
+        render(v, f, vertex_colors=good[:-1], width=20, height=20)
+    with pytest.raises(ValueError, match="shape"):
+        render(v, f, vertex_colors=good[:, :2], width=20, height=20)
+    with pytest.raises(ValueError):
+        render(v, f, vertex_colors=good * 3.0, width=20, height=20)

@@ -71,6 +71,41 @@ def colormap(t, cmap: str = "viridis") -> np.ndarray:
     return anchors[i] * (1.0 - w) + anchors[i + 1] * w
 
 
+_GOLDEN = 0.6180339887498949
+
+
+def _hsv_to_rgb(h: np.ndarray, s: np.ndarray, v: np.ndarray) -> np.ndarray:
+    """Vectorized HSV -> RGB, all inputs in [0, 1]; returns ``h.shape + (3,)``."""
+    h6 = (np.asarray(h) % 1.0) * 6.0
+    i = np.floor(h6).astype(np.int64) % 6
+    fr = h6 - np.floor(h6)
+    p, q, t = v * (1.0 - s), v * (1.0 - s * fr), v * (1.0 - s * (1.0 - fr))
+    table = np.stack(
+        [np.stack(c, axis=-1) for c in ((v, t, p), (q, v, p), (p, v, t), (p, q, v), (t, p, v), (v, p, q))],
+        axis=0,
+    )  # (6, n, 3)
+    return table[i, np.arange(i.size)]
+
+
+def categorical_colors(n: int) -> np.ndarray:
+    """``n`` visually distinct RGB colours in [0, 1], shape ``(n, 3)``; deterministic.
+
+    Hues step by the golden ratio (so any prefix is spread over the colour wheel and colour ``i`` is the same
+    for every ``n``), with value and saturation alternating over a short cycle so that neighbouring hues
+    that come close on the wheel still differ in brightness.
+    """
+    n = int(n)
+    if n < 0:
+        raise ValueError(f"the number of colours must be non-negative, got {n}.")
+    if n == 0:
+        return np.zeros((0, 3))
+    i = np.arange(n)
+    hue = (0.08 + i * _GOLDEN) % 1.0
+    sat = np.array([0.75, 0.55, 0.90])[i % 3]
+    val = np.array([0.92, 0.72, 0.82, 0.62])[i % 4]
+    return np.clip(_hsv_to_rgb(hue, sat, val), 0.0, 1.0)
+
+
 # ----------------------------------------------------------------------------------------------- camera
 
 
@@ -390,6 +425,7 @@ def render(
     background=(1.0, 1.0, 1.0),
     shading: bool = True,
     supersample: int = 1,
+    vertex_colors=None,
 ) -> np.ndarray:
     """Render a mesh to an ``(height, width, 3)`` uint8 image.
 
@@ -399,8 +435,22 @@ def render(
     ``colorbar=False`` (or the image is too small to hold one: under 60 pixels high, or the bar and its labels
 would take more than half the width). ``camera`` defaults to :func:`auto_camera`. ``shading=False`` draws flat colours
     (no lighting); ``supersample=k`` traces k x k rays per pixel and averages them (anti-aliasing).
+
+    ``vertex_colors`` ((V, 3) RGB floats in [0, 1], e.g. :func:`categorical_colors` indexed by part labels)
+    colours each hit pixel with the colour of the hit triangle's vertex of largest barycentric weight: flat
+    per-region colours, never blended across part boundaries (except by the pixel averaging of
+    ``supersample`` > 1 on boundary pixels), and no colour bar. It cannot be combined with ``scalar``.
     """
     v, f = _check_mesh(vertices, faces)
+    if vertex_colors is not None and scalar is not None:
+        raise ValueError("give either scalar or vertex_colors, not both.")
+    vc = None
+    if vertex_colors is not None:
+        vc = np.asarray(vertex_colors, dtype=np.float64)
+        if vc.shape != (v.shape[0], 3):
+            raise ValueError(f"vertex_colors must have shape ({v.shape[0]}, 3) (one RGB per vertex), got {vc.shape}.")
+        if not np.all(np.isfinite(vc)) or vc.min() < 0.0 or vc.max() > 1.0:
+            raise ValueError("vertex_colors must be finite RGB floats in [0, 1].")
     if cmap not in COLORMAPS:
         _cmap_anchors(cmap)  # raises with the list of names
     base = _rgb(base_color, "base_color")
@@ -438,6 +488,9 @@ would take more than half the width). ``camera`` defaults to :func:`auto_camera`
         value = np.einsum("nk,nk->n", tr.barycentric, s[f[tr.triangle]])
         t = np.full_like(value, 0.5) if hi == lo else (value - lo) / (hi - lo)
         colour = colormap(t, cmap)
+    elif vc is not None:
+        corner = np.argmax(tr.barycentric, axis=-1)  # the hit triangle's nearest vertex
+        colour = vc[f[tr.triangle, corner]]
     else:
         colour = np.broadcast_to(base, (tr.pixel.size, 3))
     if shading:
