@@ -152,3 +152,18 @@ def test_cli_parts_fit_bad_input(tmp_path, capsys, case):
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("jaxdeform: error:")
     assert not run.exists() and not any(p.name.startswith(".run") for p in tmp_path.iterdir())
+
+
+def test_experiment_runs_on_a_small_config(tmp_path):
+    """The experiments' code path (fit, figures, interpolation strip, optional Dem Bones, results table)."""
+    from experiments.parts import run
+
+    shapes, faces, _ = _two_rigid_parts(m=4)
+    _write_shapes(tmp_path / "two-parts", shapes, faces)
+    results = run.main(["--data", str(tmp_path), "--out", str(tmp_path / "out"), "--datasets", "two-parts"])
+    ours = results[0]["ours"]
+    assert ours["rmse_over_diagonal"] < 1e-4 and ours["max_joint_gap_over_diagonal"] <= 1e-2
+    assert abs(ours["rotation_det_range"][0] - 1) < 1e-9 and abs(ours["rotation_det_range"][1] - 1) < 1e-9
+    for png in ("segmentation.png", "error.png", "interpolation.png"):
+        assert (tmp_path / "out" / "two-parts" / png).is_file()
+    assert (tmp_path / "out" / "results.md").read_text().startswith("| data |")

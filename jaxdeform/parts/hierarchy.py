@@ -251,6 +251,7 @@ def bbox_diagonal(vertices: np.ndarray) -> float:
 
 def summary(fit_: PartsFit, vertices: np.ndarray) -> dict:
     err = rmse(vertices, fit_.reconstruction)
+    dets = np.linalg.det(np.asarray(fit_.params.rot))
     return {
         "parts": fit_.n_parts,
         "iterations": {s["stage"]: s["iterations"] for s in fit_.stages},
@@ -261,6 +262,7 @@ def summary(fit_: PartsFit, vertices: np.ndarray) -> dict:
         "shapes": int(np.asarray(vertices).shape[0]),
         "vertices": int(np.asarray(vertices).shape[1]),
         "disconnected_parts": fit_.disconnected_parts,
+        "rotation_det_range": [float(dets.min()), float(dets.max())],
         "loglik_monotone": all(bool(np.all(np.diff(s["loglik"]) >= -1e-9 * np.abs(s["loglik"][-1])))
                                for s in fit_.stages if "loglik" in s),
     }
