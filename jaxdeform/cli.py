@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from jaxdeform.errors import ConnectivityError, JaxDeformError, MeshFormatError
+from jaxdeform.mesh.io import default_mode
 
 PROG = "jaxdeform"
 CONSISTENCY_MODES = ("spatial", "temporal", "none")
@@ -65,6 +66,7 @@ def _staged_folder(out: Path):
     with _writing(out):
         out.parent.mkdir(parents=True, exist_ok=True)
         tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent))
+        default_mode(tmp, directory=True)
     trash = None
     try:
         with _writing(out):
@@ -92,18 +94,9 @@ def _shape(a) -> str:
 
 
 def _load_npz(path: Path) -> dict[str, np.ndarray]:
-    """All arrays of a .npz (no pickles), with a one-sentence error for anything unreadable."""
-    if not path.is_file():
-        raise FileNotFoundError(f"{path}: no such file.")
-    try:
-        with np.load(path, allow_pickle=False) as data:
-            if not hasattr(data, "files"):
-                raise MeshFormatError(f"{path}: is a single .npy array, not a .npz archive.")
-            return {k: np.asarray(data[k]) for k in data.files}
-    except JaxDeformError:
-        raise
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile, KeyError) as exc:
-        raise MeshFormatError(f"{path}: not a readable .npz archive ({type(exc).__name__}).") from None
+    from jaxdeform.mesh.io import read_npz_arrays
+
+    return read_npz_arrays(path)
 
 
 def _string(data: dict, key: str, default: str, allowed: Sequence[str], path: Path) -> str:

@@ -167,3 +167,23 @@ def test_experiment_runs_on_a_small_config(tmp_path):
     for png in ("segmentation.png", "error.png", "interpolation.png"):
         assert (tmp_path / "out" / "two-parts" / png).is_file()
     assert (tmp_path / "out" / "results.md").read_text().startswith("| data |")
+
+
+@pytest.mark.parametrize("damage", ["truncated", "missing array"])
+def test_cli_parts_show_on_a_damaged_run(tmp_path, capsys, damage):
+    shapes, faces, _ = _two_rigid_parts(m=3)
+    run = tmp_path / "run"
+    assert main(["parts", "fit", str(_write_shapes(tmp_path / "data", shapes, faces)), "--out", str(run),
+                 "--initial-parts", "2"]) == 0
+    model = run / "model.npz"
+    if damage == "truncated":
+        model.write_bytes(model.read_bytes()[:200])
+    else:
+        with np.load(model) as z:
+            arrays = {k: z[k] for k in z.files if k != "rot"}
+        np.savez(model, **arrays)
+    capsys.readouterr()
+    assert main(["parts", "show", str(run), "--out", str(tmp_path / "show")]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "model.npz" in err[0]
+    assert not (tmp_path / "show").exists()

@@ -237,6 +237,39 @@ def _read_npz(path: Path) -> tuple[np.ndarray, np.ndarray]:
     return verts, faces.astype(np.int32)
 
 
+def _current_umask() -> int:
+    mask = os.umask(0o022)
+    os.umask(mask)
+    return mask
+
+
+_UMASK = _current_umask()
+
+
+def default_mode(path: str | os.PathLike, directory: bool = False) -> None:
+    """Give a temporary file (0600) or folder (0700) from ``tempfile`` the permissions a normal one would have
+    under the process umask, before it is renamed into place."""
+    os.chmod(path, (0o777 if directory else 0o666) & ~_UMASK)
+
+
+def read_npz_arrays(path: str | os.PathLike) -> dict[str, np.ndarray]:
+    """All arrays of a .npz (no pickles), with a one-sentence :class:`MeshFormatError` for anything unreadable."""
+    import zipfile
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"{path}: no such file.")
+    try:
+        with np.load(path, allow_pickle=False) as data:
+            if not hasattr(data, "files"):
+                raise MeshFormatError(f"{path}: is a single .npy array, not a .npz archive.")
+            return {k: np.asarray(data[k]) for k in data.files}
+    except MeshFormatError:
+        raise
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile, KeyError) as exc:
+        raise MeshFormatError(f"{path}: not a readable .npz archive ({type(exc).__name__}).") from None
+
+
 def atomic_path(path: Path):
     """Context manager yielding a temporary path beside ``path`` that is renamed onto it on success."""
     import contextlib
@@ -246,6 +279,7 @@ def atomic_path(path: Path):
         path.parent.mkdir(parents=True, exist_ok=True)
         fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=path.suffix, dir=path.parent)
         os.close(fd)
+        default_mode(tmp)
         try:
             yield Path(tmp)
             os.replace(tmp, path)

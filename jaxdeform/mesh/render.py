@@ -26,6 +26,7 @@ from embreex.mesh_construction import TriangleMesh
 from PIL import Image, ImageDraw, ImageFont
 
 from jaxdeform.errors import ConnectivityError, DegenerateMeshError, MeshFormatError
+from jaxdeform.mesh.io import default_mode
 
 #: Fraction of light that is ambient; the rest is the (two-sided) Lambert headlight.
 AMBIENT = 0.25
@@ -517,6 +518,7 @@ def save_png(image, path) -> Path:
     path.parent.mkdir(parents=True, exist_ok=True)
     fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", suffix=".tmp", dir=path.parent)
     try:
+        default_mode(tmp)
         with os.fdopen(fd, "wb") as fh:
             Image.fromarray(img).save(fh, format="PNG")
             fh.flush()

@@ -23,12 +23,13 @@ import time
 from pathlib import Path
 from typing import Callable
 
+import jax
 import jax.numpy as jnp
 import numpy as np
 import scipy.sparse as sp
 from scipy.sparse import csgraph
 
-from jaxdeform.errors import ConnectivityError, DegenerateMeshError
+from jaxdeform.errors import ConnectivityError, DegenerateMeshError, MeshFormatError
 from jaxdeform.parts import mfa
 from jaxdeform.parts.mfa import MFA
 
@@ -74,6 +75,10 @@ def check_shapes(vertices, faces) -> tuple[np.ndarray, np.ndarray]:
         raise DegenerateMeshError("a vertex coordinate is NaN or infinite.")
     if faces.ndim != 2 or faces.shape[1] != 3 or faces.size == 0 or faces.min() < 0 or faces.max() >= vertices.shape[1]:
         raise ConnectivityError("faces must be a non-empty (F, 3) array of vertex indices of the shapes.")
+    used = np.zeros(vertices.shape[1], bool)
+    used[faces.ravel()] = True
+    if not used.all():
+        raise ConnectivityError(f"vertex {int(np.argmin(used))} belongs to no face; remove unreferenced vertices first.")
     return vertices, faces
 
 
@@ -220,7 +225,8 @@ def fit(vertices, faces, *, initial_parts: int = INITIAL_PARTS, threshold: float
     labels = mfa.labels_of(y, p)
     used = np.unique(labels)
     if used.size < k1:  # drop parts that lost all their vertices
-        p = MFA(log_pi=p.log_pi[used], mu=p.mu[used], rot=p.rot[used], d=p.d[used], sigma2=p.sigma2[used])
+        log_pi = p.log_pi[used] - jax.scipy.special.logsumexp(p.log_pi[used])  # weights sum to 1 again
+        p = MFA(log_pi=log_pi, mu=p.mu[used], rot=p.rot[used], d=p.d[used], sigma2=p.sigma2[used])
         labels = np.searchsorted(used, labels)
     stages.append({"stage": "final", "parts": int(used.size), "iterations": it, "loglik": hist.tolist()})
     log(f"final: {used.size} parts, {it} AECM iterations")
@@ -290,15 +296,37 @@ def save_run(path, fit_: PartsFit, vertices: np.ndarray, faces: np.ndarray, extr
     return info
 
 
+_RUN_ARRAYS = ("log_pi", "mu", "rot", "d", "sigma2", "labels", "latent", "vertices", "faces", "reconstruction")
+
+
 def load_run(path) -> tuple[PartsFit, np.ndarray, np.ndarray]:
-    """(fit, vertices (M, V, 3), faces) from a run folder written by :func:`save_run`."""
+    """(fit, vertices (M, V, 3), faces) from a run folder written by :func:`save_run`; a damaged run gets one
+    :class:`MeshFormatError` sentence."""
+    from jaxdeform.mesh.io import read_npz_arrays
+
     path = Path(path)
     model = path / "model.npz"
     if not model.is_file():
         raise FileNotFoundError(f"{path} is not a parts run: {model.name} is missing.")
-    with np.load(model) as z:
-        a = {k: z[k] for k in z.files}
-    info = json.loads((path / "summary.json").read_text()) if (path / "summary.json").is_file() else {}
+    a = read_npz_arrays(model)
+    missing = [k for k in _RUN_ARRAYS if k not in a]
+    if missing:
+        raise MeshFormatError(f"{model}: not a parts model (missing {', '.join(missing)}).")
+    k = a["log_pi"].shape[0] if a["log_pi"].ndim == 1 else -1
+    m, v = (a["vertices"].shape[:2] if a["vertices"].ndim == 3 else (-1, -1))
+    shapes = {"mu": (k, m, 3), "rot": (k, m, 3, 3), "d": (k, 3), "sigma2": (k,), "labels": (v,), "latent": (v, 3),
+              "vertices": (m, v, 3), "reconstruction": (m, v, 3)}
+    bad = [n for n, s in shapes.items() if a[n].shape != s or -1 in s]
+    if bad or a["faces"].ndim != 2 or a["faces"].shape[1] != 3:
+        raise MeshFormatError(f"{model}: inconsistent array shapes ({', '.join(bad) or 'faces'}).")
+    if a["labels"].min() < 0 or a["labels"].max() >= k:
+        raise MeshFormatError(f"{model}: labels outside the model's {k} parts.")
+    info = {}
+    if (path / "summary.json").is_file():
+        try:
+            info = json.loads((path / "summary.json").read_text())
+        except (json.JSONDecodeError, UnicodeDecodeError):
+            raise MeshFormatError(f"{path / 'summary.json'}: not valid JSON.") from None
     p = MFA(log_pi=jnp.asarray(a["log_pi"]), mu=jnp.asarray(a["mu"]), rot=jnp.asarray(a["rot"]),
             d=jnp.asarray(a["d"]), sigma2=jnp.asarray(a["sigma2"]))
     fit_ = PartsFit(params=p, labels=a["labels"], latent=a["latent"], reconstruction=a["reconstruction"],

@@ -229,10 +229,11 @@ def _init_from_weights(y, resp, procrustes_iters: int) -> MFA:
     vec = vec.at[:, :, 2].multiply(jnp.sign(jnp.linalg.det(vec))[:, None])
     rot = rot @ vec[:, None]
     z = jnp.einsum("vkx,kxy->vky", z, vec)
-    floor = _scale_floor(y, jnp.ones(v, y.dtype))
+    floor = _scale_floor(y, jnp.minimum(jnp.sum(resp, axis=1), 1.0))  # the floor AECM uses on these vertices
     d = jnp.sqrt(jnp.maximum(lam, (D_FLOOR**2) * floor))
-    rec = jnp.einsum("kmxy,vky->vkmx", rot, z) + mu[None]
-    sse = jnp.einsum("vk,vkmx->k", resp, (y[:, None] - rec) ** 2)
+    # sum_m |y_m - mu_m - R_m z|^2 = |y - mu|^2 - 2 z.b + M |z|^2 (b = sum_m R_m^T (y_m - mu_m)): no (V, K, M, 3)
+    b, r2 = _projections(y, MFA(log_pi=jnp.zeros(k, y.dtype), mu=mu, rot=rot, d=d, sigma2=jnp.ones(k, y.dtype)))
+    sse = jnp.einsum("vk,vk->k", resp, r2 - 2.0 * jnp.sum(z * b, axis=-1) + m * jnp.sum(z * z, axis=-1))
     sigma2 = jnp.maximum(sse / (3 * m * n), SIGMA2_FLOOR * floor)
     return MFA(log_pi=jnp.log(n / jnp.sum(n)), mu=mu, rot=rot, d=d, sigma2=sigma2)
 
