@@ -1,0 +1,129 @@
+"""Mesh convolution (seed 000, eq. (1)) and the autoencoder block of Sec. 4.1.
+
+Convolution, per vertex i (weights shared by all vertices)::
+
+    y_i = x_i W_point + (1/D_i) sum_{j=1..D_i} x_{n_ij} W_neighbor + b
+
+The one-ring mean is a masked sum over the static K slots of the padded rings of
+:class:`jaxdeform.mesh.topology.Topology` divided by the degree; there is no loop over vertices.
+
+Autoencoder block (Sec. 4.1): encoder = one conv layer + one fully connected layer; decoder mirrored;
+the fully connected layers share one parameter ``C`` (Kz, 9V) without bias (encoder uses ``C^T``,
+decoder uses ``C``); the two conv layers have their own weights.
+
+Activations. The paper says "all the layers use the tanh activation function", but also bounds the
+latent code with V(Z) = (1/Kz) sum_k max(max_m |Z_mk| - theta, 0) with theta = 5, which would be
+identically zero if z were a tanh output (|tanh| < 1). We therefore read the encoder's fully connected
+layer as *linear* (no tanh on z, as in the public code of Tan et al. 2018 that the paper follows), and
+apply tanh after every other layer::
+
+    encode: h = tanh(conv_enc(x)); z = flatten(h) @ C^T                      (B, Kz), no tanh
+    decode: g = tanh(reshape(z @ C)); x_hat = tanh(conv_dec(g))              (B, V, 9)
+
+The final tanh matches the features scaled to [-0.95, 0.95].
+"""
+
+from __future__ import annotations
+
+from functools import partial
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Bool, Float, Int
+
+MU = 9  # ACAP feature size per vertex
+
+
+class Rings(NamedTuple):
+    """Padded one-rings of a connectivity (a pytree of arrays; padding index = the vertex itself)."""
+
+    neighbors: Int[Array, "v k"]
+    mask: Bool[Array, "v k"]
+    degree: Int[Array, " v"]
+
+
+def rings_from_topology(topo) -> Rings:
+    """The :class:`Rings` of a :class:`~jaxdeform.mesh.topology.Topology`."""
+    return Rings(jnp.asarray(topo.neighbors), jnp.asarray(topo.mask), jnp.asarray(topo.degree))
+
+
+def _glorot(key: Array, shape: tuple[int, int], dtype) -> Array:
+    fan_in, fan_out = shape
+    limit = jnp.sqrt(6.0 / (fan_in + fan_out)).astype(dtype)
+    return jax.random.uniform(key, shape, dtype, -limit, limit)
+
+
+@partial(jax.jit, static_argnames=("cin", "cout", "dtype"))
+def init_mesh_conv(key: Array, cin: int, cout: int, dtype=jnp.float32) -> dict[str, Array]:
+    """Parameters of one mesh conv layer: ``W_point`` (cin, cout), ``W_neighbor`` (cin, cout), ``b`` (cout,).
+
+    Weights are Glorot-uniform, the bias is zero. Jitted (an entry point); sizes and dtype are static.
+    """
+    kp, kn = jax.random.split(key)
+    return {
+        "W_point": _glorot(kp, (cin, cout), dtype),
+        "W_neighbor": _glorot(kn, (cin, cout), dtype),
+        "b": jnp.zeros((cout,), dtype),
+    }
+
+
+def ring_mean(
+    x: Float[Array, "b v c"], neighbors: Int[Array, "v k"], mask: Bool[Array, "v k"], degree: Int[Array, " v"]
+) -> Float[Array, "b v c"]:
+    """(1/D_i) sum_j x_{n_ij}: masked sum over the static K ring slots divided by the degree."""
+    gathered = x[:, neighbors, :]  # (B, V, K, C)
+    w = mask.astype(x.dtype)[None, :, :, None]
+    total = jnp.sum(gathered * w, axis=2)
+    deg = jnp.maximum(degree, 1).astype(x.dtype)
+    return total / deg[None, :, None]
+
+
+def mesh_conv(
+    params: dict[str, Array],
+    x: Float[Array, "b v cin"],
+    neighbors: Int[Array, "v k"],
+    mask: Bool[Array, "v k"],
+    degree: Int[Array, " v"],
+) -> Float[Array, "b v cout"]:
+    """Mesh convolution of eq. (1) without activation: ``x W_point + ring_mean(x) W_neighbor + b``."""
+    nbr = ring_mean(x, neighbors, mask, degree)
+    return x @ params["W_point"] + nbr @ params["W_neighbor"] + params["b"]
+
+
+@partial(jax.jit, static_argnames=("n_vertices", "kz", "dtype"))
+def init_ae_block(key: Array, n_vertices: int, kz: int, dtype=jnp.float32) -> dict:
+    """Parameters of one autoencoder block: ``conv_enc``, ``conv_dec`` (9 -> 9 each) and ``C`` (Kz, 9V).
+
+    ``C`` is Glorot-uniform over its (Kz, 9V) shape; row k reshaped to (V, 9) is component k.
+    """
+    ke, kd, kc = jax.random.split(key, 3)
+    return {
+        "conv_enc": init_mesh_conv(ke, MU, MU, dtype),
+        "conv_dec": init_mesh_conv(kd, MU, MU, dtype),
+        "C": _glorot(kc, (kz, MU * n_vertices), dtype),
+    }
+
+
+def ae_encode(params: dict, x: Float[Array, "b v 9"], rings: Rings) -> Float[Array, "b kz"]:
+    """z = flatten(tanh(conv_enc(x))) @ C^T; linear, no tanh on z (see the module docstring)."""
+    h = jnp.tanh(mesh_conv(params["conv_enc"], x, rings.neighbors, rings.mask, rings.degree))
+    return h.reshape(h.shape[0], -1) @ params["C"].T
+
+
+def ae_decode_pre(params: dict, z: Float[Array, "b kz"]) -> Float[Array, "b v 9"]:
+    """Decoder fully connected pre-activation: (z @ C) reshaped to (B, V, 9)."""
+    out = z @ params["C"]
+    return out.reshape(z.shape[0], -1, MU)
+
+
+def ae_decode(params: dict, z: Float[Array, "b kz"], rings: Rings) -> Float[Array, "b v 9"]:
+    """x_hat = tanh(conv_dec(tanh(reshape(z @ C))))."""
+    g = jnp.tanh(ae_decode_pre(params, z))
+    return jnp.tanh(mesh_conv(params["conv_dec"], g, rings.neighbors, rings.mask, rings.degree))
+
+
+def ae_forward(params: dict, x: Float[Array, "b v 9"], rings: Rings) -> tuple[Float[Array, "b kz"], Float[Array, "b v 9"]]:
+    """(z, x_hat) of one autoencoder block."""
+    z = ae_encode(params, x, rings)
+    return z, ae_decode(params, z, rings)

@@ -1,0 +1,201 @@
+"""Tests of jaxdeform.nn: mesh convolution (seed 000 eq. 1), AE block, group sparsity and latent bound."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxdeform.mesh.topology import build_topology
+from jaxdeform.nn.graph_conv import (
+    Rings,
+    ae_decode,
+    ae_decode_pre,
+    ae_encode,
+    ae_forward,
+    init_ae_block,
+    init_mesh_conv,
+    mesh_conv,
+    rings_from_topology,
+)
+from jaxdeform.nn.losses import (
+    component_centres,
+    geodesic_step_mask,
+    group_sparsity,
+    latent_bound,
+    reconstruction_loss,
+)
+
+# Eager dispatch compiles every primitive separately (slow on small CPUs): the tests call the jitted
+# entry points, and test_jit_matches_eager checks that jit does not change the values.
+eager_forward = ae_forward
+mesh_conv = jax.jit(mesh_conv)
+ae_decode = jax.jit(ae_decode)
+ae_decode_pre = jax.jit(ae_decode_pre)
+ae_forward = jax.jit(ae_forward)
+component_centres = jax.jit(component_centres, static_argnums=1)
+group_sparsity = jax.jit(group_sparsity)
+latent_bound = jax.jit(latent_bound)
+
+
+def grid_faces(n: int = 4) -> np.ndarray:
+    idx = np.arange(n * n).reshape(n, n)
+    a, b, c, d = idx[:-1, :-1].ravel(), idx[:-1, 1:].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel()
+    return np.concatenate([np.stack([a, b, d], 1), np.stack([a, d, c], 1)])
+
+
+@pytest.fixture(scope="module")
+def grid():
+    faces = grid_faces(4)
+    topo = build_topology(faces, 16)
+    return faces, topo, rings_from_topology(topo)
+
+
+def dense_adjacency(faces: np.ndarray, n: int) -> np.ndarray:
+    A = np.zeros((n, n))
+    for f in faces:
+        for k in range(3):
+            A[f[k], f[(k + 1) % 3]] = A[f[(k + 1) % 3], f[k]] = 1.0
+    return A
+
+
+def grid_dist(n: int = 4) -> np.ndarray:
+    """Normalized Euclidean distances between grid points (a stand-in for geodesics)."""
+    p = np.stack(np.meshgrid(np.arange(n), np.arange(n), indexing="ij"), -1).reshape(-1, 2).astype(float)
+    d = np.linalg.norm(p[:, None] - p[None], axis=-1)
+    return d / d.max()
+
+
+def test_mesh_conv_matches_dense_reference(grid):
+    faces, _, rings = grid
+    rng = np.random.default_rng(0)
+    params = {k: jnp.asarray(v) for k, v in dict(
+        W_point=rng.normal(size=(5, 7)), W_neighbor=rng.normal(size=(5, 7)), b=rng.normal(size=7)).items()}
+    x = rng.normal(size=(3, 16, 5))
+    y = mesh_conv(params, jnp.asarray(x), *rings)
+    assert y.dtype == jnp.float64 and y.shape == (3, 16, 7)
+    A = dense_adjacency(faces, 16)
+    P = A / A.sum(1, keepdims=True)
+    ref = x @ np.asarray(params["W_point"]) + np.einsum("ij,bjc->bic", P, x) @ np.asarray(params["W_neighbor"])
+    ref = ref + np.asarray(params["b"])
+    np.testing.assert_allclose(np.asarray(y), ref, rtol=1e-12, atol=1e-12)
+
+
+def test_mesh_conv_pointwise_and_constant(grid):
+    _, _, rings = grid
+    p = init_mesh_conv(jax.random.PRNGKey(0), 4, 3, jnp.float64)
+    p = dict(p, b=jnp.array([0.5, -1.0, 2.0]))
+    x = jnp.asarray(np.random.default_rng(1).normal(size=(2, 16, 4)))
+    y = mesh_conv(dict(p, W_neighbor=jnp.zeros_like(p["W_neighbor"])), x, *rings)
+    np.testing.assert_allclose(y, x @ p["W_point"] + p["b"], rtol=1e-12, atol=1e-12)
+    # constant input with W_point = -W_neighbor gives exactly the bias
+    xc = jnp.broadcast_to(jnp.array([1.0, -2.0, 0.3, 4.0]), (2, 16, 4))
+    yc = mesh_conv(dict(p, W_neighbor=-p["W_point"]), xc, *rings)
+    np.testing.assert_allclose(yc, jnp.broadcast_to(p["b"], yc.shape), atol=1e-12)
+
+
+def test_init_shapes_and_dtype():
+    p = init_mesh_conv(jax.random.PRNGKey(0), 9, 9, jnp.float32)
+    assert p["W_point"].shape == (9, 9) and p["W_neighbor"].shape == (9, 9) and p["b"].shape == (9,)
+    assert p["W_point"].dtype == jnp.float32
+    assert float(jnp.max(jnp.abs(p["W_point"]))) <= np.sqrt(6 / 18) + 1e-6
+
+
+def test_ae_block_shapes_and_tied_weights(grid):
+    _, _, rings = grid
+    params = init_ae_block(jax.random.PRNGKey(0), 16, 5, jnp.float32)
+    assert params["C"].shape == (5, 9 * 16)
+    x = jnp.asarray(0.5 * np.random.default_rng(1).normal(size=(4, 16, 9)), jnp.float32)
+    z, xh = ae_forward(params, x, rings)
+    assert z.shape == (4, 5) and xh.shape == (4, 16, 9) and xh.dtype == jnp.float32
+    assert float(jnp.max(jnp.abs(xh))) < 1.0
+    # the decoder uses C (row k for z = e_k), the encoder C^T
+    eye = jnp.eye(5, dtype=jnp.float32)
+    pre = ae_decode_pre(params, eye)
+    np.testing.assert_allclose(pre, params["C"].reshape(5, 16, 9), rtol=0, atol=0)
+    h = jnp.tanh(mesh_conv(params["conv_enc"], x, *rings)).reshape(4, -1)
+    np.testing.assert_allclose(z, h @ params["C"].T, rtol=1e-5, atol=1e-6)
+    # decoder conv has its own weights and is applied after tanh(z @ C)
+    ref = jnp.tanh(mesh_conv(params["conv_dec"], jnp.tanh(pre), *rings))
+    np.testing.assert_allclose(ae_decode(params, eye, rings), ref, rtol=1e-6, atol=1e-6)
+    assert not np.allclose(params["conv_enc"]["W_point"], params["conv_dec"]["W_point"])
+
+
+def test_reconstruction_loss():
+    x = jnp.zeros((2, 3, 9))
+    xh = jnp.ones((2, 3, 9)) * jnp.array([1.0, 2.0])[:, None, None]
+    assert float(reconstruction_loss(x, xh)) == pytest.approx((27 * 1 + 27 * 4) / 2)
+    assert float(reconstruction_loss(x, xh, "element")) == pytest.approx(2.5)
+
+
+def test_group_sparsity_step_mask():
+    V, d = 16, 0.4
+    dist = jnp.asarray(grid_dist(4))
+    C = np.zeros((2, V, 9))
+    # component 0 centred at vertex 0 with mass inside radius d; component 1 at vertex 15
+    C[0, 0] = 3.0
+    C[0, 1] = 0.5  # dist 1/sqrt(18) ~ 0.236 < 0.4
+    C[1, 15] = -2.0
+    C[1, 14, 4] = 1.0
+    Cf = jnp.asarray(C.reshape(2, -1))
+    np.testing.assert_array_equal(component_centres(Cf, V), [0, 15])
+    assert float(group_sparsity(Cf, dist, d)) == 0.0
+    lam = geodesic_step_mask(dist, jnp.array([0, 15]), d)
+    assert lam.shape == (2, V)
+    np.testing.assert_array_equal(lam, (np.asarray(dist)[[0, 15]] >= d).astype(float))
+    assert float(lam[0, 0]) == 0.0 and float(lam[0, 15]) == 1.0
+    # move a vector of norm 1.5 outside the radius (vertex 3: dist 3/sqrt(18) ~ 0.707)
+    v = np.array([0.0, 0.9, 0, 1.2, 0, 0, 0, 0, 0])
+    C2 = C.copy()
+    C2[0, 3] = v
+    got = float(group_sparsity(jnp.asarray(C2.reshape(2, -1)), dist, d))
+    assert got == pytest.approx(1.5 / 2, rel=1e-12)
+    # the centre follows the largest row: moving the peak elsewhere changes the mask
+    C3 = C.copy()
+    C3[0, 15] = 10.0
+    assert int(component_centres(jnp.asarray(C3.reshape(2, -1)), V)[0]) == 15
+
+
+def test_latent_bound():
+    z = jnp.array([[1.0, -4.0, 0.0], [-5.0, 2.0, 3.0]])
+    assert float(latent_bound(z)) == 0.0
+    z2 = jnp.array([[7.0, -4.0, 0.0], [-5.0, -8.5, 3.0], [1.0, 0.0, 4.5]])
+    assert float(latent_bound(z2)) == pytest.approx((2.0 + 3.5 + 0.0) / 3)
+    g = jax.grad(latent_bound)(z2)
+    np.testing.assert_allclose(g, np.array([[1, 0, 0], [0, -1, 0], [0, 0, 0]]) / 3)
+
+
+def test_group_sparsity_grad_finite_with_zero_rows():
+    dist = jnp.asarray(grid_dist(4))
+    C = np.zeros((3, 16, 9))
+    C[0, 0] = 1.0
+    C[0, 15, 2] = 5.0
+    # component 1 has zero rows at some vertices, component 2 is all zero
+    C[1, 5, 0] = 1.0
+    g = jax.grad(group_sparsity)(jnp.asarray(C.reshape(3, -1)), dist, 0.4)
+    assert np.all(np.isfinite(np.asarray(g)))
+    g = np.asarray(g).reshape(3, 16, 9)
+    # gradient of ||v|| is v/||v|| / Kz on masked vertices, zero inside the radius and at zero rows
+    # centre of component 0 is vertex 15 (largest norm), so vertex 0 lies outside the radius
+    np.testing.assert_allclose(g[0, 0], np.ones(9) / 3 / 3)
+    np.testing.assert_allclose(g[0, 15], 0.0)
+    np.testing.assert_allclose(g[2], 0.0)
+
+
+def test_jit_matches_eager(grid):
+    _, _, rings = grid
+    params = init_ae_block(jax.random.PRNGKey(2), 16, 4, jnp.float64)
+    x = jnp.asarray(0.3 * np.random.default_rng(3).normal(size=(3, 16, 9)))
+    dist = jnp.asarray(grid_dist(4))
+
+    def loss(p, x, rings, dist):
+        z, xh = eager_forward(p, x, rings)
+        return (10 * reconstruction_loss(x, xh) + group_sparsity(p["C"], dist, 0.4) + latent_bound(z, 0.01), z, xh)
+
+    eager = loss(params, x, rings, dist)
+    jitted = jax.jit(loss)(params, x, rings, dist)
+    for a, b in zip(eager, jitted):
+        np.testing.assert_allclose(a, b, rtol=1e-12, atol=1e-12)
+    gj = jax.jit(jax.grad(lambda p: loss(p, x, rings, dist)[0]))(params)
+    assert all(np.all(np.isfinite(np.asarray(a))) for a in jax.tree_util.tree_leaves(gj))
+    assert isinstance(rings, Rings)
+    np.testing.assert_allclose(jax.jit(ae_encode)(params, x, rings), eager[1], rtol=1e-12)
