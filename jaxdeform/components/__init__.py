@@ -1,0 +1,1 @@
+"""Seed 000: multiscale deformation components with stacked attention-based autoencoders."""

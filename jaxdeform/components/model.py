@@ -1,0 +1,106 @@
+"""The multiscale model of seed 000: stacked autoencoder blocks linked by attention masks (Sec. 4.1-4.2).
+
+Level 0 is one autoencoder block AE0 (Kz_0 components, sparsity cut-off d_0) on the scaled ACAP features X.
+Every block of level l hands its residual X_res = X_in - X^ to Kz_l blocks of level l + 1, block k receiving
+diag(AM_k) X_res with the attention masks of its parent's fully connected parameter C (eqs. 4-6):
+
+    am_k,i = sum_j C_k,(i,j)^2  (row k of C reshaped to (V, 9)),    AM_k,i = am_k,i / sum_k' am_k',i,
+
+so the children's inputs add up to the parent's residual. Without attention (the Table 4 ablation) every
+child receives the whole residual. The model's reconstruction is the sum of every block's output; the loss is
+the sum over blocks of lambda1 L_recon + lambda2 Omega(C) + V(Z) (eq. 2), each block against its own input.
+
+Parameters of level l are stacked along a leading axis of size n_l = Kz_0 ... Kz_(l-1) (one pytree per level)
+and the blocks of a level run under ``jax.vmap``: no Python loop over blocks.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+from typing import NamedTuple
+
+import jax
+import jax.numpy as jnp
+from jaxtyping import Array, Float
+
+from jaxdeform.nn.graph_conv import MU, Rings, ae_forward, init_ae_block
+from jaxdeform.nn.losses import group_sparsity, latent_bound, reconstruction_loss
+
+
+@dataclasses.dataclass(frozen=True)
+class Config:
+    """Hyper-parameters (defaults: the paper's, Sec. 4.4). ``kz[l]`` and ``d[l]`` per level."""
+
+    kz: tuple[int, ...] = (10, 5)
+    d: tuple[float, ...] = (0.4, 0.2)
+    lambda_recon: float = 10.0
+    lambda_sparse: float = 1.0
+    theta: float = 5.0
+    attention: bool = True
+
+    def __post_init__(self):
+        if len(self.kz) != len(self.d) or not self.kz:
+            raise ValueError(f"kz {self.kz} and d {self.d} must give one entry per level (at least one).")
+        if min(self.kz) < 1 or not all(0 < x <= 1 for x in self.d):
+            raise ValueError("every kz must be >= 1 and every d in (0, 1].")
+
+    @property
+    def levels(self) -> int:
+        return len(self.kz)
+
+    def blocks(self, level: int) -> int:
+        """Number of autoencoder blocks at ``level``."""
+        return math.prod(self.kz[:level])
+
+
+class Output(NamedTuple):
+    reconstruction: Array  # (B, V, 9): sum of every block's output
+    loss: Array  # scalar: sum of the blocks' losses
+    terms: dict  # per level: recon, sparsity, latent (summed over the level's blocks)
+    latents: tuple  # per level: (n_l, B, Kz_l)
+
+
+def init(key: Array, n_vertices: int, config: Config, dtype=jnp.float32) -> tuple[dict, ...]:
+    """Parameters: one stacked pytree per level (leading axis = blocks of that level)."""
+    params = []
+    for level, kz in enumerate(config.kz):
+        key, sub = jax.random.split(key)
+        keys = jax.random.split(sub, config.blocks(level))
+        params.append(jax.vmap(lambda k, kz=kz: init_ae_block(k, n_vertices, kz, dtype))(keys))
+    return tuple(params)
+
+
+def attention_masks(c: Float[Array, "kz nine_v"]) -> Float[Array, "kz v"]:
+    """Normalized attention masks AM (Kz, V) of one block's C (eqs. 4-6); columns sum to one."""
+    am = jnp.sum(c.reshape(c.shape[0], -1, MU) ** 2, axis=-1)
+    total = jnp.sum(am, axis=0, keepdims=True)
+    return am / jnp.where(total > 0, total, 1.0)
+
+
+def forward(params: tuple[dict, ...], x: Float[Array, "b v 9"], rings: Rings, dist: Float[Array, "v v"],
+            config: Config) -> Output:
+    """Run every level on a batch of scaled features and return the reconstruction and the total loss."""
+    inputs = x[None]  # (n_0 = 1, B, V, 9)
+    total = jnp.zeros((), x.dtype)
+    recon = jnp.zeros_like(x)
+    terms, latents = [], []
+    for level, p in enumerate(params):
+        z, x_hat = jax.vmap(lambda q, xin: ae_forward(q, xin, rings))(p, inputs)
+        rec_l = jax.vmap(reconstruction_loss)(inputs, x_hat)
+        sparse_l = jax.vmap(lambda c: group_sparsity(c, dist, config.d[level]))(p["C"])
+        latent_l = jax.vmap(lambda zz: latent_bound(zz, config.theta))(z)
+        total = total + jnp.sum(config.lambda_recon * rec_l + config.lambda_sparse * sparse_l + latent_l)
+        recon = recon + jnp.sum(x_hat, axis=0)
+        terms.append({"recon": jnp.sum(rec_l), "sparsity": jnp.sum(sparse_l), "latent": jnp.sum(latent_l)})
+        latents.append(z)
+        if level + 1 < len(params):
+            res = inputs - x_hat  # (n_l, B, V, 9)
+            kz = config.kz[level]
+            if config.attention:
+                am = jax.vmap(attention_masks)(p["C"])  # (n_l, Kz_l, V)
+                children = am[:, :, None, :, None] * res[:, None]
+            else:
+                children = jnp.broadcast_to(res[:, None], (res.shape[0], kz) + res.shape[1:])
+            inputs = children.reshape((-1,) + res.shape[1:])  # block j of level l+1: parent j // kz, mask j % kz
+    return Output(recon, total, terms, tuple(latents))

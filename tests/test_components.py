@@ -1,0 +1,89 @@
+"""Seed 000 multiscale model: attention masks, the level structure, and training on a tiny synthetic set."""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxdeform.components import model, train
+from jaxdeform.mesh.topology import build_topology
+from jaxdeform.nn.graph_conv import ae_forward, rings_from_topology
+
+
+def _grid(n=6):
+    u, v = np.meshgrid(np.linspace(0, 1, n), np.linspace(0, 1, n), indexing="ij")
+    pts = np.stack([u.ravel(), v.ravel(), np.zeros(n * n)], 1)
+    idx = np.arange(n * n).reshape(n, n)
+    a, b, c, d = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()
+    faces = np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
+    dist = np.linalg.norm(pts[:, None] - pts[None], axis=-1)
+    return pts, faces, dist / dist.max()
+
+
+def _features(pts, n_shapes=24, seed=0):
+    """Smooth bumps of random amplitude at two places: features (N, V, 9) within [-0.9, 0.9]."""
+    rng = np.random.default_rng(seed)
+    bumps = np.stack([np.exp(-20 * np.sum((pts - c) ** 2, axis=1)) for c in ([0.25, 0.25, 0], [0.75, 0.7, 0])])
+    amp = rng.uniform(-1, 1, size=(n_shapes, 2))
+    pattern = rng.uniform(-1, 1, size=(2, 9))
+    return 0.9 * np.tanh(np.einsum("nk,kv,kc->nvc", amp, bumps, pattern))
+
+
+@pytest.fixture(scope="module")
+def setup():
+    pts, faces, dist = _grid()
+    rings = rings_from_topology(build_topology(faces, len(pts)))
+    return pts, rings, jnp.asarray(dist), jnp.asarray(_features(pts))
+
+
+def test_attention_masks_sum_to_one():
+    c = jnp.asarray(np.random.default_rng(1).normal(size=(4, 9 * 7)))
+    am = np.asarray(model.attention_masks(c))
+    assert am.shape == (4, 7) and np.all(am >= 0)
+    np.testing.assert_allclose(am.sum(axis=0), 1.0, rtol=1e-12)
+    # a vertex where only component 2 is non-zero belongs to it entirely
+    c2 = np.zeros((4, 7, 9))
+    c2[2, 3] = 1.0
+    c2[:, :3] = 1.0
+    assert np.asarray(model.attention_masks(jnp.asarray(c2.reshape(4, -1))))[2, 3] == pytest.approx(1.0)
+
+
+@pytest.mark.parametrize("kz, attention", [((3, 2), True), ((3, 2), False), ((4,), True), ((2, 2, 2), True)])
+def test_levels_structure_and_residual_split(setup, kz, attention):
+    pts, rings, dist, x = setup
+    config = model.Config(kz=kz, d=tuple(0.4 / 2**i for i in range(len(kz))), attention=attention)
+    params = model.init(jax.random.PRNGKey(0), len(pts), config, x.dtype)
+    batch = x[:5]
+    out = jax.jit(lambda p, b: model.forward(p, b, rings, dist, config))(params, batch)
+    assert [z.shape for z in out.latents] == [(config.blocks(l), 5, k) for l, k in enumerate(kz)]
+    # by hand: level 0, then the children's inputs (attention-weighted residuals) and outputs
+    p0 = jax.tree_util.tree_map(lambda a: a[0], params[0])
+    z0, xh0 = ae_forward(p0, batch, rings)
+    expected = xh0
+    if len(kz) > 1:
+        res = batch - xh0
+        am = model.attention_masks(p0["C"]) if attention else jnp.ones((kz[0], len(pts)))
+        inputs = am[:, None, :, None] * res[None]
+        if attention:
+            np.testing.assert_allclose(np.asarray(inputs.sum(axis=0)), np.asarray(res), atol=1e-12)
+        if len(kz) == 2:
+            for k in range(kz[0]):
+                pk = jax.tree_util.tree_map(lambda a: a[k], params[1])
+                expected = expected + ae_forward(pk, inputs[k], rings)[1]
+            np.testing.assert_allclose(np.asarray(out.reconstruction), np.asarray(expected), atol=1e-10)
+    else:
+        np.testing.assert_allclose(np.asarray(out.reconstruction), np.asarray(xh0), atol=1e-12)
+    assert np.isfinite(float(out.loss))
+
+
+def test_training_reduces_the_loss_and_is_deterministic(setup):
+    pts, rings, dist, x = setup
+    config = model.Config(kz=(3, 2), d=(0.5, 0.3))
+    tc = train.TrainConfig(epochs=300, batch=16, seed=3)
+    p1, h1 = train.train(x, rings, dist, config, tc)
+    _, h2 = train.train(x, rings, dist, config, tc)
+    np.testing.assert_array_equal(h1, h2)
+    assert h1[-20:].mean() < 0.5 * h1[:5].mean()
+    rec = np.asarray(train.reconstruct(p1, x, rings, dist, config))
+    before = np.sum(np.asarray(x) ** 2)
+    assert np.sum((rec - np.asarray(x)) ** 2) < 0.3 * before
