@@ -199,3 +199,19 @@ def test_jit_matches_eager(grid):
     assert all(np.all(np.isfinite(np.asarray(a))) for a in jax.tree_util.tree_leaves(gj))
     assert isinstance(rings, Rings)
     np.testing.assert_allclose(jax.jit(ae_encode)(params, x, rings), eager[1], rtol=1e-12)
+
+
+def test_ring_mean_gradient_is_the_dense_transpose(grid):
+    """The hand-written backward of the one-ring mean equals P^T applied to the cotangent (P row-normalized
+    adjacency), under vmap too."""
+    from jaxdeform.nn.graph_conv import ring_mean
+
+    faces, _, rings = grid
+    rng = np.random.default_rng(4)
+    x = jnp.asarray(rng.normal(size=(2, 3, 16, 5)))  # (blocks, B, V, C)
+    w = rng.normal(size=(2, 3, 16, 5))
+    loss = lambda a: jnp.sum(jnp.asarray(w) * jax.vmap(lambda b: ring_mean(b, *rings))(a))  # noqa: E731
+    g = np.asarray(jax.jit(jax.grad(loss))(x))
+    A = dense_adjacency(faces, 16)
+    P = A / A.sum(1, keepdims=True)
+    np.testing.assert_allclose(g, np.einsum("ji,nbjc->nbic", P, w), rtol=1e-12, atol=1e-12)

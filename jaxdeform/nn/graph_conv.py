@@ -68,15 +68,43 @@ def init_mesh_conv(key: Array, cin: int, cout: int, dtype=jnp.float32) -> dict[s
     }
 
 
+def _slot_sum(vm: Float[Array, "v f"], neighbors: Int[Array, "v k"], mask: Bool[Array, "v k"]) -> Float[Array, "v f"]:
+    """sum_j vm[n_ij] over the K static ring slots: gathers of whole rows, summed element-wise (XLA on CPU
+    runs this ~25x faster than a gather to (B, V, K, C) followed by a reduction over K)."""
+    acc = jnp.zeros_like(vm)
+    for k in range(neighbors.shape[1]):
+        acc = acc + jnp.where(mask[:, k, None], vm[neighbors[:, k]], 0.0)
+    return acc
+
+
+@jax.custom_vjp
+def _ring_mean_vm(vm, neighbors, mask, inv_deg):
+    return _slot_sum(vm, neighbors, mask) * inv_deg[:, None]
+
+
+def _ring_mean_fwd(vm, neighbors, mask, inv_deg):
+    return _ring_mean_vm(vm, neighbors, mask, inv_deg), (neighbors, mask, inv_deg)
+
+
+def _ring_mean_bwd(res, g):
+    # The one-ring relation is symmetric, so the adjoint of "mean over my neighbours" is "sum over my
+    # neighbours of their cotangent / their degree": again row gathers, not the scatter JAX would derive.
+    neighbors, mask, inv_deg = res
+    return _slot_sum(g * inv_deg[:, None], neighbors, mask), None, None, None
+
+
+_ring_mean_vm.defvjp(_ring_mean_fwd, _ring_mean_bwd)
+
+
 def ring_mean(
     x: Float[Array, "b v c"], neighbors: Int[Array, "v k"], mask: Bool[Array, "v k"], degree: Int[Array, " v"]
 ) -> Float[Array, "b v c"]:
-    """(1/D_i) sum_j x_{n_ij}: masked sum over the static K ring slots divided by the degree."""
-    gathered = x[:, neighbors, :]  # (B, V, K, C)
-    w = mask.astype(x.dtype)[None, :, :, None]
-    total = jnp.sum(gathered * w, axis=2)
-    deg = jnp.maximum(degree, 1).astype(x.dtype)
-    return total / deg[None, :, None]
+    """(1/D_i) sum_j x_{n_ij} over the one-rings (rings must be symmetric, as mesh one-rings are)."""
+    b, v, c = x.shape
+    vm = jnp.transpose(x, (1, 0, 2)).reshape(v, b * c)
+    inv_deg = 1.0 / jnp.maximum(degree, 1).astype(x.dtype)
+    out = _ring_mean_vm(vm, neighbors, mask, inv_deg)
+    return jnp.transpose(out.reshape(v, b, c), (1, 0, 2))
 
 
 def mesh_conv(
