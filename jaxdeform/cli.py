@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from jaxdeform.errors import ConnectivityError, JaxDeformError, MeshFormatError
-from jaxdeform.mesh.io import default_mode
+from jaxdeform.mesh.io import default_mode, read_npz_arrays
 
 PROG = "jaxdeform"
 CONSISTENCY_MODES = ("spatial", "temporal", "none")
@@ -91,12 +91,6 @@ def _staged_folder(out: Path):
 
 def _shape(a) -> str:
     return "x".join(str(d) for d in np.shape(a))
-
-
-def _load_npz(path: Path) -> dict[str, np.ndarray]:
-    from jaxdeform.mesh.io import read_npz_arrays
-
-    return read_npz_arrays(path)
 
 
 def _string(data: dict, key: str, default: str, allowed: Sequence[str], path: Path) -> str:
@@ -175,7 +169,7 @@ def cmd_encode(args: argparse.Namespace) -> int:
 def _read_features(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, str]:
     from jaxdeform.acap.features import Scaler
 
-    data = _load_npz(path)
+    data = read_npz_arrays(path)
     if "features" in data:
         features = data["features"]
     elif "scaled" in data and "scaler" in data:

@@ -19,11 +19,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.spatial import cKDTree
 
-
-def _edges(faces: np.ndarray) -> np.ndarray:
-    f = np.asarray(faces, dtype=np.int64)
-    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
-    return np.unique(np.sort(e, axis=1), axis=0)
+from jaxdeform.mesh.topology import unique_edges
 
 
 def _as_sequence(x) -> np.ndarray:
@@ -116,7 +112,7 @@ def sted(ref, rec, faces, *, rings: int = 1, fps: float = 30.0, c: float = 1.0,
     ref, rec = _check_pair(ref, rec)
     if rings < 1:
         raise ValueError("rings must be at least 1.")
-    edges = _edges(faces)
+    edges = unique_edges(faces)
     n, v = ref.shape[:2]
     if edges.max() >= v:
         raise ValueError("faces index vertices the shapes do not have.")

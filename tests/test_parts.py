@@ -9,6 +9,7 @@ import pytest
 from conftest import data_dir
 from jaxdeform.cli import main
 from jaxdeform.mesh.io import save_mesh
+from jaxdeform.mesh.topology import unique_edges
 from jaxdeform.parts import hierarchy, mfa
 
 
@@ -88,7 +89,7 @@ def test_split_regions_makes_each_part_connected():
     faces = np.concatenate([f0, f1 + len(v0)])
     labels = np.zeros(len(v0) + len(v1), int)  # one label on two islands
     labels[:5] = 1  # and a 5-vertex island of label 1 inside the first patch
-    out = hierarchy.split_regions(labels, hierarchy._edges(faces), min_size=20)
+    out = hierarchy.split_regions(labels, unique_edges(faces), min_size=20)
     assert np.unique(out).size == 2  # the small island joined its surroundings, the two patches separated
     assert np.unique(out[: len(v0)]).size == 1 and out[0] != out[-1]
 

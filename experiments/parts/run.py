@@ -16,7 +16,6 @@ import argparse
 import json
 import os
 import platform
-import tempfile
 import time
 from pathlib import Path
 
@@ -24,6 +23,7 @@ import numpy as np
 
 import jaxdeform  # noqa: F401  (x64)
 from jaxdeform.mesh import load_sequence
+from jaxdeform.mesh.io import atomic_path
 from jaxdeform.parts import figures, hierarchy, interpolate
 
 # (data set, source, target) of the interpolation strip
@@ -85,10 +85,8 @@ def table(results: list[dict]) -> str:
 
 
 def _write(path: Path, text: str) -> None:
-    fd, tmp = tempfile.mkstemp(prefix=f".{path.name}.", dir=path.parent)
-    with os.fdopen(fd, "w") as fh:
-        fh.write(text)
-    os.replace(tmp, path)
+    with atomic_path(path) as tmp:
+        tmp.write_text(text)
 
 
 def main(argv=None) -> list[dict]:

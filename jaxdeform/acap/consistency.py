@@ -241,18 +241,28 @@ def _improve_turns(phi, r, rings: Rings, fixed, u_prev=None):
     return _sweeps(step, r)
 
 
-def _spatial_orientation(axis, angle, rings: Rings):
+def _tree_orientation(axis, angle, rings: Rings):
+    """Initial orientations: products of the parent signs along each vertex's BFS path (roots: +1)."""
     p = rings.parent
     rel = _pair_signs(axis, angle, axis[:, p], angle[p])
     rel = jnp.where((rel == 0) | rings.is_root[:, None], 1.0, rel).astype(angle.dtype)
-    o = _path_combine(rel, rings, mul=True)
+    return _path_combine(rel, rings, mul=True)
+
+
+def _tree_turns(phi, rings: Rings):
+    """Initial turns: sums of the rounded parent differences along each vertex's BFS path (roots: 0)."""
+    p = rings.parent
+    d = jnp.where(rings.is_root[:, None], 0.0, jnp.round((phi[p] - phi) / TWO_PI)).astype(phi.dtype)
+    return _path_combine(d, rings, mul=False)
+
+
+def _spatial_orientation(axis, angle, rings: Rings):
+    o = _tree_orientation(axis, angle, rings)
     return _improve_orientation(o, _ring_signs(axis, angle, rings), rings, fixed=rings.is_root)
 
 
 def _spatial_turns(phi, rings: Rings):
-    p = rings.parent
-    d = jnp.where(rings.is_root[:, None], 0.0, jnp.round((phi[p] - phi) / TWO_PI)).astype(phi.dtype)
-    r = _improve_turns(phi, _path_combine(d, rings, mul=False), rings, fixed=rings.is_root)
+    r = _improve_turns(phi, _tree_turns(phi, rings), rings, fixed=rings.is_root)
     return phi + TWO_PI * r
 
 
@@ -319,10 +329,7 @@ def _axis_angle_cm(v):
 def _orientation_start(v, rings: Rings):
     """Axes, angles, tree-product orientations and the one-ring signs of raw vectors (3, V, N)."""
     axis, angle = _axis_angle_cm(v)
-    p = rings.parent
-    rel = _pair_signs(axis, angle, axis[:, p], angle[p])
-    rel = jnp.where((rel == 0) | rings.is_root[:, None], 1.0, rel).astype(angle.dtype)
-    return axis, angle, _path_combine(rel, rings, mul=True), _ring_signs(axis, angle, rings)
+    return axis, angle, _tree_orientation(axis, angle, rings), _ring_signs(axis, angle, rings)
 
 
 @jax.jit
@@ -333,9 +340,7 @@ def _orientation_sweeps(o, s_ring, rings: Rings):
 @jax.jit
 def _turns_start(o, angle, rings: Rings):
     phi = o * angle
-    p = rings.parent
-    d = jnp.where(rings.is_root[:, None], 0.0, jnp.round((phi[p] - phi) / TWO_PI)).astype(phi.dtype)
-    return phi, _path_combine(d, rings, mul=False)
+    return phi, _tree_turns(phi, rings)
 
 
 @jax.jit

@@ -217,9 +217,10 @@ def _decode(rec: Reconstructor, frame: RestFrame, features, targets, refine: int
     target = _edge_stage(rec, t)
     targets = None if targets is None else _anchor_targets(rec, features, targets)
     p = _solve_stage(rec, target, targets)
-    zero = jnp.zeros((rec.anchors.shape[0], 3, target.shape[-1]), target.dtype)
-    for _ in range(refine):
-        p = p + _solve_stage(rec, _defect_stage(rec, target, _refit_stage(frame, p)), zero)
+    if refine:
+        zero = jnp.zeros((rec.anchors.shape[0], 3, target.shape[-1]), target.dtype)  # corrections move no anchor
+        for _ in range(refine):
+            p = p + _solve_stage(rec, _defect_stage(rec, target, _refit_stage(frame, p)), zero)
     return _decode_output(p, features)
 
 

@@ -218,16 +218,14 @@ def load_sequence(paths: Sequence[str | os.PathLike] | str | os.PathLike) -> tup
 def _read_npz(path: Path) -> tuple[np.ndarray, np.ndarray]:
     if not path.is_file():
         raise MeshFormatError(f"{path}: no such file.")
+    data = read_npz_arrays(path)
+    if "vertices" not in data or "faces" not in data:
+        raise MeshFormatError(f"{path}: a mesh .npz needs arrays 'vertices' and 'faces'.")
     try:
-        with np.load(path, allow_pickle=False) as data:
-            if "vertices" not in data or "faces" not in data:
-                raise MeshFormatError(f"{path}: a mesh .npz needs arrays 'vertices' and 'faces'.")
-            verts = np.asarray(data["vertices"], dtype=np.float64)
-            faces = np.asarray(data["faces"], dtype=np.int64)
-    except MeshFormatError:
-        raise
-    except Exception as exc:
-        raise MeshFormatError(f"{path}: not a readable .npz archive ({type(exc).__name__}).") from None
+        verts = np.asarray(data["vertices"], dtype=np.float64)
+        faces = np.asarray(data["faces"], dtype=np.int64)
+    except (TypeError, ValueError) as exc:
+        raise MeshFormatError(f"{path}: 'vertices' and 'faces' must be numeric arrays ({type(exc).__name__}).") from None
     if verts.ndim == 2:
         verts = verts[None]
     if verts.ndim != 3 or verts.shape[-1] != 3 or faces.ndim != 2 or faces.shape[1] != 3:

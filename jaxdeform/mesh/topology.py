@@ -50,8 +50,16 @@ class Topology:
         return np.asarray(self.faces)
 
 
-def build_topology(faces: np.ndarray, n_vertices: int | None = None) -> Topology:
-    """Build the :class:`Topology` of a triangle mesh on the host (numpy), once per connectivity."""
+def unique_edges(faces: np.ndarray) -> np.ndarray:
+    """Undirected edges (E, 2) of a triangle list, ``i < j``, sorted lexicographically (numpy, no checks)."""
+    f = np.asarray(faces, dtype=np.int64)
+    e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    return np.unique(np.sort(e, axis=1), axis=0)
+
+
+def validate_faces(faces: np.ndarray, n_vertices: int | None = None) -> tuple[np.ndarray, int]:
+    """(faces as int64, vertex count) after the checks every connectivity must pass: a non-empty (F, 3)
+    integer array, indices in range, three distinct vertices per face, every vertex in some face."""
     faces = np.asarray(faces)
     if faces.ndim != 2 or faces.shape[1] != 3 or faces.shape[0] == 0:
         raise ConnectivityError(f"faces must be a non-empty (F, 3) integer array, got shape {faces.shape}.")
@@ -68,6 +76,12 @@ def build_topology(faces: np.ndarray, n_vertices: int | None = None) -> Topology
     used[faces.ravel()] = True
     if not used.all():
         raise ConnectivityError(f"vertex {int(np.argmin(used))} belongs to no face; remove unreferenced vertices first.")
+    return faces, n
+
+
+def build_topology(faces: np.ndarray, n_vertices: int | None = None) -> Topology:
+    """Build the :class:`Topology` of a triangle mesh on the host (numpy), once per connectivity."""
+    faces, n = validate_faces(faces, n_vertices)
 
     # Edge opposite corner k: (f[k+1], f[k+2]).
     a = faces[:, [1, 2, 0]].ravel()

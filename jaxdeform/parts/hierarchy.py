@@ -29,7 +29,9 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.sparse import csgraph
 
-from jaxdeform.errors import ConnectivityError, DegenerateMeshError, MeshFormatError
+from jaxdeform.errors import DegenerateMeshError, MeshFormatError
+from jaxdeform.mesh.io import atomic_path, read_npz_arrays
+from jaxdeform.mesh.topology import unique_edges, validate_faces
 from jaxdeform.parts import mfa
 from jaxdeform.parts.mfa import MFA
 
@@ -73,12 +75,7 @@ def check_shapes(vertices, faces) -> tuple[np.ndarray, np.ndarray]:
         raise ValueError(f"a parts fit needs at least 2 shapes, got {vertices.shape[0]}.")
     if not np.all(np.isfinite(vertices)):
         raise DegenerateMeshError("a vertex coordinate is NaN or infinite.")
-    if faces.ndim != 2 or faces.shape[1] != 3 or faces.size == 0 or faces.min() < 0 or faces.max() >= vertices.shape[1]:
-        raise ConnectivityError("faces must be a non-empty (F, 3) array of vertex indices of the shapes.")
-    used = np.zeros(vertices.shape[1], bool)
-    used[faces.ravel()] = True
-    if not used.all():
-        raise ConnectivityError(f"vertex {int(np.argmin(used))} belongs to no face; remove unreferenced vertices first.")
+    faces, _ = validate_faces(faces, vertices.shape[1])
     return vertices, faces
 
 
@@ -95,11 +92,6 @@ def to_data_units(p: MFA, offset: np.ndarray, scale: float) -> MFA:
     """Parameters of the same mixture for data = y * scale + offset."""
     return MFA(log_pi=p.log_pi, mu=p.mu * scale + jnp.asarray(offset), rot=p.rot, d=p.d * scale,
                sigma2=p.sigma2 * scale**2)
-
-
-def _edges(faces: np.ndarray) -> np.ndarray:
-    e = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
-    return np.unique(np.sort(e, axis=1), axis=0)
 
 
 def components_of_labels(labels: np.ndarray, edges: np.ndarray) -> np.ndarray:
@@ -175,7 +167,7 @@ def fit(vertices, faces, *, initial_parts: int = INITIAL_PARTS, threshold: float
     y_np, offset, scale = normalize(vertices)
     y = jnp.asarray(y_np)
     n = y.shape[0]
-    edges = _edges(faces)
+    edges = unique_edges(faces)
     stages: list[dict] = []
 
     # 1. coarse
@@ -285,14 +277,12 @@ def save_run(path, fit_: PartsFit, vertices: np.ndarray, faces: np.ndarray, extr
     arrays = {"log_pi": p.log_pi, "mu": p.mu, "rot": p.rot, "d": p.d, "sigma2": p.sigma2,
               "labels": fit_.labels, "latent": fit_.latent, "vertices": vertices, "faces": faces,
               "reconstruction": fit_.reconstruction}
-    tmp = path / ".model.tmp.npz"
-    np.savez_compressed(tmp, **{k: np.asarray(v) for k, v in arrays.items()})
-    tmp.replace(path / "model.npz")
+    with atomic_path(path / "model.npz") as tmp:
+        np.savez_compressed(tmp, **{k: np.asarray(v) for k, v in arrays.items()})
     info = summary(fit_, vertices) | (extra or {})
     info["stages"] = fit_.stages
-    tmp = path / ".summary.tmp.json"
-    tmp.write_text(json.dumps(info, indent=2))
-    tmp.replace(path / "summary.json")
+    with atomic_path(path / "summary.json") as tmp:
+        tmp.write_text(json.dumps(info, indent=2))
     return info
 
 
@@ -302,8 +292,6 @@ _RUN_ARRAYS = ("log_pi", "mu", "rot", "d", "sigma2", "labels", "latent", "vertic
 def load_run(path) -> tuple[PartsFit, np.ndarray, np.ndarray]:
     """(fit, vertices (M, V, 3), faces) from a run folder written by :func:`save_run`; a damaged run gets one
     :class:`MeshFormatError` sentence."""
-    from jaxdeform.mesh.io import read_npz_arrays
-
     path = Path(path)
     model = path / "model.npz"
     if not model.is_file():
