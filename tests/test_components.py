@@ -87,3 +87,13 @@ def test_training_reduces_the_loss_and_is_deterministic(setup):
     rec = np.asarray(train.reconstruct(p1, x, rings, dist, config))
     before = np.sum(np.asarray(x) ** 2)
     assert np.sum((rec - np.asarray(x)) ** 2) < 0.3 * before
+
+
+@pytest.mark.parametrize("kz", [(3, 2), (2, 2, 2)])
+def test_decode_latents_reproduces_the_forward_reconstruction(setup, kz):
+    pts, rings, dist, x = setup
+    config = model.Config(kz=kz, d=tuple(0.4 / 2**i for i in range(len(kz))))
+    params = model.init(jax.random.PRNGKey(1), len(pts), config, x.dtype)
+    out = model.forward(params, x[:4], rings, dist, config)
+    again = model.decode_latents(params, out.latents, rings)
+    np.testing.assert_allclose(np.asarray(again), np.asarray(out.reconstruction), atol=1e-12)

@@ -24,7 +24,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from jaxdeform.nn.graph_conv import MU, Rings, ae_forward, init_ae_block
+from jaxdeform.nn.graph_conv import MU, Rings, ae_decode, ae_forward, init_ae_block
 from jaxdeform.nn.losses import group_sparsity, latent_bound, reconstruction_loss
 
 
@@ -104,3 +104,16 @@ def forward(params: tuple[dict, ...], x: Float[Array, "b v 9"], rings: Rings, di
                 children = jnp.broadcast_to(res[:, None], (res.shape[0], kz) + res.shape[1:])
             inputs = children.reshape((-1,) + res.shape[1:])  # block j of level l+1: parent j // kz, mask j % kz
     return Output(recon, total, terms, tuple(latents))
+
+
+def decode_latents(params: tuple[dict, ...], latents: tuple, rings: Rings) -> Float[Array, "b v 9"]:
+    """Scaled features (B, V, 9) from latent codes: the sum over every block of its decoder output.
+
+    ``latents[l]`` has shape (n_l, B, Kz_l), as in :attr:`Output.latents`; a block's output depends on its own
+    code only, so components are decoder outputs of one-hot codes and editing optimizes these codes.
+    """
+    out = None
+    for p, z in zip(params, latents):
+        x_hat = jnp.sum(jax.vmap(lambda q, zz: ae_decode(q, zz, rings))(p, z), axis=0)
+        out = x_hat if out is None else out + x_hat
+    return out
