@@ -1,5 +1,5 @@
-"""Command-line interface: ``jaxdeform acap encode|decode``, ``jaxdeform parts fit|interpolate|show`` and
-``jaxdeform render``.
+"""Command-line interface: ``jaxdeform acap encode|decode``, ``jaxdeform parts fit|interpolate|show``,
+``jaxdeform components train|evaluate|show|edit`` and ``jaxdeform render``.
 
 Every expected failure (a :class:`~jaxdeform.errors.JaxDeformError`, a ``ValueError`` from bad arguments, a
 missing file or another ``OSError``) prints exactly one line ``jaxdeform: error: <sentence>`` to stderr and
@@ -370,6 +370,52 @@ def cmd_parts_show(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_components_train(args: argparse.Namespace) -> int:
+    from jaxdeform.components import run
+
+    _check_exists(args.data)
+    out = Path(args.out)
+    _check_out_folder(out, args.force)
+    data = args.data if len(args.data) > 1 else args.data[0]
+    run.resolve_config(args.method, args.config, args.epochs, args.seed)  # bad names fail before any work
+    run.load_data(data)  # fewer than 2 shapes or mixed connectivity: one sentence, nothing written
+    with _staged_folder(out) as tmp:
+        record = run.fit(tmp, data, args.method, args.config, epochs=args.epochs, seed=args.seed,
+                         split=args.split, split_seed=args.split_seed, progress=not args.quiet)
+    t = record["timing"]
+    extra = ""
+    if "run_s" in t:
+        per = 1e3 * t["run_s"] / max(t.get("epochs_timed", 1), 1)
+        extra = f"; compile {t['compile_s']:.1f} s, training {t['run_s']:.1f} s ({per:.1f} ms/epoch)"
+    print(f"{args.method} ({args.config}) trained on {len(record['split']['train'])} of {record['n_shapes']} shapes "
+          f"in {t['total_s']:.1f} s{extra}; wrote {out}")
+    return 0
+
+
+def cmd_components_evaluate(args: argparse.Namespace) -> int:
+    import json
+
+    from jaxdeform.components import run
+
+    _check_exists([args.run] + list(args.data))
+    loaded = run.load(args.run)
+    result = run.evaluate(loaded, args.data if len(args.data) > 1 else args.data[0])
+    text = json.dumps(result, indent=2)
+    if args.json:
+        out = Path(args.json)
+        from jaxdeform.mesh.io import atomic_path
+
+        with _writing(out), atomic_path(out) as tmp:
+            Path(tmp).write_text(text)
+    te = result["test"]
+    print(f"{result['method']}: test Erms {te['erms']:.4f}, STED {te['sted']:.4f}"
+          + (f", max relative squared error {te['max_relative_squared_error']:.4g}" if "max_relative_squared_error" in te else "")
+          + (f"; wrote {args.json}" if args.json else ""))
+    if not args.json:
+        print(text)
+    return 0
+
+
 # -------------------------------------------------------------------------------------------- parser
 
 
@@ -447,6 +493,34 @@ def build_parser() -> argparse.ArgumentParser:
     pshow.add_argument("--shape", type=int, default=0, metavar="M", help="shape to draw the parts on (default 0)")
     pshow.add_argument("--force", action="store_true", help="replace DIR if it exists and is not empty")
     pshow.set_defaults(func=cmd_parts_show)
+
+    comp = sub.add_parser("components", help="Multiscale deformation components (seed 000) and baselines.",
+                          description="Deformation components of a shape set: train, evaluate, show, edit.")
+    comp_sub = comp.add_subparsers(dest="components_command", metavar="ACTION", required=True)
+    ctrain = comp_sub.add_parser("train", help="Train a method on the training split of a mesh folder.",
+                                 description="Train on every 10th shape (or a random half) and write a run folder.")
+    ctrain.add_argument("data", nargs="+", metavar="DATA", help="mesh files or folders of them (at least 2 shapes)")
+    ctrain.add_argument("--out", "-o", required=True, metavar="RUN", help="run folder to create")
+    ctrain.add_argument("--method", choices=("multiscale", "tan", "pca", "pca-xyz", "splocs"), default="multiscale",
+                        help="multiscale (seed 000, default), tan (Tan et al. 2018), pca (ACAP features), "
+                             "pca-xyz (coordinates), splocs (Neumann et al. 2013)")
+    ctrain.add_argument("--config", default="default", metavar="NAME",
+                        help="named configuration: default, test; multiscale also no-attention, separate, "
+                             "no-attention-separate, levels1, levels3")
+    ctrain.add_argument("--epochs", type=int, metavar="N", help="override the configuration's epochs")
+    ctrain.add_argument("--seed", type=int, metavar="S", help="override the training seed")
+    ctrain.add_argument("--split", choices=("every10", "half"), default="every10",
+                        help="every10: shapes 0, 10, 20, ... train (sequences, default); half: a seeded random half")
+    ctrain.add_argument("--split-seed", type=int, default=0, metavar="S", help="seed of the 'half' split (default 0)")
+    ctrain.add_argument("--quiet", action="store_true", help="no progress bar")
+    ctrain.add_argument("--force", action="store_true", help="replace RUN if it exists and is not empty")
+    ctrain.set_defaults(func=cmd_components_train)
+    ceval = comp_sub.add_parser("evaluate", help="Erms, STED and relative squared error on the run's split.",
+                                description="Reconstruct the run's training and unseen shapes and report metrics.")
+    ceval.add_argument("run", metavar="RUN", help="run folder written by 'jaxdeform components train'")
+    ceval.add_argument("--data", nargs="+", required=True, metavar="DATA", help="the data the run was trained on")
+    ceval.add_argument("--json", metavar="OUT.json", help="write the metrics here")
+    ceval.set_defaults(func=cmd_components_evaluate)
 
     ren = sub.add_parser("render", help="Render a mesh to PNG, optionally coloured by a per-vertex scalar.",
                          description="Ray-cast a mesh to a PNG image (CPU, Embree).")

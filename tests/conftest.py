@@ -34,3 +34,15 @@ def horse():
     from jaxdeform.mesh import load_sequence
 
     return load_sequence(data_dir("horse-gallop"))
+
+
+def grid_mesh(n: int = 6):
+    """A flat n x n grid in the z = 0 plane, 0..1 in x and y: (vertices (n*n, 3), faces (2(n-1)^2, 3))."""
+    import numpy as np
+
+    u, v = np.meshgrid(np.linspace(0, 1, n), np.linspace(0, 1, n), indexing="ij")
+    pts = np.stack([u.ravel(), v.ravel(), np.zeros(n * n)], 1)
+    idx = np.arange(n * n).reshape(n, n)
+    a, b, c, d = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()
+    faces = np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
+    return pts, faces

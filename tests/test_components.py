@@ -1,5 +1,7 @@
 """Seed 000 multiscale model: attention masks, the level structure, and training on a tiny synthetic set."""
 
+import dataclasses
+
 import jax
 import jax.numpy as jnp
 import numpy as np
@@ -8,14 +10,11 @@ import pytest
 from jaxdeform.components import model, train
 from jaxdeform.mesh.topology import build_topology
 from jaxdeform.nn.graph_conv import ae_forward, rings_from_topology
+from conftest import grid_mesh
 
 
 def _grid(n=6):
-    u, v = np.meshgrid(np.linspace(0, 1, n), np.linspace(0, 1, n), indexing="ij")
-    pts = np.stack([u.ravel(), v.ravel(), np.zeros(n * n)], 1)
-    idx = np.arange(n * n).reshape(n, n)
-    a, b, c, d = idx[:-1, :-1].ravel(), idx[1:, :-1].ravel(), idx[1:, 1:].ravel(), idx[:-1, 1:].ravel()
-    faces = np.concatenate([np.stack([a, b, c], 1), np.stack([a, c, d], 1)])
+    pts, faces = grid_mesh(n)
     dist = np.linalg.norm(pts[:, None] - pts[None], axis=-1)
     return pts, faces, dist / dist.max()
 
@@ -84,7 +83,7 @@ def test_training_reduces_the_loss_and_is_deterministic(setup):
     _, h2 = train.train(x, rings, dist, config, tc)
     np.testing.assert_array_equal(h1, h2)
     assert h1[-20:].mean() < 0.5 * h1[:5].mean()
-    rec = np.asarray(train.reconstruct(p1, x, rings, dist, config))
+    rec = np.asarray(train.reconstruct(p1, x, rings, config))
     before = np.sum(np.asarray(x) ** 2)
     assert np.sum((rec - np.asarray(x)) ** 2) < 0.3 * before
 
@@ -97,3 +96,45 @@ def test_decode_latents_reproduces_the_forward_reconstruction(setup, kz):
     out = model.forward(params, x[:4], rings, dist, config)
     again = model.decode_latents(params, out.latents, rings)
     np.testing.assert_allclose(np.asarray(again), np.asarray(out.reconstruction), atol=1e-12)
+
+
+@pytest.mark.parametrize("joint", [True, False])
+def test_resumed_training_is_bit_identical(setup, tmp_path, joint):
+    pts, rings, dist, x = setup
+    config = model.Config(kz=(3, 2), d=(0.5, 0.3))
+    tc = train.TrainConfig(epochs=40, batch=16, seed=5, joint=joint)
+    p_full, h_full = train.train(x, rings, dist, config, tc)
+    # an interrupted run: the first 20 (joint) or 60 (separate: stage 1 half done) epochs, checkpointed
+    cut = 20 if joint else 60
+    stop = dataclasses.replace(tc, epochs=tc.epochs)
+    ck = tmp_path / "ckpt"
+    with pytest.raises(_Interrupt):
+        train.train(x, rings, dist, config, stop, checkpoint_dir=ck, checkpoint_every=10,
+                    log=_interrupt_after(cut - 1), log_every=1)
+    p_res, h_res = train.train(x, rings, dist, config, tc, checkpoint_dir=ck, checkpoint_every=10, resume=True)
+    for a, b in zip(jax.tree_util.tree_leaves(p_full), jax.tree_util.tree_leaves(p_res)):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
+    np.testing.assert_array_equal(h_full, h_res)
+
+
+class _Interrupt(Exception):
+    pass
+
+
+def _interrupt_after(epoch):
+    def log(e, loss, terms):
+        if e >= epoch:
+            raise _Interrupt()
+    return log
+
+
+def test_separate_training_freezes_earlier_levels(setup):
+    pts, rings, dist, x = setup
+    config = model.Config(kz=(3, 2), d=(0.5, 0.3))
+    tc = train.TrainConfig(epochs=30, batch=16, seed=2, joint=False)
+    params, hist = train.train(x, rings, dist, config, tc)
+    assert hist.shape == (60,) and np.all(np.isfinite(hist))
+    # level 0 after both stages equals level 0 trained alone (stage 1 does not touch it)
+    alone, _ = train.train(x, rings, dist, model.Config(kz=(3,), d=(0.5,)), dataclasses.replace(tc, joint=True))
+    for a, b in zip(jax.tree_util.tree_leaves(params[0]), jax.tree_util.tree_leaves(alone[0])):
+        np.testing.assert_array_equal(np.asarray(a), np.asarray(b))

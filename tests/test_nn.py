@@ -19,6 +19,7 @@ from jaxdeform.nn.graph_conv import (
 )
 from jaxdeform.nn.losses import (
     component_centres,
+    geodesic_linear_mask,
     geodesic_step_mask,
     group_sparsity,
     latent_bound,
@@ -33,6 +34,7 @@ ae_decode = jax.jit(ae_decode)
 ae_decode_pre = jax.jit(ae_decode_pre)
 ae_forward = jax.jit(ae_forward)
 component_centres = jax.jit(component_centres, static_argnums=1)
+raw_group_sparsity = group_sparsity
 group_sparsity = jax.jit(group_sparsity)
 latent_bound = jax.jit(latent_bound)
 
@@ -153,6 +155,24 @@ def test_group_sparsity_step_mask():
     C3 = C.copy()
     C3[0, 15] = 10.0
     assert int(component_centres(jnp.asarray(C3.reshape(2, -1)), V)[0]) == 15
+
+
+def test_group_sparsity_linear_mask_of_tan_et_al():
+    V = 16
+    dist = jnp.asarray(grid_dist(4))
+    C = np.zeros((1, V, 9))
+    C[0, 0] = 3.0  # centre: vertex 0
+    C[0, 1, 2] = 0.5  # dist ~0.236: inside the ramp, weight (0.236 - 0.2) / 0.2
+    C[0, 3, 0] = -2.0  # dist ~0.707: weight 1
+    d01, d03 = float(dist[0, 1]), float(dist[0, 3])
+    assert 0.2 < d01 < 0.4 and d03 > 0.4
+    expected = 0.5 * (d01 - 0.2) / 0.2 + 2.0 * 1.0
+    got = float(jax.jit(lambda c, dd: raw_group_sparsity(c, dd, (0.2, 0.4), "linear"))(jnp.asarray(C.reshape(1, -1)), dist))
+    assert got == pytest.approx(expected, rel=1e-9)
+    lam = np.asarray(geodesic_linear_mask(dist, jnp.array([0]), 0.2, 0.4))
+    assert lam.min() == 0.0 and lam.max() == 1.0 and lam[0, 0] == 0.0
+    with pytest.raises(ValueError, match="mask must be"):
+        raw_group_sparsity(jnp.asarray(C.reshape(1, -1)), dist, 0.4, "gaussian")
 
 
 def test_latent_bound():

@@ -38,12 +38,20 @@ class Config:
     lambda_sparse: float = 1.0
     theta: float = 5.0
     attention: bool = True
+    mask: str = "step"  # "step": seed 000's eq. (3) with cut-off d[l]; "linear": Tan et al.'s clipped ramp
+    mask_range: tuple[float, float] = (0.2, 0.4)  # (d_min, d_max) of the "linear" mask
 
     def __post_init__(self):
         if len(self.kz) != len(self.d) or not self.kz:
             raise ValueError(f"kz {self.kz} and d {self.d} must give one entry per level (at least one).")
         if min(self.kz) < 1 or not all(0 < x <= 1 for x in self.d):
             raise ValueError("every kz must be >= 1 and every d in (0, 1].")
+        if self.mask not in ("step", "linear"):
+            raise ValueError(f"mask must be 'step' or 'linear', got {self.mask!r}.")
+
+    def sparsity_cutoff(self, level: int):
+        """The ``d`` argument of :func:`group_sparsity` for ``level``."""
+        return self.d[level] if self.mask == "step" else tuple(self.mask_range)
 
     @property
     def levels(self) -> int:
@@ -78,22 +86,13 @@ def attention_masks(c: Float[Array, "kz nine_v"]) -> Float[Array, "kz v"]:
     return am / jnp.where(total > 0, total, 1.0)
 
 
-def forward(params: tuple[dict, ...], x: Float[Array, "b v 9"], rings: Rings, dist: Float[Array, "v v"],
-            config: Config) -> Output:
-    """Run every level on a batch of scaled features and return the reconstruction and the total loss."""
+def _levels(params: tuple[dict, ...], x: Float[Array, "b v 9"], rings: Rings, config: Config) -> list:
+    """Per level: (inputs (n_l, B, V, 9), latents (n_l, B, Kz_l), outputs (n_l, B, V, 9))."""
     inputs = x[None]  # (n_0 = 1, B, V, 9)
-    total = jnp.zeros((), x.dtype)
-    recon = jnp.zeros_like(x)
-    terms, latents = [], []
+    levels = []
     for level, p in enumerate(params):
         z, x_hat = jax.vmap(lambda q, xin: ae_forward(q, xin, rings))(p, inputs)
-        rec_l = jax.vmap(reconstruction_loss)(inputs, x_hat)
-        sparse_l = jax.vmap(lambda c: group_sparsity(c, dist, config.d[level]))(p["C"])
-        latent_l = jax.vmap(lambda zz: latent_bound(zz, config.theta))(z)
-        total = total + jnp.sum(config.lambda_recon * rec_l + config.lambda_sparse * sparse_l + latent_l)
-        recon = recon + jnp.sum(x_hat, axis=0)
-        terms.append({"recon": jnp.sum(rec_l), "sparsity": jnp.sum(sparse_l), "latent": jnp.sum(latent_l)})
-        latents.append(z)
+        levels.append((inputs, z, x_hat))
         if level + 1 < len(params):
             res = inputs - x_hat  # (n_l, B, V, 9)
             kz = config.kz[level]
@@ -103,6 +102,31 @@ def forward(params: tuple[dict, ...], x: Float[Array, "b v 9"], rings: Rings, di
             else:
                 children = jnp.broadcast_to(res[:, None], (res.shape[0], kz) + res.shape[1:])
             inputs = children.reshape((-1,) + res.shape[1:])  # block j of level l+1: parent j // kz, mask j % kz
+    return levels
+
+
+def reconstruction(params: tuple[dict, ...], x: Float[Array, "b v 9"], rings: Rings, config: Config) -> Float[Array, "b v 9"]:
+    """The model's reconstruction of a batch of scaled features (the sum of every block's output)."""
+    return sum(jnp.sum(x_hat, axis=0) for _, _, x_hat in _levels(params, x, rings, config))
+
+
+def forward(params: tuple[dict, ...], x: Float[Array, "b v 9"], rings: Rings, dist: Float[Array, "v v"],
+            config: Config) -> Output:
+    """Run every level on a batch of scaled features and return the reconstruction and the total loss.
+
+    ``params`` may hold fewer levels than ``config`` (a prefix: used by separate, level-by-level training).
+    """
+    total = jnp.zeros((), x.dtype)
+    recon = jnp.zeros_like(x)
+    terms, latents = [], []
+    for level, (p, (inputs, z, x_hat)) in enumerate(zip(params, _levels(params, x, rings, config))):
+        rec_l = jax.vmap(reconstruction_loss)(inputs, x_hat)
+        sparse_l = jax.vmap(lambda c: group_sparsity(c, dist, config.sparsity_cutoff(level), config.mask))(p["C"])
+        latent_l = jax.vmap(lambda zz: latent_bound(zz, config.theta))(z)
+        total = total + jnp.sum(config.lambda_recon * rec_l + config.lambda_sparse * sparse_l + latent_l)
+        recon = recon + jnp.sum(x_hat, axis=0)
+        terms.append({"recon": jnp.sum(rec_l), "sparsity": jnp.sum(sparse_l), "latent": jnp.sum(latent_l)})
+        latents.append(z)
     return Output(recon, total, terms, tuple(latents))
 
 

@@ -538,3 +538,29 @@ def render_png(path, vertices, faces, **kwargs) -> np.ndarray:
     image = render(vertices, faces, **kwargs)
     save_png(image, path)
     return image
+
+
+#: Named view directions for :func:`auto_camera`: (azimuth, elevation) in degrees.
+VIEWS: dict[str, tuple[float, float]] = {
+    "front": (0.0, 10.0),
+    "back": (180.0, 10.0),
+    "side": (90.0, 10.0),
+    "left": (-90.0, 10.0),
+    "right": (90.0, 10.0),
+    "top": (0.0, 89.0),
+    "bottom": (0.0, -89.0),
+    "three_quarter": (30.0, 20.0),
+}
+
+
+def view_angles(view) -> tuple[float, float]:
+    """(azimuth, elevation) in degrees of a named view or of an (azimuth, elevation) pair."""
+    if isinstance(view, str):
+        if view not in VIEWS:
+            raise ValueError(f"unknown view {view!r}; expected one of {', '.join(VIEWS)} or (azimuth, elevation).")
+        return VIEWS[view]
+    try:
+        az, el = (float(x) for x in view)
+    except (TypeError, ValueError):
+        raise ValueError(f"a view is a name or an (azimuth_deg, elevation_deg) pair, got {view!r}.") from None
+    return az, el

@@ -4,7 +4,8 @@
   norm over all V*9 entries summed per shape and averaged over shapes. That is the default
   (``reduction="shape"``); ``reduction="element"`` gives the plain element-wise mean (= the former / 9V).
 - ``group_sparsity``: Omega(C) = (1/Kz) sum_k sum_i Lambda_ik ||C_k,i||_2 with the step mask of eq. (3),
-  Lambda_ik = 0 if d(c_k, i) < d else 1, centre c_k = argmax_i ||C_k,i||_2 recomputed at every call.
+  Lambda_ik = 0 if d(c_k, i) < d else 1, centre c_k = argmax_i ||C_k,i||_2 recomputed at every call;
+  or Tan et al.'s clipped-linear mask clip((d(c_k, i) - 0.2) / (0.4 - 0.2), 0, 1) (``mask="linear"``).
 - ``latent_bound``: V(Z) = (1/Kz) sum_k max(max_m |Z_mk| - theta, 0), theta = 5 (as in the paper).
 """
 
@@ -53,12 +54,26 @@ def geodesic_step_mask(dist: Float[Array, "v v"], centres: Int[Array, " kz"], d:
     return (dist[centres, :] >= d).astype(dist.dtype)
 
 
-def group_sparsity(C: Float[Array, "kz nine_v"], dist: Float[Array, "v v"], d: float) -> Float[Array, ""]:
+def geodesic_linear_mask(dist: Float[Array, "v v"], centres: Int[Array, " kz"], d_min: float,
+                         d_max: float) -> Float[Array, "kz v"]:
+    """Tan et al. (2018)'s mask: Lambda_ik = clip((dist[c_k, i] - d_min) / (d_max - d_min), 0, 1)."""
+    return jnp.clip((dist[centres, :] - d_min) / (d_max - d_min), 0.0, 1.0).astype(dist.dtype)
+
+
+def group_sparsity(C: Float[Array, "kz nine_v"], dist: Float[Array, "v v"], d: float | tuple[float, float],
+                   mask: str = "step") -> Float[Array, ""]:
     """Omega(C) = (1/Kz) sum_k sum_i Lambda_ik ||C_k,i||_2 with centres recomputed from C (no gradient
-    flows through the centres or the mask)."""
+    flows through the centres or the mask). ``mask="step"`` (seed 000, eq. 3) takes the cut-off ``d``;
+    ``mask="linear"`` (Tan et al.) takes ``d = (d_min, d_max)``."""
     n_vertices = dist.shape[0]
     centres = jax.lax.stop_gradient(component_centres(C, n_vertices))
-    lam = jax.lax.stop_gradient(geodesic_step_mask(dist, centres, d)).astype(C.dtype)
+    if mask == "step":
+        lam = geodesic_step_mask(dist, centres, d)
+    elif mask == "linear":
+        lam = geodesic_linear_mask(dist, centres, *d)
+    else:
+        raise ValueError(f"mask must be 'step' or 'linear', got {mask!r}.")
+    lam = jax.lax.stop_gradient(lam).astype(C.dtype)
     norms = vertex_norms(C, n_vertices)
     return jnp.sum(lam * norms) / C.shape[0]
 

@@ -17,19 +17,7 @@ import numpy as np
 from PIL import Image, ImageDraw
 
 from jaxdeform.errors import MeshFormatError
-from jaxdeform.mesh.render import auto_camera, categorical_colors, render, save_png
-
-#: Named views: (azimuth_deg, elevation_deg) for :func:`auto_camera`.
-VIEWS: dict[str, tuple[float, float]] = {
-    "front": (0.0, 10.0),
-    "back": (180.0, 10.0),
-    "side": (90.0, 10.0),
-    "left": (-90.0, 10.0),
-    "right": (90.0, 10.0),
-    "top": (0.0, 89.0),
-    "bottom": (0.0, -89.0),
-    "three_quarter": (30.0, 20.0),
-}
+from jaxdeform.mesh.render import VIEWS, auto_camera, categorical_colors, render, save_png, view_angles
 
 #: Colour of vertices with a negative (unassigned) label.
 UNASSIGNED = (0.6, 0.6, 0.6)
@@ -37,22 +25,10 @@ UNASSIGNED = (0.6, 0.6, 0.6)
 _BACKGROUND = (1.0, 1.0, 1.0)
 
 
-def _view_angles(view) -> tuple[float, float]:
-    if isinstance(view, str):
-        if view not in VIEWS:
-            raise ValueError(f"unknown view {view!r}; expected one of {', '.join(VIEWS)} or (azimuth, elevation).")
-        return VIEWS[view]
-    try:
-        az, el = (float(x) for x in view)
-    except (TypeError, ValueError):
-        raise ValueError(f"a view is a name or an (azimuth_deg, elevation_deg) pair, got {view!r}.") from None
-    return az, el
-
-
 def _view_name(view) -> str:
     if isinstance(view, str):
         return view
-    az, el = _view_angles(view)
+    az, el = view_angles(view)
     return f"az {az:g}, el {el:g}"
 
 
@@ -126,7 +102,7 @@ def segmentation_figure(
         raise ValueError("views must name at least one view.")
     panels = []
     for view in views:
-        az, el = _view_angles(view)
+        az, el = view_angles(view)
         cam = auto_camera(v, azimuth_deg=az, elevation_deg=el, up_axis=up_axis)
         img = render(v, faces, vertex_colors=colours, camera=cam, width=width, height=height, shading=shading,
                      background=_BACKGROUND)
@@ -162,7 +138,7 @@ def error_figure(
         raise ValueError(f"error must have shape ({v.shape[0]},) (one value per vertex), got {e.shape}.")
     if vmin is None and np.all(np.isfinite(e)) and e.min() >= 0.0 and (vmax is None or vmax >= 0.0):
         vmin = 0.0  # errors are distances: anchor the colour bar at zero
-    az, el = _view_angles(view)
+    az, el = view_angles(view)
     cam = auto_camera(v, azimuth_deg=az, elevation_deg=el, up_axis=up_axis)
     image = render(v, faces, scalar=e, camera=cam, width=width, height=height, cmap=cmap, vmin=vmin, vmax=vmax,
                    colorbar=True, label=label, background=_BACKGROUND)
@@ -198,7 +174,7 @@ def strip_figure(
     if step < 1:
         raise ValueError(f"step must be a positive integer, got {step}.")
     colours = None if labels is None else label_colors(labels, x.shape[1])
-    az, el = _view_angles(view)
+    az, el = view_angles(view)
     cam = auto_camera(x.reshape(-1, 3), azimuth_deg=az, elevation_deg=el, up_axis=up_axis)
     panels = []
     for t in range(0, x.shape[0], step):

@@ -1,0 +1,358 @@
+"""Figures of deformation components (seed 000, Figs. 2, 5, 8-13) and of their cosine similarity (Fig. 3).
+
+:func:`components_figure` draws a grid of component meshes, one row per autoencoder block (an ``AE0`` row,
+then ``AE1`` ... ``AEK``; a linear model's components fill one row, wrapped), each panel the reference deformed
+by one component with its deformed region coloured: the per-vertex strength ``||X_diff,i||`` (the summand of
+eq. (7)) divided by ``vmax`` (default: the panel's own maximum) gives ``t`` in [0, 1], and a pixel takes
+``shade * ((1 - t) grey + t cmap(t))`` -- a neutral grey body that turns into the colormap where the component
+deforms the shape. :func:`similarity_figure` draws a K x K heat map with a colour bar.
+
+Rendering goes through :mod:`jaxdeform.mesh.render` (Embree ray casting; one camera fitted to all panels so
+they compare): per panel one :func:`~jaxdeform.mesh.render.cast_rays` for the interpolated strength and one
+:func:`~jaxdeform.mesh.render.render` of a white body for the Lambert shading. Every input is validated before
+anything is rendered, and the PNG is written atomically (:func:`~jaxdeform.mesh.render.save_png`), so invalid
+input never leaves a file. Both functions return the ``(H, W, 3)`` uint8 image.
+"""
+
+from __future__ import annotations
+
+from collections.abc import Sequence
+
+import numpy as np
+from PIL import Image, ImageDraw, ImageFont
+
+from jaxdeform.components.extract import ComponentSet, Removal, deformation_strength, vertex_strength
+from jaxdeform.errors import ConnectivityError, DegenerateMeshError, MeshFormatError
+from jaxdeform.mesh.render import COLORMAPS, VIEWS, Camera, auto_camera, cast_rays, colormap, render, save_png, view_angles
+
+#: The body colour of undeformed regions.
+GREY = (0.72, 0.72, 0.72)
+
+_WHITE = (1.0, 1.0, 1.0)
+_INK = (30, 30, 30)
+_MUTED = (120, 120, 120)
+
+
+def _font(size: int):
+    try:
+        return ImageFont.load_default(size=int(size))
+    except (TypeError, ValueError, OSError):  # Pillow without FreeType: a fixed bitmap font
+        return ImageFont.load_default()
+
+
+def _text_size(font, text: str) -> tuple[int, int]:
+    box = ImageDraw.Draw(Image.new("RGB", (1, 1))).textbbox((0, 0), text, font=font)
+    return box[2] - box[0], box[3] - box[1]
+
+
+def _check_cmap(cmap: str) -> None:
+    if cmap not in COLORMAPS:
+        raise ValueError(f"unknown colormap {cmap!r}; expected one of {', '.join(COLORMAPS)}.")
+
+
+# ------------------------------------------------------------------------------------------- one panel
+
+
+def blend(t, cmap: str = "viridis", body=GREY) -> np.ndarray:
+    """Colour of normalized strength ``t`` in [0, 1] (clipped): ``(1 - t) body + t cmap(t)``, shape t.shape + (3,)."""
+    t = np.clip(np.asarray(t, dtype=np.float64), 0.0, 1.0)
+    return (1.0 - t)[..., None] * np.asarray(body, dtype=np.float64) + t[..., None] * colormap(t, cmap)
+
+
+def render_component(vertices, faces, strength, camera: Camera, width: int, height: int, *, vmax: float | None = None,
+                     cmap: str = "viridis", body=GREY, background=_WHITE) -> np.ndarray:
+    """One component mesh with its deformed region coloured: an ``(height, width, 3)`` uint8 image.
+
+    ``strength`` (V,) non-negative per-vertex strength, mapped to t = strength / ``vmax`` (default: its maximum;
+    an all-zero strength leaves the body grey) and interpolated per pixel.
+    """
+    s = np.asarray(strength, dtype=np.float64)
+    top = float(s.max()) if vmax is None else float(vmax)
+    t = s / top if top > 0 else np.zeros_like(s)
+    hits = cast_rays(vertices, faces, camera, width, height)
+    f = np.asarray(faces, dtype=np.int64)
+    hit = hits.hit
+    tri = hits.triangle[hit]
+    t_pix = np.einsum("nk,nk->n", hits.barycentric[hit], t[f[tri]])
+    shade = render(vertices, faces, camera=camera, width=width, height=height, base_color=_WHITE,
+                   background=_WHITE, shading=True).astype(np.float64)[hit] / 255.0
+    image = np.empty((height, width, 3))
+    image[...] = np.asarray(background, dtype=np.float64)
+    image[hit] = shade * blend(t_pix, cmap, body)
+    return (np.clip(image, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+
+
+# -------------------------------------------------------------------------------------------- the grid
+
+
+def _check_meshes(meshes, faces, strength) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    x = np.asarray(meshes, dtype=np.float64)
+    if x.ndim != 3 or x.shape[2] != 3 or x.shape[0] == 0 or x.shape[1] == 0:
+        raise MeshFormatError(f"component meshes must be a non-empty (K, V, 3) array, got shape {x.shape}.")
+    if not np.all(np.isfinite(x)):
+        bad = np.argwhere(~np.isfinite(x))[0]
+        raise DegenerateMeshError(
+            f"component mesh {int(bad[0])} has a NaN or infinite coordinate (vertex {int(bad[1])}).")
+    f = np.asarray(faces)
+    if f.ndim != 2 or f.shape[1] != 3 or f.shape[0] == 0 or not np.issubdtype(f.dtype, np.integer):
+        raise MeshFormatError(f"faces must be a non-empty integer (F, 3) array, got {f.dtype} {f.shape}.")
+    if f.min() < 0 or f.max() >= x.shape[1]:
+        raise ConnectivityError(f"faces index vertex {int(f.max())} but the meshes have {x.shape[1]} vertices.")
+    s = np.asarray(strength, dtype=np.float64)
+    if s.shape != x.shape[:2]:
+        raise ValueError(f"strength must have shape {x.shape[:2]} (one value per component and vertex), got {s.shape}.")
+    if not np.all(np.isfinite(s)):
+        bad = np.argwhere(~np.isfinite(s))[0]
+        raise DegenerateMeshError(f"strength of component {int(bad[0])} is NaN or infinite at vertex {int(bad[1])}.")
+    if s.min() < 0:
+        raise ValueError("per-vertex strengths are norms and must be non-negative.")
+    return x, f.astype(np.int64), s
+
+
+def _labels(values, k: int, name: str, default) -> list[str]:
+    if values is None:
+        return [default(i) for i in range(k)]
+    out = [str(v) for v in values]
+    if len(out) != k:
+        raise ValueError(f"{name} must give one entry per component ({k}), got {len(out)}.")
+    return out
+
+
+def _layout_rows(groups: list[str], rows: Sequence[str] | None, max_columns: int) -> list[tuple[str, list[int]]]:
+    """(label, component indices) per drawn line: rows in order, each wrapped at ``max_columns``."""
+    order = list(dict.fromkeys(groups)) if rows is None else [str(r) for r in rows]
+    missing = sorted(set(groups) - set(order))
+    if missing:
+        raise ValueError(f"components belong to rows not listed in rows: {', '.join(missing)}.")
+    lines = []
+    for name in order:
+        members = [i for i, g in enumerate(groups) if g == name]
+        if not members:
+            lines.append((name, []))
+        for start in range(0, len(members), max_columns):
+            lines.append((name if start == 0 else "", members[start:start + max_columns]))
+    return lines
+
+
+def _draw_legend(width: int, height: int, cmap: str, body, text: str, font) -> np.ndarray:
+    """A grey -> colormap ramp with a caption, ``height`` pixels high."""
+    bar_w, bar_h = min(240, width // 3), max(8, height // 3)
+    x0, y0 = 10, (height - bar_h) // 2
+    ramp = (blend(np.linspace(0.0, 1.0, bar_w), cmap, body) * 255 + 0.5).astype(np.uint8)
+    arr = np.full((height, width, 3), 255, dtype=np.uint8)
+    arr[y0:y0 + bar_h, x0:x0 + bar_w] = ramp[None]
+    strip = Image.fromarray(arr)
+    draw = ImageDraw.Draw(strip)
+    draw.rectangle([x0 - 1, y0 - 1, x0 + bar_w, y0 + bar_h], outline=_INK)
+    draw.text((x0 + bar_w + 10, height // 2), text, font=font, fill=_INK, anchor="lm")
+    return np.asarray(strip)
+
+
+def components_figure(
+    meshes,
+    faces,
+    strength,
+    path,
+    *,
+    groups: Sequence[str] | None = None,
+    titles: Sequence[str] | None = None,
+    rows: Sequence[str] | None = None,
+    panel: int = 256,
+    max_columns: int = 10,
+    view="three_quarter",
+    up_axis: str = "y",
+    camera: Camera | None = None,
+    cmap: str = "viridis",
+    vmax: float | None = None,
+    title: str | None = None,
+) -> np.ndarray:
+    """A grid of component meshes (K, V, 3) coloured by per-vertex ``strength`` (K, V), written to ``path``.
+
+    ``groups`` (K,) names each component's row (default: one row, "components"); ``rows`` orders the rows and
+    may list rows without components (drawn with "no component kept", e.g. a fully pruned AEk); a row holds
+    at most ``max_columns`` panels and wraps. ``titles`` (K,) caption the panels (default "#i"). ``panel``
+    is the side of one square panel in pixels. ``vmax`` None scales each panel to its own maximum strength,
+    a number shares one scale. One camera (``view`` around ``up_axis``, or ``camera``) frames every mesh.
+    """
+    x, f, s = _check_meshes(meshes, faces, strength)
+    k = x.shape[0]
+    groups = _labels(groups, k, "groups", lambda i: "components")
+    titles = _labels(titles, k, "titles", lambda i: f"#{i}")
+    panel, max_columns = int(panel), int(max_columns)
+    if panel < 16:
+        raise ValueError(f"panel must be at least 16 pixels, got {panel}.")
+    if max_columns < 1:
+        raise ValueError(f"max_columns must be a positive integer, got {max_columns}.")
+    if vmax is not None and not (np.isfinite(vmax) and vmax > 0):
+        raise ValueError(f"vmax must be a positive finite number or None, got {vmax}.")
+    _check_cmap(cmap)
+    lines = _layout_rows(groups, rows, max_columns)
+    if camera is None:
+        az, el = view_angles(view)
+        camera = auto_camera(x.reshape(-1, 3), azimuth_deg=az, elevation_deg=el, up_axis=up_axis)
+
+    font = _font(max(10, panel // 18))
+    big = _font(max(12, panel // 12))
+    caption_h = _text_size(font, "Ag#0.9")[1] + 8
+    label_w = max([_text_size(big, name)[0] for name, _ in lines] + [0]) + 24
+    columns = max([len(m) for _, m in lines] + [1])
+    gap = 4
+    width = label_w + columns * (panel + gap)
+    title_h = _text_size(big, title)[1] + 16 if title else 0
+    legend_h = max(28, panel // 8)
+    line_h = panel + caption_h + gap
+    height = title_h + len(lines) * line_h + legend_h
+
+    canvas = np.full((height, width, 3), 255, dtype=np.uint8)
+    for r, (_, members) in enumerate(lines):
+        y = title_h + r * line_h + caption_h
+        for c, i in enumerate(members):
+            xo = label_w + c * (panel + gap)
+            canvas[y:y + panel, xo:xo + panel] = render_component(x[i], f, s[i], camera, panel, panel, vmax=vmax,
+                                                                  cmap=cmap)
+    scale_text = ("per-vertex strength ||X_diff,i||, each panel scaled to its maximum" if vmax is None
+                  else f"per-vertex strength ||X_diff,i|| from 0 to {vmax:.3g}")
+    canvas[height - legend_h:] = _draw_legend(width, legend_h, cmap, GREY, scale_text, font)
+
+    pil = Image.fromarray(canvas)
+    draw = ImageDraw.Draw(pil)
+    if title:
+        draw.text((width // 2, 8), title, font=big, fill=_INK, anchor="mt")
+    for r, (name, members) in enumerate(lines):
+        top = title_h + r * line_h
+        if name:
+            draw.text((12, top + caption_h + panel // 2), name, font=big, fill=_INK, anchor="lm")
+        if not members:
+            draw.text((label_w + 8, top + caption_h + panel // 2), "no component kept", font=font, fill=_MUTED,
+                      anchor="lm")
+        for c, i in enumerate(members):
+            xo = label_w + c * (panel + gap)
+            draw.text((xo + panel // 2, top + caption_h - 4), titles[i], font=font, fill=_INK, anchor="mb")
+        if r:
+            draw.line([(8, top - gap // 2), (width - 8, top - gap // 2)], fill=(225, 225, 225))
+    image = np.asarray(pil)
+    save_png(image, path)
+    return image
+
+
+def component_set_figure(cs: ComponentSet, meshes, faces, path, *, removal: Removal | None = None,
+                         **kwargs) -> np.ndarray:
+    """:func:`components_figure` of a :class:`~jaxdeform.components.extract.ComponentSet` and its meshes
+    (from :func:`~jaxdeform.components.extract.component_meshes`): rows per block (``AE0``, ``AE1`` ...),
+    panels titled with the component index and its strength I (eq. (7)); with a ``removal`` only the kept
+    components are drawn and fully pruned blocks keep an empty row."""
+    x = np.asarray(meshes)
+    if x.ndim != 3 or x.shape[0] != len(cs):
+        raise ValueError(f"meshes must be ({len(cs)}, V, 3) (one per component), got shape {x.shape}.")
+    total = np.asarray(deformation_strength(cs.values)) if removal is None else removal.strength
+    keep = np.ones(len(cs), dtype=bool) if removal is None else np.asarray(removal.keep)
+    if keep.shape != (len(cs),):
+        raise ValueError(f"the removal describes {keep.shape[0]} components but the set has {len(cs)}.")
+    groups = cs.groups()
+    rows = list(dict.fromkeys(groups))
+    titles = [f"#{int(i)}  I={t:.3g}" for i, t in zip(cs.index, total)]
+    if not keep.any():
+        raise ValueError("every component was removed, so there is nothing to draw.")
+    idx = np.flatnonzero(keep)
+    return components_figure(x[idx], faces, np.asarray(vertex_strength(cs.values))[idx], path,
+                             groups=[groups[i] for i in idx], titles=[titles[i] for i in idx], rows=rows, **kwargs)
+
+
+# ----------------------------------------------------------------------------------- similarity heat map
+
+
+def _rotated_text(text: str, font, ink) -> Image.Image:
+    w, h = _text_size(font, text)
+    img = Image.new("RGBA", (w + 4, h + 6), (255, 255, 255, 0))
+    ImageDraw.Draw(img).text((2, 1), text, font=font, fill=ink + (255,))
+    return img.rotate(90, expand=True)
+
+
+def similarity_figure(
+    matrix,
+    path,
+    *,
+    labels: Sequence[str] | None = None,
+    title: str | None = "cosine similarity",
+    cell: int | None = None,
+    annotate: bool | None = None,
+    cmap: str | None = None,
+    vmin: float | None = None,
+) -> np.ndarray:
+    """A heat map of a K x K similarity ``matrix`` with a colour bar, written to ``path`` (Fig. 3).
+
+    The colour range is [``vmin``, 1] with ``vmin`` 0 when every entry is non-negative (as in Fig. 3) and -1
+    otherwise; ``cmap`` defaults to viridis on [0, 1] and the diverging coolwarm on [-1, 1]. ``labels`` (K,)
+    name rows and columns (default 0 ... K-1); ``annotate`` writes each value in its cell (default: K <= 16).
+    """
+    m = np.asarray(matrix, dtype=np.float64)
+    if m.ndim != 2 or m.shape[0] != m.shape[1] or m.shape[0] == 0:
+        raise ValueError(f"the similarity matrix must be a non-empty square array, got shape {m.shape}.")
+    if not np.all(np.isfinite(m)):
+        bad = np.argwhere(~np.isfinite(m))[0]
+        raise DegenerateMeshError(f"similarity entry ({int(bad[0])}, {int(bad[1])}) is NaN or infinite.")
+    if np.abs(m).max() > 1.0 + 1e-6:
+        raise ValueError(f"cosine similarities lie in [-1, 1], got a value of {np.abs(m).max():.6g}.")
+    k = m.shape[0]
+    labels = _labels(labels, k, "labels", str)
+    lo = (0.0 if m.min() >= 0 else -1.0) if vmin is None else float(vmin)
+    if not (np.isfinite(lo) and lo < 1.0):
+        raise ValueError(f"vmin must be a finite number below 1, got {vmin}.")
+    cmap = ("viridis" if lo >= 0 else "coolwarm") if cmap is None else cmap
+    _check_cmap(cmap)
+    cell = max(8, min(48, 720 // k)) if cell is None else int(cell)
+    if cell < 2:
+        raise ValueError(f"cell must be at least 2 pixels, got {cell}.")
+    annotate = k <= 16 if annotate is None else bool(annotate)
+
+    font = _font(max(8, min(14, cell - 2)))
+    tick_font = _font(12)
+    big = _font(16)
+    label_w = max(_text_size(font, t)[0] for t in labels) + 10
+    label_h = label_w
+    title_h = _text_size(big, title)[1] + 16 if title else 6
+    pad = 12
+    bar_w = 16
+    tick_w = max(_text_size(tick_font, f"{v:.2g}")[0] for v in (lo, 1.0, 0.5 * (lo + 1.0))) + 8
+    x0, y0 = pad + label_w, title_h + label_h
+    side = k * cell
+    width = x0 + side + pad + bar_w + 6 + tick_w + pad
+    height = y0 + side + pad
+
+    canvas = np.full((height, width, 3), 255, dtype=np.uint8)
+    rgb = (colormap((m - lo) / (1.0 - lo), cmap) * 255 + 0.5).astype(np.uint8)
+    canvas[y0:y0 + side, x0:x0 + side] = np.repeat(np.repeat(rgb, cell, axis=0), cell, axis=1)
+    rows = np.arange(side)
+    ramp = (colormap(1.0 - rows / max(side - 1, 1), cmap) * 255 + 0.5).astype(np.uint8)
+    bx = x0 + side + pad
+    canvas[y0:y0 + side, bx:bx + bar_w] = ramp[:, None]
+
+    pil = Image.fromarray(canvas)
+    draw = ImageDraw.Draw(pil)
+    if title:
+        draw.text((x0 + side // 2, 8), title, font=big, fill=_INK, anchor="mt")
+    for i, text in enumerate(labels):
+        draw.text((x0 - 6, y0 + i * cell + cell // 2), text, font=font, fill=_INK, anchor="rm")
+        rot = _rotated_text(text, font, _INK)
+        pil.paste(rot, (x0 + i * cell + (cell - rot.width) // 2, y0 - 4 - rot.height), rot)
+    draw = ImageDraw.Draw(pil)
+    draw.rectangle([x0 - 1, y0 - 1, x0 + side, y0 + side], outline=_INK)
+    draw.rectangle([bx - 1, y0 - 1, bx + bar_w, y0 + side], outline=_INK)
+    for v in (1.0, 0.5 * (lo + 1.0), lo):
+        y = round(y0 + (1.0 - v) / (1.0 - lo) * (side - 1))
+        draw.line([(bx + bar_w, y), (bx + bar_w + 4, y)], fill=_INK)
+        draw.text((bx + bar_w + 6, y), f"{v:.2g}", font=tick_font, fill=_INK, anchor="lm")
+    if annotate:
+        for i in range(k):
+            for j in range(k):
+                t = (m[i, j] - lo) / (1.0 - lo)
+                luminance = float(np.dot(colormap(t, cmap), [0.299, 0.587, 0.114]))
+                draw.text((x0 + j * cell + cell // 2, y0 + i * cell + cell // 2), f"{m[i, j]:.2f}", font=font,
+                          fill=(20, 20, 20) if luminance > 0.5 else (240, 240, 240), anchor="mm")
+    image = np.asarray(pil)
+    save_png(image, path)
+    return image
+
+
+__all__ = ["VIEWS", "GREY", "blend", "render_component", "components_figure", "component_set_figure",
+           "similarity_figure"]

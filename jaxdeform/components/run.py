@@ -1,0 +1,321 @@
+"""Runs of the seed-000 methods: train on a split of a mesh folder, evaluate on the unseen shapes, reload.
+
+A run folder holds everything needed to evaluate, show or edit it later:
+
+    run.json     method, model and training configuration, data folder, split (train / test indices),
+                 timing (compile and run seconds), final loss terms
+    mesh.npz     reference shape (shape 0 of the data: the ACAP rest shape), faces, feature Scaler
+    params/      orbax checkpoints of the autoencoder methods (multiscale, tan); the newest is the result
+    history.npy  loss per epoch (autoencoder methods)
+    model.npz    the LinearModel of the linear baselines (pca, pca-xyz, splocs)
+
+Methods: ``multiscale`` (seed 000), ``tan`` (Tan et al. 2018: one level, 50 components, clipped-linear
+sparsity mask 0.2-0.4, 2000 full-batch epochs), ``pca`` (50 components on ACAP features), ``pca-xyz`` (50 on
+coordinates), ``splocs`` (Neumann et al. 2013 on coordinates). The split follows Sec. 5.1: every 10th shape
+trains for sequences (``split="every10"``, shapes 0, 10, 20, ...), a fixed random half for pose sets
+(``split="half"``, seeded).
+
+The generalization protocol (:func:`evaluate`): autoencoders encode the ACAP features of a shape, decode
+them and reconstruct positions by the ACAP least squares; linear baselines project and decode. Reported per
+set: Erms (unit-ball normalization, :func:`jaxdeform.metrics.erms`), STED (spatial part, the shapes of a
+set are not one continuous sequence; :func:`jaxdeform.metrics.sted`) and the largest relative squared
+error of the features (eq. 8; ACAP-feature methods only).
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import time
+from pathlib import Path
+from typing import Callable
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+
+from jaxdeform import acap, metrics
+from jaxdeform.components import baselines, model, train
+from jaxdeform.errors import ConnectivityError, JaxDeformError
+from jaxdeform.mesh import geodesic
+from jaxdeform.mesh.io import atomic_path, check_same_connectivity, load_sequence, read_npz_arrays
+from jaxdeform.mesh.topology import build_topology
+from jaxdeform.nn.graph_conv import rings_from_topology
+
+METHODS = ("multiscale", "tan", "pca", "pca-xyz", "splocs")
+AUTOENCODERS = ("multiscale", "tan")
+SPLITS = ("every10", "half")
+
+
+class RunError(JaxDeformError):
+    """A run folder is missing, incomplete or does not match the data it is used with."""
+
+
+# ------------------------------------------------------------------------------------- named configs
+
+
+def _multiscale(**kw) -> model.Config:
+    return model.Config(**kw)
+
+
+#: Named configurations per method: (model config, training config). "test" configs run in seconds.
+CONFIGS: dict[str, dict[str, tuple[model.Config | None, train.TrainConfig]]] = {
+    "multiscale": {
+        "default": (_multiscale(), train.TrainConfig()),
+        "no-attention": (_multiscale(attention=False), train.TrainConfig()),
+        "separate": (_multiscale(), train.TrainConfig(joint=False)),
+        "no-attention-separate": (_multiscale(attention=False), train.TrainConfig(joint=False)),
+        "levels1": (_multiscale(kz=(10,), d=(0.4,)), train.TrainConfig()),
+        "levels3": (_multiscale(kz=(10, 5, 2), d=(0.4, 0.2, 0.1)), train.TrainConfig()),
+        "test": (_multiscale(kz=(3, 2)), train.TrainConfig(epochs=30)),
+    },
+    "tan": {
+        "default": (model.Config(kz=(50,), d=(0.4,), mask="linear"), train.TrainConfig(epochs=2000)),
+        "test": (model.Config(kz=(4,), d=(0.4,), mask="linear"), train.TrainConfig(epochs=30)),
+    },
+    "pca": {"default": (None, train.TrainConfig()), "test": (None, train.TrainConfig())},
+    "pca-xyz": {"default": (None, train.TrainConfig()), "test": (None, train.TrainConfig())},
+    "splocs": {"default": (None, train.TrainConfig()), "test": (None, train.TrainConfig())},
+}
+
+N_LINEAR = {"default": 50, "test": 8}
+
+
+def resolve_config(method: str, name: str, epochs: int | None = None, seed: int | None = None):
+    if method not in METHODS:
+        raise ValueError(f"unknown method {method!r}; expected one of {', '.join(METHODS)}.")
+    if name not in CONFIGS[method]:
+        raise ValueError(f"method {method} has no config {name!r}; expected one of {', '.join(CONFIGS[method])}.")
+    cfg, tc = CONFIGS[method][name]
+    if epochs is not None:
+        if epochs < 1:
+            raise ValueError(f"--epochs must be at least 1, got {epochs}.")
+        tc = dataclasses.replace(tc, epochs=epochs)
+    if seed is not None:
+        tc = dataclasses.replace(tc, seed=seed)
+    return cfg, tc
+
+
+# ------------------------------------------------------------------------------------------- data
+
+
+def split_indices(n: int, mode: str = "every10", seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """(train, test) shape indices: every 10th shape (0, 10, ...) or a seeded random half."""
+    if n < 2:
+        raise ValueError(f"a components run needs at least 2 shapes, got {n}.")
+    if mode == "every10":
+        train_idx = np.arange(0, n, 10)
+    elif mode == "half":
+        perm = np.random.default_rng(seed).permutation(n)
+        train_idx = np.sort(perm[: (n + 1) // 2])
+    else:
+        raise ValueError(f"unknown split {mode!r}; expected one of {', '.join(SPLITS)}.")
+    test_idx = np.setdiff1d(np.arange(n), train_idx)
+    if test_idx.size == 0:  # 2..?? shapes with every10: keep one unseen shape
+        train_idx, test_idx = train_idx[:-1] if train_idx.size > 1 else train_idx, test_idx
+    return train_idx.astype(np.int64), test_idx.astype(np.int64)
+
+
+def load_data(data) -> tuple[np.ndarray, np.ndarray]:
+    """Shapes (N, V, 3) and faces of a folder or file list; at least 2 shapes of one connectivity."""
+    vertices, faces = load_sequence(data)
+    if vertices.shape[0] < 2:
+        raise ValueError(f"a components run needs at least 2 shapes; {data} holds {vertices.shape[0]}.")
+    return vertices, faces
+
+
+def normalized_geodesics(rest: np.ndarray, faces: np.ndarray, dtype=np.float32) -> np.ndarray:
+    """Normalized geodesic distances (V, V) on the reference shape (exact up to 5000 vertices, heat above)."""
+    return geodesic.geodesic_distances(rest, faces, np.arange(rest.shape[0])).astype(dtype)
+
+
+# ------------------------------------------------------------------------------------------- train
+
+
+def _json_config(cfg) -> dict | None:
+    return None if cfg is None else {k: (list(v) if isinstance(v, tuple) else v)
+                                     for k, v in dataclasses.asdict(cfg).items()}
+
+
+def _model_config(d: dict) -> model.Config:
+    return model.Config(**{k: (tuple(v) if isinstance(v, list) else v) for k, v in d.items()})
+
+
+def fit(out: Path, data, method: str = "multiscale", config: str = "default", *, epochs: int | None = None,
+        seed: int | None = None, split: str = "every10", split_seed: int = 0, progress: bool = True,
+        dtype=np.float32, log: Callable[[str], None] = print) -> dict:
+    """Train ``method`` on the training split of ``data`` and write the run into ``out`` (an empty folder).
+
+    Returns the run record (also written as run.json).
+    """
+    out = Path(out)
+    cfg, tc = resolve_config(method, config, epochs, seed)
+    vertices, faces = load_data(data)
+    train_idx, test_idx = split_indices(vertices.shape[0], split, split_seed)
+    rest = vertices[0]
+    record = {"method": method, "config_name": config, "config": _json_config(cfg), "train_config": _json_config(tc),
+              "data": str(data), "split": {"mode": split, "seed": split_seed, "train": train_idx.tolist(),
+                                           "test": test_idx.tolist()},
+              "n_shapes": int(vertices.shape[0]), "n_vertices": int(vertices.shape[1]),
+              "dtype": np.dtype(dtype).name}
+    scaler = None
+    t0 = time.perf_counter()
+    if method in ("multiscale", "tan", "pca"):
+        feats = np.asarray(acap.encode(rest, faces, vertices[train_idx]), dtype)
+        scaler = acap.Scaler.fit(feats)
+        x = np.asarray(scaler.transform(feats), dtype)
+        record["timing"] = {"features_s": round(time.perf_counter() - t0, 3)}
+    else:
+        record["timing"] = {}
+    if method in AUTOENCODERS:
+        t1 = time.perf_counter()
+        dist = normalized_geodesics(rest, faces, dtype)
+        record["timing"]["geodesics_s"] = round(time.perf_counter() - t1, 3)
+        rings = rings_from_topology(build_topology(faces, rest.shape[0]))
+        timing: dict = {}
+        log(f"training {method} ({config}) on {len(train_idx)} shapes x {rest.shape[0]} vertices, "
+            f"{tc.epochs} epochs{'' if tc.joint else ' per level'}")
+        params, history = train.train(x, rings, dist, cfg, tc, checkpoint_dir=out / "params",
+                                      checkpoint_every=max(tc.epochs // 10, 1), progress=progress, timing=timing)
+        record["timing"].update(timing)
+        np.save(out / "history.npy", history)
+        terms = model.forward(params, jnp.asarray(x), rings, jnp.asarray(dist), cfg).terms
+        record["final_terms"] = jax.tree_util.tree_map(float, terms)
+        record["final_loss"] = float(history[-1])
+    else:
+        t1 = time.perf_counter()
+        k = N_LINEAR[config]
+        if method == "pca":
+            lin = baselines.fit_pca(x, k, domain="acap")
+        elif method == "pca-xyz":
+            lin = baselines.fit_pca(vertices[train_idx], k, domain="xyz")
+        else:
+            rows = lambda idx: geodesic.geodesic_distances(rest, faces, idx, normalize=False)  # noqa: E731
+            diameter = _diameter(rest, faces)
+            lin = baselines.fit_splocs(vertices[train_idx], lambda idx: rows(idx) / diameter, k)
+        baselines.save(lin, out / "model.npz")
+        record["timing"]["fit_s"] = round(time.perf_counter() - t1, 3)
+    record["timing"]["total_s"] = round(time.perf_counter() - t0, 3)
+    arrays = {"rest": rest, "faces": faces}
+    if scaler is not None:
+        arrays["scaler"] = scaler.to_array()
+    with atomic_path(out / "mesh.npz") as tmp:
+        with open(tmp, "wb") as fh:
+            np.savez(fh, **arrays)
+    with atomic_path(out / "run.json") as tmp:
+        Path(tmp).write_text(json.dumps(record, indent=2))
+    return record
+
+
+def _diameter(rest: np.ndarray, faces: np.ndarray) -> float:
+    """Largest geodesic distance, estimated by three furthest-point passes from vertex 0."""
+    src, best = 0, 0.0
+    for _ in range(3):
+        d = geodesic.geodesic_distances(rest, faces, [src], normalize=False)[0]
+        d = np.where(np.isfinite(d), d, -1.0)
+        src, best = int(np.argmax(d)), max(best, float(d.max()))
+    return best
+
+
+# ------------------------------------------------------------------------------------------- load
+
+
+@dataclasses.dataclass
+class Run:
+    """A loaded run: its record, reference mesh, scaler and trained model (params or LinearModel)."""
+
+    path: Path
+    record: dict
+    rest: np.ndarray
+    faces: np.ndarray
+    scaler: acap.Scaler | None
+    config: model.Config | None
+    params: tuple | None
+    linear: baselines.LinearModel | None
+
+    @property
+    def method(self) -> str:
+        return self.record["method"]
+
+    @property
+    def train_idx(self) -> np.ndarray:
+        return np.asarray(self.record["split"]["train"], np.int64)
+
+    @property
+    def test_idx(self) -> np.ndarray:
+        return np.asarray(self.record["split"]["test"], np.int64)
+
+
+def load(path) -> Run:
+    path = Path(path)
+    if not (path / "run.json").is_file() or not (path / "mesh.npz").is_file():
+        raise RunError(f"{path} is not a components run (run.json and mesh.npz are missing).")
+    record = json.loads((path / "run.json").read_text())
+    arrays = read_npz_arrays(path / "mesh.npz")
+    scaler = acap.Scaler.from_array(arrays["scaler"]) if "scaler" in arrays else None
+    dtype = np.dtype(record.get("dtype", "float32"))
+    cfg = params = linear = None
+    if record["method"] in AUTOENCODERS:
+        cfg = _model_config(record["config"])
+        like = model.init(jax.random.PRNGKey(0), record["n_vertices"], cfg, dtype)
+        params = train.load_params(path / "params", like)
+    else:
+        if not (path / "model.npz").is_file():
+            raise RunError(f"{path}: model.npz is missing.")
+        linear = baselines.load(path / "model.npz")
+    return Run(path, record, np.asarray(arrays["rest"]), np.asarray(arrays["faces"]), scaler, cfg, params, linear)
+
+
+def _check_data(run: Run, vertices: np.ndarray, faces: np.ndarray, where: str) -> None:
+    if vertices.shape[0] != run.record["n_shapes"]:
+        raise RunError(f"{where} holds {vertices.shape[0]} shapes but the run was trained on a set of "
+                       f"{run.record['n_shapes']}; pass the same data folder.")
+    check_same_connectivity(run.faces, faces, run.rest.shape[0], vertices.shape[1], where)
+
+
+# ---------------------------------------------------------------------------------------- evaluate
+
+
+def reconstruct(run: Run, vertices: np.ndarray) -> dict:
+    """Positions (N, V, 3) of ``vertices`` passed through the run's model; plus features when ACAP-based."""
+    dtype = np.dtype(run.record.get("dtype", "float32"))
+    if run.method in ("multiscale", "tan", "pca"):
+        feats = np.asarray(acap.encode(run.rest, run.faces, vertices), dtype)
+        x = jnp.asarray(np.asarray(run.scaler.transform(feats), dtype))
+        if run.method == "pca":
+            xh = baselines.reconstruct(run.linear, x)
+        else:
+            rings = rings_from_topology(build_topology(run.faces, run.rest.shape[0]))
+            xh = _reconstruct_features(run.params, x, rings, run.config)
+        feats_hat = np.asarray(run.scaler.inverse(xh))
+        positions = np.asarray(acap.decode(jnp.asarray(feats_hat, jnp.float64), run.rest, run.faces))
+        return {"positions": positions, "scaled": np.asarray(x), "scaled_hat": np.asarray(xh)}
+    return {"positions": np.asarray(baselines.reconstruct(run.linear, jnp.asarray(vertices)))}
+
+
+def _reconstruct_features(params, x, rings, config, chunk: int = 16):
+    return jnp.concatenate([train.reconstruct(params, x[i:i + chunk], rings, config)
+                            for i in range(0, x.shape[0], chunk)])
+
+
+def set_metrics(ref: np.ndarray, rec: dict, faces: np.ndarray) -> dict:
+    out = {"shapes": int(ref.shape[0]), "erms": metrics.erms(ref, rec["positions"]),
+           "sted": float(metrics.sted(ref, rec["positions"], faces, temporal=False)["sted"])}
+    if "scaled" in rec:
+        rse = metrics.relative_squared_error(rec["scaled"], rec["scaled_hat"])
+        out["max_relative_squared_error"] = float(rse.max())
+        out["mean_relative_squared_error"] = float(rse.mean())
+    return out
+
+
+def evaluate(run: Run, data) -> dict:
+    """``{"train": {...}, "test": {...}}`` metrics of the run on its split of ``data``."""
+    vertices, faces = load_data(data)
+    _check_data(run, vertices, faces, str(data))
+    result = {"method": run.method, "config": run.record["config_name"]}
+    for name, idx in (("train", run.train_idx), ("test", run.test_idx)):
+        t0 = time.perf_counter()
+        rec = reconstruct(run, vertices[idx])
+        result[name] = set_metrics(vertices[idx], rec, faces)
+        result[name]["seconds"] = round(time.perf_counter() - t0, 3)
+    return result
