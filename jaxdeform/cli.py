@@ -416,6 +416,20 @@ def cmd_components_evaluate(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_components_show(args: argparse.Namespace) -> int:
+    from jaxdeform.components import run
+
+    _check_exists([args.run])
+    out = Path(args.out)
+    _check_out_folder(out, args.force)
+    loaded = run.load(args.run)
+    with _staged_folder(out) as tmp:
+        info = run.show(loaded, tmp)
+    print(f"{info['n_kept']} of {info['components']} components kept (eq. 7, eps2 = 0.01); wrote {out}/components.png, "
+          f"similarity.png, components.json")
+    return 0
+
+
 # -------------------------------------------------------------------------------------------- parser
 
 
@@ -521,6 +535,13 @@ def build_parser() -> argparse.ArgumentParser:
     ceval.add_argument("--data", nargs="+", required=True, metavar="DATA", help="the data the run was trained on")
     ceval.add_argument("--json", metavar="OUT.json", help="write the metrics here")
     ceval.set_defaults(func=cmd_components_evaluate)
+    cshow = comp_sub.add_parser("show", help="Render the kept components and their similarity matrix.",
+                                description="Write components.png (AE0 row and AEk rows), similarity.png and "
+                                            "components.json (strengths, kept and removed components).")
+    cshow.add_argument("run", metavar="RUN", help="run folder written by 'jaxdeform components train'")
+    cshow.add_argument("--out", "-o", required=True, metavar="DIR", help="folder to create")
+    cshow.add_argument("--force", action="store_true", help="replace DIR if it exists and is not empty")
+    cshow.set_defaults(func=cmd_components_show)
 
     ren = sub.add_parser("render", help="Render a mesh to PNG, optionally coloured by a per-vertex scalar.",
                          description="Ray-cast a mesh to a PNG image (CPU, Embree).")

@@ -7,6 +7,7 @@ A run folder holds everything needed to evaluate, show or edit it later:
     mesh.npz     reference shape (shape 0 of the data: the ACAP rest shape), faces, feature Scaler
     params/      orbax checkpoints of the autoencoder methods (multiscale, tan); the newest is the result
     history.npy  loss per epoch (autoencoder methods)
+    codes.npz    latent codes of the training shapes (per level; "weights" of the linear baselines)
     model.npz    the LinearModel of the linear baselines (pca, pca-xyz, splocs)
 
 Methods: ``multiscale`` (seed 000), ``tan`` (Tan et al. 2018: one level, 50 components, clipped-linear
@@ -36,7 +37,7 @@ import numpy as np
 
 from jaxdeform import acap, metrics
 from jaxdeform.components import baselines, model, train
-from jaxdeform.errors import ConnectivityError, JaxDeformError
+from jaxdeform.errors import JaxDeformError
 from jaxdeform.mesh import geodesic
 from jaxdeform.mesh.io import atomic_path, check_same_connectivity, load_sequence, read_npz_arrays
 from jaxdeform.mesh.topology import build_topology
@@ -179,8 +180,9 @@ def fit(out: Path, data, method: str = "multiscale", config: str = "default", *,
                                       checkpoint_every=max(tc.epochs // 10, 1), progress=progress, timing=timing)
         record["timing"].update(timing)
         np.save(out / "history.npy", history)
-        terms = model.forward(params, jnp.asarray(x), rings, jnp.asarray(dist), cfg).terms
-        record["final_terms"] = jax.tree_util.tree_map(float, terms)
+        final = model.forward(params, jnp.asarray(x), rings, jnp.asarray(dist), cfg)
+        record["final_terms"] = jax.tree_util.tree_map(float, final.terms)
+        codes = {f"level{i}": np.asarray(z) for i, z in enumerate(final.latents)}
         record["final_loss"] = float(history[-1])
     else:
         t1 = time.perf_counter()
@@ -194,6 +196,8 @@ def fit(out: Path, data, method: str = "multiscale", config: str = "default", *,
             diameter = _diameter(rest, faces)
             lin = baselines.fit_splocs(vertices[train_idx], lambda idx: rows(idx) / diameter, k)
         baselines.save(lin, out / "model.npz")
+        train_data = x if method == "pca" else vertices[train_idx]
+        codes = {"weights": np.asarray(baselines.project(lin, jnp.asarray(train_data)))}
         record["timing"]["fit_s"] = round(time.perf_counter() - t1, 3)
     record["timing"]["total_s"] = round(time.perf_counter() - t0, 3)
     arrays = {"rest": rest, "faces": faces}
@@ -202,6 +206,9 @@ def fit(out: Path, data, method: str = "multiscale", config: str = "default", *,
     with atomic_path(out / "mesh.npz") as tmp:
         with open(tmp, "wb") as fh:
             np.savez(fh, **arrays)
+    with atomic_path(out / "codes.npz") as tmp:  # training codes: the magnitudes components are shown at
+        with open(tmp, "wb") as fh:
+            np.savez(fh, **codes)
     with atomic_path(out / "run.json") as tmp:
         Path(tmp).write_text(json.dumps(record, indent=2))
     return record
@@ -319,3 +326,55 @@ def evaluate(run: Run, data) -> dict:
         result[name] = set_metrics(vertices[idx], rec, faces)
         result[name]["seconds"] = round(time.perf_counter() - t0, 3)
     return result
+
+
+# -------------------------------------------------------------------------------------------- show
+
+
+def components(run: Run):
+    """The run's components (:class:`~jaxdeform.components.extract.ComponentSet`) and their meshes (K, V, 3).
+
+    Autoencoders: decoder outputs of one-hot codes at the training codes' extremes (Tan et al.'s rule), as
+    ACAP feature differences applied to the reference. Linear baselines: each component at its largest
+    training weight, added to the mean (features decoded by ACAP, or coordinates).
+    """
+    from jaxdeform.components import extract
+
+    codes = read_npz_arrays(run.path / "codes.npz") if (run.path / "codes.npz").is_file() else None
+    if codes is None:
+        raise RunError(f"{run.path}: codes.npz is missing.")
+    if run.method in AUTOENCODERS:
+        rings = rings_from_topology(build_topology(run.faces, run.rest.shape[0]))
+        latents = tuple(codes[f"level{i}"] for i in range(len(run.params)))
+        cs = extract.all_components(run.params, rings, run.config, latents=latents, scaler=run.scaler)
+        return cs, extract.component_meshes(cs, run.rest, run.faces)
+    lin = run.linear
+    w = np.asarray(codes["weights"])
+    peak = w[np.argmax(np.abs(w), axis=0), np.arange(w.shape[1])]  # signed largest training weight
+    weight = float(lin.scale) * peak
+    if lin.domain == "acap":
+        cs = extract.from_arrays(np.asarray(lin.components), "acap", scaler=run.scaler, weight=weight,
+                                 method=run.method)
+        base = np.asarray(run.scaler.inverse(jnp.asarray(lin.mean)))
+    else:
+        cs = extract.from_arrays(np.asarray(lin.components), "xyz", weight=weight, method=run.method)
+        base = np.asarray(lin.mean)
+    return cs, extract.component_meshes(cs, run.rest, run.faces, base=base)
+
+
+def show(run: Run, out: Path) -> dict:
+    """Write components.png (kept components, one row per block), similarity.png and components.json."""
+    from jaxdeform.components import extract, figures
+
+    out = Path(out)
+    cs, meshes = components(run)
+    removal = extract.remove_redundant(cs)
+    keep = np.asarray(removal.keep)
+    figures.component_set_figure(cs, meshes, run.faces, out / "components.png", removal=removal)
+    names = [n for n, k in zip(cs.names(), keep) if k]
+    sim = np.asarray(extract.similarity_matrix(cs.values[keep]))
+    figures.similarity_figure(sim, out / "similarity.png", labels=names)
+    info = {"method": run.method, "components": len(cs), "n_kept": int(keep.sum()), **removal.as_dict()}
+    with atomic_path(out / "components.json") as tmp:
+        Path(tmp).write_text(json.dumps(info, indent=2))
+    return info
