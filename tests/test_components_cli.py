@@ -1,0 +1,98 @@
+"""`jaxdeform components train|evaluate|show`: a whole run on a small synthetic sequence, and bad input."""
+
+import json
+
+import numpy as np
+import pytest
+from PIL import Image
+
+from jaxdeform.cli import main
+from jaxdeform.components import run
+from jaxdeform.data.synthetic import bending_tube_sequence
+from jaxdeform.mesh.io import save_mesh
+
+N_FRAMES = 12
+
+
+@pytest.fixture(scope="module")
+def seq_dir(tmp_path_factory):
+    vertices, faces = bending_tube_sequence(n_frames=N_FRAMES, n_around=8, n_along=16)
+    d = tmp_path_factory.mktemp("tube")
+    for k in range(N_FRAMES):
+        save_mesh(d / f"f{k}.obj", vertices[k], faces)
+    return d
+
+
+def _one_line_error(capsys, rc):
+    err = capsys.readouterr().err
+    assert rc == 2, err
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("jaxdeform: error: "), err
+    return lines[0]
+
+
+@pytest.mark.parametrize("method", ["multiscale", "pca", "splocs"])
+def test_train_evaluate_show(seq_dir, tmp_path, capsys, method):
+    out = tmp_path / "run"
+    assert main(["components", "train", str(seq_dir), "--out", str(out), "--method", method, "--config", "test",
+                 "--epochs", "20", "--quiet"]) == 0
+    rec = json.loads((out / "run.json").read_text())
+    assert rec["split"]["train"] == [0, 10] and len(rec["split"]["test"]) == N_FRAMES - 2
+    assert main(["components", "evaluate", str(out), "--data", str(seq_dir), "--json", str(tmp_path / "m.json")]) == 0
+    m = json.loads((tmp_path / "m.json").read_text())
+    for part in ("train", "test"):
+        assert np.isfinite(m[part]["erms"]) and np.isfinite(m[part]["sted"]) and m[part]["erms"] >= 0
+    if method != "splocs":
+        assert 0 <= m["test"]["max_relative_squared_error"] < 10
+    if method == "pca":  # PCA spans its training features exactly; positions then differ only by the ACAP solve
+        assert m["train"]["max_relative_squared_error"] < 1e-8
+        assert m["train"]["erms"] < 0.05 * m["test"]["erms"]
+    assert main(["components", "show", str(out), "--out", str(tmp_path / "fig")]) == 0
+    for name in ("components.png", "similarity.png"):
+        with Image.open(tmp_path / "fig" / name) as im:
+            assert im.size[0] > 50 and im.size[1] > 50
+    info = json.loads((tmp_path / "fig" / "components.json").read_text())
+    assert info["components"] >= info["n_kept"] >= 1
+    loaded = run.load(out)
+    assert loaded.method == method and loaded.rest.shape == (8 * 16, 3)
+
+
+def test_train_needs_two_shapes(seq_dir, tmp_path, capsys):
+    out = tmp_path / "run"
+    line = _one_line_error(capsys, main(["components", "train", str(seq_dir / "f0.obj"), "--out", str(out)]))
+    assert "at least 2 shapes" in line
+    assert not out.exists()
+
+
+def test_train_refuses_mixed_connectivity(seq_dir, tmp_path, capsys):
+    vertices, faces = bending_tube_sequence(n_frames=2, n_around=8, n_along=16)
+    d = tmp_path / "mixed"
+    d.mkdir()
+    save_mesh(d / "a.obj", vertices[0], faces)
+    save_mesh(d / "b.obj", vertices[1], faces[:, [0, 2, 1]])
+    out = tmp_path / "run"
+    _one_line_error(capsys, main(["components", "train", str(d), "--out", str(out), "--config", "test"]))
+    assert not out.exists()
+
+
+def test_bad_names_and_mismatched_data(seq_dir, tmp_path, capsys):
+    out = tmp_path / "run"
+    line = _one_line_error(capsys, main(["components", "train", str(seq_dir), "--out", str(out), "--config", "huge"]))
+    assert "no config 'huge'" in line and not out.exists()
+    _one_line_error(capsys, main(["components", "evaluate", str(tmp_path), "--data", str(seq_dir)]))
+    assert main(["components", "train", str(seq_dir), "--out", str(out), "--method", "pca", "--config", "test",
+                 "--quiet"]) == 0
+    capsys.readouterr()
+    line = _one_line_error(capsys, main(["components", "evaluate", str(out), "--data", str(seq_dir / "f0.obj"),
+                                         str(seq_dir / "f1.obj")]))
+    assert "same data" in line
+
+
+def test_split_indices():
+    tr, te = run.split_indices(48)
+    assert tr.tolist() == [0, 10, 20, 30, 40] and len(te) == 43 and not set(tr) & set(te)
+    tr2, te2 = run.split_indices(19, "half", seed=3)
+    assert len(tr2) == 10 and len(te2) == 9 and sorted(tr2.tolist() + te2.tolist()) == list(range(19))
+    assert run.split_indices(19, "half", seed=3)[0].tolist() == tr2.tolist()
+    with pytest.raises(ValueError, match="at least 2"):
+        run.split_indices(1)
