@@ -69,6 +69,11 @@ CONFIGS: dict[str, dict[str, tuple[model.Config | None, train.TrainConfig]]] = {
         "levels1": (_multiscale(kz=(10,), d=(0.4,)), train.TrainConfig()),
         "levels3": (_multiscale(kz=(10, 5, 2), d=(0.4, 0.2, 0.1)), train.TrainConfig()),
         "test": (_multiscale(kz=(3, 2)), train.TrainConfig(epochs=30)),
+        "test-no-attention": (_multiscale(kz=(3, 2), attention=False), train.TrainConfig(epochs=30)),
+        "test-separate": (_multiscale(kz=(3, 2)), train.TrainConfig(epochs=30, joint=False)),
+        "test-no-attention-separate": (_multiscale(kz=(3, 2), attention=False), train.TrainConfig(epochs=30, joint=False)),
+        "test-levels1": (_multiscale(kz=(3,), d=(0.4,)), train.TrainConfig(epochs=30)),
+        "test-levels3": (_multiscale(kz=(3, 2, 2), d=(0.4, 0.2, 0.1)), train.TrainConfig(epochs=30)),
     },
     "tan": {
         "default": (model.Config(kz=(50,), d=(0.4,), mask="linear"), train.TrainConfig(epochs=2000)),
@@ -80,6 +85,7 @@ CONFIGS: dict[str, dict[str, tuple[model.Config | None, train.TrainConfig]]] = {
 }
 
 N_LINEAR = {"default": 50, "test": 8}
+
 
 
 def resolve_config(method: str, name: str, epochs: int | None = None, seed: int | None = None):

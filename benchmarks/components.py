@@ -1,0 +1,98 @@
+"""Benchmark of the seed-000 training step (jaxdeform.components.train) on a mesh sequence.
+
+    python -m benchmarks.components --data ../shared/data/horse-gallop --json out/bench/components.json
+
+For each configuration (multiscale default Kz = [10, 5]; multiscale one level; Tan et al. 50 components) on
+the training split of ``--data`` (every 10th shape): the first call of the jitted step (``compile_s``:
+compilation plus one step) and ``--repeats`` further steps, each blocked; ms per step (= per epoch: the horse
+split of 5 shapes fits one batch) as median and min, and the projected time of the configuration's full
+training (``epochs`` x median). The JSON is written atomically. Not a test: tests/test_benchmarks_smoke.py
+only runs it once on a tiny sequence so it cannot rot.
+"""
+
+from __future__ import annotations
+
+import argparse
+import datetime as _dt
+import json
+import shlex
+import statistics
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+import jaxdeform  # noqa: F401  (x64)
+import jax
+import jax.numpy as jnp
+from jaxdeform import acap
+from jaxdeform.components import run as crun
+from jaxdeform.components import train
+from jaxdeform.mesh import load_sequence
+from jaxdeform.mesh.io import atomic_path
+from jaxdeform.mesh.topology import build_topology
+from jaxdeform.nn.graph_conv import rings_from_topology
+from jaxdeform.components import model
+from benchmarks.acap import cpu_info
+
+CASES = (("multiscale", "default"), ("multiscale", "levels1"), ("tan", "default"))
+
+
+def time_step(x, rings, dist, cfg: model.Config, tc: train.TrainConfig, repeats: int) -> dict:
+    params = model.init(jax.random.PRNGKey(0), x.shape[1], cfg, x.dtype)
+    opt_state = train.optimizer(tc).init(params)
+    step = train.make_step(cfg, tc, rings, dist)
+    key = jax.random.PRNGKey(1)
+    t0 = time.perf_counter()
+    params, opt_state, key, loss, _ = jax.block_until_ready(step(params, opt_state, key, x))
+    compile_s = time.perf_counter() - t0
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        params, opt_state, key, loss, _ = jax.block_until_ready(step(params, opt_state, key, x))
+        times.append(1e3 * (time.perf_counter() - t0))
+    med = statistics.median(times)
+    return {"compile_s": round(compile_s, 3), "step_ms_median": round(med, 2), "step_ms_min": round(min(times), 2),
+            "epochs": tc.epochs, "projected_training_min": round(tc.epochs * med / 6e4, 2),
+            "loss_finite": bool(np.isfinite(float(loss)))}
+
+
+def main(argv=None) -> dict:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    parser.add_argument("--data", required=True)
+    parser.add_argument("--json", required=True)
+    parser.add_argument("--repeats", type=int, default=10)
+    parser.add_argument("--cases", nargs="+", default=[f"{m}:{c}" for m, c in CASES], metavar="METHOD:CONFIG")
+    args = parser.parse_args(argv)
+    vertices, faces = load_sequence(args.data)
+    train_idx, _ = crun.split_indices(vertices.shape[0])
+    rest = vertices[0]
+    feats = np.asarray(acap.encode(rest, faces, vertices[train_idx]), np.float32)
+    x = jnp.asarray(np.asarray(acap.Scaler.fit(feats).transform(feats), np.float32))
+    t0 = time.perf_counter()
+    dist = jnp.asarray(crun.normalized_geodesics(rest, faces))
+    geodesics_s = time.perf_counter() - t0
+    rings = rings_from_topology(build_topology(faces, rest.shape[0]))
+    records = []
+    for case in args.cases:
+        method, name = case.split(":")
+        cfg, tc = crun.resolve_config(method, name)
+        rec = {"method": method, "config": name, "vertices": int(rest.shape[0]), "shapes": int(x.shape[0]),
+               "blocks": [cfg.blocks(level) for level in range(cfg.levels)], "dtype": "float32",
+               "device": jax.devices()[0].platform, "cpu": cpu_info()}
+        rec.update(time_step(x, rings, dist, cfg, tc, args.repeats))
+        print(json.dumps(rec), flush=True)
+        records.append(rec)
+    payload = {"date": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+               "command": " ".join(shlex.quote(a) for a in [sys.executable, "-m", "benchmarks.components"] + list(argv or sys.argv[1:])),
+               "geodesics_s": round(geodesics_s, 2), "records": records}
+    out = Path(args.json)
+    out.parent.mkdir(parents=True, exist_ok=True)
+    with atomic_path(out) as tmp:
+        Path(tmp).write_text(json.dumps(payload, indent=2))
+    return payload
+
+
+if __name__ == "__main__":
+    main()
