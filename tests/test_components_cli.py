@@ -55,6 +55,16 @@ def test_train_evaluate_show(seq_dir, tmp_path, capsys, method):
     assert info["components"] >= info["n_kept"] >= 1
     loaded = run.load(out)
     assert loaded.method == method and loaded.rest.shape == (8 * 16, 3)
+    # edit: pull three vertices to a test shape's positions; the control residual falls below the start's
+    from jaxdeform.mesh.io import load_mesh
+
+    target, _ = load_mesh(seq_dir / "f5.obj")
+    idx = [0, 60, 127]
+    (tmp_path / "c.json").write_text(json.dumps({"indices": idx, "targets": target[idx].tolist()}))
+    assert main(["components", "edit", str(out), "--controls", str(tmp_path / "c.json"),
+                 "--out", str(tmp_path / "e.obj")]) == 0
+    edited, _ = load_mesh(tmp_path / "e.obj")
+    assert edited.shape == loaded.rest.shape and np.all(np.isfinite(edited))
 
 
 def test_train_needs_two_shapes(seq_dir, tmp_path, capsys):
@@ -86,6 +96,20 @@ def test_bad_names_and_mismatched_data(seq_dir, tmp_path, capsys):
     line = _one_line_error(capsys, main(["components", "evaluate", str(out), "--data", str(seq_dir / "f0.obj"),
                                          str(seq_dir / "f1.obj")]))
     assert "same data" in line
+
+
+def test_edit_bad_controls(seq_dir, tmp_path, capsys):
+    out = tmp_path / "run"
+    assert main(["components", "train", str(seq_dir), "--out", str(out), "--method", "pca-xyz", "--config", "test",
+                 "--quiet"]) == 0
+    capsys.readouterr()
+    (tmp_path / "bad.json").write_text(json.dumps({"indices": [0, 9999], "targets": [[0, 0, 0], [1, 1, 1]]}))
+    _one_line_error(capsys, main(["components", "edit", str(out), "--controls", str(tmp_path / "bad.json"),
+                                  "--out", str(tmp_path / "e.obj")]))
+    (tmp_path / "bad.txt").write_text("0 1 2\n")
+    _one_line_error(capsys, main(["components", "edit", str(out), "--controls", str(tmp_path / "bad.txt"),
+                                  "--out", str(tmp_path / "e.obj")]))
+    assert not (tmp_path / "e.obj").exists()
 
 
 def test_split_indices():

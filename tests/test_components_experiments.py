@@ -22,6 +22,18 @@ def test_experiment_test_config(tmp_path, experiment, rows):
         assert all("max_relative_squared_error" in r["test"] for r in result["rows"].values())
 
 
+def test_fig6_test_config(tmp_path):
+    result = exp.main(["fig6", "--config", "test", "--out", str(tmp_path), "--epochs", "3", "--methods", "multiscale",
+                       "pca-xyz"])
+    rows = result["rows"]
+    assert set(rows) == {"tube/multiscale", "tube/pca-xyz"}
+    for per_n in rows.values():
+        assert set(per_n) == {"3", "6"}
+        for v in per_n.values():
+            assert 0 <= v["mean_error"] < 1 and 0 <= v["control_error"] < 1
+    assert (tmp_path / "fig6" / "fig6.png").is_file() and (tmp_path / "fig6" / "results.md").is_file()
+
+
 def test_training_benchmark_smoke(tmp_path):
     from benchmarks import components as bench
     from jaxdeform.data.synthetic import bending_tube_sequence

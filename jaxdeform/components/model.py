@@ -105,6 +105,11 @@ def _levels(params: tuple[dict, ...], x: Float[Array, "b v 9"], rings: Rings, co
     return levels
 
 
+def encode(params: tuple[dict, ...], x: Float[Array, "b v 9"], rings: Rings, config: Config) -> tuple:
+    """Latent codes of a batch of scaled features: per level (n_l, B, Kz_l), as in :attr:`Output.latents`."""
+    return tuple(z for _, z, _ in _levels(params, x, rings, config))
+
+
 def reconstruction(params: tuple[dict, ...], x: Float[Array, "b v 9"], rings: Rings, config: Config) -> Float[Array, "b v 9"]:
     """The model's reconstruction of a batch of scaled features (the sum of every block's output)."""
     return sum(jnp.sum(x_hat, axis=0) for _, _, x_hat in _levels(params, x, rings, config))

@@ -384,3 +384,94 @@ def show(run: Run, out: Path) -> dict:
     with atomic_path(out / "components.json") as tmp:
         Path(tmp).write_text(json.dumps(info, indent=2))
     return info
+
+
+# -------------------------------------------------------------------------------------------- edit
+
+
+@dataclasses.dataclass
+class Editor:
+    """A run as a function of one latent vector, for :mod:`jaxdeform.components.edit`.
+
+    ``decode(w)`` gives scaled ACAP features (``space="features"``: multiscale, tan, pca) or positions
+    (``"positions"``: pca-xyz, splocs); ``latent0`` is the code of the reference shape (the edit's start).
+    Build it once per run and reuse it: the compiled editor is cached on the identity of ``decode``.
+    """
+
+    decode: Callable
+    latent0: np.ndarray
+    space: str
+    run: Run
+
+    def _acap(self):
+        a = acap.cached(self.run.rest, self.run.faces)
+        a.reconstructor(None)  # built on the host now, not inside the editor's trace
+        return a
+
+    def edit(self, controls, targets, **kw):
+        from jaxdeform.components import edit as ed
+
+        if self.space == "features":
+            return ed.edit(self.decode, self.latent0, self._acap(), self.run.scaler, controls, targets, **kw)
+        return ed.edit_positions(self.decode, self.latent0, controls, targets, **kw)
+
+    def edit_error(self, ground_truth, n_controls: int, **kw):
+        from jaxdeform.components import edit as ed
+
+        rest_arg = self._acap() if self.space == "features" else self.run.rest
+        return ed.edit_error(self.decode, self.latent0, rest_arg, self.run.scaler, ground_truth, n_controls,
+                             space=self.space, **kw)
+
+
+def editor(run: Run) -> Editor:
+    """The run's :class:`Editor`; it computes in float64 (the ACAP reconstruction's dtype), whatever the run's."""
+    dtype = np.float64
+    to64 = lambda a: jnp.asarray(a, dtype)  # noqa: E731
+    rest_feats = np.asarray(acap.encode(run.rest, run.faces, run.rest[None]), dtype)
+    if run.method in AUTOENCODERS:
+        rings = rings_from_topology(build_topology(run.faces, run.rest.shape[0]))
+        params, config = jax.tree_util.tree_map(to64, run.params), run.config
+        x0 = jnp.asarray(np.asarray(run.scaler.transform(rest_feats), dtype))
+        codes = model.encode(params, x0, rings, config)  # per level (n_l, 1, Kz_l)
+        shapes = [z.shape for z in codes]
+        sizes = [int(np.prod(s)) for s in shapes]
+
+        def decode(w):
+            parts, start = [], 0
+            for s, n in zip(shapes, sizes):
+                parts.append(w[start:start + n].reshape(s))
+                start += n
+            return model.decode_latents(params, tuple(parts), rings)[0]
+
+        latent0 = np.concatenate([np.asarray(z).ravel() for z in codes])
+        return Editor(decode, latent0, "features", run)
+    lin = dataclasses.replace(run.linear, mean=to64(run.linear.mean), components=to64(run.linear.components))
+
+    def decode_linear(w):
+        return baselines.decode(lin, w[None])[0]
+
+    if run.method == "pca":
+        x0 = jnp.asarray(np.asarray(run.scaler.transform(rest_feats), dtype))
+        return Editor(decode_linear, np.asarray(baselines.project(lin, x0))[0], "features", run)
+    return Editor(decode_linear, np.asarray(baselines.project(lin, jnp.asarray(run.rest[None])))[0], "positions", run)
+
+
+def read_controls(path) -> tuple[np.ndarray, np.ndarray]:
+    """Control vertices and targets from a .json ``{"indices": [...], "targets": [[x, y, z], ...]}`` or a text
+    file of lines ``index x y z``."""
+    path = Path(path)
+    try:
+        if path.suffix.lower() == ".json":
+            d = json.loads(path.read_text())
+            idx, tgt = np.asarray(d["indices"]), np.asarray(d["targets"], np.float64)
+        else:
+            rows = np.loadtxt(path, ndmin=2)
+            idx, tgt = rows[:, 0], rows[:, 1:]
+    except (ValueError, KeyError, TypeError, json.JSONDecodeError) as exc:
+        raise RunError(f"{path}: cannot read control points ({exc}); expected JSON with 'indices' and "
+                       f"'targets' or lines 'index x y z'.") from None
+    if idx.ndim != 1 or idx.size == 0 or tgt.shape != (idx.size, 3):
+        raise RunError(f"{path}: expected M >= 1 control indices and an (M, 3) array of targets.")
+    if not np.all(idx == np.round(idx)):
+        raise RunError(f"{path}: control indices must be integers.")
+    return idx.astype(np.int64), tgt

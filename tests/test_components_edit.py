@@ -1,0 +1,291 @@
+"""Tests of latent-space editing by control points (jaxdeform.components.edit; seed 000 Sec. 5.4, Fig. 6).
+
+Tiny synthetic tube (72 vertices) with the real ACAP encode/decode; linear models built from the ACAP
+features of a bend and a twist of the tube.
+"""
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import pytest
+
+from jaxdeform import acap
+from jaxdeform.acap import Scaler
+from jaxdeform.components import edit as E
+from jaxdeform.data.synthetic import tube
+from jaxdeform.errors import JaxDeformError
+
+LENGTH = 2.0
+SHIFT = np.array([0.3, -0.2, 0.1])
+
+
+def bend(v, angle):
+    """Bend along x into an arc in the x-y plane (total turning ``angle``)."""
+    radius = LENGTH / angle
+    th = v[:, 0] / radius
+    rr = radius - v[:, 1]
+    return np.stack([rr * np.sin(th), radius - rr * np.cos(th), v[:, 2]], 1)
+
+
+def twist(v, angle):
+    """Twist about the x axis, ``angle`` over the whole length."""
+    th = angle * v[:, 0] / LENGTH
+    c, s = np.cos(th), np.sin(th)
+    return np.stack([v[:, 0], c * v[:, 1] - s * v[:, 2], s * v[:, 1] + c * v[:, 2]], 1)
+
+
+def make_case(dtype):
+    v, f = tube(6, 12, 0.1, LENGTH)
+    v = v.astype(dtype)
+    ac = acap.prepare(v, f)
+    feats = np.asarray(acap.encode(v, f, np.stack([v, bend(v, 1.5), twist(v, 1.2)]).astype(dtype)))
+    ident = jnp.asarray(feats[0])
+    comps = jnp.asarray(np.stack([feats[1] - feats[0], feats[2] - feats[0]]))
+
+    def decode(w):  # features of the rest shape at w = 0: latent0 = zeros is the code of the rest shape
+        return ident + jnp.tensordot(w, comps, 1)
+
+    return v, f, ac, decode
+
+
+@pytest.fixture(scope="module")
+def case64():
+    return make_case(np.float64)
+
+
+def ground_truth(ac, decode, w, refine):
+    """A shape inside the model's span, moved by SHIFT (the edit must find the translation)."""
+    return np.asarray(ac.decode(decode(jnp.asarray(w)), refine=refine)) + SHIFT.astype(ac.rest.dtype)
+
+
+# --------------------------------------------------------------------------------------------------
+# Furthest point sampling
+# --------------------------------------------------------------------------------------------------
+
+
+def fps_brute_force(x, n, start):
+    chosen = [start]
+    for _ in range(1, n):
+        d = np.min(np.linalg.norm(x[:, None] - x[chosen][None], axis=-1), axis=1)
+        d[chosen] = -1.0
+        chosen.append(int(np.argmax(d)))
+    return np.array(chosen)
+
+
+@pytest.mark.parametrize("start", [0, 7, 49])
+def test_fps_matches_brute_force_and_is_greedy(start):
+    x = np.random.default_rng(start).normal(size=(50, 3))
+    idx = np.asarray(E.furthest_point_sampling(x, 12, start))
+    np.testing.assert_array_equal(idx, fps_brute_force(x, 12, start))
+    assert idx[0] == start and len(set(idx.tolist())) == 12
+    for k in range(1, 12):  # each next point is the furthest from those chosen before it
+        d = np.min(np.linalg.norm(x[:, None] - x[idx[:k]][None], axis=-1), axis=1)
+        assert d[idx[k]] == pytest.approx(d.max())
+
+
+def test_fps_deterministic_on_ties_and_distinct_on_duplicates():
+    grid = np.stack(np.meshgrid(np.arange(4.0), np.arange(4.0), [0.0], indexing="ij"), -1).reshape(-1, 3)
+    a = np.asarray(E.furthest_point_sampling(grid, 16))
+    np.testing.assert_array_equal(a, np.asarray(E.furthest_point_sampling(grid, 16)))
+    np.testing.assert_array_equal(a, fps_brute_force(grid, 16, 0))
+    dup = np.concatenate([grid, grid])  # unwelded mesh: every point twice
+    b = np.asarray(E.furthest_point_sampling(dup, 32, 3))
+    assert sorted(b.tolist()) == list(range(32))
+
+
+@pytest.mark.parametrize("args", [(0, 0), (51, 0), (5, -1), (5, 50), (2.5, 0)])
+def test_fps_bad_input(args):
+    x = np.random.default_rng(0).normal(size=(50, 3))
+    with pytest.raises(E.EditInputError, match="must"):
+        E.furthest_point_sampling(x, *args)
+    with pytest.raises(E.EditInputError, match="NaN"):
+        E.furthest_point_sampling(np.full((4, 3), np.nan), 2)
+
+
+# --------------------------------------------------------------------------------------------------
+# Editing through the ACAP reconstruction
+# --------------------------------------------------------------------------------------------------
+
+
+def test_edit_recovers_in_span_weights_with_scaler(case64):
+    v, f, ac, decode = case64
+    w_true = np.array([0.6, 0.4])
+    gt = ground_truth(ac, decode, w_true, refine=1)
+    scaler = Scaler.fit(np.stack([decode(jnp.asarray(w)) for w in np.eye(2)]))
+    scaled_decode = lambda w: scaler.transform(decode(w))  # noqa: E731 (the model outputs scaled features)
+    controls = np.asarray(E.furthest_point_sampling(v, 6))
+    res = E.edit(scaled_decode, jnp.zeros(2), ac, scaler, controls, gt[controls])  # (rest, faces) works too
+    diag = E.bounding_box_diagonal(v)
+    np.testing.assert_allclose(np.asarray(res.latent), w_true, atol=1e-4)
+    np.testing.assert_allclose(np.asarray(res.translation), SHIFT, atol=1e-4)
+    assert float(res.control_error) < 1e-5 * diag
+    assert np.linalg.norm(np.asarray(res.positions) - gt, axis=1).mean() < 1e-5 * diag
+    assert 0 < int(res.steps) <= E.DEFAULT_STEPS
+
+
+def test_more_controls_do_not_increase_error(case64):
+    v, f, ac, decode = case64
+    gt = ground_truth(ac, decode, [1.3, -0.7], refine=0)
+    errors = [E.edit_error(decode, jnp.zeros(2), ac, None, gt, n, refine=0, method="lm").mean_error
+              for n in (1, 3, 9)]
+    # one control fixes only the translation: the edit stays at the rest shape
+    assert errors[0] > 0.1
+    assert max(errors[1:]) < 1e-5
+    assert all(b <= a + 1e-7 for a, b in zip(errors, errors[1:]))
+
+
+def test_second_call_does_not_retrace(case64):
+    v, f, ac, decode = case64
+    controls = np.asarray(E.furthest_point_sampling(v, 3))  # the compiled editor of the previous test
+    gt_a = ground_truth(ac, decode, [0.2, 0.1], refine=0)
+    gt_b = ground_truth(ac, decode, [0.9, -0.3], refine=0)
+    E.edit(decode, jnp.zeros(2), ac, None, controls, gt_a[controls], refine=0, method="lm")
+    size = E._edit_jit._cache_size()
+    res = E.edit(decode, jnp.asarray([0.1, 0.1]), ac, None, controls[::-1].copy(), gt_b[controls[::-1]], refine=0,
+                 method="lm")
+    assert E._edit_jit._cache_size() == size
+    np.testing.assert_allclose(np.asarray(res.latent), [0.9, -0.3], atol=1e-4)
+
+
+def test_gradient_through_acap_decode_is_finite_and_correct(case64):
+    v, f, ac, decode = case64
+    controls = jnp.asarray([0, 30, 71])
+
+    def loss(w):
+        return jnp.sum(ac.decode(decode(w))[controls] ** 2)
+
+    w = jnp.zeros(2)  # identity features: the delicate case for rotation logs and polar decompositions
+    g = np.asarray(jax.jit(jax.grad(loss))(w))
+    assert np.all(np.isfinite(g)) and np.abs(g).max() > 0
+    h = 1e-6
+    fd = [(loss(w + h * e) - loss(w - h * e)) / (2 * h) for e in jnp.eye(2)]
+    np.testing.assert_allclose(g, np.asarray(fd), rtol=1e-5, atol=1e-8)
+
+
+def test_edit_multiscale_model_latents(case64):
+    """The multiscale model's decoder (flattened latent tuple; its mesh convolution has a custom VJP and no
+    forward mode, so the editor falls back to the reverse-mode Jacobian)."""
+    from jaxdeform.components import model
+    from jaxdeform.nn.graph_conv import rings_from_topology
+
+    v, f, ac, _ = case64
+    cfg = model.Config(kz=(3, 2), d=(0.4, 0.2))
+    params = model.init(jax.random.PRNGKey(0), v.shape[0], cfg, jnp.float64)
+    rings = rings_from_topology(ac.topo)
+    sizes = [cfg.blocks(level) * kz for level, kz in enumerate(cfg.kz)]
+
+    def decode(w):
+        parts = jnp.split(w, np.cumsum(sizes)[:-1])
+        latents = tuple(p.reshape(cfg.blocks(level), 1, cfg.kz[level]) for level, p in enumerate(parts))
+        return model.decode_latents(params, latents, rings)[0]
+
+    scaler = Scaler(-1.0, 1.0, 0.0, 2.0)
+    w_true = 0.3 * jax.random.normal(jax.random.PRNGKey(1), (sum(sizes),))
+    gt = np.asarray(ac.decode(scaler.inverse(decode(w_true)), refine=0))
+    controls = np.asarray(E.furthest_point_sampling(v, 8))
+    res = E.edit(decode, jnp.zeros(sum(sizes)), ac, scaler, controls, gt[controls], refine=0, method="lm")
+    assert float(res.control_error) < 1e-4 * E.bounding_box_diagonal(v)
+
+
+# --------------------------------------------------------------------------------------------------
+# Coordinate-space models and the Fig. 6 protocol
+# --------------------------------------------------------------------------------------------------
+
+
+def test_edit_positions_linear_model_and_protocol(case64):
+    v, f, ac, _ = case64
+    comps = jnp.asarray(np.stack([bend(v, 1.5) - v, twist(v, 1.2) - v]))
+    rest = jnp.asarray(v)
+
+    def decode_positions(w):
+        return rest + jnp.tensordot(w, comps, 1)
+
+    gt = np.asarray(decode_positions(jnp.asarray([0.7, -0.4]))) + SHIFT
+    rep = E.edit_error(decode_positions, jnp.zeros(2), v, None, gt, 5, space="positions", start=3,
+                       regularization=0.0)
+    np.testing.assert_array_equal(rep.controls, np.asarray(E.furthest_point_sampling(v, 5, 3)))
+    np.testing.assert_allclose(np.asarray(rep.result.latent), [0.7, -0.4], atol=1e-5)
+    assert rep.diagonal == pytest.approx(np.linalg.norm(v.max(0) - v.min(0)))
+    dist = np.linalg.norm(np.asarray(rep.result.positions) - gt, axis=1)
+    assert rep.mean_error == pytest.approx(dist.mean() / rep.diagonal)
+    assert rep.mean_error < 1e-6 and rep.control_error < 1e-6
+
+    # without free translation the shift cannot be met, the unshifted shape still can
+    c = rep.controls
+    res = E.edit_positions(decode_positions, jnp.zeros(2), c, gt[c], free_translation=False)
+    assert float(res.control_error) > 0.1 and not np.any(np.asarray(res.translation))
+    res = E.edit_positions(decode_positions, jnp.zeros(2), c, gt[c] - SHIFT, free_translation=False,
+                           regularization=0.0)
+    assert float(res.control_error) < 1e-6
+
+
+@pytest.mark.parametrize("method, steps", [("lm", 50), ("bfgs", 50), ("adam", 400)])
+def test_edit_positions_float32_every_method(case64, method, steps):
+    v = case64[0].astype(np.float32)
+    comps = jnp.asarray(np.stack([bend(v, 1.5) - v, twist(v, 1.2) - v]))
+    decode_positions = lambda w: jnp.asarray(v) + jnp.tensordot(w, comps, 1)  # noqa: E731
+    gt = np.asarray(decode_positions(jnp.asarray([0.5, 0.3], jnp.float32))) + SHIFT.astype(np.float32)
+    controls = np.asarray(E.furthest_point_sampling(v, 6))
+    res = E.edit_positions(decode_positions, jnp.zeros(2, jnp.float32), controls, gt[controls], method=method,
+                           steps=steps, learning_rate=0.02)
+    assert res.positions.dtype == jnp.float32 and res.latent.dtype == jnp.float32
+    np.testing.assert_allclose(np.asarray(res.latent), [0.5, 0.3], atol=1e-3)
+    assert int(res.steps) <= steps and (method != "adam" or int(res.steps) == steps)
+
+
+def test_edit_positions_more_latents_than_control_rows(case64):
+    v = case64[0]
+    comps = jnp.asarray(np.random.default_rng(1).normal(size=(5, v.shape[0], 3)))
+    decode_positions = lambda w: jnp.asarray(v) + jnp.tensordot(w, comps, 1)  # noqa: E731
+    target = np.asarray(decode_positions(jnp.asarray([0.3, -0.2, 0.1, 0.0, 0.5])))[[10]]
+    for method in ("bfgs", "lm"):  # 5 latents, 3 residual rows: the reverse-mode Jacobian branch
+        res = E.edit_positions(decode_positions, jnp.zeros(5), np.array([10]), target, free_translation=False,
+                               method=method, regularization=1e-8)
+        assert float(res.control_error) < 1e-5
+
+
+# --------------------------------------------------------------------------------------------------
+# Bad input
+# --------------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize(
+    "change, match",
+    [
+        ({"controls": np.array([0, 72])}, "control indices must lie"),
+        ({"controls": np.array([-1, 3])}, "control indices must lie"),
+        ({"controls": np.array([0.0, 1.0])}, "integer"),
+        ({"targets": np.array([[0, 0, 0], [np.nan, 0, 0]])}, "NaN"),
+        ({"targets": np.zeros((3, 3))}, "2 control indices but 3 targets"),
+        ({"targets": np.zeros((2, 2))}, r"\(M, 3\)"),
+        ({"latent0": jnp.zeros((1, 2))}, "1-D"),
+        ({"latent0": jnp.zeros(3)}, "decode_features failed"),
+        ({"decode": lambda w: jnp.zeros((72, 3)) + w[0]}, r"must return \(72, 9\)"),
+        ({"steps": 0}, "steps"),
+        ({"regularization": -1.0}, "regularization"),
+        ({"method": "sgd"}, "unknown method"),
+        ({"anchor": 100}, "anchor"),
+    ],
+)
+def test_bad_input_raises_clear_errors(case64, change, match):
+    v, f, ac, decode = case64
+    kw = {"decode": decode, "latent0": jnp.zeros(2), "controls": np.array([0, 5]), "targets": np.zeros((2, 3))}
+    opts = {k: change.pop(k) for k in ("steps", "regularization", "method", "anchor") if k in change}
+    kw.update(change)
+    with pytest.raises(E.EditInputError, match=match) as info:
+        E.edit(kw["decode"], kw["latent0"], ac, None, kw["controls"], kw["targets"], **opts)
+    assert isinstance(info.value, JaxDeformError) and isinstance(info.value, ValueError)
+
+
+def test_bad_input_protocol_and_positions(case64):
+    v, f, ac, decode = case64
+    with pytest.raises(E.EditInputError, match="ground truth"):
+        E.edit_error(decode, jnp.zeros(2), ac, None, v[:10], 4)
+    with pytest.raises(E.EditInputError, match="NaN"):
+        E.edit_error(decode, jnp.zeros(2), ac, None, np.full_like(v, np.nan), 4)
+    with pytest.raises(E.EditInputError, match="unknown space"):
+        E.edit_error(decode, jnp.zeros(2), ac, None, v, 4, space="coords")
+    with pytest.raises(E.EditInputError, match=r"\(V, 3\)"):
+        E.edit_positions(decode, jnp.zeros(2), np.array([0]), np.zeros((1, 3)))
+    with pytest.raises(E.EditInputError, match="Acap"):
+        E.edit(decode, jnp.zeros(2), v, None, np.array([0]), np.zeros((1, 3)))
