@@ -98,7 +98,11 @@ def _levels(params: tuple[dict, ...], x: Float[Array, "b v 9"], rings: Rings, co
             kz = config.kz[level]
             if config.attention:
                 am = jax.vmap(attention_masks)(p["C"])  # (n_l, Kz_l, V)
-                children = am[:, :, None, :, None] * res[:, None]
+                # over flat (V * 9) rows: XLA on CPU runs this product and its adjoint (a sum over the Kz
+                # children) along the minor axis, which is 9 long in the (..., V, 9) layout (10x slower)
+                n_l, b = res.shape[:2]
+                am_rows = jnp.broadcast_to(am[..., None], am.shape + (MU,)).reshape(n_l, kz, 1, -1)
+                children = am_rows * res.reshape(n_l, 1, b, -1)
             else:
                 children = jnp.broadcast_to(res[:, None], (res.shape[0], kz) + res.shape[1:])
             inputs = children.reshape((-1,) + res.shape[1:])  # block j of level l+1: parent j // kz, mask j % kz

@@ -28,6 +28,7 @@ import numpy as np
 import optax
 
 from jaxdeform.components import model
+from jaxdeform.nn import native
 from jaxdeform.nn.graph_conv import Rings
 
 
@@ -66,7 +67,7 @@ def make_step(config: model.Config, tc: TrainConfig, rings: Rings, dist, stage: 
         out = model.forward(tuple(frozen) + (trainable,) if stage is not None else trainable, x, rings, dist, config)
         return out.loss, out.terms
 
-    @jax.jit
+    @functools.partial(jax.jit, compiler_options=native.compiler_options())
     def step(params, opt_state, key, data):
         key, sub = jax.random.split(key)
         x = _batch(sub, data, tc.batch)
@@ -220,7 +221,7 @@ def _terms_text(loss: float, terms: list) -> str:
     return " | ".join(parts)
 
 
-@functools.partial(jax.jit, static_argnames=("config",))
+@functools.partial(jax.jit, static_argnames=("config",), compiler_options=native.compiler_options())
 def reconstruct(params, data, rings: Rings, config: model.Config):
     """The model's reconstruction (N, V, 9) of scaled features (N, V, 9)."""
     return model.reconstruction(params, data, rings, config)
