@@ -3,8 +3,9 @@
 //
 // Layout: x (G, P, V, Ci) with G weight groups (blocks of a level) of P planes (shapes) each; the one-rings
 // nbr (V, K) int32 with the valid slots of row i first (count[i] of them) and inv[i] = 1 / max(count[i], 1);
-// weights Wp, Wn (G, Ci, Co), bias b (G, Co). Leading size-1 dimensions (jax.vmap "expand_dims") are ignored;
-// a single weight group (G_w = 1) is shared by every group of the output.
+// weights Wp, Wn (G, Ci, Co), bias b (G, Co). jax.vmap ("broadcast_all") gives every argument the same leading
+// batch dimensions, so the weight groups are a prefix of x's planes; a single weight group (G_w = 1) is shared
+// by every group of the output.
 //
 //   forward   y[g,p,i] = x[g,p,i] Wp[g] + (inv[i] sum_k x[g,p,n_ik]) Wn[g] + b[g]
 //   backward  gx[g,p,i] = gy[g,p,i] Wp[g]^T + (sum_k inv[n_ik] gy[g,p,n_ik]) Wn[g]^T   (symmetric rings)
@@ -158,8 +159,10 @@ void BackwardPlanes(const Geometry& s, const T* __restrict__ x, const T* __restr
 ffi::Error CheckRings(const Geometry& s, ffi::AnyBuffer nbr, ffi::AnyBuffer count, ffi::AnyBuffer inv) {
   if (nbr.element_type() != ffi::DataType::S32 || count.element_type() != ffi::DataType::S32)
     return ffi::Error::InvalidArgument("mesh_conv: neighbors and counts must be int32");
-  if (static_cast<int64_t>(nbr.element_count()) != s.V * s.K ||
-      static_cast<int64_t>(count.element_count()) != s.V || static_cast<int64_t>(inv.element_count()) != s.V)
+  // jax.vmap ("broadcast_all") may hand in identical broadcast copies of the tables: the first one is used
+  const int64_t n = static_cast<int64_t>(nbr.element_count()), c = static_cast<int64_t>(count.element_count()),
+                v = static_cast<int64_t>(inv.element_count());
+  if (s.V * s.K == 0 || n % (s.V * s.K) != 0 || c % s.V != 0 || v % s.V != 0 || c == 0 || v == 0)
     return ffi::Error::InvalidArgument("mesh_conv: one-ring tables do not match the vertex count");
   return ffi::Error::Success();
 }

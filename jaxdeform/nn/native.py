@@ -122,7 +122,7 @@ def conv_forward(x, neighbors, counts, inv_deg, w_point, w_neighbor, b):
     """y = x W_point + ring_mean(x) W_neighbor + b for x (..., V, Ci); no activation, no autodiff rule."""
     _require()
     shape = x.shape[:-1] + (w_point.shape[-1],)
-    call = jax.ffi.ffi_call(FORWARD, jax.ShapeDtypeStruct(shape, x.dtype), vmap_method="expand_dims")
+    call = jax.ffi.ffi_call(FORWARD, jax.ShapeDtypeStruct(shape, x.dtype), vmap_method="broadcast_all")
     return call(x, neighbors, counts, inv_deg, w_point, w_neighbor, b)
 
 
@@ -132,7 +132,7 @@ def conv_backward(x, gy, neighbors, counts, inv_deg, w_point, w_neighbor):
     dt = x.dtype
     out = (jax.ShapeDtypeStruct(x.shape, dt), jax.ShapeDtypeStruct(w_point.shape, dt),
            jax.ShapeDtypeStruct(w_neighbor.shape, dt), jax.ShapeDtypeStruct(w_point.shape[:-2] + w_point.shape[-1:], dt))
-    call = jax.ffi.ffi_call(BACKWARD, out, vmap_method="expand_dims")
+    call = jax.ffi.ffi_call(BACKWARD, out, vmap_method="broadcast_all")
     return call(x, gy, neighbors, counts, inv_deg, w_point, w_neighbor)
 
 
