@@ -291,8 +291,11 @@ def test_native_mesh_conv_gradient_matches_finite_differences(grid):
     rng = np.random.default_rng(6)
     p = {k: jnp.asarray(rng.normal(size=s)) for k, s in (("W_point", (9, 9)), ("W_neighbor", (9, 9)), ("b", (9,)))}
     x = jnp.asarray(rng.normal(size=(2, 16, 9)))
-    f = jax.jit(lambda p, x: jnp.sum(jnp.tanh(conv(p, x, *rings)) ** 2))
-    gp, gx = jax.jit(jax.grad(lambda p, x: jnp.sum(jnp.tanh(conv(p, x, *rings)) ** 2), argnums=(0, 1)))(p, x)
+    def loss(p, x):
+        return jnp.sum(jnp.tanh(conv(p, x, *rings)) ** 2)
+
+    f = jax.jit(loss)
+    gp, gx = jax.jit(jax.grad(loss, argnums=(0, 1)))(p, x)
     eps = 1e-6
     for _ in range(3):
         dp = {k: jnp.asarray(rng.normal(size=v.shape)) for k, v in p.items()}

@@ -221,10 +221,15 @@ def _terms_text(loss: float, terms: list) -> str:
     return " | ".join(parts)
 
 
-@functools.partial(jax.jit, static_argnames=("config",), compiler_options=native.compiler_options())
+@functools.cache
+def _reconstruct_jit():
+    # built on first use: the compiler options depend on the backend, which importing must not initialize
+    return jax.jit(model.reconstruction, static_argnames=("config",), compiler_options=native.compiler_options())
+
+
 def reconstruct(params, data, rings: Rings, config: model.Config):
-    """The model's reconstruction (N, V, 9) of scaled features (N, V, 9)."""
-    return model.reconstruction(params, data, rings, config)
+    """The model's reconstruction (N, V, 9) of scaled features (N, V, 9) (jitted)."""
+    return _reconstruct_jit()(params, data, rings, config=config)
 
 
 def load_params(checkpoint_dir, like: tuple):

@@ -8,7 +8,7 @@ The one-ring mean is a masked sum over the static K slots of the padded rings of
 :class:`jaxdeform.mesh.topology.Topology` divided by the degree; there is no loop over vertices. On CPU the
 whole convolution (one-ring mean, both 9x9 channel mixes, bias) and its adjoint run as native XLA custom calls
 (:mod:`jaxdeform.nn.native`): XLA's own gathers recompute their fused producers once per ring slot and its
-9x9 products run far below memory speed (horse training step 300 -> 177 ms). :func:`mesh_conv_reference` is
+9x9 products run far below memory speed (horse training step 322 -> 135 ms, with the changes in train.py). :func:`mesh_conv_reference` is
 the pure-JAX definition, used on other backends and checked against the kernels in the tests.
 
 Autoencoder block (Sec. 4.1): encoder = one conv layer + one fully connected layer; decoder mirrored;

@@ -33,20 +33,23 @@ struct Geometry {
   int64_t G = 1, P = 1, V = 0, K = 0, Ci = 0, Co = 0, Gw = 1;
 };
 
-// Runs fn(thread_index, plane_begin, plane_end) over `planes` split into contiguous ranges.
-unsigned MaxThreads() {
-  static const unsigned n = [] {
+// The most threads one call uses: JAXDEFORM_NATIVE_THREADS if set, else the hardware's, at most 16.
+int64_t MaxThreads() {
+  static const int64_t n = [] {
     const char* env = std::getenv("JAXDEFORM_NATIVE_THREADS");
-    if (env != nullptr && std::atoi(env) > 0) return static_cast<unsigned>(std::atoi(env));
-    return std::max(1u, std::thread::hardware_concurrency());
+    const int64_t want = (env != nullptr && std::atoi(env) > 0)
+                             ? std::atoi(env)
+                             : static_cast<int64_t>(std::max(1u, std::thread::hardware_concurrency()));
+    return std::min<int64_t>(want, 16);
   }();
   return n;
 }
 
+// Runs fn(thread_index, plane_begin, plane_end) over `planes` split into contiguous ranges; thread_index is
+// below MaxThreads().
 template <typename Fn>
 void ParallelPlanes(int64_t planes, int64_t work_per_plane, Fn fn) {
-  unsigned hw = MaxThreads();
-  int64_t threads = std::min<int64_t>({static_cast<int64_t>(hw), 16, planes,
+  int64_t threads = std::min<int64_t>({MaxThreads(), planes,
                                        std::max<int64_t>(1, planes * work_per_plane / (1 << 16))});
   if (threads <= 1) {
     fn(0, 0, planes);
@@ -224,8 +227,7 @@ ffi::Error Backward(ffi::AnyBuffer x, ffi::AnyBuffer gy, ffi::AnyBuffer nbr, ffi
   if (static_cast<int64_t>(gb->element_count()) != s.G * s.Co)
     return ffi::Error::InvalidArgument("mesh_conv: bias gradient has the wrong size");
   const int64_t stride = 2 * s.Ci * s.Co + s.Co;
-  unsigned hw = MaxThreads();
-  std::vector<T> acc(static_cast<size_t>(std::min<int64_t>(hw, 16)) * s.G * stride, T(0));
+  std::vector<T> acc(static_cast<size_t>(MaxThreads() * s.G * stride), T(0));
   const T* xp = static_cast<const T*>(x.untyped_data());
   const T* gp = static_cast<const T*>(gy.untyped_data());
   const int32_t* np_ = static_cast<const int32_t*>(nbr.untyped_data());

@@ -12,7 +12,8 @@ The kernels are compiled on first use with the system C++ compiler against jaxli
 (``jax.ffi.include_dir()``) and cached under ``$XDG_CACHE_HOME/jaxdeform`` (default ``~/.cache/jaxdeform``),
 keyed by a hash of the source, the jaxlib version and the CPU. Where no compiler is found, the build fails,
 the default backend is not the CPU, or ``JAXDEFORM_NATIVE=0`` is set, :func:`available` is False and
-:mod:`jaxdeform.nn.graph_conv` uses its pure-JAX definition (same results, slower on CPU).
+:mod:`jaxdeform.nn.graph_conv` uses its pure-JAX definition (same results, slower on CPU). A call uses up
+to ``JAXDEFORM_NATIVE_THREADS`` threads (default: the hardware's, at most 16).
 """
 
 from __future__ import annotations
