@@ -22,6 +22,13 @@ def test_experiment_test_config(tmp_path, experiment, rows):
         assert all("max_relative_squared_error" in r["test"] for r in result["rows"].values())
 
 
+def test_experiment_runs_subset(tmp_path):
+    result = exp.main(["table4", "--config", "test", "--out", str(tmp_path), "--epochs", "2", "--runs", "separate",
+                       "no-attention"])
+    assert set(result["rows"]) == {"tube/separate", "tube/no-attention"}
+    assert sorted(p.name for p in (tmp_path / "table4" / "tube").iterdir()) == ["no-attention", "separate"]
+
+
 def test_fig6_test_config(tmp_path):
     result = exp.main(["fig6", "--config", "test", "--out", str(tmp_path), "--epochs", "3", "--methods", "multiscale",
                        "pca-xyz"])

@@ -2,7 +2,8 @@
 levels) and Fig. 6 (editing error against the number of control points).
 
     python -m experiments.components.run table2|table4|table5|fig6 [--config default|test] [--data DIR]
-                                          [--out OUT] [--datasets NAME ...] [--epochs N] [--force]
+                                          [--out OUT] [--datasets NAME ...] [--methods M ...]
+                                          [--runs CONFIG ...] [--epochs N] [--force]
 
 Every experiment trains through :mod:`jaxdeform.components.run` (the same code as ``jaxdeform components
 train``) into OUT/<experiment>/<data set>/<run>, evaluates the generalization protocol of Sec. 5.1 (every 10th
@@ -98,7 +99,7 @@ def _multiscale_table(args, experiment: str, configs) -> dict:
     """One multiscale run per named configuration (the test variant "test-<name>" under --config test)."""
     rows = {}
     for name, path in _datasets(args):
-        for cfg in configs:
+        for cfg in [c for c in configs if not args.runs or c in args.runs]:
             folder = Path(args.out) / experiment / name / cfg
             print(f"== {experiment}: {name} / {cfg}", flush=True)
             config = cfg if args.config != "test" else ("test" if cfg == "default" else f"test-{cfg}")
@@ -166,6 +167,8 @@ def main(argv=None) -> dict:
     parser.add_argument("--out", default="out/experiments/components")
     parser.add_argument("--datasets", nargs="+")
     parser.add_argument("--methods", nargs="+", choices=TABLE2_METHODS, help="table2: a subset of the methods")
+    parser.add_argument("--runs", nargs="+", choices=sorted(set(TABLE4_CONFIGS + TABLE5_CONFIGS)),
+                        help="table4/table5: a subset of their configurations (the others are left out)")
     parser.add_argument("--epochs", type=int, help="override the training epochs of every run")
     parser.add_argument("--force", action="store_true", help="retrain runs that exist")
     args = parser.parse_args(argv)
