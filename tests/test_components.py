@@ -156,3 +156,17 @@ def test_attention_gradient_switch(setup):
         grads.append(np.asarray(jax.grad(level1_loss)(params[0]["C"])))
     assert all(np.all(np.isfinite(g)) for g in grads)
     assert not np.allclose(grads[0], grads[1])
+
+
+def test_loss_weights_scale_their_terms(setup):
+    """The total loss is sum over blocks of lambda_recon L_recon + lambda_sparse Omega + lambda_latent V(Z)."""
+    _, rings, dist, x = setup
+    base = model.Config(kz=(3, 2), d=(0.4, 0.2), theta=0.01)  # tiny theta: V(Z) is non-zero
+    params = model.init(jax.random.PRNGKey(3), x.shape[1], base, x.dtype)
+    out = model.forward(params, x, rings, dist, base)
+    sums = {k: float(sum(t[k] for t in out.terms)) for k in ("recon", "sparsity", "latent")}
+    assert sums["latent"] > 0
+    weights = dict(lambda_recon=1.0, lambda_sparse=0.5, lambda_latent=0.25)
+    got = float(model.forward(params, x, rings, dist, dataclasses.replace(base, **weights)).loss)
+    want = sums["recon"] + 0.5 * sums["sparsity"] + 0.25 * sums["latent"]
+    assert got == pytest.approx(want, rel=1e-5)

@@ -3,6 +3,7 @@ tube, a few epochs): the code paths of Tables 2, 4, 5 and the JSON/markdown they
 
 import json
 
+import numpy as np
 import pytest
 
 from experiments.components import run as exp
@@ -56,3 +57,34 @@ def test_training_benchmark_smoke(tmp_path):
     for rec in payload["records"]:
         assert {"compile_s", "step_ms_median", "step_ms_min", "projected_training_min"} <= set(rec)
         assert rec["loss_finite"] and rec["shapes"] == 2
+
+
+def test_sweep_inside_fraction_analytic():
+    from experiments.components.sweep import inside_fraction
+
+    dist = np.array([[0.0, 0.1, 0.5, 0.9], [0.1, 0.0, 0.4, 0.8], [0.5, 0.4, 0.0, 0.4], [0.9, 0.8, 0.4, 0.0]])
+    c = np.zeros((2, 4 * 9))
+    c[0, :9] = 1.0  # all of component 0 at vertex 0: perfectly localized
+    c[1, :] = 0.5  # component 1 spread out, largest at vertex 0 (its centre); vertices 0 and 1 lie within 0.3
+    c[1, :9] = 0.6
+    per = [inside_fraction(c[k:k + 1], dist, 0.3) for k in range(2)]
+    norms1 = np.array([0.6, 0.5, 0.5, 0.5]) * 3.0
+    assert per[0] == pytest.approx(1.0)
+    assert per[1] == pytest.approx(norms1[:2].sum() / norms1.sum())
+
+
+def test_sweep_runs_on_a_tube(tmp_path):
+    from experiments.components import sweep
+    from jaxdeform.data.synthetic import bending_tube_sequence
+    from jaxdeform.mesh import save_mesh
+
+    verts, faces = bending_tube_sequence(n_frames=12, n_around=8, n_along=12)
+    for k, v in enumerate(verts):
+        save_mesh(tmp_path / "tube" / f"f{k:02d}.obj", v, faces)
+    out = tmp_path / "s.jsonl"
+    res = sweep.main(["--data", str(tmp_path / "tube"), "--kz", "3,2", "--epochs", "3", "--jsonl", str(out)])
+    assert json.loads(out.read_text()) == json.loads(json.dumps(res))
+    assert res["train_shapes"] == 2 and res["test_shapes"] == 10
+    for key in ("train_erms", "test_erms", "level0_train_erms", "level0_test_erms"):
+        assert np.isfinite(res[key]) and res[key] >= 0
+    assert len(res["inside_fraction"]) == 2 and all(0 <= f <= 1 for f in res["inside_fraction"])

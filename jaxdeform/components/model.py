@@ -36,6 +36,7 @@ class Config:
     d: tuple[float, ...] = (0.4, 0.2)
     lambda_recon: float = 10.0
     lambda_sparse: float = 1.0
+    lambda_latent: float = 1.0  # weight of V(Z): 1 in eq. (2); Tan et al.'s public code uses 0.5
     theta: float = 5.0
     attention: bool = True
     # Whether the loss gradient flows through the attention masks into the parent's C. The paper derives AM
@@ -139,7 +140,8 @@ def forward(params: tuple[dict, ...], x: Float[Array, "b v 9"], rings: Rings, di
         rec_l = jax.vmap(reconstruction_loss)(inputs, x_hat)
         sparse_l = jax.vmap(lambda c: group_sparsity(c, dist, config.sparsity_cutoff(level), config.mask))(p["C"])
         latent_l = jax.vmap(lambda zz: latent_bound(zz, config.theta))(z)
-        total = total + jnp.sum(config.lambda_recon * rec_l + config.lambda_sparse * sparse_l + latent_l)
+        total = total + jnp.sum(config.lambda_recon * rec_l + config.lambda_sparse * sparse_l
+                                + config.lambda_latent * latent_l)
         recon = recon + jnp.sum(x_hat, axis=0)
         terms.append({"recon": jnp.sum(rec_l), "sparsity": jnp.sum(sparse_l), "latent": jnp.sum(latent_l)})
         latents.append(z)

@@ -1,0 +1,112 @@
+"""Diagnostic training of one seed-000 model configuration on a sequence: generalization and localization.
+
+    python -m experiments.components.sweep --data ../shared/data/horse-gallop --kz 10,5 --d 0.4,0.2 \\
+        [--lambda-recon 10] [--lambda-sparse 1] [--mask step|linear] [--no-attention] [--attention-gradient] \\
+        [--separate] [--epochs 2000] [--lr 1e-3] [--seed 0] [--jsonl OUT.jsonl]
+
+Unlike ``experiments.components.run`` (named configurations, run folders, STED), this trains any configuration
+in memory on the every-10th split and prints one JSON line (appended to ``--jsonl``):
+
+- ``train_erms`` / ``test_erms``: Erms of the whole model (encode -> decode -> ACAP reconstruction);
+- ``level0_train_erms`` / ``level0_test_erms``: the same with AE0 alone (what the higher levels add);
+- ``train_feature_mse`` / ``test_feature_mse``: mean squared error of the scaled features;
+- ``inside_fraction``: per level, the median over components of the share of sum_i ||C_k,i|| that lies within
+  the level's cut-off d of the component centre (1 = perfectly localized).
+
+It is how the hyper-parameter and variant studies of issue 3's notes were measured.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import time
+from pathlib import Path
+
+import numpy as np
+
+import jaxdeform  # noqa: F401  (x64)
+import jax.numpy as jnp
+from jaxdeform import acap, metrics
+from jaxdeform.components import model, train
+from jaxdeform.components import run as crun
+from jaxdeform.mesh.topology import build_topology
+from jaxdeform.nn.graph_conv import rings_from_topology
+from jaxdeform.nn.losses import vertex_norms
+
+
+def _floats(text: str) -> tuple[float, ...]:
+    return tuple(float(t) for t in text.split(","))
+
+
+def inside_fraction(c: np.ndarray, dist: np.ndarray, d: float) -> float:
+    """Median over the components (rows of ``c``, any leading block axes) of the share of their group norm
+    within ``d`` of their centre."""
+    rows = np.asarray(c).reshape(-1, np.asarray(c).shape[-1])
+    norms = np.asarray(vertex_norms(jnp.asarray(rows), dist.shape[0]))
+    inside = dist[norms.argmax(axis=1)] < d
+    total = np.maximum(norms.sum(axis=1), 1e-30)
+    return float(np.median((norms * inside).sum(axis=1) / total))
+
+
+def main(argv=None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--data", default=str(Path(__file__).resolve().parents[2].parent / "shared" / "data" / "horse-gallop"))
+    ap.add_argument("--kz", default="10,5")
+    ap.add_argument("--d", default="0.4,0.2")
+    ap.add_argument("--lambda-recon", type=float, default=10.0)
+    ap.add_argument("--lambda-sparse", type=float, default=1.0)
+    ap.add_argument("--mask", choices=("step", "linear"), default="step")
+    ap.add_argument("--no-attention", action="store_true")
+    ap.add_argument("--attention-gradient", action="store_true")
+    ap.add_argument("--separate", action="store_true", help="level-by-level training (Table 4)")
+    ap.add_argument("--epochs", type=int, default=2000)
+    ap.add_argument("--lr", type=float, default=1e-3)
+    ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--jsonl", help="append the result line to this file")
+    a = ap.parse_args(argv)
+
+    cfg = model.Config(kz=tuple(int(k) for k in _floats(a.kz)), d=_floats(a.d), lambda_recon=a.lambda_recon,
+                       lambda_sparse=a.lambda_sparse, mask=a.mask, attention=not a.no_attention,
+                       attention_gradient=a.attention_gradient)
+    tc = train.TrainConfig(epochs=a.epochs, learning_rate=a.lr, seed=a.seed, joint=not a.separate)
+    vertices, faces = crun.load_data(a.data)
+    tr, te = crun.split_indices(vertices.shape[0])
+    rest = vertices[0]
+    dist = crun.normalized_geodesics(rest, faces)
+    feats = np.asarray(acap.encode(rest, faces, vertices), np.float32)
+    scaler = acap.Scaler.fit(feats[tr])
+    x = np.asarray(scaler.transform(feats), np.float32)
+    rings = rings_from_topology(build_topology(faces, rest.shape[0]))
+
+    t0 = time.perf_counter()
+    params, history = train.train(x[tr], rings, dist, cfg, tc, progress=True)
+    seconds = time.perf_counter() - t0
+
+    def evaluate(idx, p, c):
+        xs = jnp.asarray(x[idx])
+        xh = jnp.concatenate([train.reconstruct(p, xs[i:i + 16], rings, c) for i in range(0, len(idx), 16)])
+        pos = np.asarray(acap.decode(jnp.asarray(np.asarray(scaler.inverse(xh)), jnp.float64), rest, faces))
+        return metrics.erms(vertices[idx], pos), float(np.mean((np.asarray(xh) - x[idx]) ** 2))
+
+    result = {"config": {**dataclasses.asdict(cfg), **dataclasses.asdict(tc)}, "data": str(a.data),
+              "train_shapes": len(tr), "test_shapes": len(te), "train_seconds": round(seconds, 1),
+              "final_loss": float(history[-1])}
+    result["train_erms"], result["train_feature_mse"] = evaluate(tr, params, cfg)
+    result["test_erms"], result["test_feature_mse"] = evaluate(te, params, cfg)
+    if cfg.levels > 1:
+        c0 = dataclasses.replace(cfg, kz=cfg.kz[:1], d=cfg.d[:1])
+        result["level0_train_erms"] = evaluate(tr, params[:1], c0)[0]
+        result["level0_test_erms"] = evaluate(te, params[:1], c0)[0]
+    result["inside_fraction"] = [inside_fraction(np.asarray(p["C"]), dist, cfg.d[lvl]) for lvl, p in enumerate(params)]
+    line = json.dumps(result, default=float)
+    print(line)
+    if a.jsonl:
+        with open(a.jsonl, "a") as fh:
+            fh.write(line + "\n")
+    return result
+
+
+if __name__ == "__main__":
+    main()
