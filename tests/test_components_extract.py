@@ -339,3 +339,12 @@ def test_invalid_inputs_write_nothing(tmp_path, sphere_set):
     with pytest.raises(ValueError, match="square"):
         figures.similarity_figure(np.ones((2, 3)), tmp_path / "s.png")
     assert list(tmp_path.iterdir()) == []  # no file, no temporary left behind
+
+
+def test_figure_camera_frames_typical_meshes_not_an_outlier():
+    cube = np.array([[x, y, z] for x in (0.0, 1.0) for y in (0.0, 1.0) for z in (0.0, 1.0)])
+    meshes = np.stack([cube, cube + 0.1, cube * 1.2, cube * 10.0])  # the last one is a wild component
+    framed = figures._framed_points(meshes)
+    assert framed.shape == (24, 3) and framed.max() == pytest.approx(1.2)
+    same = np.stack([cube, cube * 1.1])  # nothing to drop
+    assert figures._framed_points(same).shape == (16, 3)

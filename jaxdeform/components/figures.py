@@ -148,6 +148,15 @@ def _draw_legend(width: int, height: int, cmap: str, body, text: str, font) -> n
     return np.asarray(strip)
 
 
+def _framed_points(x: np.ndarray, spread: float = 1.5) -> np.ndarray:
+    """The vertices the shared camera frames: every mesh whose bounding-box diagonal is at most ``spread`` times
+    the median one (a single wildly deformed component would otherwise shrink every other panel to a dot; it
+    is drawn anyway, cropped by its panel)."""
+    diag = np.linalg.norm(x.max(axis=1) - x.min(axis=1), axis=-1)
+    keep = diag <= spread * np.median(diag)
+    return x[keep].reshape(-1, 3)
+
+
 def components_figure(
     meshes,
     faces,
@@ -172,7 +181,8 @@ def components_figure(
     may list rows without components (drawn with "no component kept", e.g. a fully pruned AEk); a row holds
     at most ``max_columns`` panels and wraps. ``titles`` (K,) caption the panels (default "#i"). ``panel``
     is the side of one square panel in pixels. ``vmax`` None scales each panel to its own maximum strength,
-    a number shares one scale. One camera (``view`` around ``up_axis``, or ``camera``) frames every mesh.
+    a number shares one scale. One camera (``view`` around ``up_axis``, or ``camera``) serves every panel; it
+    frames the meshes of typical size (:func:`_framed_points`).
     """
     x, f, s = _check_meshes(meshes, faces, strength)
     k = x.shape[0]
@@ -189,7 +199,7 @@ def components_figure(
     lines = _layout_rows(groups, rows, max_columns)
     if camera is None:
         az, el = view_angles(view)
-        camera = auto_camera(x.reshape(-1, 3), azimuth_deg=az, elevation_deg=el, up_axis=up_axis)
+        camera = auto_camera(_framed_points(x), azimuth_deg=az, elevation_deg=el, up_axis=up_axis)
 
     font = _font(max(10, panel // 18))
     big = _font(max(12, panel // 12))
