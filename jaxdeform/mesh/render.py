@@ -10,6 +10,7 @@ bar never covers the mesh).
 Conventions: images are ``(H, W, 3)`` uint8; colours given as arguments are RGB floats in [0, 1];
 ``Camera.fov_deg`` is the angle spanned by the *shorter* side of the viewport, so a camera frames a mesh the
 same way at any aspect ratio. Everything is vectorized over pixels (Embree traces the rays in one call).
+A :class:`RayCaster` builds the Embree scene once and traces it from many cameras (multi-view rendering).
 """
 
 from __future__ import annotations
@@ -252,37 +253,69 @@ def _ray_directions(camera: Camera, width: int, height: int) -> np.ndarray:
 
 
 @dataclass(frozen=True, eq=False)
-class _Trace:
-    """Compact ray-cast result: only the hit pixels (flat indices into the image)."""
+class Trace:
+    """Compact ray-cast result of one view: only the hit pixels (flat row-major indices into the image)."""
 
     width: int
     height: int
-    directions: np.ndarray  # (H * W, 3) float32
+    directions: np.ndarray  # (H * W, 3) float32 unit ray directions
     pixel: np.ndarray  # (m,) flat indices of the hit pixels
     triangle: np.ndarray  # (m,) int64
-    barycentric: np.ndarray  # (m, 3) float64
+    barycentric: np.ndarray  # (m, 3) float64, non-negative, summing to 1
 
 
-def _trace(v: np.ndarray, f: np.ndarray, camera: Camera, width: int, height: int) -> _Trace:
-    if int(width) < 1 or int(height) < 1:
-        raise ValueError(f"image size must be at least 1 x 1 pixels, got {width} x {height}.")
-    width, height = int(width), int(height)
-    dirs = _ray_directions(camera, width, height)
-    # Embree works in float32: shift the scene so that the camera target is at the origin.
-    shift = np.asarray(camera.target)
-    scene = rtcs.EmbreeScene()
-    TriangleMesh(scene, np.ascontiguousarray(v - shift, dtype=np.float32), np.ascontiguousarray(f, dtype=np.int32))
-    eye = (np.asarray(camera.eye) - shift).astype(np.float32)
-    origins = np.ascontiguousarray(np.broadcast_to(eye, dirs.shape))
-    res = scene.run(origins, dirs, output=1)
-    prim = np.asarray(res["primID"])
-    pixel = np.flatnonzero(prim >= 0)
-    # Embree's (u, v) weight the face's 2nd and 3rd vertex: p = (1 - u - v) p0 + u p1 + v p2.
-    u = np.asarray(res["u"])[pixel].astype(np.float64)
-    w = np.asarray(res["v"])[pixel].astype(np.float64)
-    bary = np.clip(np.stack([1.0 - u - w, u, w], axis=-1), 0.0, None)
-    bary /= np.maximum(bary.sum(axis=-1, keepdims=True), 1e-30)
-    return _Trace(width, height, dirs, pixel, prim[pixel].astype(np.int64), bary)
+class RayCaster:
+    """An Embree scene of one mesh, built once and traced from any number of cameras.
+
+    Embree works in float32, so the scene is shifted to put ``origin`` (default: the bounding-box centre) at
+    the origin; cameras should look at points near it (hit positions are recomputed in float64 from the
+    barycentrics, so only the ray-triangle test itself is float32). Vertex normals for :meth:`shade` are
+    computed once, on first use.
+    """
+
+    def __init__(self, vertices, faces, origin=None):
+        v, f = _check_mesh(vertices, faces)
+        self.vertices, self.faces = v, f
+        if origin is None:
+            origin = 0.5 * (v.min(axis=0) + v.max(axis=0))
+        self.origin = np.asarray(_vec3(origin, "origin"))
+        self._scene = rtcs.EmbreeScene()
+        shifted = np.ascontiguousarray(v - self.origin, dtype=np.float32)
+        self._mesh = TriangleMesh(self._scene, shifted, np.ascontiguousarray(f, dtype=np.int32))
+        self._normals: np.ndarray | None = None
+
+    @property
+    def vertex_normals(self) -> np.ndarray:
+        """Area-weighted (unnormalised) vertex normals, (V, 3) float64."""
+        if self._normals is None:
+            self._normals = _vertex_normals(self.vertices, self.faces)
+        return self._normals
+
+    def trace(self, camera: Camera, width: int, height: int) -> Trace:
+        """One ray through the centre of every pixel of a ``width`` x ``height`` image."""
+        if int(width) < 1 or int(height) < 1:
+            raise ValueError(f"image size must be at least 1 x 1 pixels, got {width} x {height}.")
+        width, height = int(width), int(height)
+        dirs = _ray_directions(camera, width, height)
+        eye = (np.asarray(camera.eye) - self.origin).astype(np.float32)
+        origins = np.ascontiguousarray(np.broadcast_to(eye, dirs.shape))
+        res = self._scene.run(origins, dirs, output=1)
+        prim = np.asarray(res["primID"])
+        pixel = np.flatnonzero(prim >= 0)
+        # Embree's (u, v) weight the face's 2nd and 3rd vertex: p = (1 - u - v) p0 + u p1 + v p2.
+        u = np.asarray(res["u"])[pixel].astype(np.float64)
+        w = np.asarray(res["v"])[pixel].astype(np.float64)
+        bary = np.clip(np.stack([1.0 - u - w, u, w], axis=-1), 0.0, None)
+        bary /= np.maximum(bary.sum(axis=-1, keepdims=True), 1e-30)
+        return Trace(width, height, dirs, pixel, prim[pixel].astype(np.int64), bary)
+
+    def shade(self, trace: Trace, ambient: float = AMBIENT) -> np.ndarray:
+        """Two-sided Lambert with a headlight per hit pixel of ``trace``: (m,) values in [ambient, 1]."""
+        return _shade(self.vertices, self.faces, trace, ambient, self.vertex_normals)
+
+
+def _trace(v: np.ndarray, f: np.ndarray, camera: Camera, width: int, height: int) -> Trace:
+    return RayCaster(v, f, origin=camera.target).trace(camera, width, height)
 
 
 def cast_rays(vertices, faces, camera: Camera, width: int, height: int) -> RayHits:
@@ -321,10 +354,11 @@ def _vertex_normals(v: np.ndarray, f: np.ndarray) -> np.ndarray:
     return n
 
 
-def _shade(v, f, tr: _Trace, ambient: float) -> np.ndarray:
-    """Two-sided Lambert with a headlight, per hit pixel: values in [ambient, 1]."""
+def _shade(v, f, tr: Trace, ambient: float, vn: np.ndarray | None = None) -> np.ndarray:
+    """Two-sided Lambert with a headlight, per hit pixel: values in [ambient, 1] (``vn``: vertex normals)."""
     tri = tr.triangle
-    vn = _vertex_normals(v, f)
+    if vn is None:
+        vn = _vertex_normals(v, f)
     n = np.einsum("nk,nkc->nc", tr.barycentric, vn[f[tri]])
     norm = np.linalg.norm(n, axis=-1)
     bad = norm < 1e-12
