@@ -23,6 +23,7 @@ demo: $(STAMP)
 
 bench: $(STAMP)
 	$(PY) -m benchmarks.acap --data ../shared/data/horse-gallop --json out/bench/acap.json
+	$(PY) -m benchmarks.handles --mesh ../shared/data/test-meshes/armadillo.obj --json out/bench/handles.json
 
 clean:
 	rm -rf $(VENV) out .pytest_cache

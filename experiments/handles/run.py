@@ -245,7 +245,7 @@ def _panel(vertices, faces, camera, size, *, scalar=None, caption=None, markers=
     pil = Image.fromarray(img)
     draw = ImageDraw.Draw(pil)
     if markers:
-        from jaxdeform.handles.server import project
+        from jaxdeform.mesh.render import project
 
         xy, _ = project(camera, size, size, np.asarray(markers, dtype=np.float64))
         for x, y in xy:

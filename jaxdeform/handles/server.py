@@ -60,7 +60,7 @@ from PIL import Image
 
 from jaxdeform.errors import JaxDeformError
 from jaxdeform.handles.weights import Deformer, make_transform
-from jaxdeform.mesh.render import Camera, RayHits, auto_camera, cast_rays, render
+from jaxdeform.mesh.render import Camera, RayHits, auto_camera, cast_rays, pixel_scale, project, render
 
 log = logging.getLogger(__name__)
 
@@ -88,27 +88,6 @@ class BadRequest(ValueError):
 
 
 # ------------------------------------------------------------------------------------------ geometry helpers
-
-
-def pixel_scale(camera: Camera, width: int, height: int) -> float:
-    """tan(fov / 2) / (min(W, H) / 2): the view-plane size of one pixel at unit depth (as the renderer's rays)."""
-    return math.tan(math.radians(camera.fov_deg) / 2.0) / (min(width, height) / 2.0)
-
-
-def project(camera: Camera, width: int, height: int, points: Float[np.ndarray, "p 3"]) -> tuple[np.ndarray, np.ndarray]:
-    """Display coordinates (P, 2) of points and their depth (P,) along the view direction.
-
-    The inverse of the renderer's rays: the ray through pixel (i, j)'s centre (j + 0.5, i + 0.5) has direction
-    ``forward + (j + 0.5 - W/2) s right + (H/2 - i - 0.5) s up`` with ``s`` = :func:`pixel_scale`.
-    """
-    fwd, right, up = camera.basis()
-    q = np.asarray(points, dtype=np.float64).reshape(-1, 3) - np.asarray(camera.eye)
-    depth = q @ fwd
-    s = pixel_scale(camera, width, height)
-    with np.errstate(divide="ignore", invalid="ignore"):
-        x = (q @ right) / depth / s + width / 2.0
-        y = height / 2.0 - (q @ up) / depth / s
-    return np.stack([x, y], axis=-1), depth
 
 
 def compose(a: Float[np.ndarray, "3 4"], b: Float[np.ndarray, "3 4"]) -> np.ndarray:

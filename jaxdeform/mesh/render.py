@@ -23,6 +23,7 @@ from pathlib import Path
 
 import numpy as np
 from embreex import rtcore_scene as rtcs
+from jaxtyping import Float
 from embreex.mesh_construction import TriangleMesh
 from PIL import Image, ImageDraw, ImageFont
 
@@ -316,6 +317,27 @@ class RayCaster:
 
 def _trace(v: np.ndarray, f: np.ndarray, camera: Camera, width: int, height: int) -> Trace:
     return RayCaster(v, f, origin=camera.target).trace(camera, width, height)
+
+
+def pixel_scale(camera: Camera, width: int, height: int) -> float:
+    """tan(fov / 2) / (min(W, H) / 2): the view-plane size of one pixel at unit depth (as the renderer's rays)."""
+    return math.tan(math.radians(camera.fov_deg) / 2.0) / (min(width, height) / 2.0)
+
+
+def project(camera: Camera, width: int, height: int, points: Float[np.ndarray, "p 3"]) -> tuple[np.ndarray, np.ndarray]:
+    """Display coordinates (P, 2) of points and their depth (P,) along the view direction.
+
+    The inverse of the renderer's rays: the ray through pixel (i, j)'s centre (j + 0.5, i + 0.5) has direction
+    ``forward + (j + 0.5 - W/2) s right + (H/2 - i - 0.5) s up`` with ``s`` = :func:`pixel_scale`.
+    """
+    fwd, right, up = camera.basis()
+    q = np.asarray(points, dtype=np.float64).reshape(-1, 3) - np.asarray(camera.eye)
+    depth = q @ fwd
+    s = pixel_scale(camera, width, height)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        x = (q @ right) / depth / s + width / 2.0
+        y = height / 2.0 - (q @ up) / depth / s
+    return np.stack([x, y], axis=-1), depth
 
 
 def cast_rays(vertices, faces, camera: Camera, width: int, height: int) -> RayHits:
