@@ -47,6 +47,7 @@ from jaxdeform.mesh.io import atomic_path, load_mesh
 TEST_MESHES = ("armadillo", "spot", "cow", "stanford-bunny", "cheburashka")
 SURVEY = ("bar", "cactus", "cylinder", "plane")
 SYMMETRY_EXPECTED = {"armadillo": True, "spot": True, "cow": True, "twisted-bar": False}
+SURVEY_LOCALITY = 2.0
 PAPER = {"rebind_s": {1: 0.004, 10: 0.012, 100: 0.034}}  # DFD paper, Table 3 (A40 GPU)
 
 
@@ -241,7 +242,8 @@ def _panel(vertices, faces, camera, size, *, scalar=None, caption=None, markers=
     from jaxdeform.mesh.render import render
 
     img = render(vertices, faces, scalar=scalar, camera=camera, width=size, height=size, cmap="viridis",
-                 vmin=0.0 if scalar is not None else None, vmax=1.0 if scalar is not None else None)
+                 vmin=0.0 if scalar is not None else None, vmax=1.0 if scalar is not None else None,
+                 colorbar=False)  # no bar: it would narrow the viewport the markers are projected into
     pil = Image.fromarray(img)
     draw = ImageDraw.Draw(pil)
     if markers:
@@ -291,7 +293,8 @@ def stage_figures(out: Path, data: Path, s: Settings, force: bool) -> dict:
         moved = d.deform([handle], T)
         local = d.deform([handle], T, locality=4.0)
         panels = [
-            _panel(v, f, camera, size, scalar=w, caption=f"{name}: DFD weights", markers=[v[handle]]),
+            _panel(v, f, camera, size, scalar=w, caption=f"{name}: DFD weights (0 purple .. 1 yellow)",
+                   markers=[v[handle]]),
             _panel(v, f, camera, size, scalar=wl, caption="locality 4", markers=[v[handle]]),
             _panel(moved, f, camera, size, caption="deformed", markers=[moved[handle]]),
             _panel(local, f, camera, size, caption="deformed, locality 4", markers=[local[handle]]),
@@ -314,16 +317,16 @@ def stage_figures(out: Path, data: Path, s: Settings, force: bool) -> dict:
         d = weights.Deformer(v, f, Z)
         region = np.flatnonzero(sel == 2)
         handle = int(region[np.argmin(np.linalg.norm(v[region] - v[region].mean(0), axis=1))])
-        fixed = np.flatnonzero(sel == 0)
-        anchors = fixed[np.linspace(0, fixed.size - 1, min(8, fixed.size)).astype(int)] if fixed.size else []
-        moved = d.deform([handle], M[:3][None], anchors=anchors)
+        # one handle with locality: features of these plain shapes are nearly uniform, so the geodesic falloff
+        # (eq. 8) is what keeps the far (fixed) end in place; anchors (eq. 7) would cancel the handle itself
+        moved = d.deform([handle], M[:3][None], locality=SURVEY_LOCALITY)
         err = float(np.sqrt(np.mean(np.sum((moved - ref) ** 2, axis=1))) / np.linalg.norm(np.ptp(v, axis=0)))
         camera = auto_camera(np.concatenate([v, ref, moved]), azimuth_deg=20.0, elevation_deg=20.0,
                              up_axis=_up_axis(v))
-        w = d.weights([handle], anchors=anchors)[:, 0]
+        w = d.weights([handle], locality=SURVEY_LOCALITY)[:, 0]
         panels = [
             _panel(v, f, camera, size, scalar=w, caption=f"{name}: weights", markers=[v[handle]]),
-            _panel(moved, f, camera, size, caption="DFD (1 handle + anchors)"),
+            _panel(moved, f, camera, size, caption=f"DFD, 1 handle, locality {SURVEY_LOCALITY:g}"),
             _panel(ref, f, camera, size, caption="Laplacian editing (survey)"),
         ]
         path = figdir / f"survey-{name}.png"
