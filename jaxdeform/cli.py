@@ -479,11 +479,12 @@ def _field_features(field_path: str, mesh_path: str, vertices: np.ndarray, faces
 
     _check_exists([field_path])
     fitted, meta = load_field(field_path)
-    n = int(meta.get("n_vertices", -1))
-    if n != vertices.shape[0] and not remap:
+    n, nf = int(meta.get("n_vertices", -1)), int(meta.get("n_faces", -1))
+    if (n, nf) != (vertices.shape[0], faces.shape[0]) and not remap:
         raise ConnectivityError(
-            f"{field_path} was distilled on a mesh of {n} vertices but {mesh_path} has {vertices.shape[0]}; "
-            "pass --remap to apply the field to a different mesh of the same shape."
+            f"{field_path} was distilled on a mesh of {n} vertices and {nf} faces but {mesh_path} has "
+            f"{vertices.shape[0]} and {faces.shape[0]}; pass --remap to apply the field to a different mesh of "
+            "the same shape."
         )
     return fitted, evaluate_field(fitted, vertices)
 
@@ -538,8 +539,10 @@ def _handle_request(args: argparse.Namespace, what: str):
         raise IsADirectoryError(f"--out {out} is a folder; give the path of the {what} to write.")
     handle = _vertex_index(args.handle, n, "--handle")
     anchors = [_vertex_index(a, n, "--anchor") for a in (args.anchor or [])]
-    if not args.locality >= 0:
-        raise ValueError(f"--locality must be >= 0, got {args.locality}.")
+    if handle in anchors:
+        raise ValueError(f"vertex {handle} is both the handle and an anchor; an anchor holds its own weight at 0.")
+    if not (np.isfinite(args.locality) and args.locality >= 0):
+        raise ValueError(f"--locality must be a finite number >= 0, got {args.locality}.")
     return vertices, faces, out, handle, anchors
 
 
@@ -558,7 +561,11 @@ def cmd_handles_deform(args: argparse.Namespace) -> int:
             degrees = float(deg)
         except ValueError:
             raise ValueError(f"--rotate degrees must be a number, got {deg!r}.") from None
+        if not np.isfinite(degrees):
+            raise ValueError(f"--rotate degrees must be finite, got {deg!r}.")
         axis = axes[axis_name.lower()]
+    if not np.all(np.isfinite(args.translate)):
+        raise ValueError(f"--translate must be three finite numbers, got {' '.join(map(str, args.translate))}.")
     fitted, Z = _field_features(args.field, args.mesh, vertices, faces, args.remap)
     from jaxdeform.handles.field import evaluate_field
 
@@ -570,7 +577,8 @@ def cmd_handles_deform(args: argparse.Namespace) -> int:
     deformed = deformer.deform([handle], transform[None], anchors=anchors, locality=args.locality,
                                symmetric=args.symmetric, pou=args.pou)
     elapsed = time.perf_counter() - t0
-    save_mesh(out, deformed, faces)
+    with _writing(out):
+        save_mesh(out, deformed, faces)
     moved = float(np.linalg.norm(deformed[handle] - vertices[handle]))
     print(f"deformed {args.mesh} by handle {handle} (moved {moved:.4g}) in {elapsed * 1e3:.1f} ms; wrote {out}")
     return 0
@@ -582,6 +590,8 @@ def cmd_handles_show(args: argparse.Namespace) -> int:
 
     vertices, faces, out, handle, anchors = _handle_request(args, ".png file")
     n = vertices.shape[0]
+    if out.suffix.lower() != ".png":
+        raise ValueError(f"--out {out} must be a .png file.")
     _, Z = _field_features(args.field, args.mesh, vertices, faces, args.remap)
     w = Deformer(vertices, faces, Z).weights([handle], anchors=anchors, locality=args.locality)[:, 0]
     camera = auto_camera(vertices, azimuth_deg=args.azimuth, elevation_deg=args.elevation, up_axis=args.up)
@@ -597,6 +607,8 @@ def cmd_handles_show(args: argparse.Namespace) -> int:
 def cmd_handles_serve(args: argparse.Namespace) -> int:
     from jaxdeform.handles import server
 
+    if not 0 <= args.port < 65536:
+        raise ValueError(f"--port must be in 0 .. 65535, got {args.port}.")
     vertices, faces = _load_handles_mesh(args.mesh)
     field_fn = None
     if args.field:
@@ -612,8 +624,6 @@ def cmd_handles_serve(args: argparse.Namespace) -> int:
         result = distill_mesh(vertices, faces, progress=True)
         Z = evaluate_field(result.field, vertices)
         field_fn = lambda p: evaluate_field(result.field, p)  # noqa: E731
-    if not 0 <= args.port < 65536:
-        raise ValueError(f"--port must be in 0 .. 65535, got {args.port}.")
     server.serve(vertices, faces, Z, field_fn=field_fn, port=args.port, block=True,
                  announce=lambda url: print(f"serving {url} (Ctrl-C stops)", flush=True))
     return 0

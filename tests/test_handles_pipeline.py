@@ -21,9 +21,9 @@ class PoolBackbone:
     patch_size = 14
     input_size = (56, 56)
 
-    def __init__(self, column: bool):
-        self.column = column
-        self.feature_dim = 4 if column else 3
+    def __init__(self, column: bool, row: bool = False):
+        self.column, self.row = column, row
+        self.feature_dim = 3 + column + row
 
     def patch_features(self, images):
         x = np.asarray(images, dtype=np.float32) / 255.0
@@ -32,6 +32,9 @@ class PoolBackbone:
         if self.column:
             col = np.broadcast_to(np.arange(4, dtype=np.float32)[None, None, :, None], (b, 4, 4, 1))
             p = np.concatenate([p, col], axis=-1)
+        if self.row:
+            row = np.broadcast_to(np.arange(4, dtype=np.float32)[None, :, None, None], (b, 4, 4, 1))
+            p = np.concatenate([p, row], axis=-1)
         return p + 0.1  # keep the features away from zero (they are normalised)
 
 
@@ -68,6 +71,10 @@ def test_mirror_augmentation_changes_only_non_equivariant_features():
     np.testing.assert_allclose(fields[False, "none"], fields[False, "alternate"], atol=1e-5)
     # a backbone that encodes the image column: mirrored views get the column reversed, so the fields differ
     assert np.max(np.abs(fields[True, "none"] - fields[True, "alternate"])) > 1e-3
+    # one that encodes the image row is mirror-equivariant under a left-right flip (not under an up-down one)
+    rows = [fieldmod.evaluate_field(distill_mesh(v, f, config=_config(m), backbone=PoolBackbone(False, row=True),
+                                                 progress=False).field, v) for m in ("none", "alternate")]
+    np.testing.assert_allclose(rows[0], rows[1], atol=1e-5)
 
 
 def test_check_mesh_refuses_meshes_without_faces_or_with_nan():
@@ -85,9 +92,9 @@ def test_check_mesh_refuses_meshes_without_faces_or_with_nan():
 # ------------------------------------------------------------------------------------------------- CLI
 
 
-def _write_field(path, n_vertices: int, bbox, features: int = 8) -> None:
+def _write_field(path, n_vertices: int, n_faces: int, bbox, features: int = 8) -> None:
     f = fieldmod.new_field(features, bbox[0], bbox[1], fieldmod.FieldConfig(hidden=16, layers=2))
-    fieldmod.save_field(path, f, {"n_vertices": n_vertices, "n_faces": 0, "backbone": "test"})
+    fieldmod.save_field(path, f, {"n_vertices": n_vertices, "n_faces": n_faces, "backbone": "test"})
 
 
 @pytest.fixture()
@@ -98,7 +105,7 @@ def bar_files(tmp_path):
     mesh = tmp_path / "bar.obj"
     save_mesh(mesh, v, f)
     field = tmp_path / "bar.npz"
-    _write_field(field, v.shape[0], (v.min(0), v.max(0)))
+    _write_field(field, v.shape[0], f.shape[0], (v.min(0), v.max(0)))
     return v, f, mesh, field
 
 
@@ -120,7 +127,8 @@ def test_cli_deform_moves_the_handle_and_show_writes_a_png(bar_files, tmp_path):
     assert Image.open(png).size == (640, 480)
 
 
-@pytest.mark.parametrize("case", ["handle", "anchor", "field-size", "no-faces", "rotate-axis"])
+@pytest.mark.parametrize("case", ["handle", "anchor", "field-size", "field-faces", "no-faces", "rotate-axis",
+                                  "nan-translate", "inf-rotate", "anchor-is-handle", "npy-field"])
 def test_cli_bad_input_exits_2_with_one_sentence_and_writes_nothing(bar_files, tmp_path, capsys, case):
     from jaxdeform.cli import main
 
@@ -132,7 +140,18 @@ def test_cli_bad_input_exits_2_with_one_sentence_and_writes_nothing(bar_files, t
     elif case == "anchor":
         args += ["--anchor", "-1"]
     elif case == "field-size":
-        _write_field(field, v.shape[0] + 7, (v.min(0), v.max(0)))
+        _write_field(field, v.shape[0] + 7, f.shape[0], (v.min(0), v.max(0)))
+    elif case == "field-faces":
+        _write_field(field, v.shape[0], f.shape[0] + 2, (v.min(0), v.max(0)))
+    elif case == "nan-translate":
+        args += ["--translate", "nan", "0", "0"]
+    elif case == "inf-rotate":
+        args += ["--rotate", "x", "inf"]
+    elif case == "anchor-is-handle":
+        args += ["--anchor", "5"]
+    elif case == "npy-field":
+        np.save(tmp_path / "z.npy", np.zeros((3, 3)))
+        args[args.index(str(field))] = str(tmp_path / "z.npy")
     elif case == "no-faces":
         mesh.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\n")
     elif case == "rotate-axis":
@@ -141,7 +160,7 @@ def test_cli_bad_input_exits_2_with_one_sentence_and_writes_nothing(bar_files, t
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("jaxdeform: error: ")
     assert not out.exists()
-    if case == "field-size":
+    if case.startswith("field-"):
         assert "--remap" in err[0]
 
 
@@ -168,3 +187,24 @@ def test_experiment_test_config_writes_summary(tmp_path):
     assert summary["pose"]["fps"] > 0 and len(summary["timing"]) == 2
     assert "twisted-bar" in summary["symmetry"]
     assert (tmp_path / "results.md").is_file() and (tmp_path / "figures" / "spot.png").is_file()
+
+
+def test_cli_remap_applies_a_field_to_another_mesh_of_the_shape(bar_files, tmp_path):
+    """A field lives in space: with --remap it serves a remeshing (here Loop-subdivided) of the same shape."""
+    import igl
+
+    from jaxdeform.cli import main
+    from jaxdeform.mesh.io import load_mesh, save_mesh
+
+    v, f, mesh, field = bar_files
+    vs, fs = igl.loop(v, np.asarray(f, dtype=np.int64))
+    fine = tmp_path / "fine.obj"
+    save_mesh(fine, vs, fs)
+    out = tmp_path / "fine-moved.obj"
+    args = ["handles", "deform", str(fine), "--field", str(field), "--handle", "7", "--translate", "0.2", "0", "0",
+            "--out", str(out)]
+    assert main(args) == 2 and not out.exists()  # a different vertex count needs --remap
+    assert main(args + ["--remap"]) == 0
+    moved, _ = load_mesh(out)
+    assert moved.shape == vs.shape
+    np.testing.assert_allclose(moved[7] - vs[7], [0.2, 0, 0], atol=1e-5)

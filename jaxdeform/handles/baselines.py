@@ -47,9 +47,9 @@ indices) and the weights are solved on the tetrahedra, as the paper does with FT
 
 Pose (all kinds) is linear blend skinning in displacement form,
 ``V'_i = V_i + sum_k W_ik (D_k [V_i; 1] - V_i) = sum_k W_ik D_k [V_i; 1] + (1 - sum_k W_ik) V_i``,
-one dense product with the precomputed ``V x 4K`` matrix ``M[i, 4k + c] = W_ik [V_i; 1]_c`` (built in bind).
+computed by DFD's own :func:`jaxdeform.handles.weights.blend` (the same formula, so both methods pose alike).
 It equals plain LBS when the weights sum to one and returns the input exactly when nothing moves. The
-product is a jitted JAX function (as DFD's blend): NumPy's multithreaded OpenBLAS GEMM for this tall, thin
+product is jitted JAX: NumPy's multithreaded OpenBLAS GEMM for this tall, thin
 shape took 16 ms instead of 0.6 ms on the 2-core test machine whenever other processes were busy. It is
 compiled once per handle count at the end of :meth:`BiharmonicBaseline.bind`, outside the timed window
 (``compile_seconds``), so ``pose`` times the blend only, as for DFD.
@@ -63,14 +63,14 @@ import time
 from collections.abc import Sequence
 
 import igl
-import jax
 import jax.numpy as jnp
 import numpy as np
 import scipy.sparse as sp
-from jaxtyping import Array, Float, Int
+from jaxtyping import Float, Int
 from scipy.sparse.csgraph import connected_components
 
 from jaxdeform.errors import DegenerateMeshError, JaxDeformError, MeshFormatError
+from jaxdeform.handles.weights import blend
 from jaxdeform.mesh.topology import validate_faces
 
 #: Methods of :func:`run_baseline`: ARAP and the three weight kinds of :class:`BiharmonicBaseline`.
@@ -248,24 +248,6 @@ def tetrahedralize(
     return np.ascontiguousarray(tv, dtype=np.float64), np.ascontiguousarray(tt, dtype=np.int64)
 
 
-def lbs_matrix(vertices: Float[np.ndarray, "v 3"], weights: Float[np.ndarray, "v k"]) -> Float[np.ndarray, "v m"]:
-    """``M[i, 4k + c] = W_ik [V_i; 1]_c`` so that ``M @ stack_k(D_k^T)`` = ``sum_k W_ik D_k [V_i; 1]``."""
-    homog = np.concatenate([vertices, np.ones((vertices.shape[0], 1))], axis=1)
-    return (weights[:, :, None] * homog[:, None, :]).reshape(vertices.shape[0], -1)
-
-
-@jax.jit
-def lbs_pose(
-    vertices: Float[Array, "v 3"],
-    M: Float[Array, "v m"],
-    residual: Float[Array, " v"],
-    transforms: Float[Array, "k 3 4"],
-) -> Float[Array, "v 3"]:
-    """Displacement-form LBS: ``M @ stack(D_k^T) + (1 - sum_k W_ik) V_i`` (``residual`` = 1 - row sums)."""
-    stacked = jnp.transpose(transforms, (0, 2, 1)).reshape(-1, 3)
-    return M @ stacked + residual[:, None] * vertices
-
-
 class BiharmonicBaseline:
     """Biharmonic-type weights bound to handle vertices, posed by linear blend skinning (module docstring).
 
@@ -328,8 +310,7 @@ class BiharmonicBaseline:
         t0 = time.perf_counter()
         w = np.asarray(self._solve(b), dtype=np.float64)[: self.vertices.shape[0]]
         wh = np.ascontiguousarray(w[:, : h.size])
-        self._M = jnp.asarray(lbs_matrix(self.vertices, wh))
-        self._residual = jnp.asarray(1.0 - wh.sum(axis=1))
+        self._W = jnp.asarray(wh)
         self.timings["bind"] = time.perf_counter() - t0
         if not np.all(np.isfinite(w)):
             raise DegenerateMeshError(
@@ -338,7 +319,7 @@ class BiharmonicBaseline:
         self.handles, self.fixed, self.weights, self.fixed_weights = h, x, wh, w[:, h.size :]
         # compile the jitted blend for this handle count now (JAX overhead, not part of the method's timings)
         t0 = time.perf_counter()
-        lbs_pose(self._vertices_j, self._M, self._residual, jnp.zeros((h.size, 3, 4))).block_until_ready()
+        blend(self._vertices_j, self._W, jnp.zeros((h.size, 3, 4))).block_until_ready()
         self.compile_seconds = time.perf_counter() - t0
         return self
 
@@ -348,7 +329,7 @@ class BiharmonicBaseline:
             raise HandleError("call bind(handles) before pose(transforms).")
         d = _check_transforms(transforms, self.handles.size)
         t0 = time.perf_counter()
-        out = np.array(lbs_pose(self._vertices_j, self._M, self._residual, d), dtype=np.float64)
+        out = np.array(blend(self._vertices_j, self._W, d), dtype=np.float64)
         self.timings["pose"] = time.perf_counter() - t0
         return out
 

@@ -49,7 +49,6 @@ import json
 import math
 import os
 import time
-import zipfile
 from pathlib import Path
 from typing import NamedTuple
 
@@ -60,8 +59,8 @@ import optax
 from flax import nnx
 from jaxtyping import Array, Float, Int
 
-from jaxdeform.errors import JaxDeformError
-from jaxdeform.mesh.io import atomic_path
+from jaxdeform.errors import JaxDeformError, MeshFormatError
+from jaxdeform.mesh.io import atomic_path, read_npz_arrays
 
 FORMAT = "jaxdeform-feature-field"
 FORMAT_VERSION = 1
@@ -391,10 +390,9 @@ def load_field(path: str | os.PathLike) -> tuple[FeatureField, dict]:
     if not path.is_file():
         raise JaxDeformError(f"{path}: no such feature-field file.")
     try:
-        with np.load(path, allow_pickle=False) as z:
-            arrays = {k: z[k] for k in z.files}
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as exc:
-        raise JaxDeformError(f"{path}: not a readable feature-field archive ({type(exc).__name__}).") from None
+        arrays = read_npz_arrays(path)
+    except MeshFormatError as exc:
+        raise JaxDeformError(f"{path}: not a feature-field archive ({str(exc).split(': ', 1)[-1].rstrip('.')}).") from None
     try:
         meta = json.loads(str(arrays.pop("meta")))
         if not isinstance(meta, dict) or meta.get("format") != FORMAT:

@@ -258,9 +258,10 @@ def read_npz_arrays(path: str | os.PathLike) -> dict[str, np.ndarray]:
     if not path.is_file():
         raise FileNotFoundError(f"{path}: no such file.")
     try:
-        with np.load(path, allow_pickle=False) as data:
-            if not hasattr(data, "files"):
-                raise MeshFormatError(f"{path}: is a single .npy array, not a .npz archive.")
+        data = np.load(path, allow_pickle=False)
+        if not hasattr(data, "files"):  # a plain .npy array (np.load returns it, not an archive)
+            raise MeshFormatError(f"{path}: is a single .npy array, not a .npz archive.")
+        with data:
             return {k: np.asarray(data[k]) for k in data.files}
     except MeshFormatError:
         raise
