@@ -609,21 +609,18 @@ def cmd_handles_serve(args: argparse.Namespace) -> int:
 
     if not 0 <= args.port < 65536:
         raise ValueError(f"--port must be in 0 .. 65535, got {args.port}.")
-    vertices, faces = _load_handles_mesh(args.mesh)
-    field_fn = None
-    if args.field:
-        from jaxdeform.handles.field import evaluate_field
+    from jaxdeform.handles.field import evaluate_field
 
+    vertices, faces = _load_handles_mesh(args.mesh)
+    if args.field:
         fitted, Z = _field_features(args.field, args.mesh, vertices, faces, args.remap)
-        field_fn = lambda p: evaluate_field(fitted, p)  # noqa: E731
     else:
-        from jaxdeform.handles.field import evaluate_field
         from jaxdeform.handles.pipeline import distill_mesh
 
         print(f"no --field given: distilling {args.mesh} first (about a minute on a CPU)", file=sys.stderr)
-        result = distill_mesh(vertices, faces, progress=True)
-        Z = evaluate_field(result.field, vertices)
-        field_fn = lambda p: evaluate_field(result.field, p)  # noqa: E731
+        fitted = distill_mesh(vertices, faces, progress=True).field
+        Z = evaluate_field(fitted, vertices)
+    field_fn = lambda p: evaluate_field(fitted, p)  # noqa: E731
     server.serve(vertices, faces, Z, field_fn=field_fn, port=args.port, block=True,
                  announce=lambda url: print(f"serving {url} (Ctrl-C stops)", flush=True))
     return 0

@@ -239,30 +239,20 @@ def stage_symmetry(out: Path, data: Path, s: Settings, force: bool) -> dict:
 def _panel(vertices, faces, camera, size, *, scalar=None, caption=None, markers=()):
     from PIL import Image, ImageDraw
 
-    from jaxdeform.mesh.render import render
+    from jaxdeform.mesh.render import caption as write_caption
+    from jaxdeform.mesh.render import project, render
 
     img = render(vertices, faces, scalar=scalar, camera=camera, width=size, height=size, cmap="viridis",
                  vmin=0.0 if scalar is not None else None, vmax=1.0 if scalar is not None else None,
                  colorbar=False)  # no bar: it would narrow the viewport the markers are projected into
-    pil = Image.fromarray(img)
-    draw = ImageDraw.Draw(pil)
     if markers:
-        from jaxdeform.mesh.render import project
-
+        pil = Image.fromarray(img)
+        draw = ImageDraw.Draw(pil)
         xy, _ = project(camera, size, size, np.asarray(markers, dtype=np.float64))
         for x, y in xy:
             draw.ellipse([x - 5, y - 5, x + 5, y + 5], outline=(220, 30, 30), width=2)
-    if caption:
-        draw.text((6, 4), caption, fill=(30, 30, 30))
-    return np.asarray(pil)
-
-
-def _hstack(panels):
-    gap = np.full((panels[0].shape[0], 4, 3), 255, np.uint8)
-    out = [panels[0]]
-    for p in panels[1:]:
-        out += [gap, p]
-    return np.concatenate(out, axis=1)
+        img = np.asarray(pil)
+    return write_caption(img, caption) if caption else img
 
 
 def _up_axis(vertices) -> str:
@@ -271,7 +261,7 @@ def _up_axis(vertices) -> str:
 
 
 def stage_figures(out: Path, data: Path, s: Settings, force: bool) -> dict:
-    from jaxdeform.mesh.render import auto_camera, save_png
+    from jaxdeform.mesh.render import auto_camera, hstack, save_png
 
     figdir = out / "figures"
     figdir.mkdir(parents=True, exist_ok=True)
@@ -304,7 +294,7 @@ def stage_figures(out: Path, data: Path, s: Settings, force: bool) -> dict:
             sym = d.deform([handle], T, symmetric=True)
             panels.append(_panel(sym, f, camera, size, caption="symmetric (eq. 9)", markers=[sym[handle]]))
         path = figdir / f"{name}.png"
-        save_png(_hstack(panels), path)
+        save_png(hstack(panels), path)
         written[name] = str(path.relative_to(out))
     for name in s.survey:
         base = data / "deformation-survey"
@@ -330,7 +320,7 @@ def stage_figures(out: Path, data: Path, s: Settings, force: bool) -> dict:
             _panel(ref, f, camera, size, caption="Laplacian editing (survey)"),
         ]
         path = figdir / f"survey-{name}.png"
-        save_png(_hstack(panels), path)
+        save_png(hstack(panels), path)
         written[f"survey-{name}"] = {"figure": str(path.relative_to(out)), "rms_vs_laplacian_over_diag": err}
     return written
 

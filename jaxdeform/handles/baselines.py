@@ -67,11 +67,10 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.sparse as sp
 from jaxtyping import Float, Int
-from scipy.sparse.csgraph import connected_components
 
 from jaxdeform.errors import DegenerateMeshError, JaxDeformError, MeshFormatError
 from jaxdeform.handles.weights import blend
-from jaxdeform.mesh.topology import validate_faces
+from jaxdeform.mesh.topology import validate_faces, vertex_components
 
 #: Methods of :func:`run_baseline`: ARAP and the three weight kinds of :class:`BiharmonicBaseline`.
 METHODS = ("arap", "biharmonic", "coordinates", "bounded")
@@ -139,15 +138,6 @@ def _check_transforms(transforms, n_handles: int) -> np.ndarray:
     return d
 
 
-def _component_labels(elements: np.ndarray, n_vertices: int) -> np.ndarray:
-    """Connected-component label of every vertex of a simplex mesh (triangles or tetrahedra)."""
-    s = elements.shape[1]
-    rows = np.concatenate([elements[:, i] for i in range(s)])
-    cols = np.concatenate([elements[:, (i + 1) % s] for i in range(s)])
-    graph = sp.coo_matrix((np.ones(rows.size, dtype=np.int8), (rows, cols)), shape=(n_vertices, n_vertices))
-    return connected_components(graph, directed=False)[1]
-
-
 def _check_every_component_constrained(labels: np.ndarray, constrained: np.ndarray) -> None:
     missing = np.setdiff1d(np.unique(labels), np.unique(labels[constrained]))
     if missing.size:
@@ -183,7 +173,7 @@ class ARAPBaseline:
             raise ValueError(f"iterations must be at least 1, got {iterations}.")
         t0 = time.perf_counter()
         self.vertices, self.faces = _check_mesh(vertices, faces)
-        self._labels = _component_labels(self.faces, self.vertices.shape[0])
+        self._labels = vertex_components(self.faces, self.vertices.shape[0])[1]
         self.timings: dict[str, float] = {"preprocess": time.perf_counter() - t0}
         self.iterations = int(iterations)
         self.handles: np.ndarray | None = None
@@ -268,7 +258,7 @@ class BiharmonicBaseline:
             self._domain_v, self._domain_e = tetrahedralize(self.vertices, self.faces, tet_flags)
         else:
             self._domain_v, self._domain_e = self.vertices, self.faces
-        self._labels = _component_labels(self._domain_e, self._domain_v.shape[0])
+        self._labels = vertex_components(self._domain_e, self._domain_v.shape[0])[1]
         self._Q = None
         if kind == "biharmonic":
             L = igl.cotmatrix(self._domain_v, self._domain_e)

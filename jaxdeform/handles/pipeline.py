@@ -97,18 +97,16 @@ def distill_mesh(vertices, faces, *, config: DistillConfig = DistillConfig(), ba
     fitted, history = fieldmod.distill(cov.points, cov.view, cov.pixel_yx, patches, rendered.image_hw, fcfg,
                                        progress=progress, bbox=(v.min(axis=0), v.max(axis=0)))
     t3 = time.perf_counter()
+    # the field's bounding box and configuration are recorded by field.save_field from the field itself
     meta = {
         "n_vertices": int(v.shape[0]),
         "n_faces": int(f.shape[0]),
         "rendered_faces": int(fs.shape[0]),
-        "bbox_min": v.min(axis=0).tolist(),
-        "bbox_max": v.max(axis=0).tolist(),
         "backbone": getattr(backbone, "name", type(backbone).__name__),
         "n_views": config.n_views,
         "resolution": config.resolution,
         "mirror": config.mirror,
         "covered_pixels": int(cov.points.shape[0]),
-        "field_config": fcfg.to_dict(),
     }
     timings = {"render": t1 - t0, "features": t2 - t1, "field": t3 - t2, "total": t3 - t0}
     meta["timings"] = timings

@@ -323,6 +323,15 @@ class Session:
             raise BadRequest("no handle is selected; click the mesh to add one first.")
         return self.selected
 
+    def _toggle_anchor(self, vertex: int) -> None:
+        """Pin ``vertex`` as an anchor, or unpin it if it is one (a handle cannot be an anchor)."""
+        if vertex in self.handles:
+            raise BadRequest(f"vertex {vertex} is a handle; a handle cannot also be an anchor.")
+        if vertex in self.anchors:
+            self.anchors.remove(vertex)
+        else:
+            self.anchors.append(vertex)
+
     def _add_handle(self, vertex: int) -> int:
         if vertex in self.anchors:
             raise BadRequest(f"vertex {vertex} is an anchor; remove the anchor before making it a handle.")
@@ -466,12 +475,7 @@ class Session:
                     self.selected = handle
                     self._changed(geometry=False)
             elif action == "anchor" and vertex is not None:
-                if vertex in self.handles:
-                    raise BadRequest(f"vertex {vertex} is a handle; a handle cannot also be an anchor.")
-                if vertex in self.anchors:
-                    self.anchors.remove(vertex)
-                else:
-                    self.anchors.append(vertex)
+                self._toggle_anchor(vertex)
                 self._changed()
             return {
                 "hit": tri >= 0,
@@ -589,13 +593,7 @@ class Session:
             if action == "clear":
                 self.anchors = []
             else:
-                v = _index(body, "vertex", self.rest.shape[0], "vertex")
-                if v in self.handles:
-                    raise BadRequest(f"vertex {v} is a handle; a handle cannot also be an anchor.")
-                if v in self.anchors:
-                    self.anchors.remove(v)
-                else:
-                    self.anchors.append(v)
+                self._toggle_anchor(_index(body, "vertex", self.rest.shape[0], "vertex"))
             self._changed()
             return self.state()
 

@@ -19,10 +19,9 @@ from collections.abc import Sequence
 
 import igl
 import numpy as np
-import scipy.sparse as sp
-from scipy.sparse.csgraph import connected_components
 
 from jaxdeform.errors import ConnectivityError, DegenerateMeshError, MeshFormatError
+from jaxdeform.mesh.topology import vertex_components
 
 #: ``method="auto"`` uses the exact algorithm up to this many vertices, the heat method above.
 AUTO_EXACT_MAX_VERTICES = 5000
@@ -64,11 +63,7 @@ class _Components:
     """Connected components of the vertex graph, with each component's own (re-indexed) submesh."""
 
     def __init__(self, v: np.ndarray, f: np.ndarray):
-        n = v.shape[0]
-        rows = np.concatenate([f[:, 0], f[:, 1], f[:, 2]])
-        cols = np.concatenate([f[:, 1], f[:, 2], f[:, 0]])
-        graph = sp.coo_matrix((np.ones(rows.size, dtype=np.int8), (rows, cols)), shape=(n, n))
-        self.n_components, self.labels = connected_components(graph, directed=False)
+        self.n_components, self.labels = vertex_components(f, v.shape[0])
         self.single = self.n_components == 1
         self._v, self._f = v, f
         self._face_labels = self.labels[f[:, 0]]

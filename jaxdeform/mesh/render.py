@@ -565,6 +565,26 @@ would take more than half the width). ``camera`` defaults to :func:`auto_camera`
     return out
 
 
+def caption(image: np.ndarray, text: str) -> np.ndarray:
+    """Write ``text`` small at the top-left of a panel (dark ink on the white background)."""
+    pil = Image.fromarray(image)
+    draw = ImageDraw.Draw(pil)
+    draw.text((6, 4), text, fill=(40, 40, 40))
+    return np.asarray(pil)
+
+
+def hstack(panels: list[np.ndarray], gap: int = 4) -> np.ndarray:
+    """Panels of one height side by side, separated by ``gap`` white columns."""
+    h = panels[0].shape[0]
+    sep = np.full((h, gap, 3), 255, dtype=np.uint8)
+    parts: list[np.ndarray] = []
+    for i, p in enumerate(panels):
+        if i:
+            parts.append(sep)
+        parts.append(p)
+    return np.concatenate(parts, axis=1)
+
+
 def save_png(image, path) -> Path:
     """Write an (H, W, 3) or (H, W) uint8 image as PNG atomically (temporary file + rename); returns the path."""
     img = np.asarray(image)

@@ -79,6 +79,21 @@ def validate_faces(faces: np.ndarray, n_vertices: int | None = None) -> tuple[np
     return faces, n
 
 
+def vertex_components(elements: np.ndarray, n_vertices: int) -> tuple[int, np.ndarray]:
+    """(number, per-vertex label) of the connected components of the vertex graph of a simplex mesh: triangles
+    (F, 3) or tetrahedra (T, 4); a vertex in no element is a component of its own."""
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    e = np.asarray(elements)
+    s = e.shape[1]
+    rows = np.concatenate([e[:, i] for i in range(s)])
+    cols = np.concatenate([e[:, (i + 1) % s] for i in range(s)])
+    graph = coo_matrix((np.ones(rows.size, dtype=np.int8), (rows, cols)), shape=(n_vertices, n_vertices))
+    count, labels = connected_components(graph, directed=False)
+    return int(count), labels
+
+
 def build_topology(faces: np.ndarray, n_vertices: int | None = None) -> Topology:
     """Build the :class:`Topology` of a triangle mesh on the host (numpy), once per connectivity."""
     faces, n = validate_faces(faces, n_vertices)

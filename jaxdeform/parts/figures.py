@@ -14,10 +14,9 @@ has the same colour in every figure; negative labels (unassigned vertices) are d
 from __future__ import annotations
 
 import numpy as np
-from PIL import Image, ImageDraw
 
 from jaxdeform.errors import MeshFormatError
-from jaxdeform.mesh.render import VIEWS, auto_camera, categorical_colors, render, save_png, view_angles
+from jaxdeform.mesh.render import VIEWS, auto_camera, caption, categorical_colors, hstack, render, save_png, view_angles
 
 #: Colour of vertices with a negative (unassigned) label.
 UNASSIGNED = (0.6, 0.6, 0.6)
@@ -57,25 +56,6 @@ def label_colors(labels, n_vertices: int) -> np.ndarray:
     return out
 
 
-def _caption(image: np.ndarray, text: str) -> np.ndarray:
-    """Write ``text`` small at the top-left of a panel (dark ink on the white background)."""
-    pil = Image.fromarray(image)
-    draw = ImageDraw.Draw(pil)
-    draw.text((6, 4), text, fill=(40, 40, 40))
-    return np.asarray(pil)
-
-
-def _hstack(panels: list[np.ndarray], gap: int = 4) -> np.ndarray:
-    h = panels[0].shape[0]
-    sep = np.full((h, gap, 3), 255, dtype=np.uint8)
-    parts: list[np.ndarray] = []
-    for i, p in enumerate(panels):
-        if i:
-            parts.append(sep)
-        parts.append(p)
-    return np.concatenate(parts, axis=1)
-
-
 def segmentation_figure(
     vertices,
     faces,
@@ -106,8 +86,8 @@ def segmentation_figure(
         cam = auto_camera(v, azimuth_deg=az, elevation_deg=el, up_axis=up_axis)
         img = render(v, faces, vertex_colors=colours, camera=cam, width=width, height=height, shading=shading,
                      background=_BACKGROUND)
-        panels.append(_caption(img, _view_name(view)) if captions else img)
-    image = _hstack(panels)
+        panels.append(caption(img, _view_name(view)) if captions else img)
+    image = hstack(panels)
     save_png(image, path)
     return image
 
@@ -180,8 +160,8 @@ def strip_figure(
     for t in range(0, x.shape[0], step):
         img = render(x[t], faces, vertex_colors=colours, camera=cam, width=width, height=height,
                      background=_BACKGROUND)
-        panels.append(_caption(img, str(t)) if captions else img)
-    image = _hstack(panels, gap=2)
+        panels.append(caption(img, str(t)) if captions else img)
+    image = hstack(panels, gap=2)
     save_png(image, path)
     return image
 
