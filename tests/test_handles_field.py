@@ -126,7 +126,7 @@ def analytic_views():
 
 def test_distill_analytic_features(analytic_views):
     v, f, centre, cov, patch = analytic_views
-    cfg = FieldConfig(steps=300, batch_size=512, seed=3)
+    cfg = FieldConfig(steps=300, batch_size=512, seed=3, jitter=0.0)  # plain eq. (3), on the surface only
     before = fieldmod.TRACE_COUNT["train_step"]
     fld, hist = distill(cov.points, cov.view, cov.pixel_yx, patch, (48, 48), cfg, progress=False,
                         bbox=(v.min(axis=0), v.max(axis=0)))
@@ -143,6 +143,18 @@ def test_distill_analytic_features(analytic_views):
     zp /= np.linalg.norm(zp, axis=1, keepdims=True)
     full = np.mean(np.sum((evaluate_field(fld, cov.points) - zp) ** 2, axis=1))
     assert full < 0.01
+
+
+def test_jitter_is_checked_and_changes_only_the_samples(analytic_views):
+    """The jitter offsets the sampled points (same pixel draws, same targets): 0 reproduces plain eq. (3)."""
+    v, f, centre, cov, patch = analytic_views
+    with pytest.raises(ValueError, match="jitter"):
+        FieldConfig(jitter=-0.1)
+    runs = {j: distill(cov.points, cov.view, cov.pixel_yx, patch, (48, 48),
+                       FieldConfig(hidden=32, steps=5, batch_size=256, seed=2, jitter=j), progress=False)[1].loss
+            for j in (0.0, 0.0, 0.05)}
+    assert runs[0.0][0] == pytest.approx(runs[0.05][0], rel=0.2)  # step 0: same draws, slightly moved points
+    assert not np.array_equal(runs[0.0], runs[0.05])
 
 
 def test_distill_deterministic_and_compiled_once(analytic_views):

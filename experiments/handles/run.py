@@ -110,7 +110,8 @@ def distilled(out: Path, name: str, vertices, faces, s: Settings, force: bool):
     path = out / "fields" / f"{name}.npz"
     if path.is_file() and not force:
         field, meta = fieldmod.load_field(path)
-        if meta.get("n_vertices") == vertices.shape[0] and meta.get("n_views") == s.distill.n_views:
+        if (meta.get("n_vertices") == vertices.shape[0] and meta.get("n_views") == s.distill.n_views
+                and meta.get("config") == s.distill.field_config().to_dict()):
             return field, meta
     print(f"distilling {name} ({vertices.shape[0]} vertices, {faces.shape[0]} faces)", flush=True)
     result = distill_mesh(vertices, faces, config=s.distill, progress=True)
