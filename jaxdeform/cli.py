@@ -1,6 +1,6 @@
 """Command-line interface: ``jaxdeform acap encode|decode``, ``jaxdeform parts fit|interpolate|show``,
-``jaxdeform components train|evaluate|show|edit``, ``jaxdeform handles distill|deform|show|serve`` and
-``jaxdeform render``.
+``jaxdeform components train|evaluate|show|edit``, ``jaxdeform handles distill|deform|show|serve``,
+``jaxdeform cloth simulate|train|synthesize|evaluate`` and ``jaxdeform render``.
 
 Every expected failure (a :class:`~jaxdeform.errors.JaxDeformError`, a ``ValueError`` from bad arguments, a
 missing file or another ``OSError``) prints exactly one line ``jaxdeform: error: <sentence>`` to stderr and
@@ -51,6 +51,17 @@ def _writing(path: Path):
         if exc.strerror is None:
             raise
         raise OSError(f"cannot write {path}: {exc.strerror}.") from None
+
+
+def _steps_seed(cfg, args: argparse.Namespace):
+    """``cfg`` (a frozen dataclass with ``steps`` and ``seed``) with the --steps / --seed given, checked."""
+    from dataclasses import replace
+
+    if args.steps is not None:
+        if args.steps < 1:
+            raise ValueError(f"--steps must be positive, got {args.steps}.")
+        cfg = replace(cfg, steps=args.steps)
+    return cfg if args.seed is None else replace(cfg, seed=args.seed)
 
 
 def _check_out_folder(out: Path, force: bool) -> None:
@@ -499,8 +510,6 @@ def _backbone(name: str | None):
 
 
 def cmd_handles_distill(args: argparse.Namespace) -> int:
-    from dataclasses import replace
-
     from jaxdeform.handles.field import FieldConfig, save_field
     from jaxdeform.handles.pipeline import DistillConfig, distill_mesh
 
@@ -510,13 +519,7 @@ def cmd_handles_distill(args: argparse.Namespace) -> int:
         raise IsADirectoryError(f"--out {out} is a folder; give the path of the field file to write.")
     if args.views < 1 or args.resolution < 14:
         raise ValueError(f"--views must be >= 1 and --resolution >= 14, got {args.views} and {args.resolution}.")
-    fcfg = FieldConfig()
-    if args.steps is not None:
-        if args.steps < 1:
-            raise ValueError(f"--steps must be positive, got {args.steps}.")
-        fcfg = replace(fcfg, steps=args.steps)
-    if args.seed is not None:
-        fcfg = replace(fcfg, seed=args.seed)
+    fcfg = _steps_seed(FieldConfig(), args)
     config = DistillConfig(n_views=args.views, resolution=args.resolution, field=fcfg)
     result = distill_mesh(vertices, faces, config=config, backbone=_backbone(args.backbone), progress=not args.quiet)
     with _writing(out):
@@ -623,6 +626,107 @@ def cmd_handles_serve(args: argparse.Namespace) -> int:
     field_fn = lambda p: evaluate_field(fitted, p)  # noqa: E731
     server.serve(vertices, faces, Z, field_fn=field_fn, port=args.port, block=True,
                  announce=lambda url: print(f"serving {url} (Ctrl-C stops)", flush=True))
+    return 0
+
+
+
+# --------------------------------------------------------------------------------------------- cloth
+
+
+def cmd_cloth_simulate(args: argparse.Namespace) -> int:
+    from jaxdeform.cloth.run import generate
+
+    out = Path(args.out)
+    _check_out_folder(out, args.force)
+    if args.sequences < 2 or (args.frames is not None and args.frames < 2):
+        raise ValueError(f"--sequences and --frames must be at least 2, got {args.sequences} and {args.frames}.")
+    with _staged_folder(out) as tmp:
+        record = generate(args.scenario, tmp, n_sequences=args.sequences, n_frames=args.frames, seed=args.seed,
+                          progress=not args.quiet)
+    pen = record["penetration"]
+    print(f"simulated {args.sequences} {args.scenario} sequences of {record['frames_per_sequence']} frames "
+          f"(coarse {record['vertices']['coarse']} / fine {record['vertices']['fine']} vertices); max obstacle "
+          f"penetration {100 * pen['coarse_max_over_edge']:.2f}% / {100 * pen['fine_max_over_edge']:.2f}% of the mean "
+          f"edge; wrote {out}")
+    return 0
+
+
+def _cloth_configs(args: argparse.Namespace):
+    from dataclasses import replace
+
+    from jaxdeform.cloth.model import ModelConfig
+    from jaxdeform.cloth.train import TrainConfig
+
+    mcfg = ModelConfig(kind=args.model)
+    if args.seed is not None:
+        mcfg = replace(mcfg, seed=args.seed)
+    return mcfg, _steps_seed(TrainConfig(), args)
+
+
+def cmd_cloth_train(args: argparse.Namespace) -> int:
+    from jaxdeform.cloth import data as cdata
+    from jaxdeform.cloth.run import save_run, train_run
+
+    out = Path(args.out)
+    _check_out_folder(out, args.force)
+    ds = cdata.load_dataset(args.data)
+    mcfg, tcfg = _cloth_configs(args)
+    run = train_run(ds, representation=args.representation, model_cfg=mcfg, train_cfg=tcfg, progress=not args.quiet,
+                    residual=args.residual)
+    with _staged_folder(out) as tmp:
+        save_run(run, tmp)
+    print(f"trained a {args.model} on {len(ds.subset('train'))} {ds.scenario} sequences ({args.representation}) in "
+          f"{run.record['train_seconds']:.1f} s, final loss {run.record['final_loss']:.5f}; wrote {out}")
+    return 0
+
+
+def cmd_cloth_synthesize(args: argparse.Namespace) -> int:
+    from jaxdeform.cloth import data as cdata
+    from jaxdeform.cloth.run import load_run, synthesize_timed
+    from jaxdeform.mesh.io import save_sequence
+
+    run = load_run(args.run)
+    out = Path(args.out)
+    _check_out_folder(out, args.force)
+    src = Path(args.coarse)
+    if src.is_file():
+        seq, shared = cdata.read_sequence(src)
+        seqs = [seq]
+    else:
+        ds = cdata.load_dataset(src)
+        seqs = ds.subset(args.split) if args.split else ds.sequences
+        shared = {"coarse_faces": ds.coarse_faces, "coarse_rest": ds.coarse_rest}
+    faces = np.asarray(shared["coarse_faces"], np.int64)
+    if faces.shape != run.rep.coarse_faces.shape or not np.array_equal(faces, run.rep.coarse_faces):
+        raise ConnectivityError(f"{src}: its coarse mesh differs from the one the run was trained on.")
+    with _staged_folder(out) as tmp:
+        for s in seqs:
+            fine, timing = synthesize_timed(run, s.coarse, s.obstacles, refine=not args.no_refine, pins=s.pins)
+            save_sequence(tmp / s.name, fine, run.rep.fine_faces)
+    print(f"synthesised {len(seqs)} fine sequence(s) of {run.rep.fine_rest.shape[0]} vertices; wrote {out}")
+    return 0
+
+
+def cmd_cloth_evaluate(args: argparse.Namespace) -> int:
+    import json
+
+    from jaxdeform.cloth import data as cdata
+    from jaxdeform.cloth.run import evaluate_run, load_run
+    from jaxdeform.mesh.io import atomic_path
+
+    run = load_run(args.run)
+    ds = cdata.load_dataset(args.data)
+    if not np.array_equal(ds.fine_faces, run.rep.fine_faces) or not np.array_equal(ds.coarse_faces, run.rep.coarse_faces):
+        raise ConnectivityError(f"{args.data}: its meshes differ from the ones the run was trained on.")
+    if "split" in run.record and Path(run.record.get("dataset", "")) == Path(args.data).resolve():
+        ds.split = run.record["split"]
+    res = evaluate_run(run, ds, progress=not args.quiet)
+    out = Path(args.json)
+    with _writing(out), atomic_path(out) as tmp:
+        tmp.write_text(json.dumps(res, indent=1) + "\n")
+    t = res["test"]
+    print(f"test: rmse {t['rmse']:.5f} m, hausdorff {t['hausdorff']:.5f} m, sted {t['sted']:.4f} "
+          f"(upsampled coarse rmse {res['upsampled_coarse']['test']['rmse']:.5f}); wrote {out}")
     return 0
 
 
@@ -803,6 +907,48 @@ def build_parser() -> argparse.ArgumentParser:
     hserve.add_argument("--port", type=int, default=8765, metavar="P", help="port on 127.0.0.1 (default 8765)")
     hserve.set_defaults(func=cmd_handles_serve)
 
+    cloth = sub.add_parser("cloth", help="Coarse-to-fine cloth detail synthesis (seed 002): simulate, train, synthesize, evaluate.",
+                           description="Paired cloth simulation data, TS-ACAP features and the DeformTransformer.")
+    cloth_sub = cloth.add_subparsers(dest="cloth_command", metavar="ACTION", required=True)
+    csim = cloth_sub.add_parser("simulate", help="Simulate paired coarse/fine sequences of a scenario.",
+                                description="SHEET (81 / 4225 vertices) or DISK (148 / 7741) sequences, simulated separately.")
+    csim.add_argument("--scenario", required=True, choices=("sheet", "disk"))
+    csim.add_argument("--out", "-o", required=True, metavar="DIR", help="dataset folder to write")
+    csim.add_argument("--sequences", type=int, default=10, metavar="N", help="sequences (default 10)")
+    csim.add_argument("--frames", type=int, metavar="T", help="frames per sequence (default 150)")
+    csim.add_argument("--seed", type=int, default=0, metavar="S")
+    csim.add_argument("--force", action="store_true", help="replace a non-empty --out")
+    csim.add_argument("--quiet", action="store_true", help="no progress bars")
+    csim.set_defaults(func=cmd_cloth_simulate)
+    ctr = cloth_sub.add_parser("train", help="Train a detail model on a dataset's training split.",
+                               description="TS-ACAP features of both resolutions -> DeformTransformer (teacher forcing).")
+    ctr.add_argument("data", metavar="DATA", help="dataset folder written by 'cloth simulate'")
+    ctr.add_argument("--out", "-o", required=True, metavar="RUN", help="run folder to write")
+    ctr.add_argument("--model", default="transformer", choices=("transformer", "lstm", "none"))
+    ctr.add_argument("--representation", default="ts-acap", choices=("ts-acap", "acap", "coords"))
+    ctr.add_argument("--residual", action="store_true",
+                     help="learn the fine features as a residual over the Loop-upsampled coarse cloth's")
+    ctr.add_argument("--steps", type=int, metavar="N", help="training steps (default: the TrainConfig's)")
+    ctr.add_argument("--seed", type=int, metavar="S")
+    ctr.add_argument("--force", action="store_true", help="replace a non-empty --out")
+    ctr.add_argument("--quiet", action="store_true", help="no progress bars")
+    ctr.set_defaults(func=cmd_cloth_train)
+    csyn = cloth_sub.add_parser("synthesize", help="Fine cloth from coarse sequences with a trained run.",
+                                description="Writes one .npz sequence (vertices, faces) per coarse sequence.")
+    csyn.add_argument("run", metavar="RUN")
+    csyn.add_argument("--coarse", required=True, metavar="DIR|SEQ", help="dataset folder or one sequence file")
+    csyn.add_argument("--split", choices=("train", "test"), help="only this split of a dataset folder")
+    csyn.add_argument("--out", "-o", required=True, metavar="DIR")
+    csyn.add_argument("--no-refine", action="store_true", help="skip the collision refinement")
+    csyn.add_argument("--force", action="store_true", help="replace a non-empty --out")
+    csyn.set_defaults(func=cmd_cloth_synthesize)
+    cev = cloth_sub.add_parser("evaluate", help="RMSE, Hausdorff and STED on the test split against the fine simulation.",
+                               description="Also reports the upsampled-coarse baseline.")
+    cev.add_argument("run", metavar="RUN")
+    cev.add_argument("--data", required=True, metavar="DATA")
+    cev.add_argument("--json", required=True, metavar="OUT.json")
+    cev.add_argument("--quiet", action="store_true", help="no progress bars")
+    cev.set_defaults(func=cmd_cloth_evaluate)
     ren = sub.add_parser("render", help="Render a mesh to PNG, optionally coloured by a per-vertex scalar.",
                          description="Ray-cast a mesh to a PNG image (CPU, Embree).")
     ren.add_argument("mesh", metavar="MESH", help="mesh file (.obj, .ply, .off, or a one-frame .npz)")

@@ -56,7 +56,6 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-import json
 import math
 import os
 import time
@@ -70,8 +69,8 @@ import optax
 from flax import nnx
 from jaxtyping import Array, Float, Int
 
-from jaxdeform.errors import JaxDeformError, MeshFormatError
-from jaxdeform.mesh.io import atomic_path, read_npz_arrays
+from jaxdeform.errors import JaxDeformError
+from jaxdeform.nn.archive import RecordConfig, load_state, read_archive, save_module
 
 FORMAT = "jaxdeform-feature-field"
 FORMAT_VERSION = 1
@@ -81,7 +80,7 @@ TRACE_COUNT = {"train_step": 0}
 
 
 @dataclasses.dataclass(frozen=True)
-class FieldConfig:
+class FieldConfig(RecordConfig):
     """Architecture and training of the feature field (defaults: App. J / the public code, see the module)."""
 
     hidden: int = 256
@@ -103,17 +102,6 @@ class FieldConfig:
             raise ValueError("learning_rate must be > 0, steps >= 0 and batch_size >= 1.")
         if not self.jitter >= 0:
             raise ValueError(f"jitter must be >= 0, got {self.jitter}.")
-
-    def to_dict(self) -> dict:
-        return dataclasses.asdict(self)
-
-    @classmethod
-    def from_dict(cls, d: dict) -> FieldConfig:
-        names = {f.name for f in dataclasses.fields(cls)}
-        unknown = set(d) - names
-        if unknown:
-            raise ValueError(f"unknown field configuration keys: {', '.join(sorted(unknown))}.")
-        return cls(**d)
 
 
 class Buffer(nnx.Variable):
@@ -373,11 +361,6 @@ def evaluate_field(field: FeatureField, points, batch: int = 65536) -> Float[np.
 _REQUIRED_META = ("n_vertices", "n_faces", "backbone")
 
 
-def _flat_state(field: FeatureField) -> dict[str, np.ndarray]:
-    leaves = jax.tree_util.tree_flatten_with_path(nnx.state(field))[0]
-    return {jax.tree_util.keystr(path): np.asarray(leaf) for path, leaf in leaves}
-
-
 def save_field(path: str | os.PathLike, field: FeatureField, meta: dict) -> Path:
     """Write the field and ``meta`` (must hold n_vertices, n_faces and backbone; JSON-serialisable) atomically.
 
@@ -394,47 +377,17 @@ def save_field(path: str | os.PathLike, field: FeatureField, meta: dict) -> Path
         bbox=[np.asarray(field.bbox_min[...]).tolist(), np.asarray(field.bbox_max[...]).tolist()],
         config=field.config.to_dict(),
     )
-    try:
-        text = json.dumps(record)
-    except TypeError as exc:
-        raise ValueError(f"meta must be JSON-serialisable ({exc}).") from None
-    arrays = {"param:" + k: v for k, v in _flat_state(field).items()}
-    path = Path(path)
-    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
-        np.savez(fh, meta=np.asarray(text), **arrays)
-    return path
+    return save_module(path, field, record, key="meta")
 
 
 def load_field(path: str | os.PathLike) -> tuple[FeatureField, dict]:
     """Read a field written by :func:`save_field`: (field, meta). Any other file raises JaxDeformError."""
-    path = Path(path)
-    if not path.is_file():
-        raise JaxDeformError(f"{path}: no such feature-field file.")
+    meta, arrays = read_archive(path, "feature-field", FORMAT, FORMAT_VERSION, key="meta")
     try:
-        arrays = read_npz_arrays(path)
-    except MeshFormatError as exc:
-        raise JaxDeformError(f"{path}: not a feature-field archive ({str(exc).split(': ', 1)[-1].rstrip('.')}).") from None
-    try:
-        meta = json.loads(str(arrays.pop("meta")))
-        if not isinstance(meta, dict) or meta.get("format") != FORMAT:
-            raise ValueError("format")
-        if meta.get("version") != FORMAT_VERSION:
-            raise JaxDeformError(f"{path}: feature-field format version {meta.get('version')} is not supported.")
         config = FieldConfig.from_dict(meta["config"])
         lo, hi = meta["bbox"]
         field = new_field(int(meta["features"]), lo, hi, config)
-    except JaxDeformError:
-        raise
     except (KeyError, ValueError, TypeError) as exc:
         raise JaxDeformError(f"{path}: not a jaxdeform feature-field file ({type(exc).__name__}: {exc}).") from None
-    state = nnx.state(field)
-    leaves, treedef = jax.tree_util.tree_flatten_with_path(state)
-    new = []
-    for key_path, leaf in leaves:
-        name = "param:" + jax.tree_util.keystr(key_path)
-        arr = arrays.get(name)
-        if arr is None or arr.shape != np.shape(leaf) or not np.all(np.isfinite(arr)):
-            raise JaxDeformError(f"{path}: the parameter {name[6:]} is missing, misshapen or not finite.")
-        new.append(jnp.asarray(arr, dtype=leaf.dtype))
-    nnx.update(field, jax.tree_util.tree_unflatten(treedef, new))
+    load_state(path, field, arrays)
     return field, meta

@@ -1,0 +1,269 @@
+"""Seed 002 experiments: Tables 1, 2, 4 and 5 on generated SHEET and DISK data, and PNG strips.
+
+    python -m experiments.cloth.run [--config default|test] [--out DIR] [--datasets sheet disk]
+                                    [--stages data train evaluate timing figures] [--force]
+
+Stages (each dataset in turn; results merge into OUT/summary.json, markdown into OUT/results.md):
+- ``data``: simulate the paired dataset (``jaxdeform.cloth.run.generate``; cached in OUT/data/KIND unless
+  ``--force``), recording the obstacle penetration and the coarse / fine simulation time per frame.
+- ``train``: the methods of Tables 2, 4 and 5 on the training split, one run folder each in OUT/runs/KIND/NAME:
+  ``ours`` (DeformTransformer on TS-ACAP), ``ours_residual`` (the same predicting the TS-ACAP residual over the
+  Loop-upsampled coarse cloth, see ``jaxdeform.cloth.features``), ``no_temporal`` (encoder-decoder, no temporal module), ``lstm``
+  (an LSTM in place of the transformer), ``acap`` (the transformer on plain per-frame ACAP), ``coords`` (the
+  transformer on vertex coordinates).
+- ``evaluate``: RMSE, Hausdorff and STED of every method and of the Loop-upsampled coarse simulation on the
+  test sequences (never seen in training); the largest frame-to-frame feature change of TS-ACAP and ACAP.
+- ``timing``: Table 1: per frame, the coarse simulation, TS-ACAP extraction, synthesis, reconstruction and
+  refinement against the fine simulation of the same scenario: the first test scenario is simulated again at
+  both resolutions (30 frames, compilation excluded) and our pipeline runs on its coarse frames after a
+  warm-up call, all in this process.
+- ``figures``: strips coarse (upsampled) | ours | fine simulation | error colour map for a few test frames.
+
+``--config test`` runs everything in about a minute on tiny datasets (3 short sequences, one Loop level from
+coarse to fine, few steps), for CI.
+"""
+
+from __future__ import annotations
+
+import argparse
+import dataclasses
+import json
+import os
+import platform
+import time
+from pathlib import Path
+
+import numpy as np
+
+from jaxdeform.cloth import data as cdata
+from jaxdeform.cloth import evaluate as ceval
+from jaxdeform.cloth import features as cfeat
+from jaxdeform.cloth import run as crun
+from jaxdeform.mesh.io import atomic_path
+
+METHODS = {  # name -> (model kind, representation, residual over the upsampled coarse features)
+    "ours": ("transformer", "ts-acap", False),
+    "ours_residual": ("transformer", "ts-acap", True),
+    "no_temporal": ("none", "ts-acap", False),
+    "lstm": ("lstm", "ts-acap", False),
+    "acap": ("transformer", "acap", False),
+    "coords": ("transformer", "coords", False),
+}
+
+
+@dataclasses.dataclass(frozen=True)
+class Settings:
+    sequences: int
+    frames: int | None
+    steps: int
+    batch: int
+    figure_frames: int
+    size: int
+    timing_frames: int
+    levels: int = 3  # Loop levels coarse -> fine
+
+
+def settings(config: str) -> Settings:
+    if config == "test":
+        return Settings(sequences=3, frames=8, steps=5, batch=4, figure_frames=1, size=96, timing_frames=4,
+                        levels=1)
+    return Settings(sequences=10, frames=100, steps=1000, batch=8, figure_frames=3, size=320, timing_frames=30)
+
+
+def stage_data(out: Path, kind: str, s: Settings, force: bool) -> dict:
+    root = out / "data" / kind
+    if (root / "dataset.json").is_file() and not force:
+        return json.loads((root / "dataset.json").read_text())
+    t0 = time.perf_counter()
+    record = crun.generate(kind, root, n_sequences=s.sequences, n_frames=s.frames, progress=True, levels=s.levels)
+    record["wall_seconds"] = time.perf_counter() - t0
+    return record
+
+
+def _features(ds, kind, residual, cache):
+    if (kind, residual) not in cache:
+        cache[kind, residual] = cfeat.fit_representation(kind, ds, [x.name for x in ds.subset("train")],
+                                                         progress=True, residual=residual)
+    return cache[kind, residual]
+
+
+def stage_train(out: Path, ds, s: Settings, force: bool, cache: dict) -> dict:
+    from jaxdeform.cloth.model import ModelConfig
+    from jaxdeform.cloth.train import TrainConfig
+
+    res = {}
+    for name, (model_kind, rep_kind, residual) in METHODS.items():
+        root = out / "runs" / ds.scenario / name
+        if (root / "run.json").is_file() and not force:
+            res[name] = json.loads((root / "run.json").read_text())
+            continue
+        print(f"training {name} ({model_kind}, {rep_kind}) on {ds.scenario}", flush=True)
+        run = crun.train_run(ds, representation=rep_kind, model_cfg=ModelConfig(kind=model_kind),
+                             train_cfg=TrainConfig(steps=s.steps, batch_size=s.batch),
+                             features=_features(ds, rep_kind, residual, cache))
+        crun.save_run(run, root)
+        res[name] = run.record
+    return {n: {k: r[k] for k in ("final_loss", "train_seconds", "compile_seconds")} for n, r in res.items()}
+
+
+def stage_evaluate(out: Path, ds, cache: dict) -> dict:
+    test = ds.subset("test")
+    ups = ceval.Upsampler(ds.coarse_faces, ds.coarse_rest.shape[0], ds.fine_faces)
+    methods = {"upsampled_coarse": ceval.pool([ceval.sequence_errors(x.fine, ups(x.coarse), ds.fine_faces)
+                                               for x in test])}
+    for name in METHODS:
+        run = crun.load_run(out / "runs" / ds.scenario / name)
+        per = []
+        for x in test:
+            fine, _ = crun.synthesize_timed(run, x.coarse, x.obstacles, pins=x.pins)
+            per.append(ceval.sequence_errors(x.fine, fine, ds.fine_faces))
+        methods[name] = ceval.pool(per)
+        print(f"{ds.scenario} {name}: rmse {methods[name]['rmse']:.5f} sted {methods[name]['sted']:.4f}", flush=True)
+    jumps = {}
+    for kind in ("ts-acap", "acap"):
+        raw = [cfeat.encode_sequence(kind, ds.fine_rest, ds.fine_faces, x.fine) for x in ds.sequences]
+        jumps[kind] = max(cfeat.largest_frame_change(r) for r in raw)
+    return {"methods": methods, "largest_frame_change_fine": jumps,
+            "test_sequences": [x.name for x in test]}
+
+
+def stage_timing(out: Path, ds, s: Settings) -> dict:
+    """Table 1: re-simulate a test scenario (coarse and fine) and run our pipeline on its coarse frames, now."""
+    from jaxdeform.cloth import scenarios
+
+    run = crun.load_run(out / "runs" / ds.scenario / "ours")
+    meta = ds.subset("test")[0].meta
+    sc = scenarios.scenario(ds.scenario, int(meta["index"]), seed=int(meta.get("seed", 0)), n_frames=s.timing_frames,
+                            n_sequences=len(ds.sequences), levels=int(meta.get("levels", 3)))
+    pair = scenarios.simulate_pair(sc, progress=False)  # seconds per frame exclude compilation
+    coarse, obstacles = pair["coarse"], pair["obstacles"]
+    pins = {k: pair[k] for k in cdata.PINS if k in pair}
+    crun.synthesize_timed(run, coarse, obstacles, pins=pins)  # warm-up: compile every stage for this length
+    _, t = crun.synthesize_timed(run, coarse, obstacles, pins=pins)
+    coarse_sim = float(pair["coarse_seconds_per_frame"])
+    fine_sim = float(pair["fine_seconds_per_frame"])
+    ours = coarse_sim + t["extraction"] + t["synthesis"] + t["reconstruction"] + t["refinement"]
+    return {"coarse_simulation": coarse_sim, "extraction": t["extraction"], "synthesis": t["synthesis"],
+            "reconstruction": t["reconstruction"], "refinement": t["refinement"], "ours_total": ours,
+            "fine_simulation": fine_sim, "speedup": fine_sim / ours, "refined_frames": t["refined_frames"],
+            "frames": int(coarse.shape[0]), "scenario": sc.meta.get("index")}
+
+
+def stage_figures(out: Path, ds, s: Settings) -> list[str]:
+    from jaxdeform.mesh.render import auto_camera, caption, hstack, render, save_png
+
+    run = crun.load_run(out / "runs" / ds.scenario / "ours")
+    ups = ceval.Upsampler(ds.coarse_faces, ds.coarse_rest.shape[0], ds.fine_faces)
+    x = ds.subset("test")[0]
+    fine, _ = crun.synthesize_timed(run, x.coarse, x.obstacles, pins=x.pins)
+    coarse_up = ups(x.coarse)
+    n = x.coarse.shape[0]
+    frames = np.linspace(n // 4, n - 1, s.figure_frames).astype(int)
+    paths = []
+    f = ds.fine_faces
+    for t in frames:
+        cam = auto_camera(np.concatenate([x.fine[t], fine[t], coarse_up[t]]), azimuth_deg=35, elevation_deg=25)
+        err = np.linalg.norm(fine[t] - x.fine[t], axis=1)
+        vmax = float(max(np.linalg.norm(coarse_up[t] - x.fine[t], axis=1).max(), err.max(), 1e-6))
+        size = s.size
+        panels = [
+            caption(render(coarse_up[t], f, camera=cam, width=size, height=size, colorbar=False), "coarse (upsampled)"),
+            caption(render(fine[t], f, camera=cam, width=size, height=size, colorbar=False), "ours"),
+            caption(render(x.fine[t], f, camera=cam, width=size, height=size, colorbar=False), "fine simulation"),
+            caption(render(fine[t], f, scalar=err, camera=cam, width=size + 90, height=size, vmin=0.0, vmax=vmax,
+                           cmap="viridis", label="m"), "error of ours"),
+        ]
+        path = out / f"strip_{ds.scenario}_{x.name.removesuffix('.npz')}_f{t:03d}.png"
+        save_png(hstack(panels), path)
+        paths.append(path.name)
+    return paths
+
+
+def markdown(summary: dict) -> str:
+    lines = [f"# Seed 002 results ({summary.get('machine', '')})", ""]
+    for kind, r in summary.get("datasets", {}).items():
+        d = r.get("data", {})
+        lines += [f"## {kind.upper()}", ""]
+        if d:
+            v = d.get("vertices", {})
+            pen = d.get("penetration", {})
+            lines += [f"{len(d.get('sequences', []))} sequences x {d.get('frames_per_sequence')} frames; coarse "
+                      f"{v.get('coarse')} / fine {v.get('fine')} vertices; max obstacle penetration "
+                      f"{100 * pen.get('coarse_max_over_edge', float('nan')):.3f}% (coarse) / "
+                      f"{100 * pen.get('fine_max_over_edge', float('nan')):.3f}% (fine) of the mean edge length.", ""]
+        ev = r.get("evaluate")
+        if ev:
+            lines += ["| method | RMSE (m) | Hausdorff (m) | STED |", "|---|---|---|---|"]
+            for name, m in ev["methods"].items():
+                lines.append(f"| {name} | {m['rmse']:.5f} | {m['hausdorff']:.5f} | {m['sted']:.4f} |")
+            j = ev["largest_frame_change_fine"]
+            lines += ["", f"Largest frame-to-frame change of the fine features: TS-ACAP {j['ts-acap']:.3f}, "
+                          f"ACAP {j['acap']:.3f}.", ""]
+        tm = r.get("timing")
+        if tm:
+            lines += ["| coarse sim | TS-ACAP extraction | synthesis | reconstruction | refinement | ours total | "
+                      "fine sim | speedup |", "|---|---|---|---|---|---|---|---|",
+                      f"| {tm['coarse_simulation'] * 1e3:.1f} ms | {tm['extraction'] * 1e3:.1f} ms | "
+                      f"{tm['synthesis'] * 1e3:.1f} ms | {tm['reconstruction'] * 1e3:.1f} ms | "
+                      f"{tm['refinement'] * 1e3:.1f} ms | {tm['ours_total'] * 1e3:.1f} ms | "
+                      f"{tm['fine_simulation'] * 1e3:.1f} ms | {tm['speedup']:.1f}x |", ""]
+    return "\n".join(lines) + "\n"
+
+
+def _merge(path: Path, summary: dict, kind: str, r: dict) -> dict:
+    """Write this dataset's record into summary.json as it is NOW on disk (another process may run another
+    dataset at the same time); returns the merged summary."""
+    current = json.loads(path.read_text()) if path.is_file() else {}
+    current.update({k: v for k, v in summary.items() if k != "datasets"})
+    current.setdefault("datasets", {})[kind] = r
+    with atomic_path(path) as tmp:
+        tmp.write_text(json.dumps(current, indent=1, default=float) + "\n")
+    return current
+
+
+def main(argv=None) -> int:
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("--config", choices=("default", "test"), default="default")
+    ap.add_argument("--out")
+    ap.add_argument("--datasets", nargs="+", default=["sheet", "disk"], choices=["sheet", "disk"])
+    ap.add_argument("--stages", nargs="+", default=["data", "train", "evaluate", "timing", "figures"],
+                    choices=["data", "train", "evaluate", "timing", "figures"])
+    ap.add_argument("--force", action="store_true", help="redo cached data and runs")
+    args = ap.parse_args(argv)
+    root = Path(__file__).resolve().parent
+    out = Path(args.out) if args.out else (root / "results" if args.config == "default"
+                                          else Path("out/experiments/cloth-test"))
+    out.mkdir(parents=True, exist_ok=True)
+    s = settings(args.config)
+    path = out / "summary.json"
+    summary = json.loads(path.read_text()) if path.is_file() else {}
+    summary["machine"] = f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, CPU only"
+    summary["config"] = args.config
+    for kind in args.datasets:
+        r = summary.setdefault("datasets", {}).setdefault(kind, {})
+        if "data" in args.stages or not (out / "data" / kind / "dataset.json").is_file():
+            r["data"] = stage_data(out, kind, s, args.force)
+        ds = cdata.load_dataset(out / "data" / kind)
+        cache: dict = {}
+        if "train" in args.stages:
+            r["train"] = stage_train(out, ds, s, args.force, cache)
+        if "evaluate" in args.stages:
+            r["evaluate"] = stage_evaluate(out, ds, cache)
+            m = r["evaluate"]["methods"]
+            r["rmse"] = {k: v["rmse"] for k, v in m.items()}
+            r["hausdorff"] = {k: v["hausdorff"] for k, v in m.items()}
+            r["sted"] = {k: v["sted"] for k, v in m.items()}
+        if "timing" in args.stages:
+            r["timing"] = stage_timing(out, ds, s)
+            r["speedup"] = r["timing"]["speedup"]
+        if "figures" in args.stages:
+            r["figures"] = stage_figures(out, ds, s)
+        summary = _merge(path, summary, kind, r)
+    with atomic_path(out / "results.md") as tmp:
+        tmp.write_text(markdown(summary))
+    print(f"wrote {path} and {out / 'results.md'}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -1,0 +1,1 @@
+"""Seed 002: paired coarse/fine cloth simulation, DeformTransformer detail synthesis, collision refinement."""

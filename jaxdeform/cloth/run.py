@@ -1,0 +1,269 @@
+"""Seed 002 end to end: generate paired data, train a detail model, synthesise fine cloth, evaluate, time.
+
+A RUN folder holds ``model.npz`` (:func:`jaxdeform.cloth.train.save_model`), ``representation.npz`` (the
+representation kind, rest meshes and feature scalings fitted on the training sequences) and ``run.json``
+(the dataset it was trained on, its split, the configurations and the training record). Files are written
+atomically and ``run.json`` last.
+
+Synthesis of a coarse sequence (Fig. 2): coarse frames -> representation (TS-ACAP by default, scaled) ->
+autoregressive model -> fine features -> positions (ACAP least squares, placed on the coarse centroid) ->
+collision refinement against the scenario's obstacles (:mod:`jaxdeform.cloth.refine`, margin = the
+simulation's cloth thickness). :func:`synthesize_timed` reports the seconds per frame of each stage.
+"""
+
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+
+import jax
+import numpy as np
+from tqdm.auto import tqdm
+
+from jaxdeform.cloth import data as cdata
+from jaxdeform.cloth import evaluate as ceval
+from jaxdeform.cloth import features as cfeat
+from jaxdeform.cloth.refine import Refiner
+from jaxdeform.errors import JaxDeformError
+from jaxdeform.mesh.io import atomic_path, read_npz_arrays
+from jaxdeform.mesh.topology import build_topology
+
+RUN_FORMAT = "jaxdeform-cloth-run"
+
+
+# ------------------------------------------------------------------------------------------------ data
+
+
+def generate(kind: str, out: str | Path, n_sequences: int = 10, n_frames: int | None = None, seed: int = 0,
+             progress: bool = True, levels: int = 3) -> dict:
+    """Simulate ``n_sequences`` paired sequences of a scenario into ``out``; returns the dataset index record.
+
+    ``levels``: Loop levels from the coarse to the fine mesh (3: the paper's SHEET / DISK sizes).
+    """
+    from jaxdeform.cloth import scenarios
+
+    if n_sequences < 2:
+        raise JaxDeformError("a dataset needs at least 2 sequences (one to train on, one to test).")
+    out = Path(out)
+    names, pen_c, pen_f, t_c, t_f, edge_c, edge_f = [], [], [], [], [], [], []
+    frames = n_frames or scenarios.N_FRAMES
+    for i in tqdm(range(n_sequences), desc=f"simulate {kind}", unit="seq", disable=not progress):
+        sc = scenarios.scenario(kind, i, seed=seed, n_frames=frames, n_sequences=n_sequences, levels=levels)
+        pair = scenarios.simulate_pair(sc, progress=False)
+        name = f"seq_{i:03d}.npz"
+        cdata.write_sequence(out / name, pair)
+        names.append(name)
+        m = pair["meta"]
+        pen_c.append(m["coarse_max_penetration"])
+        pen_f.append(m["fine_max_penetration"])
+        t_c.append(m["coarse_seconds_per_frame"])
+        t_f.append(m["fine_seconds_per_frame"])
+        edge_c.append(_mean_edge(pair["coarse_rest"], pair["coarse_faces"]))
+        edge_f.append(_mean_edge(pair["fine_rest"], pair["fine_faces"]))
+    ec, ef = float(np.mean(edge_c)), float(np.mean(edge_f))
+    info = {
+        "frames_per_sequence": frames, "seed": seed,
+        "vertices": {"coarse": int(pair["coarse"].shape[1]), "fine": int(pair["fine"].shape[1])},
+        "penetration": {"coarse_max_m": float(max(pen_c)), "fine_max_m": float(max(pen_f)),
+                        "coarse_mean_edge_m": ec, "fine_mean_edge_m": ef,
+                        "coarse_max_over_edge": float(max(pen_c)) / ec, "fine_max_over_edge": float(max(pen_f)) / ef},
+        "timing": {"coarse_seconds_per_frame": float(np.median(t_c)), "fine_seconds_per_frame": float(np.median(t_f))},
+    }
+    cdata.write_index(out, kind, names, **info)
+    return json.loads((out / "dataset.json").read_text())
+
+
+def _mean_edge(v, f) -> float:
+    from jaxdeform.mesh.topology import unique_edges
+
+    e = unique_edges(np.asarray(f, np.int64))
+    v = np.asarray(v, np.float64)
+    return float(np.linalg.norm(v[e[:, 0]] - v[e[:, 1]], axis=1).mean())
+
+
+# ------------------------------------------------------------------------------------------------ runs
+
+
+@dataclass
+class Run:
+    """A trained detail model with its representation and record."""
+
+    model: object
+    rep: cfeat.Representation
+    record: dict
+    root: Path | None = None
+
+    @property
+    def kind(self) -> str:
+        return self.model.config.kind
+
+
+def check_training_data(ds: cdata.ClothDataset, window: int) -> None:
+    if len(ds.subset("train")) < 1:
+        raise JaxDeformError(f"{ds.root}: the training split is empty.")
+    lengths = [s.coarse.shape[0] for s in ds.subset("train")]
+    if max(lengths) < window:
+        raise JaxDeformError(f"{ds.root}: no training sequence has the {window} frames of one training window.")
+
+
+def train_run(data: str | Path | cdata.ClothDataset, *, representation: str = "ts-acap", model_cfg=None,
+              train_cfg=None, progress: bool = True, features: tuple | None = None, residual: bool = False) -> Run:
+    """Train a detail model on the dataset's training split; ``features`` = a cached fit_representation result."""
+    from jaxdeform.cloth import model as cmodel
+    from jaxdeform.cloth import train as ctrain
+
+    ds = data if isinstance(data, cdata.ClothDataset) else cdata.load_dataset(data)
+    mcfg = model_cfg or cmodel.ModelConfig()
+    check_training_data(ds, mcfg.window)
+    train_names = [s.name for s in ds.subset("train")]
+    rep, scaled = features or cfeat.fit_representation(representation, ds, train_names, progress=progress,
+                                                       residual=residual)
+    if mcfg.in_channels != rep.channels:
+        import dataclasses
+
+        mcfg = dataclasses.replace(mcfg, in_channels=rep.channels)
+    tcfg = train_cfg or ctrain.TrainConfig()
+    ct = build_topology(ds.coarse_faces, ds.coarse_rest.shape[0])
+    ft = build_topology(ds.fine_faces, ds.fine_rest.shape[0])
+    model, hist = ctrain.train(mcfg, tcfg, ct, ft, [scaled[n][0] for n in train_names],
+                               [scaled[n][1] for n in train_names], progress=progress)
+    record = {"format": RUN_FORMAT, "dataset": str(Path(ds.root).resolve()), "scenario": ds.scenario,
+              "split": ds.split, "representation": rep.kind, "residual": rep.residual, "model": mcfg.to_dict(), "train": _asdict(tcfg),
+              "final_loss": float(np.mean(hist.loss[-50:])) if len(hist.loss) else None,
+              "train_seconds": float(hist.seconds), "compile_seconds": float(hist.compile_seconds),
+              "thickness": _thickness(ds)}
+    return Run(model, rep, record)
+
+
+def _asdict(cfg) -> dict:
+    import dataclasses
+
+    return dataclasses.asdict(cfg)
+
+
+def _thickness(ds: cdata.ClothDataset) -> float:
+    params = ds.sequences[0].meta.get("params", {})
+    return float(params.get("thickness", 0.005))
+
+
+def save_run(run: Run, root: str | Path) -> Path:
+    from jaxdeform.cloth import train as ctrain
+
+    root = Path(root)
+    root.mkdir(parents=True, exist_ok=True)
+    ctrain.save_model(root / "model.npz", run.model, {"representation": run.rep.kind})
+    with atomic_path(root / "representation.npz") as tmp, open(tmp, "wb") as fh:
+        np.savez(fh, **run.rep.to_arrays())
+    with atomic_path(root / "run.json") as tmp:
+        tmp.write_text(json.dumps(run.record, indent=1) + "\n")
+    run.root = root
+    return root
+
+
+def load_run(root: str | Path) -> Run:
+    from jaxdeform.cloth import train as ctrain
+
+    root = Path(root)
+    path = root / "run.json"
+    if not path.is_file():
+        raise JaxDeformError(f"{root}: not a cloth run (no run.json).")
+    try:
+        record = json.loads(path.read_text())
+    except json.JSONDecodeError:
+        raise JaxDeformError(f"{path}: not valid JSON.") from None
+    if record.get("format") != RUN_FORMAT:
+        raise JaxDeformError(f"{path}: not a jaxdeform cloth run record.")
+    model, _ = ctrain.load_model(root / "model.npz")
+    rep = cfeat.Representation.from_arrays(read_npz_arrays(root / "representation.npz"))
+    return Run(model, rep, record, root)
+
+
+# ------------------------------------------------------------------------------------------- synthesis
+
+
+def obstacle_sdf(obstacles: dict, t: int):
+    """Host-side signed distance of the obstacles at frame ``t`` of a stored track (for the refinement)."""
+    from jaxdeform.cloth import obstacles as obst
+
+    if not obstacles:
+        return None
+    frame = obst.Obstacles(**{k: np.asarray(obstacles[k])[t] for k in obst.Obstacles._fields})
+    fn = _sdf_jit()
+
+    def sdf(x):
+        d, n = fn(frame, np.asarray(x, np.float32))
+        return np.asarray(d, np.float64), np.asarray(n, np.float64)
+
+    return sdf
+
+
+_SDF = {}
+
+
+def _sdf_jit():
+    if "fn" not in _SDF:
+        from jaxdeform.cloth import obstacles as obst
+
+        _SDF["fn"] = jax.jit(obst.signed_distance)
+    return _SDF["fn"]
+
+
+def synthesize_timed(run: Run, coarse: np.ndarray, obstacles: dict | None = None, refine: bool = True,
+                     pins: dict | None = None) -> tuple[np.ndarray, dict]:
+    """Fine frames (T, Vf, 3) from coarse frames (T, Vc, 3), and seconds per frame of each stage.
+
+    ``obstacles``: the scenario's obstacle track (for the refinement); ``pins``: its fixed vertices
+    (``Sequence.pins``: fine_pins, fine_pin_positions) that anchor the reconstruction.
+    """
+    from jaxdeform.cloth import train as ctrain
+
+    coarse = np.asarray(coarse, np.float32)
+    n = coarse.shape[0]
+    t0 = time.perf_counter()
+    fc = run.rep.encode("coarse", coarse)
+    base = run.rep.base(coarse) if run.rep.residual else None
+    t1 = time.perf_counter()
+    ff = np.asarray(jax.block_until_ready(ctrain.synthesize(run.model, fc)))
+    t2 = time.perf_counter()
+    pins = pins or {}
+    fine = run.rep.decode_fine(ff, coarse, base=base, pins=pins.get("fine_pins"),
+                               pin_positions=pins.get("fine_pin_positions"))
+    t3 = time.perf_counter()
+    refined = 0
+    if refine and obstacles:
+        refiner = _refiner(run)
+        margin = float(run.record.get("thickness", 0.005))
+        out = np.empty_like(fine)
+        for t in range(n):
+            p, st = refiner(fine[t], obstacle_sdf(obstacles, t), margin)
+            out[t] = p
+            refined += st.iterations > 0
+        fine = out
+    t4 = time.perf_counter()
+    timing = {"extraction": (t1 - t0) / n, "synthesis": (t2 - t1) / n, "reconstruction": (t3 - t2) / n,
+              "refinement": (t4 - t3) / n, "refined_frames": refined}
+    return fine, timing
+
+
+_REFINERS: dict = {}
+
+
+def _refiner(run: Run) -> Refiner:
+    key = id(run.rep.fine_faces)
+    if key not in _REFINERS:
+        _REFINERS[key] = Refiner(run.rep.fine_faces, run.rep.fine_rest.shape[0])
+    return _REFINERS[key]
+
+
+def evaluate_run(run: Run, ds: cdata.ClothDataset, part: str = "test", refine: bool = True,
+                 progress: bool = True) -> dict:
+    """Errors of the run's synthesis and of the upsampled coarse baseline on a split of a dataset."""
+    ups = ceval.Upsampler(ds.coarse_faces, ds.coarse_rest.shape[0], ds.fine_faces)
+    ours, coarse = [], []
+    for s in tqdm(ds.subset(part), desc=f"evaluate {part}", unit="seq", disable=not progress):
+        fine, _ = synthesize_timed(run, s.coarse, s.obstacles, refine=refine, pins=s.pins)
+        ours.append(ceval.sequence_errors(s.fine, fine, ds.fine_faces))
+        coarse.append(ceval.sequence_errors(s.fine, ups(s.coarse), ds.fine_faces))
+    return {part: ceval.pool(ours), "upsampled_coarse": {part: ceval.pool(coarse)}}

@@ -1,0 +1,375 @@
+"""Training, autoregressive synthesis and persistence of the seed-002 detail model (:mod:`jaxdeform.cloth.model`).
+
+Training windows (paper Sec. 4: 3 input frames). A window of W consecutive frames s..s+W-1 of one sequence
+gives the coarse input ``coarse[s..s+W-1]``, the target ``fine[s..s+W-1]`` and the teacher-forced decoder
+input ``fine[s-1..s+W-2]`` (the ground truth shifted right by one frame; an all-zero frame stands for
+``fine[-1]``). Windows never cross a sequence boundary; every start s = 0..T-W of every sequence is one
+window. Each step draws ``batch_size`` windows uniformly with replacement from
+``jax.random.fold_in(PRNGKey(seed), step)``, so a run is a deterministic function of the seed.
+
+Loss: mean squared error over all features of the W target frames (paper: "minimizing the mean squared
+error between predicted detailed features and the ground-truth"). Optimiser: Adam, learning rate 1e-3,
+optionally decayed exponentially, lr(t) = lr0 * decay_rate^(t / decay_steps) (off by default: decay_rate 1).
+The whole step (batch gather, forward, backward, Adam) is one ``jax.jit`` program, compiled once per run
+(its first call is reported apart as compile time).
+
+Autoregressive synthesis (paper Fig. 5: "during testing, these [fine] features are initialized to zeros,
+and once a new high-resolution frame is generated, its TS-ACAP feature is added"). For frame t the window
+starts at s = max(t - W + 1, 0) and frame t is read at window position t - s:
+
+- t >= W - 1: the window is coarse frames t-W+1..t and the model's own fine frames t-W..t-1 (last position);
+- t < W - 1: the first window, coarse frames 0..W-1, fine input (zeros, fine_0, ..., fine_{t-1}), read at
+  position t. This is exactly the layout of the training windows that start at frame 0 (no padding frames
+  the model never saw); the price is that the first W - 1 frames see up to W - 1 - t coarse frames ahead.
+
+A sequence shorter than W is padded at the end by repeating its last coarse frame (only the first T outputs
+are returned). Coarse latents of all frames are computed once; the scan carries the fine *latents* of the
+frames produced so far (T + 1, latent), so each frame costs one fine decode, one fine encode and one small
+temporal pass. The whole synthesis is one jitted function with ``lax.scan`` over frames; sequences of equal
+length reuse one compilation. Kind "none" has no recurrence: frames are decoded in chunks, independently.
+
+:func:`predict_windows` is the jitted teacher-forced forward pass (evaluation of windows, tests).
+
+Persistence: :func:`save_model` writes one .npz (parameters, the padded one-rings of both meshes, the JSON
+configuration and caller metadata) atomically; :func:`load_model` rebuilds the model from it alone.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import functools
+import os
+import time
+from collections import Counter
+from pathlib import Path
+from typing import NamedTuple, Sequence
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+import optax
+from flax import nnx
+from jaxtyping import Array, Float, Int
+
+from jaxdeform.cloth.model import DetailModel, ModelConfig, new_model
+from jaxdeform.errors import JaxDeformError
+from jaxdeform.nn import native
+from jaxdeform.nn.archive import load_state, read_archive, save_module
+from jaxdeform.nn.graph_conv import Rings
+
+FORMAT = "jaxdeform-cloth-model"
+FORMAT_VERSION = 1
+TRACE_COUNT: Counter = Counter()  # Python traces of the jitted train step and synthesis (tests check retracing)
+
+
+@dataclasses.dataclass(frozen=True)
+class TrainConfig:
+    """Optimisation of :func:`train` (paper: Adam; lr 1e-3 as in the brief; the rest are our defaults)."""
+
+    steps: int = 3000
+    batch_size: int = 16  # windows per step
+    learning_rate: float = 1e-3
+    decay_rate: float = 1.0  # lr multiplied by this every decay_steps (1.0: constant)
+    decay_steps: int = 1000
+    seed: int = 0  # batch sampling (parameters come from ModelConfig.seed)
+    log_every: int = 50  # progress-bar refresh interval (steps)
+
+    def __post_init__(self):
+        for name in ("steps", "batch_size", "decay_steps", "log_every"):
+            if int(getattr(self, name)) < 1:
+                raise ValueError(f"training {name} must be a positive integer, got {getattr(self, name)!r}.")
+        if not (self.learning_rate > 0 and np.isfinite(self.learning_rate)):
+            raise ValueError(f"the learning rate must be a positive number, got {self.learning_rate}.")
+        if not 0 < self.decay_rate <= 1:
+            raise ValueError(f"decay_rate must lie in (0, 1], got {self.decay_rate}.")
+
+    def to_dict(self) -> dict:
+        return dataclasses.asdict(self)
+
+
+class History(NamedTuple):
+    """Training record: loss of every step, wall time, compile time (first step) and mean step time."""
+
+    loss: np.ndarray  # (steps,) float32, MSE of the step's batch before its update
+    seconds: float  # whole optimisation, compilation included
+    compile_seconds: float  # first step: tracing + compilation + one step
+    step_seconds: float  # mean time of the later steps
+
+
+# ------------------------------------------------------------------------------------------- windows
+
+
+@dataclasses.dataclass(frozen=True)
+class Windows:
+    """All training windows of a set of paired sequences (see the module docstring).
+
+    ``coarse`` / ``fine`` hold the sequences one after another, each preceded by one all-zero frame;
+    ``starts[m]`` is the row of window m's first target frame in them.
+    """
+
+    coarse: Float[Array, "n vc c"]
+    fine: Float[Array, "n vf c"]
+    starts: Int[Array, " m"]
+    window: int
+
+    @property
+    def count(self) -> int:
+        return int(self.starts.shape[0])
+
+
+def _as_sequences(seqs, what: str) -> list[np.ndarray]:
+    if isinstance(seqs, np.ndarray) or isinstance(seqs, jax.Array):
+        seqs = [seqs]
+    out = []
+    for i, s in enumerate(seqs):
+        a = np.asarray(s, dtype=np.float32)
+        if a.ndim != 3:
+            raise ValueError(f"{what} sequence {i} must be a (T, V, C) array, got shape {a.shape}.")
+        if not np.all(np.isfinite(a)):
+            raise ValueError(f"{what} sequence {i} holds NaN or infinite values.")
+        out.append(a)
+    if not out:
+        raise ValueError(f"no {what} sequences were given.")
+    if len({a.shape[1:] for a in out}) != 1:
+        raise ValueError(f"{what} sequences differ in vertex or channel count: {sorted({a.shape[1:] for a in out})}.")
+    return out
+
+
+def windows(coarse_seqs: Sequence, fine_seqs: Sequence, window: int) -> Windows:
+    """Every window of ``window`` consecutive frames of every paired (coarse, fine) sequence (module docstring).
+
+    Sequences shorter than the window give no window; if none gives one, ValueError.
+    """
+    cs, fs = _as_sequences(coarse_seqs, "coarse"), _as_sequences(fine_seqs, "fine")
+    if len(cs) != len(fs):
+        raise ValueError(f"{len(cs)} coarse sequences but {len(fs)} fine sequences were given.")
+    if cs[0].shape[2] != fs[0].shape[2]:
+        raise ValueError(f"coarse features have {cs[0].shape[2]} channels but fine ones {fs[0].shape[2]}.")
+    for i, (c, f) in enumerate(zip(cs, fs)):
+        if c.shape[0] != f.shape[0]:
+            raise ValueError(f"sequence {i} has {c.shape[0]} coarse frames but {f.shape[0]} fine frames.")
+    w = int(window)
+    if w < 1:
+        raise ValueError(f"the window must be at least 1 frame, got {window}.")
+    starts, row = [], 0
+    for c in cs:
+        t = c.shape[0]
+        starts.append(row + 1 + np.arange(max(t - w + 1, 0)))
+        row += t + 1
+    starts = np.concatenate(starts).astype(np.int32)
+    if starts.size == 0:
+        raise ValueError(f"no sequence has the {w} frames one training window needs.")
+
+    def stack(seqs):
+        zero = np.zeros((1,) + seqs[0].shape[1:], np.float32)
+        return jnp.asarray(np.concatenate([x for s in seqs for x in (zero, s)]))
+
+    return Windows(stack(cs), stack(fs), jnp.asarray(starts), w)
+
+
+def gather_windows(
+    coarse: Float[Array, "n vc c"], fine: Float[Array, "n vf c"], starts: Int[Array, " b"], window: int
+) -> tuple[Float[Array, "b w vc c"], Float[Array, "b w vf c"], Float[Array, "b w vf c"]]:
+    """(coarse window, teacher-forced fine input, fine target) of the windows starting at rows ``starts``."""
+    idx = starts[:, None] + jnp.arange(window)[None, :]
+    return coarse[idx], fine[idx - 1], fine[idx]
+
+
+# ------------------------------------------------------------------------------------------ training
+
+
+def _tx(lr: float, decay_rate: float, decay_steps: int) -> optax.GradientTransformation:
+    if decay_rate < 1.0:
+        return optax.adam(optax.exponential_decay(lr, decay_steps, decay_rate))
+    return optax.adam(lr)
+
+
+@functools.cache
+def _train_step(graphdef, window: int, batch: int, lr: float, decay_rate: float, decay_steps: int):
+    """The jitted training step for one model structure and optimiser (cached: no retrace across runs)."""
+    tx = _tx(lr, decay_rate, decay_steps)
+
+    def step(params, rest, opt_state, coarse, fine, starts, key, t):
+        TRACE_COUNT["train_step"] += 1
+        sel = jax.random.randint(jax.random.fold_in(key, t), (batch,), 0, starts.shape[0])
+        cw, fp, ft = gather_windows(coarse, fine, starts[sel], window)
+
+        def loss_fn(p):
+            model = nnx.merge(graphdef, p, rest)
+            model.train()
+            pred = model(cw, fp)
+            return jnp.mean(jnp.square(pred - ft)), nnx.state(model, nnx.Not(nnx.Param))
+
+        (loss, new_rest), grads = jax.value_and_grad(loss_fn, has_aux=True)(params)
+        updates, opt_state = tx.update(grads, opt_state, params)
+        return optax.apply_updates(params, updates), new_rest, opt_state, loss
+
+    return jax.jit(step, donate_argnums=(0, 2), compiler_options=native.compiler_options())
+
+
+def train(
+    model_cfg: ModelConfig,
+    train_cfg: TrainConfig,
+    coarse_topo,
+    fine_topo,
+    coarse_seqs: Sequence,
+    fine_seqs: Sequence,
+    progress: bool = True,
+    *,
+    model: DetailModel | None = None,
+) -> tuple[DetailModel, History]:
+    """Fit a :class:`DetailModel` to paired scaled feature sequences with teacher forcing (module docstring).
+
+    ``coarse_topo`` / ``fine_topo``: Topology (or Rings) of the two meshes; ``coarse_seqs[i]`` (T_i, Vc, C)
+    and ``fine_seqs[i]`` (T_i, Vf, C) are frame-aligned. ``model`` continues training an existing model of the
+    same configuration instead of a fresh one. Returns (model, history).
+    """
+    win = windows(coarse_seqs, fine_seqs, model_cfg.window)
+    nc, nf = int(np.shape(coarse_topo.degree)[0]), int(np.shape(fine_topo.degree)[0])
+    if win.coarse.shape[1:] != (nc, model_cfg.in_channels):
+        raise ValueError(f"coarse features must be (T, {nc}, {model_cfg.in_channels}), got (T, {win.coarse.shape[1]}, "
+                         f"{win.coarse.shape[2]}).")
+    if win.fine.shape[1:] != (nf, model_cfg.in_channels):
+        raise ValueError(f"fine features must be (T, {nf}, {model_cfg.in_channels}), got (T, {win.fine.shape[1]}, "
+                         f"{win.fine.shape[2]}).")
+    if model is None:
+        model = new_model(coarse_topo, fine_topo, model_cfg)
+    elif model.config != model_cfg:
+        raise ValueError("the model to continue was built with another configuration than model_cfg.")
+    graphdef, params, rest = nnx.split(model, nnx.Param, ...)
+    tc = train_cfg
+    opt_state = _tx(tc.learning_rate, tc.decay_rate, tc.decay_steps).init(params)
+    step_fn = _train_step(graphdef, win.window, int(tc.batch_size), float(tc.learning_rate), float(tc.decay_rate),
+                          int(tc.decay_steps))
+    key = jax.random.PRNGKey(tc.seed)
+
+    from tqdm.auto import tqdm
+
+    losses = []
+    t0 = time.perf_counter()
+    compile_s = 0.0
+    with tqdm(total=tc.steps, desc=f"train {model_cfg.kind}", unit="step", disable=not progress) as bar:
+        for t in range(tc.steps):
+            params, rest, opt_state, loss = step_fn(params, rest, opt_state, win.coarse, win.fine, win.starts, key,
+                                                    jnp.int32(t))
+            losses.append(loss)
+            if t == 0:
+                loss.block_until_ready()
+                compile_s = time.perf_counter() - t0
+            if (t + 1) % tc.log_every == 0 or t + 1 == tc.steps:
+                bar.set_postfix(loss=f"{float(jnp.mean(jnp.stack(losses[-tc.log_every:]))):.5f}")
+                bar.update((t + 1) - bar.n)
+    loss_arr = np.asarray(jnp.stack(losses), dtype=np.float32)
+    seconds = time.perf_counter() - t0
+    nnx.update(model, params, rest)
+    model.eval()
+    step_s = (seconds - compile_s) / max(tc.steps - 1, 1)
+    return model, History(loss_arr, seconds, compile_s, step_s)
+
+
+# ----------------------------------------------------------------------------------------- synthesis
+
+
+@functools.cache
+def _predict_fn(graphdef):
+    def run(state, coarse_win, fine_prev_win):
+        TRACE_COUNT["predict"] += 1
+        model = nnx.merge(graphdef, state)
+        model.eval()
+        return model(coarse_win, fine_prev_win)
+
+    return jax.jit(run, compiler_options=native.compiler_options())
+
+
+def predict_windows(
+    model: DetailModel, coarse_win: Float[Array, "b w vc c"], fine_prev_win: Float[Array, "b w vf c"] | None = None
+) -> Float[Array, "b w vf c"]:
+    """Teacher-forced prediction ``model(coarse_win, fine_prev_win)``, jitted (one compilation per shape)."""
+    graphdef, state = nnx.split(model)
+    if fine_prev_win is None:
+        if model.config.kind != "none":
+            raise ValueError(f"a {model.config.kind} model needs the previous fine frames.")
+        fine_prev_win = jnp.zeros(coarse_win.shape[:2] + (model.n_fine, model.config.in_channels), jnp.float32)
+    return _predict_fn(graphdef)(state, jnp.asarray(coarse_win, jnp.float32), jnp.asarray(fine_prev_win, jnp.float32))
+
+
+@functools.cache
+def _synthesize_fn(graphdef, chunk: int):
+    """The jitted synthesis for one model structure (cached; one compilation per sequence length)."""
+
+    def run(state, coarse):
+        TRACE_COUNT["synthesize"] += 1
+        model = nnx.merge(graphdef, state)
+        model.eval()
+        cfg = model.config
+        w, t_len = cfg.window, coarse.shape[0]
+        zc = model.encode_coarse(coarse)  # (T, L): all coarse frames at once (the coarse mesh is small)
+        if cfg.kind == "none":
+            zf = model.temporal(zc[None], None)[0]
+            n = -(-t_len // chunk)
+            zf = jnp.pad(zf, ((0, n * chunk - t_len), (0, 0))).reshape(n, chunk, -1)
+            out = jax.lax.map(model.decode_fine, zf)  # (n, chunk, Vf, C): chunks in sequence, frames batched
+            return out.reshape((n * chunk,) + out.shape[2:])[:t_len]
+        if t_len < w:  # repeat the last coarse frame (module docstring)
+            zc = jnp.concatenate([zc, jnp.repeat(zc[-1:], w - t_len, axis=0)])
+        t_pad = zc.shape[0]
+        z0 = model.encode_fine(jnp.zeros((1, model.n_fine, cfg.in_channels), coarse.dtype))[0]
+        hist = jnp.zeros((t_pad + 1, zc.shape[1]), zc.dtype).at[0].set(z0)  # hist[j]: latent of fine frame j-1
+
+        def frame(hist, t):
+            s = jnp.maximum(t - w + 1, 0)
+            zc_win = jax.lax.dynamic_slice_in_dim(zc, s, w)
+            zp_win = jax.lax.dynamic_slice_in_dim(hist, s, w)  # fine frames s-1 .. s+w-2 (later ones unused)
+            z = jax.lax.dynamic_index_in_dim(model.temporal(zc_win[None], zp_win[None])[0], t - s, keepdims=True)
+            y = model.decode_fine(z)  # (1, Vf, C)
+            hist = jax.lax.dynamic_update_index_in_dim(hist, model.encode_fine(y)[0], t + 1, 0)
+            return hist, y[0]
+
+        _, ys = jax.lax.scan(frame, hist, jnp.arange(t_len))
+        return ys
+
+    return jax.jit(run, compiler_options=native.compiler_options())
+
+
+def synthesize(model: DetailModel, coarse_seq: Float[Array, "t vc c"], *, chunk: int = 32) -> Float[Array, "t vf c"]:
+    """Fine feature sequence (T, Vf, C) from a scaled coarse one (T, Vc, C), autoregressively (module docstring).
+
+    ``chunk``: frames decoded together by the no-temporal model (memory bound only).
+    """
+    x = jnp.asarray(coarse_seq, dtype=jnp.float32)
+    cfg = model.config
+    if x.ndim != 3 or x.shape[1:] != (model.n_coarse, cfg.in_channels) or x.shape[0] < 1:
+        raise ValueError(f"the coarse sequence must be (T >= 1, {model.n_coarse}, {cfg.in_channels}), got shape "
+                         f"{tuple(x.shape)}.")
+    graphdef, state = nnx.split(model)
+    return _synthesize_fn(graphdef, int(chunk))(state, x)
+
+
+# --------------------------------------------------------------------------------------- persistence
+
+
+def _rings_of(model: DetailModel) -> tuple[Rings, Rings]:
+    return model.coarse_encoder.rings.get(), model.fine_decoder.rings.get()
+
+
+def save_model(path: str | os.PathLike, model: DetailModel, meta: dict | None = None) -> Path:
+    """Write the model (parameters, both meshes' one-rings, configuration) and JSON ``meta`` atomically."""
+    record = {"format": FORMAT, "version": FORMAT_VERSION, "config": model.config.to_dict(),
+              "n_coarse": model.n_coarse, "n_fine": model.n_fine, "meta": dict(meta or {})}
+    rings = {f"rings:{name}:{field}": np.asarray(arr)
+             for name, r in zip(("coarse", "fine"), _rings_of(model)) for field, arr in r._asdict().items()}
+    return save_module(path, model, record, nnx.Param, extra=rings)
+
+
+def load_model(path: str | os.PathLike) -> tuple[DetailModel, dict]:
+    """Read a model written by :func:`save_model`: (model, meta). Any other file raises JaxDeformError."""
+    record, arrays = read_archive(path, "cloth model", FORMAT, FORMAT_VERSION)
+    try:
+        config = ModelConfig.from_dict(record["config"])
+        rings = [Rings(*(arrays[f"rings:{name}:{f}"] for f in Rings._fields)) for name in ("coarse", "fine")]
+        model = new_model(rings[0], rings[1], config)
+    except (KeyError, ValueError, TypeError) as exc:
+        raise JaxDeformError(f"{path}: not a jaxdeform cloth model file ({type(exc).__name__}: {exc}).") from None
+    load_state(path, model, arrays, nnx.Param)
+    model.eval()
+    return model, dict(record.get("meta", {}))

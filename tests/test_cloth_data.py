@@ -1,0 +1,201 @@
+"""Cloth dataset files, representations (TS-ACAP / ACAP / coordinates), collision refinement and errors."""
+
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from jaxdeform.cloth import data as cdata
+from jaxdeform.cloth import evaluate as ceval
+from jaxdeform.cloth import features as cfeat
+from jaxdeform.cloth.refine import Refiner
+from jaxdeform.errors import ConnectivityError, MeshFormatError
+
+igl = pytest.importorskip("igl")
+
+
+def grid(n: int = 5, size: float = 1.0):
+    x, z = np.meshgrid(np.linspace(0, size, n), np.linspace(0, size, n))
+    v = np.c_[x.ravel(), np.zeros(n * n), z.ravel()]
+    f = []
+    for i in range(n - 1):
+        for j in range(n - 1):
+            a = i * n + j
+            f += [[a, a + n, a + 1], [a + 1, a + n, a + n + 1]]
+    return v, np.array(f, np.int64)
+
+
+def pair(t=4, n=5, seed=0, fine_frames=None):
+    rng = np.random.default_rng(seed)
+    cv, cf = grid(n)
+    fv, ff = igl.loop(cv, cf)
+    return {"coarse": cv[None] + 0.01 * rng.standard_normal((t, len(cv), 3)),
+            "fine": fv[None] + 0.01 * rng.standard_normal((fine_frames or t, len(fv), 3)),
+            "coarse_rest": cv, "fine_rest": fv, "coarse_faces": cf, "fine_faces": ff,
+            "obstacles": {"sphere_c": np.zeros((t, 1, 3)), "sphere_r": np.full((t, 1), 0.2)},
+            "meta": {"kind": "sheet", "index": seed}}
+
+
+def write(tmp_path, pairs):
+    names = []
+    for i, p in enumerate(pairs):
+        names.append(f"seq_{i:03d}.npz")
+        cdata.write_sequence(tmp_path / names[-1], p)
+    cdata.write_index(tmp_path, "sheet", names)
+    return names
+
+
+def test_dataset_round_trip_and_split(tmp_path):
+    pairs = [pair(seed=s) for s in range(5)]
+    names = write(tmp_path, pairs)
+    ds = cdata.load_dataset(tmp_path)
+    assert [s.name for s in ds.sequences] == names
+    assert ds.split == {"train": names[:4], "test": names[4:]}
+    assert [s.name for s in ds.subset("test")] == names[4:]
+    np.testing.assert_array_equal(ds.sequences[2].coarse, pairs[2]["coarse"].astype(np.float32))
+    np.testing.assert_array_equal(ds.fine_faces, pairs[0]["fine_faces"])
+    assert ds.sequences[3].meta == {"kind": "sheet", "index": 3}
+    assert ds.sequences[0].obstacles["sphere_r"].shape == (4, 1)
+    assert json.loads((tmp_path / "dataset.json").read_text())["format"] == cdata.FORMAT
+
+
+def test_dataset_refuses_unequal_lengths(tmp_path):
+    write(tmp_path, [pair(), pair(fine_frames=3)])
+    with pytest.raises(ConnectivityError, match="3 fine frames; coarse and fine sequences must have equal lengths"):
+        cdata.load_dataset(tmp_path)
+
+
+def test_dataset_refuses_other_connectivity(tmp_path):
+    write(tmp_path, [pair(n=5), pair(n=6)])
+    with pytest.raises(ConnectivityError, match="must share one connectivity"):
+        cdata.load_dataset(tmp_path)
+
+
+def test_dataset_refuses_nan_and_truncated_files(tmp_path):
+    p = pair()
+    p["fine"][1, 3, 0] = np.nan
+    write(tmp_path, [p])
+    with pytest.raises(MeshFormatError, match="NaN"):
+        cdata.load_dataset(tmp_path)
+    raw = (tmp_path / "seq_000.npz").read_bytes()
+    (tmp_path / "seq_000.npz").write_bytes(raw[: len(raw) // 2])
+    with pytest.raises(MeshFormatError, match="not a readable .npz"):
+        cdata.load_dataset(tmp_path)
+    empty = tmp_path / "empty"
+    empty.mkdir()
+    with pytest.raises(MeshFormatError, match="no cloth sequences"):
+        cdata.load_dataset(empty)
+
+
+def test_upsampler_is_libigl_loop_and_reaches_sheet_resolution():
+    cv, cf = grid(9)
+    fv, ff = cv, cf
+    for _ in range(3):
+        fv, ff = igl.loop(fv, ff)
+    assert fv.shape[0] == 4225  # 65 x 65, the paper's fine SHEET
+    up = ceval.Upsampler(cf, len(cv), ff)
+    rng = np.random.default_rng(1)
+    frames = cv[None] + 0.05 * rng.standard_normal((3, len(cv), 3))
+    out = up(frames)
+    for k in range(3):
+        g, gf = frames[k], cf
+        for _ in range(3):
+            g, gf = igl.loop(g, gf)
+        np.testing.assert_allclose(out[k], g, atol=1e-5)
+    with pytest.raises(ValueError, match="does not give the fine connectivity"):
+        ceval.Upsampler(cf, len(cv), grid(6)[1])
+
+
+def test_errors_analytic():
+    cv, cf = grid(5)
+    rng = np.random.default_rng(2)
+    ref = cv[None] + 0.01 * rng.standard_normal((6, len(cv), 3))
+    same = ceval.sequence_errors(ref, ref, cf)
+    assert same["rmse"] == 0.0 and same["hausdorff"] == 0.0 and same["sted"] == 0.0
+    off = np.array([0.03, -0.04, 0.0])  # |off| = 0.05
+    moved = ceval.sequence_errors(ref, ref + off, cf)
+    assert moved["rmse"] == pytest.approx(0.05, rel=1e-9)
+    assert moved["sted"] == pytest.approx(0.0, abs=1e-12)  # translation: no edge or temporal-edge change
+    a = ceval.sequence_errors(ref[:2], ref[:2] + off, cf)
+    b = ceval.sequence_errors(ref[2:], ref[2:] + 2 * off, cf)
+    pooled = ceval.pool([a, b])
+    assert pooled["rmse"] == pytest.approx(np.sqrt((2 * 0.05**2 + 4 * 0.1**2) / 6), rel=1e-9)
+
+
+def rotating_grid(frames=24):
+    v, f = grid(6)
+    v = v - v.mean(axis=0)
+    out = []
+    for t in range(frames):
+        a = 1.6 * np.pi * t / (frames - 1)  # a rigid turn about y past pi (not near 2 pi, where any axis-angle
+        # unwrapping of a tilted axis is ill-posed)
+        r = np.array([[np.cos(a), 0, np.sin(a)], [0, 1, 0], [-np.sin(a), 0, np.cos(a)]])
+        bend = 0.1 * np.sin(np.pi * v[:, 0])[:, None] * np.array([0, 1, 0])
+        out.append((v + bend) @ r.T)
+    return v, f, np.array(out)
+
+
+def test_ts_acap_is_smooth_where_acap_jumps():
+    v, f, frames = rotating_grid()
+    ts = cfeat.encode_sequence("ts-acap", v, f, frames)
+    sp = cfeat.encode_sequence("acap", v, f, frames)
+    step = 1.6 * np.pi / 23
+    assert cfeat.largest_frame_change(ts) < 2.5 * step
+    assert cfeat.largest_frame_change(sp) > 4.0  # the angle wraps from ~pi to ~-pi (a 2 pi jump)
+    np.testing.assert_allclose(cfeat.encode_sequence("coords", v, f, frames), frames.astype(np.float32))
+
+
+def test_scaling_round_trip_and_decode_fine():
+    v, f, frames = rotating_grid(8)
+    for kind in cfeat.KINDS:
+        raw = cfeat.encode_sequence(kind, v, f, frames)
+        sc = cfeat.Scaling.fit(kind, [raw], mode="minmax")
+        x = sc.transform(raw)
+        assert np.abs(x).max() <= cfeat.LIMIT + 1e-6
+        np.testing.assert_allclose(sc.inverse(x), raw, atol=1e-5)
+        st = cfeat.Scaling.fit(kind, [raw])  # mean -+ 3 std -> -+0.95, clipped at -+1
+        y = st.transform(raw)
+        assert np.abs(y).max() <= 1.0
+        np.testing.assert_allclose(y.reshape(-1, y.shape[-1]).std(axis=0), cfeat.LIMIT / cfeat.STD_RANGE, rtol=0.2)
+        inside = np.abs(y) < 1.0
+        np.testing.assert_allclose(st.inverse(y)[inside], raw[inside], atol=1e-5)
+    sc = cfeat.Scaling.fit("ts-acap", [cfeat.encode_sequence("ts-acap", v, f, frames)], mode="minmax")
+    rep = cfeat.Representation("ts-acap", v, f, v, f, sc, sc)
+    scaled = rep.encode("fine", frames)
+    back = rep.decode_fine(scaled, frames)  # "coarse" = the frames themselves: the centroid placement is exact
+    scale = np.ptp(v, axis=0).max()
+    assert np.abs(back - frames).max() < 5e-3 * scale  # ACAP least squares on a 6x6 grid, bent
+
+
+def sphere_sdf(c, r):
+    def sdf(x):
+        d = x - c
+        n = np.linalg.norm(d, axis=-1)
+        return n - r, d / n[:, None]
+    return sdf
+
+
+def test_refinement_pushes_out_and_keeps_detail():
+    v, f = grid(17, 1.0)
+    n = len(v)
+    rng = np.random.default_rng(3)
+    p0 = v + 0.002 * rng.standard_normal(v.shape)  # detail to keep
+    ref = Refiner(f, n)
+    c, r = np.array([0.5, -0.25, 0.5]), 0.3  # pokes 5 cm up through the sheet's middle
+    sdf = sphere_sdf(c, r)
+    p, st = ref(p0, sdf, margin=0.005)
+    d, _ = sdf(p)
+    assert st.collided > 0 and st.max_depth_before > 0.05 - 0.01
+    assert d.min() > -1e-3  # outside up to a millimetre after at most 3 iterations
+    far = np.linalg.norm(v - c, axis=1) > 0.6
+    assert np.abs(p[far] - p0[far]).max() < 0.01
+    # detail: the Laplacian of the displacement is small compared to the detail itself
+    from jaxdeform.cloth.refine import uniform_laplacian
+
+    lap = uniform_laplacian(f, n)
+    assert np.abs(lap @ (p - p0)).mean() < 0.5 * np.abs(lap @ (p0 - v)).mean()
+    # a frame without collisions comes back unchanged
+    q, st2 = ref(p0, sphere_sdf(np.array([0.5, -2.0, 0.5]), 0.3), margin=0.005)
+    assert st2.iterations == 0 and np.array_equal(q, p0)

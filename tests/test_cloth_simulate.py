@@ -1,0 +1,265 @@
+"""Cloth simulator (seed 002): obstacle sdf, XPBD physics invariants, collisions, determinism, scenarios."""
+
+import numpy as np
+import pytest
+
+from jaxdeform.cloth import obstacles as O
+from jaxdeform.cloth import scenarios as S
+from jaxdeform.cloth import simulate as sim
+
+from conftest import grid_mesh
+
+
+N = 7  # one mesh size, one obstacle layout and two static configurations keep compilations (the cost) few
+FAR = -100.0
+
+
+def _obs(sphere=None, capsule=None, cylinder=None, ground=O.NO_GROUND):
+    """One sphere, capsule and cylinder always (unused ones far below), so every test shares the executable."""
+    far = (0.0, FAR, 0.0)
+    return O.make(spheres=[sphere or (far, 0.1)], capsules=[capsule or (far, (0.0, FAR, 1.0), 0.1)],
+                  cylinders=[cylinder or (far, 0.1, 0.1)], ground=ground)
+
+
+def _sheet(n=N, size=0.5, y=1.0):
+    """A horizontal n x n sheet (xz-plane) centred at the origin at height y."""
+    v, f = grid_mesh(n)
+    x = np.stack([(v[:, 0] - 0.5) * size, np.full(len(v), y), (v[:, 1] - 0.5) * size], 1)
+    return x.astype(np.float32), f
+
+
+QUIET = sim.ClothParams(damping=0.0, drag=0.0, lift=0.0, turbulence=0.0, substeps=4, iterations=2,
+                        self_collision=False)
+STD = sim.ClothParams(substeps=10, iterations=2, self_collision=False)
+
+
+# ------------------------------------------------------------------------------------------------ obstacles
+
+def test_sdf_sphere_capsule_ground():
+    obs = O.make(spheres=[((0, 1, 0), 0.5)], capsules=[((3, 0, 0), (3, 2, 0), 0.25)], ground=-1.0)
+    pts = np.array([[0, 2, 0], [0, 1.2, 0], [3.5, 1, 0], [3, 2.5, 0], [3, 1, 0.1], [10, -0.5, 10]], np.float32)
+    d, n = O.signed_distance(obs, pts)
+    np.testing.assert_allclose(d, [0.5, -0.3, 0.25, 0.25, -0.15, 0.5], atol=1e-6)
+    np.testing.assert_allclose(n[0], [0, 1, 0], atol=1e-6)
+    np.testing.assert_allclose(n[2], [1, 0, 0], atol=1e-6)
+    np.testing.assert_allclose(n[3], [0, 1, 0], atol=1e-6)  # beyond the pole's end: the cap
+    np.testing.assert_allclose(n[4], [0, 0, 1], atol=1e-6)
+    np.testing.assert_allclose(n[5], [0, 1, 0], atol=1e-6)  # the ground
+
+
+def test_sdf_capped_cylinder_side_caps_rim_and_inside():
+    obs = O.make(cylinders=[((0, 1, 0), 0.5, 1.0)])  # y in [0, 1], radius 0.5
+    pts = np.array([
+        [1.0, 0.5, 0],  # side: 0.5
+        [0.1, 1.3, 0],  # above the top cap: 0.3
+        [0.1, -0.2, 0],  # below the bottom cap: 0.2
+        [0.8, 1.4, 0],  # outside the top rim: distance to the rim circle 0.5
+        [0.4, 0.5, 0],  # inside, nearest the side: -0.1
+        [0.0, 0.95, 0],  # inside, nearest the top: -0.05
+    ], np.float32)
+    d, n = O.signed_distance(obs, pts)
+    np.testing.assert_allclose(d, [0.5, 0.3, 0.2, 0.5, -0.1, -0.05], atol=1e-6)
+    np.testing.assert_allclose(n[3], [0.6, 0.8, 0], atol=1e-6)
+    np.testing.assert_allclose(n[2], [0, -1, 0], atol=1e-6)
+    np.testing.assert_allclose(n[4], [1, 0, 0], atol=1e-6)
+    np.testing.assert_allclose(n[5], [0, 1, 0], atol=1e-6)
+
+
+def test_sdf_normals_are_gradients_and_empty_shapes():
+    obs = O.make(spheres=[((0.3, 1, 0), 0.4)], capsules=[((-1, 0.5, 0), (-1, 0.5, 1), 0.2)],
+                 cylinders=[((1.5, 1, 0.2), 0.5, 1.0)], ground=0.0, dtype=np.float64)
+    rng = np.random.default_rng(0)
+    pts = rng.uniform([-2, -0.5, -1], [3, 2.5, 2], (200, 3))
+    with _x64():
+        d, n = O.signed_distance(obs, pts)
+        eps = 1e-6
+        fd = np.stack([(np.asarray(O.signed_distance(obs, pts + eps * e)[0])
+                        - np.asarray(O.signed_distance(obs, pts - eps * e)[0])) / (2 * eps) for e in np.eye(3)], 1)
+    # away from medial surfaces (where the min switches shape) the normal is the gradient
+    ok = np.linalg.norm(fd, axis=1) > 0.999
+    assert ok.mean() > 0.9
+    np.testing.assert_allclose(np.asarray(n)[ok], fd[ok], atol=1e-4)
+    d0, n0 = O.signed_distance(O.empty(ground=0.25), np.array([[0, 1, 0]], np.float32))
+    np.testing.assert_allclose(d0, [0.75], atol=1e-6)
+    assert O.make().sphere_c.shape == (0, 3)
+
+
+def _x64():
+    import contextlib
+
+    import jax
+
+    @contextlib.contextmanager
+    def ctx():
+        old = jax.config.jax_enable_x64
+        jax.config.update("jax_enable_x64", True)
+        try:
+            yield
+        finally:
+            jax.config.update("jax_enable_x64", old)
+
+    return ctx()
+
+
+# ------------------------------------------------------------------------------------------------ physics
+
+def test_free_fall_follows_gravity():
+    x, f = _sheet()
+    m = sim.build_model(x, f)
+    T = 12
+    frames = sim.simulate(m, QUIET, x, None, O.static_track(_obs(), T), progress=False)
+    n = np.arange(1, T + 1) * QUIET.substeps
+    h = QUIET.frame_dt / QUIET.substeps
+    g = QUIET.gravity
+    # symplectic Euler exactly: y_n = y0 - g h^2 n (n + 1) / 2 (to float32 round-off of v = (p - x) / h, ~1e-7 / h
+    # per substep); the continuous law y0 - g t^2 / 2 within the O(h) splitting error g t h / 2
+    exact = 1.0 - g * h * h * n * (n + 1) / 2
+    np.testing.assert_allclose(frames[:, :, 1], np.broadcast_to(exact[:, None], frames.shape[:2]), atol=2e-4)
+    t = np.arange(1, T + 1) * QUIET.frame_dt
+    assert np.all(np.abs(frames[:, :, 1].mean(1) - (1.0 - g * t * t / 2)) <= g * t * h + 1e-5)
+    np.testing.assert_allclose(frames[:, :, [0, 2]], np.broadcast_to(x[:, [0, 2]], (T,) + x[:, [0, 2]].shape),
+                               atol=1e-5)
+
+
+def test_hanging_sheet_stays_pinned_and_barely_stretches():
+    # released horizontally, held at two adjacent corners: it swings down and hangs (stretch is checked in motion)
+    v, f = grid_mesh(N)
+    x = np.stack([v[:, 0] - 0.5, np.full(len(v), 1.5), v[:, 1]], 1).astype(np.float32)
+    pinned = np.isclose(v[:, 1], 0.0) & (np.isclose(v[:, 0], 0.0) | np.isclose(v[:, 0], 1.0))  # two corners
+    m = sim.build_model(x, f)
+    frames = sim.simulate(m, STD, x, None, O.static_track(_obs(), 40), pinned, progress=False)
+    np.testing.assert_array_equal(frames[:, pinned], np.broadcast_to(x[pinned], (40, 2, 3)))
+    mean, mx = sim.edge_strain(m, frames)
+    assert mean < 0.01 and mx < 0.05
+    assert frames[-1, ~pinned, 1].mean() < 1.5 - 0.3  # it swung down
+
+
+@pytest.mark.parametrize("shape", ["ground", "sphere", "cylinder"])
+def test_dropped_cloth_never_penetrates(shape):
+    x, f = _sheet(N, 0.8, 0.5)
+    obs = {"ground": _obs(ground=0.0), "sphere": _obs(sphere=((0.05, 0.2, 0), 0.2), ground=0.0),
+           "cylinder": _obs(cylinder=((0.0, 0.3, 0.0), 0.2, 0.3), ground=0.0)}[shape]
+    m = sim.build_model(x, f)
+    track = O.static_track(obs, 30)
+    frames = sim.simulate(m, STD, x, None, track, progress=False)
+    edge = float(m.mean_edge)
+    assert S.max_penetration(frames, track) <= 0.01 * edge
+    assert frames[-1, :, 1].min() < 0.3  # it reached the obstacle
+    d, _ = O.signed_distance(obs, frames[-1])
+    assert float(np.min(d)) >= sim.ClothParams().thickness - 1e-4
+
+
+def test_moving_sphere_pushes_hanging_sheet_without_penetration():
+    v, f = grid_mesh(N)
+    x = np.stack([v[:, 0] - 0.5, v[:, 1] + 0.5, np.zeros(len(v))], 1).astype(np.float32)
+    pinned = np.isclose(x[:, 1], 1.5)
+    T = 25
+    z = np.linspace(-0.4, 0.5, T)
+    track = O.stack([_obs(sphere=((0.0, 1.0, zz), 0.2), ground=0.0) for zz in z])
+    m = sim.build_model(x, f)
+    frames = sim.simulate(m, STD, x, None, track, pinned, progress=False)
+    assert S.max_penetration(frames, track) <= 0.01 * float(m.mean_edge)
+    assert frames[-1, :, 2].max() > 0.3  # the sheet was pushed along
+
+
+def test_determinism_turbulence_and_no_retrace():
+    x, f = _sheet()
+    m = sim.build_model(x, f)
+    p = QUIET.replace(turbulence=3.0, wind=(2.0, 0.0, 0.0), drag=1.0, lift=0.5)
+    track = O.static_track(_obs(), 12)  # 12 frames: a whole chunk and a padded one
+    import jax
+
+    a = sim.simulate(m, p, x, None, track, key=jax.random.PRNGKey(1), progress=False)
+    n = sim.trace_count()
+    b = sim.simulate(m, p, x, None, track, key=jax.random.PRNGKey(1), progress=False)
+    c = sim.simulate(m, p.replace(turbulence=2.0), x, None, track, key=jax.random.PRNGKey(2), progress=False)
+    assert sim.trace_count() == n  # other key and another wind strength reuse the executable
+    np.testing.assert_array_equal(a, b)
+    assert np.abs(a - c).max() > 1e-4
+    assert a[-1, :, 0].mean() > x[:, 0].mean() + 0.01  # the wind blew along +x
+
+
+def test_air_drag_slows_a_falling_sheet():
+    x, f = _sheet(N, 0.5, 2.0)
+    m = sim.build_model(x, f)
+    track = O.static_track(_obs(), 15)
+    free = sim.simulate(m, QUIET, x, None, track, progress=False)
+    air = sim.simulate(m, QUIET.replace(drag=1.0), x, None, track, progress=False)
+    # terminal speed of a flat plate sqrt(2 m g / (rho C_d A)) = sqrt(2 * 0.2 * 9.81 / 1.2) = 1.8 m/s
+    v_air = (air[-1, :, 1].mean() - air[-2, :, 1].mean()) / QUIET.frame_dt
+    assert free[-1, :, 1].mean() < air[-1, :, 1].mean()
+    assert -1.9 < v_air < -1.2
+
+
+def test_bending_constraint_is_zero_at_rest_and_measures_hinge_angle():
+    import jax.numpy as jnp
+
+    x, f = _sheet(4, 0.3, 0.0)
+    m = sim.build_model(x, f)
+    c0 = np.einsum("hk,hkd->hd", np.asarray(m.hinge_k), x[np.asarray(m.hinges)]) - np.asarray(m.hinge_rest)
+    np.testing.assert_allclose(c0, 0, atol=1e-6)
+    # rotate the wing x3 of hinge 0 by theta about the edge: |c| = |e| theta to first order
+    h = np.asarray(m.hinges)[0].astype(int)
+    p = x.astype(np.float64).copy()
+    e = p[h[1]] - p[h[0]]
+    a = e / np.linalg.norm(e)
+    th = 1e-3
+    r = p[h[3]] - p[h[0]]
+    p[h[3]] = p[h[0]] + r * np.cos(th) + np.cross(a, r) * np.sin(th) + a * (a @ r) * (1 - np.cos(th))
+    c = np.asarray(m.hinge_k)[0] @ p[h] - np.asarray(m.hinge_rest)[0]
+    assert abs(np.linalg.norm(c) - np.linalg.norm(e) * th) < 1e-2 * np.linalg.norm(e) * th
+    assert jnp.all(m.hinge_count > 0)
+
+
+def test_self_collision_keeps_layers_apart():
+    # a strip dropped on a thin pole folds over it; both halves fall together and must not pass through
+    v, f = grid_mesh(13)
+    x = np.stack([(v[:, 0] - 0.5) * 0.9, np.full(len(v), 0.6), (v[:, 1] - 0.5) * 0.3], 1).astype(np.float32)
+    m = sim.build_model(x, f)
+    track = O.static_track(O.make(capsules=[((0.0, 0.5, -0.5), (0.0, 0.5, 0.5), 0.02)], ground=0.0), 45)
+    p = sim.ClothParams(substeps=10, iterations=2, friction=0.8)
+    frames = sim.simulate(m, p, x, None, track, progress=False)
+    r = p.self_radius * float(m.mean_edge)
+    nbr, mask = sim.self_candidates(m, frames[-1], r)  # recheck with the final positions
+    last = frames[-1]
+    d = np.linalg.norm(last[:, None] - last[np.asarray(nbr)], axis=-1)
+    assert np.all(d[np.asarray(mask)] > 0.5 * r)
+    # the two halves (x < 0 and x > 0 at rest) hang on either side; in the pile on the ground no vertex of one
+    # half may lie on the other half's side of the pole's vertical plane by more than the radius
+    left = x[:, 0] < -0.05
+    right = x[:, 0] > 0.05
+    assert last[left, 0].max() < 0.1 and last[right, 0].min() > -0.1
+
+
+# ------------------------------------------------------------------------------------------------ scenarios
+
+def test_loop_counts_and_original_vertices_first():
+    cv, cf, fv, ff = S.meshes("sheet")
+    assert len(cv) == 81 and len(fv) == 4225 and len(ff) == 8192
+    interior = (np.abs(cv[:, 0]) < 0.49) & (cv[:, 1] > 0.41) & (cv[:, 1] < 1.39)
+    np.testing.assert_allclose(fv[: len(cv)][interior], cv[interior], atol=1e-9)  # flat regular grid stays
+    dv, df, dfv, dff = S.meshes("disk")
+    assert len(dv) == 148 and len(dfv) == 7729
+
+
+def test_scenarios_are_deterministic_and_varied():
+    a = S.scenario("sheet", 3, seed=1, n_frames=20)
+    b = S.scenario("sheet", 3, seed=1, n_frames=20)
+    c = S.scenario("sheet", 4, seed=1, n_frames=20)
+    np.testing.assert_array_equal(a.track.capsule_a, b.track.capsule_a)
+    assert a.meta == b.meta and a.meta["obstacle"] == "pole" and c.meta["obstacle"] == "sphere"
+    import json
+
+    json.dumps(a.meta)
+    for kind in ("sheet", "disk"):
+        sc = S.scenario(kind, 0, n_frames=10)
+        assert sc.pinned_fine.sum() > 0 and sc.pinned_coarse.sum() > 0
+        assert sc.wind.shape == (10, 3)
+    radii = [S.scenario("sheet", i, n_frames=2).meta["radius"] for i in range(4)]
+    assert min(radii) > S.SHEET_SIZE / (S.SHEET_N - 1)  # no tunnelling through the coarse mesh
+
+
+def test_max_penetration_analytic():
+    track = O.static_track(O.make(spheres=[((0, 0, 0), 1.0)]), 2)
+    frames = np.array([[[0, 0.7, 0], [2, 0, 0]], [[0, 1.5, 0], [0, 0, 0.9]]], np.float32)
+    assert S.max_penetration(frames, track) == pytest.approx(0.3, abs=1e-6)
