@@ -109,4 +109,5 @@ def test_experiment_test_config_writes_summary(tmp_path):
     assert {"coarse_simulation", "extraction", "synthesis", "reconstruction", "refinement", "fine_simulation"} <= set(t)
     assert r["speedup"] == pytest.approx(t["fine_simulation"] / t["ours_total"])
     assert r["data"]["penetration"]["fine_max_over_edge"] <= 0.01
+    assert set(r["jumps"]) == {"ts-acap", "acap"} and r["jumps"]["acap"]["count"] > 0
     assert (tmp_path / "results.md").is_file() and r["figures"] and (tmp_path / r["figures"][0]).is_file()

@@ -144,6 +144,9 @@ def test_ts_acap_is_smooth_where_acap_jumps():
     step = 1.6 * np.pi / 23
     assert cfeat.largest_frame_change(ts) < 2.5 * step
     assert cfeat.largest_frame_change(sp) > 4.0  # the angle wraps from ~pi to ~-pi (a 2 pi jump)
+    st_ts, st_sp = cfeat.frame_change_stats([ts]), cfeat.frame_change_stats([sp])
+    assert st_ts["fraction_above_pi"] == 0.0 and st_sp["fraction_above_pi"] > 0.0
+    assert st_sp["max"] == pytest.approx(cfeat.largest_frame_change(sp)) and st_ts["count"] == 23 * len(v)
     np.testing.assert_allclose(cfeat.encode_sequence("coords", v, f, frames), frames.astype(np.float32))
 
 

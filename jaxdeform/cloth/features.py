@@ -218,9 +218,21 @@ def fit_representation(kind: Kind, dataset, train_names: list[str] | None = None
     return rep, scaled
 
 
+def frame_changes(features: np.ndarray) -> np.ndarray:
+    """||f_(t+1) - f_t|| for every frame pair and vertex, flattened (unscaled features of one sequence)."""
+    f = np.asarray(features, np.float64)
+    return np.linalg.norm(np.diff(f, axis=0), axis=-1).ravel()
+
+
 def largest_frame_change(features: np.ndarray) -> float:
     """max over frames t and vertices of ||f_(t+1) - f_t|| (unscaled features of one sequence)."""
-    f = np.asarray(features, np.float64)
-    if f.shape[0] < 2:
-        return 0.0
-    return float(np.linalg.norm(np.diff(f, axis=0), axis=-1).max())
+    c = frame_changes(features)
+    return float(c.max()) if c.size else 0.0
+
+
+def frame_change_stats(seqs: list[np.ndarray]) -> dict:
+    """Largest, 99th and 99.9th percentile frame-to-frame change over sequences, and the fraction above pi
+    (a rotation log jumping by a 2 pi turn or an axis flip)."""
+    c = np.concatenate([frame_changes(f) for f in seqs])
+    return {"max": float(c.max()), "p99": float(np.percentile(c, 99)), "p99_9": float(np.percentile(c, 99.9)),
+            "fraction_above_pi": float(np.mean(c > np.pi)), "count": int(c.size)}
