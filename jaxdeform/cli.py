@@ -911,7 +911,7 @@ def build_parser() -> argparse.ArgumentParser:
                            description="Paired cloth simulation data, TS-ACAP features and the DeformTransformer.")
     cloth_sub = cloth.add_subparsers(dest="cloth_command", metavar="ACTION", required=True)
     csim = cloth_sub.add_parser("simulate", help="Simulate paired coarse/fine sequences of a scenario.",
-                                description="SHEET (81 / 4225 vertices) or DISK (148 / 7741) sequences, simulated separately.")
+                                description="SHEET (81 / 4225 vertices) or DISK (148 / 7729) sequences, simulated separately.")
     csim.add_argument("--scenario", required=True, choices=("sheet", "disk"))
     csim.add_argument("--out", "-o", required=True, metavar="DIR", help="dataset folder to write")
     csim.add_argument("--sequences", type=int, default=10, metavar="N", help="sequences (default 10)")

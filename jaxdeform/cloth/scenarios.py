@@ -9,9 +9,11 @@ Meshes (metres):
   radii k / 6 * 0.75 (148 vertices, 234 triangles, 60 on the boundary, min angle 32 deg), Delaunay-triangulated;
   fine = 3 x Loop = 7,729 vertices, 14,976 triangles -- exactly the paper's counts (for a disk, 3 Loop levels
   give 64 V - 63 - 28 B vertices, so 148 / 7,729 imply B = 60 boundary vertices).
+- ``levels`` (default 3) sets the Loop levels from coarse to fine everywhere (1 for quick tests).
 
 Scenes (every sequence is determined by (kind, index, seed) through ``np.random.default_rng``):
-- SHEET: the top edge is clamped (a curtain rod: the pinned vertices are the top row of either mesh), the
+- SHEET: the top edge is clamped (a curtain rod: the coarse top row, the fine boundary arc between the same two
+  corners; :func:`pins` gives both with their positions), the
   ground is at y = 0. An obstacle on a pendulum crashes into the sheet: a sphere of radius 0.14 / 0.20 / 0.26 m
   (index % 4 = 0, 1, 2) or a horizontal pole (capsule, radius 0.14 m, length 0.6 m plus caps; index % 4 = 3),
   every radius above the coarse edge length so that the coarse mesh cannot let it through. The pivot sits at
