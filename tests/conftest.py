@@ -7,6 +7,27 @@ import pytest
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 
 
+@pytest.fixture(autouse=True, scope="module")
+def _release_compiled_code():
+    """Free compiled XLA executables after each test module.
+
+    Every executable keeps its machine code in its own memory mappings. Over the whole suite they passed
+    vm.max_map_count (65,530: 40k mappings after ~170 tests), and XLA then aborted or segfaulted while
+    compiling the next function.
+    """
+    yield
+    import gc
+    import sys
+
+    import jax
+
+    jax.clear_caches()
+    sim = sys.modules.get("jaxdeform.cloth.simulate")
+    if sim is not None:
+        sim.clear_compiled()
+    gc.collect()
+
+
 def data_dir(name: str) -> Path:
     path = DATA / name
     if not path.is_dir():

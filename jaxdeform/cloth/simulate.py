@@ -502,6 +502,11 @@ def _signature(args):
     return tree, tuple((np.shape(a), str(getattr(a, 'dtype', None) or np.asarray(a).dtype)) for a in leaves)
 
 
+def clear_compiled() -> None:
+    """Drop the compiled frame-chunk executables (each holds mapped machine code; see tests/conftest.py)."""
+    _COMPILED.clear()
+
+
 def _executable(args):
     sig = _signature(args)
     exe = _COMPILED.get(sig)
