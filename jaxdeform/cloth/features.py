@@ -34,6 +34,7 @@ coarse frame it was synthesised from. Decoding is the differentiable least-squar
 from __future__ import annotations
 
 import dataclasses
+import functools
 from typing import Literal
 
 import numpy as np
@@ -129,17 +130,16 @@ class Representation:
     def channels(self) -> int:
         return channels(self.kind)
 
+    @functools.cached_property
     def upsampler(self):
+        """Loop subdivision coarse -> fine as one sparse matrix (built once per representation)."""
         from jaxdeform.cloth.evaluate import Upsampler
 
-        key = (id(self.coarse_faces), id(self.fine_faces))
-        if key not in _UPSAMPLERS:
-            _UPSAMPLERS[key] = Upsampler(self.coarse_faces, self.coarse_rest.shape[0], self.fine_faces)
-        return _UPSAMPLERS[key]
+        return Upsampler(self.coarse_faces, self.coarse_rest.shape[0], self.fine_faces)
 
     def base(self, coarse_frames) -> np.ndarray:
         """Unscaled fine features of the Loop-upsampled coarse frames (the residual's base), (T, Vf, C)."""
-        return encode_sequence(self.kind, self.fine_rest, self.fine_faces, self.upsampler()(coarse_frames))
+        return encode_sequence(self.kind, self.fine_rest, self.fine_faces, self.upsampler(coarse_frames))
 
     def encode(self, res: str, frames: np.ndarray) -> np.ndarray:
         """Scaled features (T, V, C) of frames of resolution ``res`` ("coarse" or "fine")."""
@@ -185,9 +185,6 @@ class Representation:
                               np.asarray(a["coarse_faces"], np.int64), np.asarray(a["fine_rest"], np.float64),
                               np.asarray(a["fine_faces"], np.int64), Scaling.from_array(a["coarse_scaling"]),
                               Scaling.from_array(a["fine_scaling"]), bool(a.get("residual", False)))
-
-
-_UPSAMPLERS: dict = {}
 
 
 def place(fine: np.ndarray, coarse: np.ndarray, n_coarse: int) -> np.ndarray:

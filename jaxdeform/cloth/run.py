@@ -13,6 +13,7 @@ simulation's cloth thickness). :func:`synthesize_timed` reports the seconds per 
 
 from __future__ import annotations
 
+import functools
 import json
 import time
 from dataclasses import dataclass
@@ -98,6 +99,11 @@ class Run:
     @property
     def kind(self) -> str:
         return self.model.config.kind
+
+    @functools.cached_property
+    def refiner(self) -> Refiner:
+        """Collision refinement on the fine connectivity (built once per run)."""
+        return Refiner(self.rep.fine_faces, self.rep.fine_rest.shape[0])
 
 
 def check_training_data(ds: cdata.ClothDataset, window: int) -> None:
@@ -190,24 +196,12 @@ def obstacle_sdf(obstacles: dict, t: int):
     if not obstacles:
         return None
     frame = obst.Obstacles(**{k: np.asarray(obstacles[k])[t] for k in obst.Obstacles._fields})
-    fn = _sdf_jit()
 
     def sdf(x):
-        d, n = fn(frame, np.asarray(x, np.float32))
+        d, n = obst.signed_distance(frame, np.asarray(x, np.float32))  # jitted in obstacles
         return np.asarray(d, np.float64), np.asarray(n, np.float64)
 
     return sdf
-
-
-_SDF = {}
-
-
-def _sdf_jit():
-    if "fn" not in _SDF:
-        from jaxdeform.cloth import obstacles as obst
-
-        _SDF["fn"] = jax.jit(obst.signed_distance)
-    return _SDF["fn"]
 
 
 def synthesize_timed(run: Run, coarse: np.ndarray, obstacles: dict | None = None, refine: bool = True,
@@ -233,7 +227,7 @@ def synthesize_timed(run: Run, coarse: np.ndarray, obstacles: dict | None = None
     t3 = time.perf_counter()
     refined = 0
     if refine and obstacles:
-        refiner = _refiner(run)
+        refiner = run.refiner
         margin = float(run.record.get("thickness", 0.005))
         out = np.empty_like(fine)
         for t in range(n):
@@ -245,16 +239,6 @@ def synthesize_timed(run: Run, coarse: np.ndarray, obstacles: dict | None = None
     timing = {"extraction": (t1 - t0) / n, "synthesis": (t2 - t1) / n, "reconstruction": (t3 - t2) / n,
               "refinement": (t4 - t3) / n, "refined_frames": refined}
     return fine, timing
-
-
-_REFINERS: dict = {}
-
-
-def _refiner(run: Run) -> Refiner:
-    key = id(run.rep.fine_faces)
-    if key not in _REFINERS:
-        _REFINERS[key] = Refiner(run.rep.fine_faces, run.rep.fine_rest.shape[0])
-    return _REFINERS[key]
 
 
 def evaluate_run(run: Run, ds: cdata.ClothDataset, part: str = "test", refine: bool = True,
