@@ -657,10 +657,11 @@ def _cloth_configs(args: argparse.Namespace):
     from jaxdeform.cloth.model import ModelConfig
     from jaxdeform.cloth.train import TrainConfig
 
-    mcfg = ModelConfig(kind=args.model)
+    mcfg = ModelConfig(kind=args.model, skip=args.skip)
     if args.seed is not None:
         mcfg = replace(mcfg, seed=args.seed)
-    return mcfg, _steps_seed(TrainConfig(), args)
+    tcfg = TrainConfig() if args.position_weight is None else TrainConfig(position_weight=args.position_weight)
+    return mcfg, _steps_seed(tcfg, args)
 
 
 def cmd_cloth_train(args: argparse.Namespace) -> int:
@@ -928,6 +929,11 @@ def build_parser() -> argparse.ArgumentParser:
     ctr.add_argument("--representation", default="ts-acap", choices=("ts-acap", "acap", "coords"))
     ctr.add_argument("--residual", action="store_true",
                      help="learn the fine features as a residual over the Loop-upsampled coarse cloth's")
+    ctr.add_argument("--skip", action="store_true",
+                     help="the fine decoder also reads the coarse features interpolated to the fine mesh")
+    ctr.add_argument("--position-weight", type=float, metavar="W",
+                     help="add W x the decoded positions' squared error (in fine edge lengths) to the loss "
+                          "(needs the scenario's pins; default 0: feature MSE only, as the paper)")
     ctr.add_argument("--steps", type=int, metavar="N", help="training steps (default: the TrainConfig's)")
     ctr.add_argument("--seed", type=int, metavar="S")
     ctr.add_argument("--force", action="store_true", help="replace a non-empty --out")

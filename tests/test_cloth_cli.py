@@ -111,3 +111,18 @@ def test_experiment_test_config_writes_summary(tmp_path):
     assert r["data"]["penetration"]["fine_max_over_edge"] <= 0.01
     assert set(r["jumps"]) == {"ts-acap", "acap"} and r["jumps"]["acap"]["count"] > 0
     assert (tmp_path / "results.md").is_file() and r["figures"] and (tmp_path / r["figures"][0]).is_file()
+
+
+def test_generate_keeps_matching_sequences_and_grows(tmp_path):
+    """A second generation keeps the files whose stored scenario matches and simulates only the rest."""
+    from jaxdeform.cloth import run as crun
+
+    crun.generate("sheet", tmp_path, n_sequences=2, n_frames=3, progress=False, levels=1)
+    first = (tmp_path / "seq_000.npz").stat().st_mtime_ns
+    rec = crun.generate("sheet", tmp_path, n_sequences=3, n_frames=3, progress=False, levels=1)
+    assert (tmp_path / "seq_000.npz").stat().st_mtime_ns == first
+    assert rec["sequences"] == ["seq_000.npz", "seq_001.npz", "seq_002.npz"]
+    assert cdata.load_dataset(tmp_path).sequences[2].coarse.shape[0] == 3
+    crun.generate("sheet", tmp_path, n_sequences=2, n_frames=4, progress=False, levels=1)  # another scenario
+    assert (tmp_path / "seq_000.npz").stat().st_mtime_ns != first
+    assert cdata.load_dataset(tmp_path).sequences[0].fine.shape[0] == 4

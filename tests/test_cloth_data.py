@@ -52,13 +52,21 @@ def test_dataset_round_trip_and_split(tmp_path):
     names = write(tmp_path, pairs)
     ds = cdata.load_dataset(tmp_path)
     assert [s.name for s in ds.sequences] == names
-    assert ds.split == {"train": names[:4], "test": names[4:]}
-    assert [s.name for s in ds.subset("test")] == names[4:]
+    assert ds.split == {"train": names[:2] + names[3:], "test": [names[2]]}  # every 5th from the 3rd
+    assert [s.name for s in ds.subset("test")] == [names[2]]
     np.testing.assert_array_equal(ds.sequences[2].coarse, pairs[2]["coarse"].astype(np.float32))
     np.testing.assert_array_equal(ds.fine_faces, pairs[0]["fine_faces"])
     assert ds.sequences[3].meta == {"kind": "sheet", "index": 3}
     assert ds.sequences[0].obstacles["sphere_r"].shape == (4, 1)
     assert json.loads((tmp_path / "dataset.json").read_text())["format"] == cdata.FORMAT
+
+
+def test_default_split_interleaves_and_never_takes_all():
+    names = [f"s{i}" for i in range(12)]
+    split = cdata.default_split(names)
+    assert split["test"] == ["s2", "s7"] and sorted(split["train"] + split["test"]) == sorted(names)
+    assert cdata.default_split(names[:2]) == {"train": ["s0"], "test": ["s1"]}  # no index 2: the last one
+    assert cdata.default_split(names[:1]) == {"train": ["s0"], "test": []}
 
 
 def test_dataset_refuses_unequal_lengths(tmp_path):
@@ -202,3 +210,50 @@ def test_refinement_pushes_out_and_keeps_detail():
     # a frame without collisions comes back unchanged
     q, st2 = ref(p0, sphere_sdf(np.array([0.5, -2.0, 0.5]), 0.3), margin=0.005)
     assert st2.iterations == 0 and np.array_equal(q, p0)
+
+
+def hinged_grid(frames=6):
+    """A 6x6 grid folding about its x = 0 column, which stays where it is (the pinned vertices)."""
+    v, f = grid(6)
+    out = []
+    for t in range(frames):
+        a = 0.3 * np.pi * t / (frames - 1)
+        x = v[:, 0] * (0.3 + 0.7 * np.cos(a * v[:, 0]))
+        y = v[:, 0] * np.sin(a * v[:, 0])
+        out.append(np.c_[x, y, v[:, 2]])
+    return v, f, np.array(out), np.flatnonzero(v[:, 0] == 0)
+
+
+def test_position_term_vanishes_on_the_fine_features_and_has_exact_gradients():
+    import jax
+    import jax.numpy as jnp
+
+    from jaxdeform.acap import features as acapf
+    from jaxdeform.cloth import train as ctrain
+
+    v, f, frames, pins = hinged_grid()
+    edge = np.mean(np.linalg.norm(v[f[:, 0]] - v[f[:, 1]], axis=1))
+    rows = jnp.arange(1, len(frames) + 1)  # frame k sits at row k + 1 (a zero row precedes the sequence)
+    for kind in ("ts-acap", "coords"):
+        raw = cfeat.encode_sequence(kind, v, f, frames)
+        sc = cfeat.Scaling.fit(kind, [raw])
+        x = jnp.asarray(sc.transform(raw))
+        rec = None if kind == "coords" else acapf.cached(v, f).reconstructor(pins)
+        pos = ctrain.PositionTarget.build([frames], None, sc.lo, sc.hi, rec, None if rec is None else frames[0][pins],
+                                          edge)
+        err = float(ctrain.position_error(pos, x, rows))
+        assert err < (2.5e-3 if kind == "ts-acap" else 1e-10), (kind, err)  # plain least-squares round trip, edges^2
+        d = 0.2 * jax.random.normal(jax.random.PRNGKey(1), x.shape)
+        assert float(ctrain.position_error(pos, x + d, rows)) > 10 * err + 1e-4
+        # implicit differentiation through the anchored solve against central differences
+        g = jax.grad(lambda y: ctrain.position_error(pos, y, rows))(x + d)
+        h = 1e-2
+        fd = (ctrain.position_error(pos, x + d + h * d, rows) - ctrain.position_error(pos, x + d - h * d, rows)) / (2 * h)
+        assert float(jnp.sum(g * d)) == pytest.approx(float(fd), rel=2e-2)
+    # a residual target adds its base before decoding: base = the features, residual 0 -> the same positions
+    raw = cfeat.encode_sequence("ts-acap", v, f, frames)
+    sc = cfeat.Scaling(-np.ones(9), np.ones(9))
+    zero = jnp.asarray(sc.transform(np.zeros_like(raw)))
+    rec = acapf.cached(v, f).reconstructor(pins)
+    pos = ctrain.PositionTarget.build([frames], [raw], sc.lo, sc.hi, rec, frames[0][pins], edge)
+    assert float(ctrain.position_error(pos, zero, rows)) < 2.5e-3

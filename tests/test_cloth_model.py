@@ -175,6 +175,26 @@ def test_teacher_forcing_matches_autoregressive_synthesis(meshes, kind):
                                                      maxval=0.9))
 
 
+@pytest.mark.parametrize("kind", ["transformer", "none"])
+def test_skip_model_synthesis_and_file_round_trip(meshes, kind, tmp_path):
+    """The decoder's skip input (coarse features interpolated to the fine mesh) keeps teacher forcing and
+    autoregressive synthesis identical, and travels with the saved model."""
+    from jaxdeform.cloth.evaluate import Upsampler
+
+    tc, tf = meshes
+    vc, fc = grid_mesh(4)
+    up = Upsampler(fc, len(vc), levels=1).matrix.toarray()
+    cfg = ModelConfig(kind=kind, skip=True, **SMALL)
+    with pytest.raises(ValueError, match="interpolation matrix"):
+        new_model(tc, tf, cfg)
+    model = new_model(tc, tf, cfg, up)
+    coarse = jax.random.uniform(jax.random.PRNGKey(5), (5, tc.n_vertices, 9), minval=-0.9, maxval=0.9)
+    _check_teacher_forcing(model, coarse)
+    loaded, _ = load_model(save_model(tmp_path / "m.npz", model))
+    assert loaded.config.skip
+    np.testing.assert_array_equal(np.asarray(synthesize(loaded, coarse)), np.asarray(synthesize(model, coarse)))
+
+
 def test_bad_synthesis_input(meshes):
     tc, tf = meshes
     model = new_model(tc, tf, ModelConfig(kind="lstm", **SMALL))

@@ -35,6 +35,7 @@ from __future__ import annotations
 
 import dataclasses
 import functools
+import hashlib
 from typing import Literal
 
 import numpy as np
@@ -125,6 +126,7 @@ class Representation:
     coarse_scaling: Scaling
     fine_scaling: Scaling
     residual: bool = False  # fine target = features(fine) - features(Loop(coarse)) (module docstring)
+    _bases: dict = dataclasses.field(default_factory=dict, init=False, repr=False, compare=False)
 
     @property
     def channels(self) -> int:
@@ -138,8 +140,15 @@ class Representation:
         return Upsampler(self.coarse_faces, self.coarse_rest.shape[0], self.fine_faces)
 
     def base(self, coarse_frames) -> np.ndarray:
-        """Unscaled fine features of the Loop-upsampled coarse frames (the residual's base), (T, Vf, C)."""
-        return encode_sequence(self.kind, self.fine_rest, self.fine_faces, self.upsampler(coarse_frames))
+        """Unscaled fine features of the Loop-upsampled coarse frames (the residual's base), (T, Vf, C).
+
+        Remembered per coarse sequence (by content) while the representation lives: fitting and training
+        ask for the same training sequences' bases."""
+        x = np.ascontiguousarray(coarse_frames, np.float32)
+        key = (x.shape, hashlib.sha1(x.tobytes()).hexdigest())
+        if key not in self._bases:
+            self._bases[key] = encode_sequence(self.kind, self.fine_rest, self.fine_faces, self.upsampler(x))
+        return self._bases[key]
 
     def encode(self, res: str, frames: np.ndarray) -> np.ndarray:
         """Scaled features (T, V, C) of frames of resolution ``res`` ("coarse" or "fine")."""
@@ -210,7 +219,9 @@ def fit_representation(kind: Kind, dataset, train_names: list[str] | None = None
         raw[s.name] = (encode_sequence(kind, dataset.coarse_rest, dataset.coarse_faces, s.coarse), fine)
     sc_c = Scaling.fit(kind, [raw[n][0] for n in raw if n in train])
     sc_f = Scaling.fit(kind, [raw[n][1] for n in raw if n in train])
+    bases = rep._bases
     rep = dataclasses.replace(rep, coarse_scaling=sc_c, fine_scaling=sc_f)
+    rep._bases.update(bases)  # the bases do not depend on the scalings
     scaled = {n: (sc_c.transform(c), sc_f.transform(f)) for n, (c, f) in raw.items()}
     return rep, scaled
 

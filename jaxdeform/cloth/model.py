@@ -18,6 +18,10 @@ Fine decoder (the paper does not describe it; our choice mirrors the encoder)::
     g = tanh(reshape(z W_dec + b_dec));  g = tanh(conv_3(g));  y = tanh(conv_4(g))     z -> y (Vf, Cin)
 
 with conv_3: C -> C, conv_4: C -> Cin; the final tanh keeps outputs inside (-1, 1) like the scaled features.
+With ``skip`` (off by default) conv_3 also reads the coarse frame's own scaled features interpolated to the
+fine vertices, U x_c (U the Loop subdivision weights, (Vf, Vc)): g = tanh([g, U x_c] conv_3). The global
+16-d latent then carries what changes over the whole cloth and the convolutions add what follows the local
+coarse deformation, which a per-frame code learnt from a few thousand frames cannot place vertex by vertex.
 
 Temporal module over a window of W frames (paper: W = 3), from coarse latents c_1..c_W and the fine latents
 p_1..p_W of the fine frames *before* each target frame (p_k = enc_fine(fine frame k - 1), the encoding of an
@@ -48,6 +52,7 @@ from typing import Any
 
 import jax
 import jax.numpy as jnp
+import numpy as np
 from flax import nnx
 from jaxtyping import Array, Float
 
@@ -73,6 +78,7 @@ class ModelConfig(RecordConfig):
     window: int = 3  # paper: 3 input frames
     dropout: float = 0.0  # transformer dropout (off: deterministic)
     lstm_fine_input: bool = True  # LSTM also reads the previous fine latent
+    skip: bool = False  # the fine decoder also reads the coarse features interpolated to the fine mesh
     seed: int = 0  # parameter initialisation
 
     def __post_init__(self):
@@ -147,18 +153,21 @@ class MeshEncoder(nnx.Module):
 
 
 class MeshDecoder(nnx.Module):
-    """(N, latent) -> (N, V, Cin): FC -> tanh -> tanh(conv) -> tanh(conv)."""
+    """(N, latent) -> (N, V, Cin): FC -> tanh -> [concat the per-vertex ``extra`` channels] -> tanh(conv) ->
+    tanh(conv)."""
 
-    def __init__(self, rings, cout: int, channels: int, latent: int, *, rngs: nnx.Rngs):
+    def __init__(self, rings, cout: int, channels: int, latent: int, *, extra: int = 0, rngs: nnx.Rngs):
         self.rings = MeshRings(rings)
         self.channels = channels
         self.fc = nnx.Linear(latent, self.rings.n_vertices * channels, rngs=rngs)
-        self.conv1 = MeshConv(channels, channels, rngs=rngs)
+        self.conv1 = MeshConv(channels + extra, channels, rngs=rngs)
         self.conv2 = MeshConv(channels, cout, rngs=rngs)
 
-    def __call__(self, z: Float[Array, "n latent"]) -> Float[Array, "n v cout"]:
+    def __call__(self, z: Float[Array, "n latent"], extra: Float[Array, "n v e"] | None = None) -> Float[Array, "n v cout"]:
         rings = self.rings.get()
         g = _tanh(self.fc(z).reshape(z.shape[0], self.rings.n_vertices, self.channels))
+        if extra is not None:
+            g = jnp.concatenate([g, extra.astype(g.dtype)], axis=-1)
         g = _tanh(self.conv1(g, rings))
         return _tanh(self.conv2(g, rings))
 
@@ -194,14 +203,21 @@ class LSTM(nnx.Module):
 class DetailModel(nnx.Module):
     """Coarse -> fine feature windows (module docstring); ``coarse`` and ``fine`` are Topology or Rings."""
 
-    def __init__(self, coarse, fine, config: ModelConfig = ModelConfig(), *, rngs: nnx.Rngs | None = None):
+    def __init__(self, coarse, fine, config: ModelConfig = ModelConfig(), *, rngs: nnx.Rngs | None = None,
+                 upsample=None):
         rngs = nnx.Rngs(config.seed) if rngs is None else rngs
         cfg = config
         self.config = cfg
         self.n_coarse = int(jnp.shape(coarse.degree)[0])
         self.n_fine = int(jnp.shape(fine.degree)[0])
+        if cfg.skip:
+            if upsample is None or tuple(np.shape(upsample)) != (self.n_fine, self.n_coarse):
+                raise ValueError(f"a skip model needs the ({self.n_fine}, {self.n_coarse}) coarse-to-fine "
+                                 "interpolation matrix.")
+            self.upsample = RingBuffer(jnp.asarray(upsample, jnp.float32))
         self.coarse_encoder = MeshEncoder(coarse, cfg.in_channels, cfg.conv_channels, cfg.latent, rngs=rngs)
-        self.fine_decoder = MeshDecoder(fine, cfg.in_channels, cfg.conv_channels, cfg.latent, rngs=rngs)
+        self.fine_decoder = MeshDecoder(fine, cfg.in_channels, cfg.conv_channels, cfg.latent,
+                                        extra=cfg.in_channels if cfg.skip else 0, rngs=rngs)
         if cfg.kind != "none":
             self.fine_encoder = MeshEncoder(fine, cfg.in_channels, cfg.conv_channels, cfg.latent, rngs=rngs)
         if cfg.kind == "transformer":
@@ -224,8 +240,13 @@ class DetailModel(nnx.Module):
             raise ValueError("the no-temporal model has no fine encoder.")
         return self.fine_encoder(x)
 
-    def decode_fine(self, z: Float[Array, "n l"]) -> Float[Array, "n vf c"]:
-        return self.fine_decoder(z)
+    def decode_fine(self, z: Float[Array, "n l"], coarse: Float[Array, "n vc c"] | None = None) -> Float[Array, "n vf c"]:
+        """Fine features from fine latents; a ``skip`` model also needs the same frames' coarse features."""
+        if not self.config.skip:
+            return self.fine_decoder(z)
+        if coarse is None:
+            raise ValueError("a skip model decodes from the latents and the coarse frames' features.")
+        return self.fine_decoder(z, jnp.einsum("fc,nck->nfk", self.upsample[...], coarse))
 
     def temporal(self, zc: Float[Array, "b w l"], zp: Float[Array, "b w l"] | None) -> Float[Array, "b w l"]:
         """Fine latents of the W target frames from coarse latents ``zc`` and previous-fine latents ``zp``."""
@@ -250,12 +271,14 @@ class DetailModel(nnx.Module):
                 raise ValueError(f"a {self.config.kind} model needs the previous fine frames.")
             zp = self.encode_fine(fine_prev_win.reshape((b * w,) + fine_prev_win.shape[2:])).reshape(b, w, -1)
         zf = self.temporal(zc, zp)
-        return self.decode_fine(zf.reshape(b * w, -1)).reshape(b, w, self.n_fine, self.config.in_channels)
+        xc = coarse_win.reshape((b * w,) + coarse_win.shape[2:])
+        return self.decode_fine(zf.reshape(b * w, -1), xc).reshape(b, w, self.n_fine, self.config.in_channels)
 
 
-def new_model(coarse, fine, config: ModelConfig = ModelConfig()) -> DetailModel:
-    """A freshly initialised :class:`DetailModel` (parameters from ``config.seed``)."""
-    return DetailModel(coarse, fine, config, rngs=nnx.Rngs(config.seed))
+def new_model(coarse, fine, config: ModelConfig = ModelConfig(), upsample=None) -> DetailModel:
+    """A freshly initialised :class:`DetailModel` (parameters from ``config.seed``); ``upsample``: the (Vf, Vc)
+    interpolation matrix a ``skip`` model needs."""
+    return DetailModel(coarse, fine, config, rngs=nnx.Rngs(config.seed), upsample=upsample)
 
 
 def parameter_count(model: Any) -> int:

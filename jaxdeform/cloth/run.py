@@ -41,7 +41,10 @@ def generate(kind: str, out: str | Path, n_sequences: int = 10, n_frames: int | 
              progress: bool = True, levels: int = 3) -> dict:
     """Simulate ``n_sequences`` paired sequences of a scenario into ``out``; returns the dataset index record.
 
-    ``levels``: Loop levels from the coarse to the fine mesh (3: the paper's SHEET / DISK sizes).
+    ``levels``: Loop levels from the coarse to the fine mesh (3: the paper's SHEET / DISK sizes). A sequence
+    file already in ``out`` whose stored scenario record equals the one asked for is kept, not simulated
+    again (an interrupted generation resumes; a dataset grows by raising ``n_sequences`` where the
+    scenarios do not depend on it).
     """
     from jaxdeform.cloth import scenarios
 
@@ -52,9 +55,11 @@ def generate(kind: str, out: str | Path, n_sequences: int = 10, n_frames: int | 
     frames = n_frames or scenarios.N_FRAMES
     for i in tqdm(range(n_sequences), desc=f"simulate {kind}", unit="seq", disable=not progress):
         sc = scenarios.scenario(kind, i, seed=seed, n_frames=frames, n_sequences=n_sequences, levels=levels)
-        pair = scenarios.simulate_pair(sc, progress=False)
         name = f"seq_{i:03d}.npz"
-        cdata.write_sequence(out / name, pair)
+        pair = _stored_pair(out / name, sc.meta)
+        if pair is None:
+            pair = scenarios.simulate_pair(sc, progress=False)
+            cdata.write_sequence(out / name, pair)
         names.append(name)
         m = pair["meta"]
         pen_c.append(m["coarse_max_penetration"])
@@ -74,6 +79,20 @@ def generate(kind: str, out: str | Path, n_sequences: int = 10, n_frames: int | 
     }
     cdata.write_index(out, kind, names, **info)
     return json.loads((out / "dataset.json").read_text())
+
+
+def _stored_pair(path: Path, meta: dict) -> dict | None:
+    """The sequence at ``path`` as a simulate_pair-like dict if it holds the scenario ``meta``, else None."""
+    if not path.is_file():
+        return None
+    try:
+        seq, shared = cdata.read_sequence(path)
+    except JaxDeformError:
+        return None
+    want = json.loads(json.dumps(meta, default=cdata._jsonable))
+    if any(seq.meta.get(k) != v for k, v in want.items()):
+        return None
+    return {**shared, **seq.pins, "coarse": seq.coarse, "fine": seq.fine, "meta": seq.meta}
 
 
 def _mean_edge(v, f) -> float:
@@ -133,14 +152,34 @@ def train_run(data: str | Path | cdata.ClothDataset, *, representation: str = "t
     tcfg = train_cfg or ctrain.TrainConfig()
     ct = build_topology(ds.coarse_faces, ds.coarse_rest.shape[0])
     ft = build_topology(ds.fine_faces, ds.fine_rest.shape[0])
+    positions = position_target(ds, rep, train_names) if tcfg.position_weight > 0 else None
     model, hist = ctrain.train(mcfg, tcfg, ct, ft, [scaled[n][0] for n in train_names],
-                               [scaled[n][1] for n in train_names], progress=progress)
+                               [scaled[n][1] for n in train_names], progress=progress, positions=positions,
+                               upsample=rep.upsampler.matrix.toarray() if mcfg.skip else None)
     record = {"format": RUN_FORMAT, "dataset": str(Path(ds.root).resolve()), "scenario": ds.scenario,
               "split": ds.split, "representation": rep.kind, "residual": rep.residual, "model": mcfg.to_dict(), "train": _asdict(tcfg),
               "final_loss": float(np.mean(hist.loss[-50:])) if len(hist.loss) else None,
               "train_seconds": float(hist.seconds), "compile_seconds": float(hist.compile_seconds),
               "thickness": _thickness(ds)}
     return Run(model, rep, record)
+
+
+def position_target(ds: cdata.ClothDataset, rep: cfeat.Representation, names: list[str]):
+    """The fine frames, residual bases and pinned reconstruction the position term of the loss needs."""
+    from jaxdeform.acap import features as acapf
+    from jaxdeform.cloth import train as ctrain
+
+    seqs = [s for s in ds.subset("train") if s.name in set(names)]
+    pins = [s.pins for s in seqs]
+    if not pins or any("fine_pins" not in p for p in pins):
+        raise JaxDeformError(f"{ds.root}: the position term of the loss needs the scenario's pinned fine vertices.")
+    idx, at = pins[0]["fine_pins"], pins[0]["fine_pin_positions"]
+    if any(not (np.array_equal(p["fine_pins"], idx) and np.allclose(p["fine_pin_positions"], at)) for p in pins):
+        raise JaxDeformError(f"{ds.root}: the training sequences pin different fine vertices or positions.")
+    rec = None if rep.kind == "coords" else acapf.cached(rep.fine_rest, rep.fine_faces).reconstructor(idx)
+    base = [rep.base(s.coarse) for s in seqs] if rep.residual else None
+    return ctrain.PositionTarget.build([s.fine for s in seqs], base, rep.fine_scaling.lo, rep.fine_scaling.hi,
+                                       rec, None if rec is None else at, _mean_edge(rep.fine_rest, rep.fine_faces))
 
 
 def _asdict(cfg) -> dict:

@@ -8,7 +8,15 @@ window. Each step draws ``batch_size`` windows uniformly with replacement from
 ``jax.random.fold_in(PRNGKey(seed), step)``, so a run is a deterministic function of the seed.
 
 Loss: mean squared error over all features of the W target frames (paper: "minimizing the mean squared
-error between predicted detailed features and the ground-truth"). Optimiser: Adam, learning rate 1e-3,
+error between predicted detailed features and the ground-truth"). Optional position term
+(``TrainConfig.position_weight`` > 0, with a :class:`PositionTarget`): the last frame of each window is
+unscaled, added to its residual base when the target is a residual, turned into positions by the
+differentiable ACAP reconstruction (one anchored least-squares solve, :class:`jaxdeform.acap.reconstruct.
+Reconstructor`; identity for coordinates) and compared with the fine simulation:
+``position_weight * mean_v |p_v - g_v|^2 / ell^2`` with ell the mean fine rest edge length. Feature MSE
+weighs every vertex's rotation alike, while the evaluation's RMSE is dominated by how small rotation errors
+integrate along the cloth (a hanging sheet's hem moves with every rotation above it); the position term
+trains for what is measured. It costs one solve forward and one backward per window. Optimiser: Adam, learning rate 1e-3,
 optionally decayed exponentially, lr(t) = lr0 * decay_rate^(t / decay_steps) (off by default: decay_rate 1).
 The whole step (batch gather, forward, backward, Adam) is one ``jax.jit`` program, compiled once per run
 (its first call is reported apart as compile time).
@@ -73,6 +81,7 @@ class TrainConfig:
     decay_steps: int = 1000
     seed: int = 0  # batch sampling (parameters come from ModelConfig.seed)
     log_every: int = 50  # progress-bar refresh interval (steps)
+    position_weight: float = 0.0  # weight of the position term (module docstring); 0 = the paper's loss
 
     def __post_init__(self):
         for name in ("steps", "batch_size", "decay_steps", "log_every"):
@@ -82,6 +91,8 @@ class TrainConfig:
             raise ValueError(f"the learning rate must be a positive number, got {self.learning_rate}.")
         if not 0 < self.decay_rate <= 1:
             raise ValueError(f"decay_rate must lie in (0, 1], got {self.decay_rate}.")
+        if not (self.position_weight >= 0 and np.isfinite(self.position_weight)):
+            raise ValueError(f"position_weight must be a non-negative number, got {self.position_weight}.")
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -160,11 +171,7 @@ def windows(coarse_seqs: Sequence, fine_seqs: Sequence, window: int) -> Windows:
     if starts.size == 0:
         raise ValueError(f"no sequence has the {w} frames one training window needs.")
 
-    def stack(seqs):
-        zero = np.zeros((1,) + seqs[0].shape[1:], np.float32)
-        return jnp.asarray(np.concatenate([x for s in seqs for x in (zero, s)]))
-
-    return Windows(stack(cs), stack(fs), jnp.asarray(starts), w)
+    return Windows(stack_like_windows(cs), stack_like_windows(fs), jnp.asarray(starts), w)
 
 
 def gather_windows(
@@ -173,6 +180,51 @@ def gather_windows(
     """(coarse window, teacher-forced fine input, fine target) of the windows starting at rows ``starts``."""
     idx = starts[:, None] + jnp.arange(window)[None, :]
     return coarse[idx], fine[idx - 1], fine[idx]
+
+
+@jax.tree_util.register_dataclass
+@dataclasses.dataclass(frozen=True)
+class PositionTarget:
+    """What the position term of the loss needs (module docstring); arrays stacked like :class:`Windows`."""
+
+    positions: Float[Array, "n vf 3"]  # fine simulation frames
+    base: Float[Array, "n vf c"] | None  # unscaled residual base features (None: the target is not a residual)
+    lo: Float[Array, " c"]  # the fine scaling (:class:`jaxdeform.cloth.features.Scaling`)
+    hi: Float[Array, " c"]
+    reconstructor: object  # Reconstructor of the fine mesh anchored on the pins; None for coordinates
+    anchor_targets: Float[Array, "a 3"] | None
+    edge: float = dataclasses.field(metadata=dict(static=True), default=1.0)  # mean fine rest edge length
+
+    @staticmethod
+    def build(positions: Sequence, base: Sequence | None, lo, hi, reconstructor, anchor_targets,
+              edge: float) -> "PositionTarget":
+        """From per-sequence arrays (the same order as the training sequences)."""
+        return PositionTarget(stack_like_windows(positions), None if base is None else stack_like_windows(base),
+                              jnp.asarray(lo, jnp.float32), jnp.asarray(hi, jnp.float32), reconstructor,
+                              None if anchor_targets is None else jnp.asarray(anchor_targets, jnp.float32),
+                              float(edge))
+
+
+def stack_like_windows(seqs: Sequence) -> Float[Array, "n v c"]:
+    """Sequences (T_i, V, C) one after another, each preceded by a zero frame (the rows of :class:`Windows`)."""
+    seqs = [np.asarray(x, np.float32) for x in seqs]
+    zero = np.zeros((1,) + seqs[0].shape[1:], np.float32)
+    return jnp.asarray(np.concatenate([x for s in seqs for x in (zero, s)]))
+
+
+def position_error(pos: PositionTarget, scaled: Float[Array, "b vf c"], rows: Int[Array, " b"]) -> Array:
+    """Mean squared vertex distance over ell^2 of scaled fine features decoded to positions, rows of ``pos``."""
+    from jaxdeform.acap.features import gradients_from_features
+    from jaxdeform.cloth.features import LIMIT
+
+    f = (scaled / LIMIT + 1.0) * 0.5 * (pos.hi - pos.lo) + pos.lo
+    if pos.base is not None:
+        f = f + pos.base[rows]
+    if pos.reconstructor is None:
+        p = f
+    else:
+        p = pos.reconstructor(gradients_from_features(f), pos.anchor_targets)
+    return jnp.mean(jnp.sum(jnp.square(p - pos.positions[rows]), -1)) / (pos.edge * pos.edge)
 
 
 # ------------------------------------------------------------------------------------------ training
@@ -185,11 +237,12 @@ def _tx(lr: float, decay_rate: float, decay_steps: int) -> optax.GradientTransfo
 
 
 @functools.cache
-def _train_step(graphdef, window: int, batch: int, lr: float, decay_rate: float, decay_steps: int):
+def _train_step(graphdef, window: int, batch: int, lr: float, decay_rate: float, decay_steps: int,
+                position_weight: float = 0.0):
     """The jitted training step for one model structure and optimiser (cached: no retrace across runs)."""
     tx = _tx(lr, decay_rate, decay_steps)
 
-    def step(params, rest, opt_state, coarse, fine, starts, key, t):
+    def step(params, rest, opt_state, coarse, fine, starts, key, t, pos):
         TRACE_COUNT["train_step"] += 1
         sel = jax.random.randint(jax.random.fold_in(key, t), (batch,), 0, starts.shape[0])
         cw, fp, ft = gather_windows(coarse, fine, starts[sel], window)
@@ -198,7 +251,10 @@ def _train_step(graphdef, window: int, batch: int, lr: float, decay_rate: float,
             model = nnx.merge(graphdef, p, rest)
             model.train()
             pred = model(cw, fp)
-            return jnp.mean(jnp.square(pred - ft)), nnx.state(model, nnx.Not(nnx.Param))
+            loss = jnp.mean(jnp.square(pred - ft))
+            if pos is not None and position_weight > 0:
+                loss = loss + position_weight * position_error(pos, pred[:, -1], starts[sel] + window - 1)
+            return loss, nnx.state(model, nnx.Not(nnx.Param))
 
         (loss, new_rest), grads = jax.value_and_grad(loss_fn, has_aux=True)(params)
         updates, opt_state = tx.update(grads, opt_state, params)
@@ -217,12 +273,16 @@ def train(
     progress: bool = True,
     *,
     model: DetailModel | None = None,
+    positions: PositionTarget | None = None,
+    upsample=None,
 ) -> tuple[DetailModel, History]:
     """Fit a :class:`DetailModel` to paired scaled feature sequences with teacher forcing (module docstring).
 
     ``coarse_topo`` / ``fine_topo``: Topology (or Rings) of the two meshes; ``coarse_seqs[i]`` (T_i, Vc, C)
     and ``fine_seqs[i]`` (T_i, Vf, C) are frame-aligned. ``model`` continues training an existing model of the
-    same configuration instead of a fresh one. Returns (model, history).
+    same configuration instead of a fresh one. ``positions`` enables the position term of the loss
+    (``train_cfg.position_weight`` > 0; module docstring); ``upsample`` is the (Vf, Vc) interpolation matrix a
+    ``skip`` model needs. Returns (model, history).
     """
     win = windows(coarse_seqs, fine_seqs, model_cfg.window)
     nc, nf = int(np.shape(coarse_topo.degree)[0]), int(np.shape(fine_topo.degree)[0])
@@ -233,14 +293,21 @@ def train(
         raise ValueError(f"fine features must be (T, {nf}, {model_cfg.in_channels}), got (T, {win.fine.shape[1]}, "
                          f"{win.fine.shape[2]}).")
     if model is None:
-        model = new_model(coarse_topo, fine_topo, model_cfg)
+        model = new_model(coarse_topo, fine_topo, model_cfg, upsample)
     elif model.config != model_cfg:
         raise ValueError("the model to continue was built with another configuration than model_cfg.")
     graphdef, params, rest = nnx.split(model, nnx.Param, ...)
     tc = train_cfg
     opt_state = _tx(tc.learning_rate, tc.decay_rate, tc.decay_steps).init(params)
+    if tc.position_weight > 0:
+        if positions is None:
+            raise ValueError("position_weight > 0 needs the fine positions (a PositionTarget).")
+        if positions.positions.shape[:2] != win.fine.shape[:2]:
+            raise ValueError("the PositionTarget's frames do not line up with the training windows.")
+    else:
+        positions = None
     step_fn = _train_step(graphdef, win.window, int(tc.batch_size), float(tc.learning_rate), float(tc.decay_rate),
-                          int(tc.decay_steps))
+                          int(tc.decay_steps), float(tc.position_weight))
     key = jax.random.PRNGKey(tc.seed)
 
     from tqdm.auto import tqdm
@@ -251,7 +318,7 @@ def train(
     with tqdm(total=tc.steps, desc=f"train {model_cfg.kind}", unit="step", disable=not progress) as bar:
         for t in range(tc.steps):
             params, rest, opt_state, loss = step_fn(params, rest, opt_state, win.coarse, win.fine, win.starts, key,
-                                                    jnp.int32(t))
+                                                    jnp.int32(t), positions)
             losses.append(loss)
             if t == 0:
                 loss.block_until_ready()
@@ -308,7 +375,9 @@ def _synthesize_fn(graphdef, chunk: int):
             zf = model.temporal(zc[None], None)[0]
             n = -(-t_len // chunk)
             zf = jnp.pad(zf, ((0, n * chunk - t_len), (0, 0))).reshape(n, chunk, -1)
-            out = jax.lax.map(model.decode_fine, zf)  # (n, chunk, Vf, C): chunks in sequence, frames batched
+            xc = jnp.pad(coarse, ((0, n * chunk - t_len), (0, 0), (0, 0))).reshape((n, chunk) + coarse.shape[1:])
+            # (n, chunk, Vf, C): chunks in sequence, frames batched
+            out = jax.lax.map(lambda a: model.decode_fine(*a), (zf, xc))
             return out.reshape((n * chunk,) + out.shape[2:])[:t_len]
         if t_len < w:  # repeat the last coarse frame (module docstring)
             zc = jnp.concatenate([zc, jnp.repeat(zc[-1:], w - t_len, axis=0)])
@@ -321,7 +390,7 @@ def _synthesize_fn(graphdef, chunk: int):
             zc_win = jax.lax.dynamic_slice_in_dim(zc, s, w)
             zp_win = jax.lax.dynamic_slice_in_dim(hist, s, w)  # fine frames s-1 .. s+w-2 (later ones unused)
             z = jax.lax.dynamic_index_in_dim(model.temporal(zc_win[None], zp_win[None])[0], t - s, keepdims=True)
-            y = model.decode_fine(z)  # (1, Vf, C)
+            y = model.decode_fine(z, jax.lax.dynamic_index_in_dim(coarse, t, keepdims=True))  # (1, Vf, C)
             hist = jax.lax.dynamic_update_index_in_dim(hist, model.encode_fine(y)[0], t + 1, 0)
             return hist, y[0]
 
@@ -358,6 +427,8 @@ def save_model(path: str | os.PathLike, model: DetailModel, meta: dict | None = 
               "n_coarse": model.n_coarse, "n_fine": model.n_fine, "meta": dict(meta or {})}
     rings = {f"rings:{name}:{field}": np.asarray(arr)
              for name, r in zip(("coarse", "fine"), _rings_of(model)) for field, arr in r._asdict().items()}
+    if model.config.skip:
+        rings["upsample"] = np.asarray(model.upsample[...])
     return save_module(path, model, record, nnx.Param, extra=rings)
 
 
@@ -367,7 +438,7 @@ def load_model(path: str | os.PathLike) -> tuple[DetailModel, dict]:
     try:
         config = ModelConfig.from_dict(record["config"])
         rings = [Rings(*(arrays[f"rings:{name}:{f}"] for f in Rings._fields)) for name in ("coarse", "fine")]
-        model = new_model(rings[0], rings[1], config)
+        model = new_model(rings[0], rings[1], config, arrays.get("upsample"))
     except (KeyError, ValueError, TypeError) as exc:
         raise JaxDeformError(f"{path}: not a jaxdeform cloth model file ({type(exc).__name__}: {exc}).") from None
     load_state(path, model, arrays, nnx.Param)
