@@ -673,7 +673,7 @@ def cmd_cloth_train(args: argparse.Namespace) -> int:
     ds = cdata.load_dataset(args.data)
     mcfg, tcfg = _cloth_configs(args)
     run = train_run(ds, representation=args.representation, model_cfg=mcfg, train_cfg=tcfg, progress=not args.quiet,
-                    residual=args.residual)
+                    residual=args.target == "residual")
     with _staged_folder(out) as tmp:
         save_run(run, tmp)
     print(f"trained a {args.model} on {len(ds.subset('train'))} {ds.scenario} sequences ({args.representation}) in "
@@ -927,8 +927,9 @@ def build_parser() -> argparse.ArgumentParser:
     ctr.add_argument("--out", "-o", required=True, metavar="RUN", help="run folder to write")
     ctr.add_argument("--model", default="transformer", choices=("transformer", "lstm", "none"))
     ctr.add_argument("--representation", default="ts-acap", choices=("ts-acap", "acap", "coords"))
-    ctr.add_argument("--residual", action="store_true",
-                     help="learn the fine features as a residual over the Loop-upsampled coarse cloth's")
+    ctr.add_argument("--target", default="residual", choices=("residual", "direct"),
+                     help="residual (default): learn the fine features as a residual over the Loop-upsampled "
+                          "coarse cloth's; direct: map coarse to fine features as the paper does")
     ctr.add_argument("--skip", action="store_true",
                      help="the fine decoder also reads the coarse features interpolated to the fine mesh")
     ctr.add_argument("--position-weight", type=float, metavar="W",

@@ -54,6 +54,7 @@ def test_train_synthesize_evaluate_round_trip(tmp_path, capsys):
     assert {p.name for p in run.iterdir()} == {"model.npz", "representation.npz", "run.json"}
     rec = json.loads((run / "run.json").read_text())
     assert rec["representation"] == "ts-acap" and rec["split"]["test"] == ["seq_002.npz"]
+    assert rec["residual"] is True  # default target: the residual over the Loop-upsampled coarse cloth
     js = tmp_path / "ev.json"
     code, out, err = run_cli(["cloth", "evaluate", str(run), "--data", str(data), "--json", str(js), "--quiet"], capsys)
     assert code == 0, err
@@ -103,13 +104,15 @@ def test_experiment_test_config_writes_summary(tmp_path):
     assert exp.main(["--config", "test", "--out", str(tmp_path), "--datasets", "sheet"]) == 0
     summary = json.loads((tmp_path / "summary.json").read_text())
     r = summary["datasets"]["sheet"]
-    assert set(r["rmse"]) == set(exp.METHODS) | {"upsampled_coarse"}
+    assert set(r["rmse"]) == set(exp.METHODS) | {"upsampled_coarse", "linear_residual"}
     assert all(np.isfinite(v) for v in r["sted"].values()) and all(np.isfinite(v) for v in r["hausdorff"].values())
     t = r["timing"]
     assert {"coarse_simulation", "extraction", "synthesis", "reconstruction", "refinement", "fine_simulation"} <= set(t)
     assert r["speedup"] == pytest.approx(t["fine_simulation"] / t["ours_total"])
     assert r["data"]["penetration"]["fine_max_over_edge"] <= 0.01
     assert set(r["jumps"]) == {"ts-acap", "acap"} and r["jumps"]["acap"]["count"] > 0
+    fl = r["floor"]  # one test scenario re-simulated from a perturbed start: it moved, and only a little
+    assert len(fl["sequences"]) == 1 and 0 < fl["perturbed_fine_rmse"] < 10 * fl["perturbation_m"]
     assert (tmp_path / "results.md").is_file() and r["figures"] and (tmp_path / r["figures"][0]).is_file()
 
 

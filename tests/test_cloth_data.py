@@ -116,6 +116,32 @@ def test_upsampler_is_libigl_loop_and_reaches_sheet_resolution():
         ceval.Upsampler(cf, len(cv), grid(6)[1])
 
 
+def test_linear_residual_recovers_a_linear_detail_and_falls_back_to_the_mean():
+    """Fine = Loop(coarse) + an affine function of the coarse frame (rank 3): the closed-form reference recovers
+    it on unseen frames; with a detail that ignores the coarse frame it predicts the training mean."""
+    cv, cf = grid(5)
+    fv, ff = igl.loop(cv, cf)
+    up = ceval.Upsampler(cf, len(cv), ff)
+    rng = np.random.default_rng(3)
+    basis = rng.standard_normal((3, len(fv) * 3)) * 0.01
+    probe = rng.standard_normal((len(cv) * 3, 3))
+
+    def seq(n, detail):
+        c = cv[None] + 0.05 * rng.standard_normal((n, len(cv), 3))
+        return c, up(c) + detail(c).reshape(n, -1, 3)
+
+    linear = lambda c: 0.002 + (c.reshape(len(c), -1) @ probe) @ basis  # noqa: E731
+    train = [seq(30, linear) for _ in range(8)]
+    ref = ceval.LinearResidual(up, [c for c, _ in train], [f for _, f in train], k=8)
+    c, f = seq(10, linear)
+    assert np.sqrt(np.mean((ref(c) - f) ** 2)) < 0.02 * np.sqrt(np.mean((up(c) - f) ** 2))
+    const = np.tile(rng.standard_normal(len(fv) * 3) * 0.01, (1, 1))
+    train = [seq(30, lambda c: np.repeat(const, len(c), 0)) for _ in range(8)]
+    ref = ceval.LinearResidual(up, [c for c, _ in train], [f for _, f in train], k=8)
+    c, f = seq(10, lambda c: np.repeat(const, len(c), 0))
+    np.testing.assert_allclose(ref(c), f, atol=1e-4)
+
+
 def test_errors_analytic():
     cv, cf = grid(5)
     rng = np.random.default_rng(2)

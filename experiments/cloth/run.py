@@ -1,26 +1,33 @@
 """Seed 002 experiments: Tables 1, 2, 4 and 5 on generated SHEET and DISK data, and PNG strips.
 
     python -m experiments.cloth.run [--config default|test] [--out DIR] [--datasets sheet disk]
-                                    [--stages data train evaluate timing figures] [--force]
+                                    [--stages data train evaluate linear jumps timing floor figures] [--force]
 
 Stages (each dataset in turn; results merge into OUT/summary.json, markdown into OUT/results.md):
 - ``data``: simulate the paired dataset (``jaxdeform.cloth.run.generate``; cached in OUT/data/KIND unless
   ``--force``), recording the obstacle penetration and the coarse / fine simulation time per frame.
-- ``train``: the methods of Tables 2, 4 and 5 on the training split, one run folder each in OUT/runs/KIND/NAME:
-  ``ours`` (DeformTransformer on TS-ACAP), ``ours_residual`` (the same predicting the TS-ACAP residual over the
-  Loop-upsampled coarse cloth, see ``jaxdeform.cloth.features``), ``ours_skip_position`` (the residual
-  model whose fine decoder also reads the interpolated coarse features, trained with the position term of
-  ``jaxdeform.cloth.train``), ``no_temporal`` (encoder-decoder, no temporal module), ``lstm``
-  (an LSTM in place of the transformer), ``acap`` (the transformer on plain per-frame ACAP), ``coords`` (the
-  transformer on vertex coordinates).
+- ``train``: the methods of Tables 2, 4 and 5 on the training split, one run folder each in OUT/runs/KIND/NAME.
+  Every learned method predicts the fine cloth as a residual over the Loop-upsampled coarse cloth (see
+  ``jaxdeform.cloth.features``): a model that learns nothing then decodes to the upsampled coarse baseline,
+  and the ablations differ from ``ours`` in one thing each. ``ours`` (DeformTransformer on TS-ACAP),
+  ``ours_direct`` (the paper's direct coarse -> fine feature mapping, no residual), ``no_temporal``
+  (encoder-decoder, no temporal module), ``lstm`` (an LSTM in place of the transformer), ``acap`` (the
+  transformer on plain per-frame ACAP), ``coords`` (the transformer on vertex coordinates).
 - ``evaluate``: RMSE, Hausdorff and STED of every method and of the Loop-upsampled coarse simulation on the
   test sequences (never seen in training).
+- ``linear``: a closed-form reference beside them (``jaxdeform.cloth.evaluate.LinearResidual``: the upsampled
+  coarse frame plus a ridge-regressed linear map of it onto the leading principal directions of the training
+  residuals), added to the evaluation's table as ``linear_residual``.
 - ``jumps``: frame-to-frame changes of the fine TS-ACAP and ACAP features over all sequences (largest,
   percentiles, fraction above pi).
 - ``timing``: Table 1: per frame, the coarse simulation, TS-ACAP extraction, synthesis, reconstruction and
   refinement against the fine simulation of the same scenario: the first test scenario is simulated again at
   both resolutions (30 frames, compilation excluded) and our pipeline runs on its coarse frames after a
   warm-up call, all in this process.
+- ``floor``: how far the fine simulation is determined by its scenario: the fine cloth of the first
+  ``floor_sequences`` test scenarios is simulated again from a start perturbed by 0.1 mm RMS
+  (``scenarios.simulate_fine``) and compared with the stored fine run (RMSE), beside the upsampled coarse
+  RMSE of the same sequences. No method that sees the scenario can be expected below that RMSE.
 - ``figures``: strips coarse (upsampled) | ours | fine simulation | error colour map for a few test frames.
 
 ``--config test`` runs everything in about a minute on tiny datasets (3 short sequences, one Loop level from
@@ -47,14 +54,17 @@ from jaxdeform.cloth import run as crun
 from jaxdeform.mesh.io import atomic_path
 
 METHODS = {  # name -> (model kind, representation, residual over the upsampled coarse features[, skip, position weight])
-    "ours": ("transformer", "ts-acap", False),
-    "ours_residual": ("transformer", "ts-acap", True),
-    "ours_skip_position": ("transformer", "ts-acap", True, True, 1.0),
-    "no_temporal": ("none", "ts-acap", False),
-    "lstm": ("lstm", "ts-acap", False),
-    "acap": ("transformer", "acap", False),
-    "coords": ("transformer", "coords", False),
+    "ours": ("transformer", "ts-acap", True),
+    "ours_direct": ("transformer", "ts-acap", False),
+    "no_temporal": ("none", "ts-acap", True),
+    "lstm": ("lstm", "ts-acap", True),
+    "acap": ("transformer", "acap", True),
+    "coords": ("transformer", "coords", True),
 }
+
+
+#: RMS of the start perturbation (m) of the ``floor`` stage.
+FLOOR_PERTURBATION = 1e-4
 
 
 @dataclasses.dataclass(frozen=True)
@@ -67,12 +77,13 @@ class Settings:
     size: int
     timing_frames: int
     levels: int = 3  # Loop levels coarse -> fine
+    floor_sequences: int = 2  # test scenarios re-simulated by the ``floor`` stage
 
 
 def settings(config: str) -> Settings:
     if config == "test":
         return Settings(sequences={"sheet": 3, "disk": 3}, frames=8, steps=5, batch=4, figure_frames=1, size=96, timing_frames=4,
-                        levels=1)
+                        levels=1, floor_sequences=1)
     # SHEET: 40 x 100 frames, the paper's 4,000; DISK: 10 x 100 (the paper's 2,000 would take 40 min more here)
     return Settings(sequences={"sheet": 40, "disk": 10}, frames=100, steps=1000, batch=8, figure_frames=3, size=320, timing_frames=30)
 
@@ -134,6 +145,19 @@ def stage_evaluate(out: Path, ds, cache: dict) -> dict:
     return {"methods": methods, "test_sequences": [x.name for x in test]}
 
 
+def stage_linear(ds, r: dict) -> None:
+    """The ``linear`` stage: fit LinearResidual on the training split, add its test errors to ``r``'s tables."""
+    ups = ceval.Upsampler(ds.coarse_faces, ds.coarse_rest.shape[0], ds.fine_faces)
+    train = ds.subset("train")
+    ref = ceval.LinearResidual(ups, [x.coarse for x in train], [x.fine for x in train])
+    m = ceval.pool([ceval.sequence_errors(x.fine, ref(x.coarse), ds.fine_faces) for x in ds.subset("test")])
+    m["ridge_lambda"] = ref.lam
+    print(f"{ds.scenario} linear_residual: rmse {m['rmse']:.5f} sted {m['sted']:.4f}", flush=True)
+    r.setdefault("evaluate", {}).setdefault("methods", {})["linear_residual"] = m
+    for key in ("rmse", "hausdorff", "sted"):
+        r.setdefault(key, {})["linear_residual"] = m[key]
+
+
 def stage_jumps(ds) -> dict:
     """Frame-to-frame changes of the fine TS-ACAP and ACAP features over every sequence of the dataset."""
     return {kind: cfeat.frame_change_stats([cfeat.encode_sequence(kind, ds.fine_rest, ds.fine_faces, x.fine)
@@ -160,6 +184,28 @@ def stage_timing(out: Path, ds, s: Settings) -> dict:
             "reconstruction": t["reconstruction"], "refinement": t["refinement"], "ours_total": ours,
             "fine_simulation": fine_sim, "speedup": fine_sim / ours, "refined_frames": t["refined_frames"],
             "frames": int(coarse.shape[0]), "scenario": sc.meta.get("index")}
+
+
+def stage_floor(ds, s: Settings) -> dict:
+    """The ``floor`` stage (module docstring): fine vs perturbed fine against fine vs upsampled coarse."""
+    from jaxdeform.cloth import scenarios
+
+    ups = ceval.Upsampler(ds.coarse_faces, ds.coarse_rest.shape[0], ds.fine_faces)
+    per = []
+    for x in ds.subset("test")[: s.floor_sequences]:
+        meta = x.meta
+        sc = scenarios.scenario(ds.scenario, int(meta["index"]), seed=int(meta.get("seed", 0)),
+                                n_frames=x.fine.shape[0], n_sequences=len(ds.sequences),
+                                levels=int(meta.get("levels", 3)))
+        again = scenarios.simulate_fine(sc, perturbation=FLOOR_PERTURBATION)
+        per.append({"sequence": x.name,
+                    "perturbed_fine": ceval.sequence_errors(x.fine, again, ds.fine_faces)["rmse"],
+                    "upsampled_coarse": ceval.sequence_errors(x.fine, ups(x.coarse), ds.fine_faces)["rmse"]})
+        print(f"{ds.scenario} floor {x.name}: perturbed fine {per[-1]['perturbed_fine']:.5f}, upsampled coarse "
+              f"{per[-1]['upsampled_coarse']:.5f}", flush=True)
+    rms = lambda k: float(np.sqrt(np.mean([p[k] ** 2 for p in per])))  # noqa: E731 (equal frame counts)
+    return {"perturbation_m": FLOOR_PERTURBATION, "sequences": per, "perturbed_fine_rmse": rms("perturbed_fine"),
+            "upsampled_coarse_rmse": rms("upsampled_coarse")}
 
 
 def stage_figures(out: Path, ds, s: Settings) -> list[str]:
@@ -218,6 +264,11 @@ def markdown(summary: dict) -> str:
                 lines.append(f"| {kind} | {st['max']:.2f} | {st['p99_9']:.3f} | {st['p99']:.3f} | "
                              f"{100 * st['fraction_above_pi']:.3f}% of {st['count']:,} |")
             lines.append("")
+        fl = r.get("floor")
+        if fl:
+            lines += [f"Fine simulation against itself from a start perturbed by {fl['perturbation_m'] * 1e3:.1f} mm: "
+                      f"RMSE {fl['perturbed_fine_rmse']:.5f} m over {len(fl['sequences'])} test sequences, where the "
+                      f"upsampled coarse cloth is {fl['upsampled_coarse_rmse']:.5f} m from it.", ""]
         tm = r.get("timing")
         if tm:
             lines += ["| coarse sim | TS-ACAP extraction | synthesis | reconstruction | refinement | ours total | "
@@ -245,8 +296,8 @@ def main(argv=None) -> int:
     ap.add_argument("--config", choices=("default", "test"), default="default")
     ap.add_argument("--out")
     ap.add_argument("--datasets", nargs="+", default=["sheet", "disk"], choices=["sheet", "disk"])
-    ap.add_argument("--stages", nargs="+", default=["data", "train", "evaluate", "jumps", "timing", "figures"],
-                    choices=["data", "train", "evaluate", "jumps", "timing", "figures"])
+    ap.add_argument("--stages", nargs="+", default=["data", "train", "evaluate", "linear", "jumps", "timing", "floor", "figures"],
+                    choices=["data", "train", "evaluate", "linear", "jumps", "timing", "floor", "figures"])
     ap.add_argument("--force", action="store_true", help="redo cached data and runs")
     args = ap.parse_args(argv)
     root = Path(__file__).resolve().parent
@@ -272,12 +323,16 @@ def main(argv=None) -> int:
             r["rmse"] = {k: v["rmse"] for k, v in m.items()}
             r["hausdorff"] = {k: v["hausdorff"] for k, v in m.items()}
             r["sted"] = {k: v["sted"] for k, v in m.items()}
+        if "linear" in args.stages:
+            stage_linear(ds, r)
         if "jumps" in args.stages:
             r["jumps"] = stage_jumps(ds)
             r.get("evaluate", {}).pop("largest_frame_change_fine", None)
         if "timing" in args.stages:
             r["timing"] = stage_timing(out, ds, s)
             r["speedup"] = r["timing"]["speedup"]
+        if "floor" in args.stages:
+            r["floor"] = stage_floor(ds, s)
         if "figures" in args.stages:
             r["figures"] = stage_figures(out, ds, s)
         summary = _merge(path, summary, kind, r)

@@ -77,3 +77,52 @@ def pool(per_sequence: list[dict]) -> dict:
     for k in ("hausdorff", "sted", "sted_s", "sted_t"):
         out[k] = float(np.sum(frames * np.array([r[k] for r in per_sequence])) / frames.sum())
     return out
+
+
+class LinearResidual:
+    """A closed-form reference: the fine cloth as the Loop-upsampled coarse frame plus a linear map of that coarse
+    frame, ``U x + mu + ((x - m) / s) A B`` (per frame, no history).
+
+    ``B`` (k, 3 Vf) are the leading principal directions of the training residuals fine - U coarse, ``A`` the
+    ridge regression of their coefficients on the standardised coarse coordinates x (3 Vc). The ridge weight is
+    chosen from ``lambdas`` (times the number of training frames) on validation sequences held out of the
+    training set (every ``val_every``-th), then the map is refitted on all training sequences. It tells how much
+    of what the fine simulation adds to the coarse one a plain linear function of the coarse frame predicts:
+    the learned models should beat it.
+    """
+
+    def __init__(self, upsampler: Upsampler, coarse_seqs, fine_seqs, k: int = 64,
+                 lambdas=(1e-2, 1e-1, 1.0, 1e1, 1e2), val_every: int = 4):
+        self.up = upsampler
+        cs = [np.asarray(c, np.float64) for c in coarse_seqs]
+        fs = [np.asarray(f, np.float64) for f in fine_seqs]
+        if len(cs) != len(fs) or not cs:
+            raise ValueError("LinearResidual needs as many fine as coarse training sequences (at least one).")
+        val = [i for i in range(len(cs)) if i % val_every == val_every - 1] if len(cs) >= val_every else []
+        fit = [i for i in range(len(cs)) if i not in val]
+        if val:
+            errs = {}
+            for lam in lambdas:
+                self._fit([cs[i] for i in fit], [fs[i] for i in fit], k, lam)
+                errs[lam] = sum(float(np.sum((self(cs[i]) - fs[i]) ** 2)) for i in val)
+            self.lam = min(errs, key=errs.get)
+        else:
+            self.lam = float(lambdas[len(lambdas) // 2])
+        self._fit(cs, fs, k, self.lam)
+
+    def _fit(self, cs, fs, k, lam):
+        x = np.concatenate([c.reshape(len(c), -1) for c in cs])
+        y = np.concatenate([(f - self.up(c)).reshape(len(f), -1) for c, f in zip(cs, fs)])
+        self.m, self.s = x.mean(0), x.std(0) + 1e-9
+        self.mu = y.mean(0)
+        _, _, vt = np.linalg.svd(y - self.mu, full_matrices=False)
+        self.b = vt[:k]
+        xs = (x - self.m) / self.s
+        coef = (y - self.mu) @ self.b.T
+        self.a = np.linalg.solve(xs.T @ xs + lam * len(xs) * np.eye(xs.shape[1]), xs.T @ coef)
+
+    def __call__(self, coarse: np.ndarray) -> np.ndarray:
+        """(T, Vc, 3) coarse frames -> (T, Vf, 3) fine frames."""
+        c = np.asarray(coarse, np.float64)
+        r = ((c.reshape(len(c), -1) - self.m) / self.s) @ self.a @ self.b + self.mu
+        return (self.up(c).astype(np.float64) + r.reshape(len(c), -1, 3)).astype(np.float32)

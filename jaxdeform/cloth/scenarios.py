@@ -348,6 +348,27 @@ def simulate_pair(sc: Scenario, *, progress: bool = True) -> dict:
     }
 
 
+def simulate_fine(sc: Scenario, *, perturbation: float = 0.0, seed: int = 1) -> np.ndarray:
+    """The fine cloth of a scenario alone, (T, Vf, 3) float32, optionally from a start whose free vertices are
+    moved by Gaussian noise of ``perturbation`` metres RMS per coordinate (``seed`` draws it).
+
+    Two runs that differ only by a tiny perturbation measure how far the fine simulation itself is determined
+    by its scenario: their distance is a floor below which no predictor of the fine cloth from the scenario
+    (let alone from the coarse cloth) can be expected to go (the ``floor`` stage of ``experiments/cloth``).
+    """
+    if not (perturbation >= 0 and np.isfinite(perturbation)):
+        raise ScenarioError(f"the perturbation must be a non-negative number of metres, got {perturbation}.")
+    _, cf, _, _ = _meshes(sc.kind, sc.levels)
+    _, mf = models(sc.kind, sc.levels)
+    x0 = loop_subdivide(sc.x0_coarse, cf, sc.levels)[0].astype(np.float32)
+    if perturbation > 0:
+        noise = np.random.default_rng(seed).standard_normal(x0.shape) * perturbation
+        x0 = (x0 + noise * ~np.asarray(sc.pinned_fine)[:, None]).astype(np.float32)
+    pf = sc.params.replace(substeps=FINE_STEPS[0], iterations=FINE_STEPS[1])
+    res, _ = _run_one(mf, pf, x0, sc, sc.pinned_fine, False, f"{sc.kind} {sc.index} fine")
+    return np.asarray(res.frames, np.float32)
+
+
 @jax.jit
 def _penetration(frames, track):
     def one(x, obs):
