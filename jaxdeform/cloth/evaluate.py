@@ -101,25 +101,27 @@ class LinearResidual:
         val = [i for i in range(len(cs)) if i % val_every == val_every - 1] if len(cs) >= val_every else []
         fit = [i for i in range(len(cs)) if i not in val]
         if val:
+            xs, coef = self._basis([cs[i] for i in fit], [fs[i] for i in fit], k)
+            gram, rhs = xs.T @ xs, xs.T @ coef
             errs = {}
-            for lam in lambdas:
-                self._fit([cs[i] for i in fit], [fs[i] for i in fit], k, lam)
+            for lam in lambdas:  # one principal basis, one ridge solve per weight
+                self.a = np.linalg.solve(gram + lam * len(xs) * np.eye(len(gram)), rhs)
                 errs[lam] = sum(float(np.sum((self(cs[i]) - fs[i]) ** 2)) for i in val)
             self.lam = min(errs, key=errs.get)
         else:
             self.lam = float(lambdas[len(lambdas) // 2])
-        self._fit(cs, fs, k, self.lam)
+        xs, coef = self._basis(cs, fs, k)
+        self.a = np.linalg.solve(xs.T @ xs + self.lam * len(xs) * np.eye(xs.shape[1]), xs.T @ coef)
 
-    def _fit(self, cs, fs, k, lam):
+    def _basis(self, cs, fs, k):
+        """Set the standardisation, mean and principal directions; return (standardised x, coefficients)."""
         x = np.concatenate([c.reshape(len(c), -1) for c in cs])
         y = np.concatenate([(f - self.up(c)).reshape(len(f), -1) for c, f in zip(cs, fs)])
         self.m, self.s = x.mean(0), x.std(0) + 1e-9
         self.mu = y.mean(0)
         _, _, vt = np.linalg.svd(y - self.mu, full_matrices=False)
         self.b = vt[:k]
-        xs = (x - self.m) / self.s
-        coef = (y - self.mu) @ self.b.T
-        self.a = np.linalg.solve(xs.T @ xs + lam * len(xs) * np.eye(xs.shape[1]), xs.T @ coef)
+        return (x - self.m) / self.s, (y - self.mu) @ self.b.T
 
     def __call__(self, coarse: np.ndarray) -> np.ndarray:
         """(T, Vc, 3) coarse frames -> (T, Vf, 3) fine frames."""

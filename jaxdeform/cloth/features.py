@@ -139,12 +139,15 @@ class Representation:
 
         return Upsampler(self.coarse_faces, self.coarse_rest.shape[0], self.fine_faces)
 
-    def base(self, coarse_frames) -> np.ndarray:
+    def base(self, coarse_frames, remember: bool = True) -> np.ndarray:
         """Unscaled fine features of the Loop-upsampled coarse frames (the residual's base), (T, Vf, C).
 
         Remembered per coarse sequence (by content) while the representation lives: fitting and training
-        ask for the same training sequences' bases."""
+        ask for the same training sequences' bases. ``remember=False`` computes it afresh and keeps nothing
+        (synthesis, whose timing must include it)."""
         x = np.ascontiguousarray(coarse_frames, np.float32)
+        if not remember:
+            return encode_sequence(self.kind, self.fine_rest, self.fine_faces, self.upsampler(x))
         key = (x.shape, hashlib.sha1(x.tobytes()).hexdigest())
         if key not in self._bases:
             self._bases[key] = encode_sequence(self.kind, self.fine_rest, self.fine_faces, self.upsampler(x))

@@ -256,7 +256,7 @@ def synthesize_timed(run: Run, coarse: np.ndarray, obstacles: dict | None = None
     n = coarse.shape[0]
     t0 = time.perf_counter()
     fc = run.rep.encode("coarse", coarse)
-    base = run.rep.base(coarse) if run.rep.residual else None
+    base = run.rep.base(coarse, remember=False) if run.rep.residual else None  # timed: never a cached base
     t1 = time.perf_counter()
     ff = np.asarray(jax.block_until_ready(ctrain.synthesize(run.model, fc)))
     t2 = time.perf_counter()
