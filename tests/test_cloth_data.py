@@ -135,7 +135,7 @@ def test_linear_residual_recovers_a_linear_detail_and_falls_back_to_the_mean():
     ref = ceval.LinearResidual(up, [c for c, _ in train], [f for _, f in train], k=8)
     c, f = seq(10, linear)
     assert np.sqrt(np.mean((ref(c) - f) ** 2)) < 0.02 * np.sqrt(np.mean((up(c) - f) ** 2))
-    const = np.tile(rng.standard_normal(len(fv) * 3) * 0.01, (1, 1))
+    const = rng.standard_normal((1, len(fv) * 3)) * 0.01
     train = [seq(30, lambda c: np.repeat(const, len(c), 0)) for _ in range(8)]
     ref = ceval.LinearResidual(up, [c for c, _ in train], [f for _, f in train], k=8)
     c, f = seq(10, lambda c: np.repeat(const, len(c), 0))

@@ -88,6 +88,20 @@ def settings(config: str) -> Settings:
     return Settings(sequences={"sheet": 40, "disk": 10}, frames=100, steps=1000, batch=8, figure_frames=3, size=320, timing_frames=30)
 
 
+def _upsampler(ds) -> ceval.Upsampler:
+    """Loop subdivision from the dataset's coarse to its fine connectivity."""
+    return ceval.Upsampler(ds.coarse_faces, ds.coarse_rest.shape[0], ds.fine_faces)
+
+
+def _scenario_of(ds, x, n_frames: int):
+    """The scenario that produced sequence ``x`` of ``ds`` (from its stored record), ``n_frames`` long."""
+    from jaxdeform.cloth import scenarios
+
+    meta = x.meta
+    return scenarios.scenario(ds.scenario, int(meta["index"]), seed=int(meta.get("seed", 0)), n_frames=n_frames,
+                              n_sequences=len(ds.sequences), levels=int(meta.get("levels", 3)))
+
+
 def stage_data(out: Path, kind: str, s: Settings, force: bool) -> dict:
     root = out / "data" / kind
     if (root / "dataset.json").is_file() and not force:
@@ -131,7 +145,7 @@ def stage_train(out: Path, ds, s: Settings, force: bool, cache: dict) -> dict:
 
 def stage_evaluate(out: Path, ds, cache: dict) -> dict:
     test = ds.subset("test")
-    ups = ceval.Upsampler(ds.coarse_faces, ds.coarse_rest.shape[0], ds.fine_faces)
+    ups = _upsampler(ds)
     methods = {"upsampled_coarse": ceval.pool([ceval.sequence_errors(x.fine, ups(x.coarse), ds.fine_faces)
                                                for x in test])}
     for name in METHODS:
@@ -147,7 +161,7 @@ def stage_evaluate(out: Path, ds, cache: dict) -> dict:
 
 def stage_linear(ds, r: dict) -> None:
     """The ``linear`` stage: fit LinearResidual on the training split, add its test errors to ``r``'s tables."""
-    ups = ceval.Upsampler(ds.coarse_faces, ds.coarse_rest.shape[0], ds.fine_faces)
+    ups = _upsampler(ds)
     train = ds.subset("train")
     ref = ceval.LinearResidual(ups, [x.coarse for x in train], [x.fine for x in train])
     m = ceval.pool([ceval.sequence_errors(x.fine, ref(x.coarse), ds.fine_faces) for x in ds.subset("test")])
@@ -169,9 +183,7 @@ def stage_timing(out: Path, ds, s: Settings) -> dict:
     from jaxdeform.cloth import scenarios
 
     run = crun.load_run(out / "runs" / ds.scenario / "ours")
-    meta = ds.subset("test")[0].meta
-    sc = scenarios.scenario(ds.scenario, int(meta["index"]), seed=int(meta.get("seed", 0)), n_frames=s.timing_frames,
-                            n_sequences=len(ds.sequences), levels=int(meta.get("levels", 3)))
+    sc = _scenario_of(ds, ds.subset("test")[0], s.timing_frames)
     pair = scenarios.simulate_pair(sc, progress=False)  # seconds per frame exclude compilation
     coarse, obstacles = pair["coarse"], pair["obstacles"]
     pins = {k: pair[k] for k in cdata.PINS if k in pair}
@@ -190,14 +202,10 @@ def stage_floor(ds, s: Settings) -> dict:
     """The ``floor`` stage (module docstring): fine vs perturbed fine against fine vs upsampled coarse."""
     from jaxdeform.cloth import scenarios
 
-    ups = ceval.Upsampler(ds.coarse_faces, ds.coarse_rest.shape[0], ds.fine_faces)
+    ups = _upsampler(ds)
     per = []
     for x in ds.subset("test")[: s.floor_sequences]:
-        meta = x.meta
-        sc = scenarios.scenario(ds.scenario, int(meta["index"]), seed=int(meta.get("seed", 0)),
-                                n_frames=x.fine.shape[0], n_sequences=len(ds.sequences),
-                                levels=int(meta.get("levels", 3)))
-        again = scenarios.simulate_fine(sc, perturbation=FLOOR_PERTURBATION)
+        again = scenarios.simulate_fine(_scenario_of(ds, x, x.fine.shape[0]), perturbation=FLOOR_PERTURBATION)
         per.append({"sequence": x.name,
                     "perturbed_fine": ceval.sequence_errors(x.fine, again, ds.fine_faces)["rmse"],
                     "upsampled_coarse": ceval.sequence_errors(x.fine, ups(x.coarse), ds.fine_faces)["rmse"]})
@@ -212,7 +220,7 @@ def stage_figures(out: Path, ds, s: Settings) -> list[str]:
     from jaxdeform.mesh.render import auto_camera, caption, hstack, render, save_png
 
     run = crun.load_run(out / "runs" / ds.scenario / "ours")
-    ups = ceval.Upsampler(ds.coarse_faces, ds.coarse_rest.shape[0], ds.fine_faces)
+    ups = _upsampler(ds)
     x = ds.subset("test")[0]
     fine, _ = crun.synthesize_timed(run, x.coarse, x.obstacles, pins=x.pins)
     coarse_up = ups(x.coarse)

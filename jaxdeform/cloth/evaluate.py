@@ -105,13 +105,13 @@ class LinearResidual:
             gram, rhs = xs.T @ xs, xs.T @ coef
             errs = {}
             for lam in lambdas:  # one principal basis, one ridge solve per weight
-                self.a = np.linalg.solve(gram + lam * len(xs) * np.eye(len(gram)), rhs)
+                self.a = _ridge(gram, rhs, lam * len(xs))
                 errs[lam] = sum(float(np.sum((self(cs[i]) - fs[i]) ** 2)) for i in val)
             self.lam = min(errs, key=errs.get)
         else:
             self.lam = float(lambdas[len(lambdas) // 2])
         xs, coef = self._basis(cs, fs, k)
-        self.a = np.linalg.solve(xs.T @ xs + self.lam * len(xs) * np.eye(xs.shape[1]), xs.T @ coef)
+        self.a = _ridge(xs.T @ xs, xs.T @ coef, self.lam * len(xs))
 
     def _basis(self, cs, fs, k):
         """Set the standardisation, mean and principal directions; return (standardised x, coefficients)."""
@@ -128,3 +128,8 @@ class LinearResidual:
         c = np.asarray(coarse, np.float64)
         r = ((c.reshape(len(c), -1) - self.m) / self.s) @ self.a @ self.b + self.mu
         return (self.up(c).astype(np.float64) + r.reshape(len(c), -1, 3)).astype(np.float32)
+
+
+def _ridge(gram: np.ndarray, rhs: np.ndarray, weight: float) -> np.ndarray:
+    """Ridge solution (X^T X + weight I)^-1 X^T Y from the Gram matrix and X^T Y."""
+    return np.linalg.solve(gram + weight * np.eye(len(gram)), rhs)

@@ -146,12 +146,13 @@ class Representation:
         ask for the same training sequences' bases. ``remember=False`` computes it afresh and keeps nothing
         (synthesis, whose timing must include it)."""
         x = np.ascontiguousarray(coarse_frames, np.float32)
-        if not remember:
-            return encode_sequence(self.kind, self.fine_rest, self.fine_faces, self.upsampler(x))
-        key = (x.shape, hashlib.sha1(x.tobytes()).hexdigest())
-        if key not in self._bases:
-            self._bases[key] = encode_sequence(self.kind, self.fine_rest, self.fine_faces, self.upsampler(x))
-        return self._bases[key]
+        key = (x.shape, hashlib.sha1(x.tobytes()).hexdigest()) if remember else None
+        if key in self._bases:
+            return self._bases[key]
+        base = encode_sequence(self.kind, self.fine_rest, self.fine_faces, self.upsampler(x))
+        if remember:
+            self._bases[key] = base
+        return base
 
     def encode(self, res: str, frames: np.ndarray) -> np.ndarray:
         """Scaled features (T, V, C) of frames of resolution ``res`` ("coarse" or "fine")."""

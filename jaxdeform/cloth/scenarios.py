@@ -301,12 +301,24 @@ def _run_one(model, params, x0, sc: Scenario, pinned, progress: bool, desc: str)
     return res, settle.compile_seconds + res.compile_seconds
 
 
+def fine_start(sc: Scenario) -> np.ndarray:
+    """The fine cloth's initial (pre-settling) positions: the coarse start Loop-subdivided, (Vf, 3) float32."""
+    _, cf, _, _ = _meshes(sc.kind, sc.levels)
+    return loop_subdivide(sc.x0_coarse, cf, sc.levels)[0].astype(np.float32)
+
+
+def _run_fine(sc: Scenario, x0: np.ndarray, progress: bool):
+    """Settle and simulate the fine mesh from ``x0`` with the fine iteration budget: (result, compile seconds)."""
+    _, mf = models(sc.kind, sc.levels)
+    pf = sc.params.replace(substeps=FINE_STEPS[0], iterations=FINE_STEPS[1])
+    return _run_one(mf, pf, x0, sc, sc.pinned_fine, progress, f"{sc.kind} {sc.index} fine")
+
+
 def pins(sc: Scenario) -> dict:
     """The pinned vertices of both meshes and where they are held (they never move): "coarse_pins" /
     "fine_pins" (int32 indices) and "coarse_pin_positions" / "fine_pin_positions" (float32 (P, 3)). These are
     part of the scenario, like the obstacles: the synthesis anchors its reconstruction on them."""
-    _, cf, _, _ = _meshes(sc.kind, sc.levels)
-    x0f = loop_subdivide(sc.x0_coarse, cf, sc.levels)[0]
+    x0f = fine_start(sc)
     pc, pf = np.flatnonzero(sc.pinned_coarse), np.flatnonzero(sc.pinned_fine)
     return {"coarse_pins": pc.astype(np.int32), "coarse_pin_positions": np.asarray(sc.x0_coarse)[pc].astype(np.float32),
             "fine_pins": pf.astype(np.int32), "fine_pin_positions": x0f[pf].astype(np.float32)}
@@ -322,13 +334,11 @@ def simulate_pair(sc: Scenario, *, progress: bool = True) -> dict:
     """
     cv, cf, fv, ff = _meshes(sc.kind, sc.levels)
     mc, mf = models(sc.kind, sc.levels)
-    x0f = loop_subdivide(sc.x0_coarse, cf, sc.levels)[0].astype(np.float32)
     t = time.perf_counter()
     rc, cc = _run_one(mc, sc.params, sc.x0_coarse, sc, sc.pinned_coarse, progress, f"{sc.kind} {sc.index} coarse")
     tc = time.perf_counter() - t
     t = time.perf_counter()
-    pf = sc.params.replace(substeps=FINE_STEPS[0], iterations=FINE_STEPS[1])
-    rf, cfine = _run_one(mf, pf, x0f, sc, sc.pinned_fine, progress, f"{sc.kind} {sc.index} fine")
+    rf, cfine = _run_fine(sc, fine_start(sc), progress)
     tf = time.perf_counter() - t
     sc_mean, sc_max = sim.edge_strain(mc, rc.frames)
     sf_mean, sf_max = sim.edge_strain(mf, rf.frames)
@@ -358,14 +368,11 @@ def simulate_fine(sc: Scenario, *, perturbation: float = 0.0, seed: int = 1) -> 
     """
     if not (perturbation >= 0 and np.isfinite(perturbation)):
         raise ScenarioError(f"the perturbation must be a non-negative number of metres, got {perturbation}.")
-    _, cf, _, _ = _meshes(sc.kind, sc.levels)
-    _, mf = models(sc.kind, sc.levels)
-    x0 = loop_subdivide(sc.x0_coarse, cf, sc.levels)[0].astype(np.float32)
+    x0 = fine_start(sc)
     if perturbation > 0:
         noise = np.random.default_rng(seed).standard_normal(x0.shape) * perturbation
         x0 = (x0 + noise * ~np.asarray(sc.pinned_fine)[:, None]).astype(np.float32)
-    pf = sc.params.replace(substeps=FINE_STEPS[0], iterations=FINE_STEPS[1])
-    res, _ = _run_one(mf, pf, x0, sc, sc.pinned_fine, False, f"{sc.kind} {sc.index} fine")
+    res, _ = _run_fine(sc, x0, False)
     return np.asarray(res.frames, np.float32)
 
 
