@@ -9,7 +9,7 @@ import pytest
 
 from jaxdeform.components import model, train
 from jaxdeform.mesh.topology import build_topology
-from jaxdeform.nn.graph_conv import ae_forward, rings_from_topology
+from jaxdeform.nn.graph_conv import ae_decode, ae_encode, rings_from_topology
 from conftest import grid_mesh
 
 
@@ -47,17 +47,29 @@ def test_attention_masks_sum_to_one():
     assert np.asarray(model.attention_masks(jnp.asarray(c2.reshape(4, -1))))[2, 3] == pytest.approx(1.0)
 
 
-@pytest.mark.parametrize("kz, attention", [((3, 2), True), ((3, 2), False), ((4,), True), ((2, 2, 2), True)])
-def test_levels_structure_and_residual_split(setup, kz, attention):
+def _block(p, x, rings, latent):
+    """(z, x_hat) of one block by hand: encode, the latent activation, decode."""
+    z = ae_encode(p, x, rings)
+    z = jnp.tanh(z) if latent == "tanh" else z
+    return z, ae_decode(p, z, rings)
+
+
+@pytest.mark.parametrize("kz, attention, latent", [((3, 2), True, "linear"), ((3, 2), False, "linear"),
+                                                   ((4,), True, "linear"), ((2, 2, 2), True, "linear"),
+                                                   ((3, 2), True, "tanh"), ((3, 2), False, "tanh")])
+def test_levels_structure_and_residual_split(setup, kz, attention, latent):
     pts, rings, dist, x = setup
-    config = model.Config(kz=kz, d=tuple(0.4 / 2**i for i in range(len(kz))), attention=attention)
+    config = model.Config(kz=kz, d=tuple(0.4 / 2**i for i in range(len(kz))), attention=attention, latent=latent)
     params = model.init(jax.random.PRNGKey(0), len(pts), config, x.dtype)
     batch = x[:5]
     out = jax.jit(lambda p, b: model.forward(p, b, rings, dist, config))(params, batch)
     assert [z.shape for z in out.latents] == [(config.blocks(l), 5, k) for l, k in enumerate(kz)]
     # by hand: level 0, then the children's inputs (attention-weighted residuals) and outputs
     p0 = jax.tree_util.tree_map(lambda a: a[0], params[0])
-    z0, xh0 = ae_forward(p0, batch, rings)
+    z0, xh0 = _block(p0, batch, rings, latent)
+    np.testing.assert_allclose(np.asarray(out.latents[0][0]), np.asarray(z0), atol=1e-12)
+    if latent == "tanh":
+        assert all(float(jnp.max(jnp.abs(z))) < 1.0 for z in out.latents)
     expected = xh0
     if len(kz) > 1:
         res = batch - xh0
@@ -68,11 +80,16 @@ def test_levels_structure_and_residual_split(setup, kz, attention):
         if len(kz) == 2:
             for k in range(kz[0]):
                 pk = jax.tree_util.tree_map(lambda a: a[k], params[1])
-                expected = expected + ae_forward(pk, inputs[k], rings)[1]
+                expected = expected + _block(pk, inputs[k], rings, latent)[1]
             np.testing.assert_allclose(np.asarray(out.reconstruction), np.asarray(expected), atol=1e-10)
     else:
         np.testing.assert_allclose(np.asarray(out.reconstruction), np.asarray(xh0), atol=1e-12)
     assert np.isfinite(float(out.loss))
+
+
+def test_config_refuses_an_unknown_latent_activation():
+    with pytest.raises(ValueError, match="latent"):
+        model.Config(latent="relu")
 
 
 def test_training_reduces_the_loss_and_is_deterministic(setup):

@@ -67,6 +67,24 @@ def test_train_evaluate_show(seq_dir, tmp_path, capsys, method):
     assert edited.shape == loaded.rest.shape and np.all(np.isfinite(edited))
 
 
+def test_latent_tanh_config_round_trips(seq_dir, tmp_path):
+    out = tmp_path / "run"
+    assert main(["components", "train", str(seq_dir), "--out", str(out), "--config", "test-latent-tanh",
+                 "--epochs", "10", "--quiet"]) == 0
+    loaded = run.load(out)
+    assert loaded.config.latent == "tanh" and loaded.config.kz == (3, 2)
+    rec = run.reconstruct(loaded, run.load_data(seq_dir)[0][loaded.test_idx])
+    assert np.all(np.isfinite(rec["positions"]))
+    # the codes the run's model gives are tanh outputs
+    from jaxdeform.components import model
+    from jaxdeform.mesh.topology import build_topology
+    from jaxdeform.nn.graph_conv import rings_from_topology
+
+    rings = rings_from_topology(build_topology(loaded.faces, loaded.rest.shape[0]))
+    codes = model.encode(loaded.params, rec["scaled"].astype(np.float32), rings, loaded.config)
+    assert all(float(np.abs(np.asarray(z)).max()) < 1.0 for z in codes)
+
+
 def test_train_needs_two_shapes(seq_dir, tmp_path, capsys):
     out = tmp_path / "run"
     line = _one_line_error(capsys, main(["components", "train", str(seq_dir / "f0.obj"), "--out", str(out)]))

@@ -1,7 +1,7 @@
 """Diagnostic training of one seed-000 model configuration on a sequence: generalization and localization.
 
     python -m experiments.components.sweep --data ../shared/data/horse-gallop --kz 10,5 --d 0.4,0.2 \\
-        [--lambda-recon 10] [--lambda-sparse 1] [--mask step|linear] [--no-attention] [--attention-gradient] \\
+        [--lambda-recon 10] [--lambda-sparse 1] [--mask step|linear] [--latent linear|tanh] [--no-attention] [--attention-gradient] \\
         [--separate] [--epochs 2000] [--lr 1e-3] [--seed 0] [--jsonl OUT.jsonl]
 
 Unlike ``experiments.components.run`` (named configurations, run folders, STED), this trains any configuration
@@ -58,6 +58,7 @@ def main(argv=None) -> dict:
     ap.add_argument("--lambda-recon", type=float, default=10.0)
     ap.add_argument("--lambda-sparse", type=float, default=1.0)
     ap.add_argument("--mask", choices=("step", "linear"), default="step")
+    ap.add_argument("--latent", choices=("linear", "tanh"), default="linear")
     ap.add_argument("--no-attention", action="store_true")
     ap.add_argument("--attention-gradient", action="store_true")
     ap.add_argument("--separate", action="store_true", help="level-by-level training (Table 4)")
@@ -68,7 +69,7 @@ def main(argv=None) -> dict:
     a = ap.parse_args(argv)
 
     cfg = model.Config(kz=tuple(int(k) for k in _floats(a.kz)), d=_floats(a.d), lambda_recon=a.lambda_recon,
-                       lambda_sparse=a.lambda_sparse, mask=a.mask, attention=not a.no_attention,
+                       lambda_sparse=a.lambda_sparse, mask=a.mask, latent=a.latent, attention=not a.no_attention,
                        attention_gradient=a.attention_gradient)
     tc = train.TrainConfig(epochs=a.epochs, learning_rate=a.lr, seed=a.seed, joint=not a.separate)
     vertices, faces = crun.load_data(a.data)

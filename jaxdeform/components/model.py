@@ -24,7 +24,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from jaxdeform.nn.graph_conv import MU, Rings, ae_decode, ae_forward, init_ae_block
+from jaxdeform.nn.graph_conv import MU, Rings, ae_decode, ae_encode, init_ae_block
 from jaxdeform.nn.losses import group_sparsity, latent_bound, reconstruction_loss
 
 
@@ -46,6 +46,12 @@ class Config:
     attention_gradient: bool = False
     mask: str = "step"  # "step": seed 000's eq. (3) with cut-off d[l]; "linear": Tan et al.'s clipped ramp
     mask_range: tuple[float, float] = (0.2, 0.4)  # (d_min, d_max) of the "linear" mask
+    # Activation of the latent code z = act(flatten(tanh(conv_enc(x))) C^T). "linear" (default): Tan et al.'s
+    # public code (z unbounded, V(Z) keeps it near theta). "tanh": the paper's "all the layers use the tanh
+    # activation function" read literally (V(Z) is then zero); on horse-gallop AE0's codes then saturate at
+    # |z| ~ 40-70 before the tanh, AE0 outputs a near-constant shape and the second level carries the
+    # deformation (named configuration "latent-tanh" in components/run.py).
+    latent: str = "linear"
 
     def __post_init__(self):
         if len(self.kz) != len(self.d) or not self.kz:
@@ -54,6 +60,8 @@ class Config:
             raise ValueError("every kz must be >= 1 and every d in (0, 1].")
         if self.mask not in ("step", "linear"):
             raise ValueError(f"mask must be 'step' or 'linear', got {self.mask!r}.")
+        if self.latent not in ("linear", "tanh"):
+            raise ValueError(f"latent must be 'linear' or 'tanh', got {self.latent!r}.")
 
     def sparsity_cutoff(self, level: int):
         """The ``d`` argument of :func:`group_sparsity` for ``level``."""
@@ -92,12 +100,20 @@ def attention_masks(c: Float[Array, "kz nine_v"]) -> Float[Array, "kz v"]:
     return am / jnp.where(total > 0, total, 1.0)
 
 
+def block_forward(p: dict, x: Float[Array, "b v 9"], rings: Rings, latent: str = "linear") -> tuple:
+    """(z, x_hat) of one autoencoder block with the latent activation of :attr:`Config.latent`."""
+    z = ae_encode(p, x, rings)
+    if latent == "tanh":
+        z = jnp.tanh(z)
+    return z, ae_decode(p, z, rings)
+
+
 def _levels(params: tuple[dict, ...], x: Float[Array, "b v 9"], rings: Rings, config: Config) -> list:
     """Per level: (inputs (n_l, B, V, 9), latents (n_l, B, Kz_l), outputs (n_l, B, V, 9))."""
     inputs = x[None]  # (n_0 = 1, B, V, 9)
     levels = []
     for level, p in enumerate(params):
-        z, x_hat = jax.vmap(lambda q, xin: ae_forward(q, xin, rings))(p, inputs)
+        z, x_hat = jax.vmap(lambda q, xin: block_forward(q, xin, rings, config.latent))(p, inputs)
         levels.append((inputs, z, x_hat))
         if level + 1 < len(params):
             res = inputs - x_hat  # (n_l, B, V, 9)

@@ -17,9 +17,10 @@ decoder uses ``C``); the two conv layers have their own weights.
 
 Activations. The paper says "all the layers use the tanh activation function", but also bounds the
 latent code with V(Z) = (1/Kz) sum_k max(max_m |Z_mk| - theta, 0) with theta = 5, which would be
-identically zero if z were a tanh output (|tanh| < 1). We therefore read the encoder's fully connected
-layer as *linear* (no tanh on z, as in the public code of Tan et al. 2018 that the paper follows), and
-apply tanh after every other layer::
+identically zero if z were a tanh output (|tanh| < 1). The block here leaves the encoder's fully connected
+layer *linear* (no tanh on z, as in the public code of Tan et al. 2018 that the paper follows) and applies
+tanh after every other layer; :class:`jaxdeform.components.model.Config` ``latent="tanh"`` adds the tanh on z
+(the literal reading, which the named multiscale configurations use)::
 
     encode: h = tanh(conv_enc(x)); z = flatten(h) @ C^T                      (B, Kz), no tanh
     decode: g = tanh(reshape(z @ C)); x_hat = tanh(conv_dec(g))              (B, V, 9)
