@@ -24,7 +24,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from jaxdeform.nn.graph_conv import MU, Rings, ae_decode, ae_encode, init_ae_block
+from jaxdeform.nn.graph_conv import MU, Rings, ae_decode, ae_forward, init_ae_block
 from jaxdeform.nn.losses import group_sparsity, latent_bound, reconstruction_loss
 
 
@@ -100,20 +100,12 @@ def attention_masks(c: Float[Array, "kz nine_v"]) -> Float[Array, "kz v"]:
     return am / jnp.where(total > 0, total, 1.0)
 
 
-def block_forward(p: dict, x: Float[Array, "b v 9"], rings: Rings, latent: str = "linear") -> tuple:
-    """(z, x_hat) of one autoencoder block with the latent activation of :attr:`Config.latent`."""
-    z = ae_encode(p, x, rings)
-    if latent == "tanh":
-        z = jnp.tanh(z)
-    return z, ae_decode(p, z, rings)
-
-
 def _levels(params: tuple[dict, ...], x: Float[Array, "b v 9"], rings: Rings, config: Config) -> list:
     """Per level: (inputs (n_l, B, V, 9), latents (n_l, B, Kz_l), outputs (n_l, B, V, 9))."""
     inputs = x[None]  # (n_0 = 1, B, V, 9)
     levels = []
     for level, p in enumerate(params):
-        z, x_hat = jax.vmap(lambda q, xin: block_forward(q, xin, rings, config.latent))(p, inputs)
+        z, x_hat = jax.vmap(lambda q, xin: ae_forward(q, xin, rings, config.latent))(p, inputs)
         levels.append((inputs, z, x_hat))
         if level + 1 < len(params):
             res = inputs - x_hat  # (n_l, B, V, 9)

@@ -19,8 +19,9 @@ Activations. The paper says "all the layers use the tanh activation function", b
 latent code with V(Z) = (1/Kz) sum_k max(max_m |Z_mk| - theta, 0) with theta = 5, which would be
 identically zero if z were a tanh output (|tanh| < 1). The block here leaves the encoder's fully connected
 layer *linear* (no tanh on z, as in the public code of Tan et al. 2018 that the paper follows) and applies
-tanh after every other layer; :class:`jaxdeform.components.model.Config` ``latent="tanh"`` adds the tanh on z
-(the literal reading, which the named multiscale configurations use)::
+tanh after every other layer; ``latent="tanh"`` in :func:`ae_forward` (``Config.latent`` of
+:mod:`jaxdeform.components.model`, the named configuration ``latent-tanh``) adds the tanh on z, the literal
+reading::
 
     encode: h = tanh(conv_enc(x)); z = flatten(h) @ C^T                      (B, Kz), no tanh
     decode: g = tanh(reshape(z @ C)); x_hat = tanh(conv_dec(g))              (B, V, 9)
@@ -207,7 +208,10 @@ def ae_decode(params: dict, z: Float[Array, "b kz"], rings: Rings) -> Float[Arra
     return _tanh(mesh_conv(params["conv_dec"], g, rings.neighbors, rings.mask, rings.degree))
 
 
-def ae_forward(params: dict, x: Float[Array, "b v 9"], rings: Rings) -> tuple[Float[Array, "b kz"], Float[Array, "b v 9"]]:
-    """(z, x_hat) of one autoencoder block."""
+def ae_forward(params: dict, x: Float[Array, "b v 9"], rings: Rings,
+               latent: str = "linear") -> tuple[Float[Array, "b kz"], Float[Array, "b v 9"]]:
+    """(z, x_hat) of one autoencoder block; ``latent="tanh"`` puts a tanh on z (see the module docstring)."""
     z = ae_encode(params, x, rings)
+    if latent == "tanh":
+        z = jnp.tanh(z)
     return z, ae_decode(params, z, rings)
