@@ -35,6 +35,39 @@ def _rel(a, b, ref):
     return np.linalg.norm(np.asarray(a) - np.asarray(b)) / np.linalg.norm(ref)
 
 
+# ------------------------------------------------------------------------------- regional projection
+
+
+def test_geodesic_regions_on_a_line():
+    """Points on a segment: two regions split it at the middle (centres at both ends), V regions isolate every
+    point, one region holds all."""
+    v = 9
+    pos = np.arange(v, dtype=float)
+    dist = np.abs(pos[:, None] - pos[None]) / (v - 1)
+    np.testing.assert_array_equal(B.geodesic_regions(dist, 2), [0, 0, 0, 0, 0, 1, 1, 1, 1])  # tie -> earlier
+    assert sorted(B.geodesic_regions(dist, v)) == list(range(v))
+    assert set(B.geodesic_regions(dist, 1)) == {0}
+    with pytest.raises(ValueError, match="n_regions"):
+        B.geodesic_regions(dist, 0)
+
+
+def test_regional_projection_recombines_regions_of_training_shapes():
+    """A test shape made of shape 1 on one half and shape 2 on the other is outside the span of the training
+    shapes (one region fails) but exact region by region; a training shape is reproduced by any partition, and
+    one region is PCA with every component kept."""
+    train = _random(n=4, v=10, c=3, seed=3)
+    labels = np.repeat([0, 1], 5)
+    mixed = np.where(labels[:, None] == 0, train[1], train[2])[None]
+    np.testing.assert_allclose(B.regional_projection(train, mixed, labels), mixed, atol=1e-10)
+    one = B.regional_projection(train, mixed, np.zeros(10, int))
+    assert _rel(one, mixed, mixed - train.mean(0)) > 0.1
+    np.testing.assert_allclose(B.regional_projection(train, train[2:3], np.arange(10) % 3), train[2:3], atol=1e-10)
+    pca = B.fit_pca(train, n_components=50)
+    np.testing.assert_allclose(one, np.asarray(B.reconstruct(pca, jnp.asarray(mixed))), atol=1e-8)
+    with pytest.raises(ValueError, match="labels"):
+        B.regional_projection(train, mixed, labels[:-1])
+
+
 # ------------------------------------------------------------------------------------------ PCA
 
 

@@ -88,3 +88,22 @@ def test_sweep_runs_on_a_tube(tmp_path):
     for key in ("train_erms", "test_erms", "level0_train_erms", "level0_test_erms"):
         assert np.isfinite(res[key]) and res[key] >= 0
     assert len(res["inside_fraction"]) == 2 and all(0 <= f <= 1 for f in res["inside_fraction"])
+
+
+def test_ceiling_on_the_tube(tmp_path):
+    """The regional-projection experiment on the synthetic tube: one region in coordinates is the PCA-on-
+    coordinates baseline's reconstruction, and it writes its tables."""
+    from experiments.components import ceiling
+    from jaxdeform import metrics
+    from jaxdeform.components import baselines, run as crun
+
+    data = exp.synthetic_tube(tmp_path)
+    result = ceiling.main(["--data", str(data), "--regions", "1,4", "--out", str(tmp_path / "ceiling")])
+    assert [r["regions"] for r in result["rows"]] == [1, 4]
+    vertices, _ = crun.load_data(data)
+    tr, te = crun.split_indices(vertices.shape[0])
+    pca = baselines.fit_pca(vertices[tr], n_components=50)
+    expected = metrics.erms(vertices[te], np.asarray(baselines.reconstruct(pca, vertices[te])))
+    assert result["rows"][0]["xyz"]["erms"] == pytest.approx(expected, rel=1e-6)
+    assert all(np.isfinite(r["acap"]["erms"]) for r in result["rows"])
+    assert "| 4 |" in (tmp_path / "ceiling" / "results.md").read_text()

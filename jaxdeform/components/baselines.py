@@ -74,7 +74,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import scipy.linalg as sla
-from jaxtyping import Array, Float
+from jaxtyping import Array, Float, Int
 
 from jaxdeform.errors import ConnectivityError, JaxDeformError, MeshFormatError
 from jaxdeform.mesh.io import atomic_path
@@ -450,3 +450,48 @@ def fit_splocs_detailed(vertices, dist: DistanceLike, n_components: int = 50, sp
                           progress=progress)
     model = LinearModel(jnp.asarray(mean, dtype), jnp.asarray(result.components, dtype), scale, "xyz", "splocs")
     return model, result
+
+
+# --------------------------------------------------------------------------------- regional projection
+
+
+def geodesic_regions(dist: Float[np.ndarray, "v v"], n_regions: int, start: int = 0) -> Int[np.ndarray, " v"]:
+    """Region label (V,) of every vertex: furthest-point sampling of ``n_regions`` centres on the (normalized)
+    geodesic distances, each vertex to its nearest centre (ties: the earlier centre)."""
+    dist = np.asarray(dist)
+    if dist.ndim != 2 or dist.shape[0] != dist.shape[1]:
+        raise ValueError(f"dist must be a square (V, V) matrix, got shape {dist.shape}.")
+    if not 1 <= n_regions <= dist.shape[0]:
+        raise ValueError(f"n_regions must be in 1..{dist.shape[0]}, got {n_regions}.")
+    centres = [int(start)]
+    nearest = dist[start].copy()
+    for _ in range(n_regions - 1):
+        centres.append(int(nearest.argmax()))
+        nearest = np.minimum(nearest, dist[centres[-1]])
+    return dist[np.asarray(centres)].argmin(axis=0)
+
+
+def regional_projection(train: Float[np.ndarray, "n v c"], test: Float[np.ndarray, "m v c"],
+                        labels: Int[np.ndarray, " v"]) -> Float[np.ndarray, "m v c"]:
+    """Each test shape, region by region, replaced by its least-squares fit in the span of the training
+    shapes' deviations from their mean, restricted to that region.
+
+    This is the best any model can do that reconstructs every region as a linear combination of the training
+    shapes' deviations there (independently per region): a ceiling for localized linear components learned
+    from these training shapes, and the reference point of the ``ceiling`` experiment (issue 3's notes).
+    """
+    train, test = np.asarray(train, np.float64), np.asarray(test, np.float64)
+    if train.ndim != 3 or test.ndim != 3 or train.shape[1:] != test.shape[1:]:
+        raise ValueError(f"train {train.shape} and test {test.shape} must be (N, V, c) with the same V and c.")
+    labels = np.asarray(labels)
+    if labels.shape != (train.shape[1],):
+        raise ValueError(f"labels must have one entry per vertex ({train.shape[1]}), got shape {labels.shape}.")
+    mean = train.mean(axis=0)
+    out = np.empty_like(test)
+    for r in np.unique(labels):
+        idx = np.flatnonzero(labels == r)
+        basis = (train[:, idx] - mean[idx]).reshape(train.shape[0], -1)  # (N, n_r c)
+        target = (test[:, idx] - mean[idx]).reshape(test.shape[0], -1)
+        coef = np.linalg.lstsq(basis.T, target.T, rcond=None)[0]  # (N, M)
+        out[:, idx] = (coef.T @ basis).reshape(test.shape[0], idx.size, -1) + mean[idx]
+    return out
