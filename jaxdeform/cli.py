@@ -451,14 +451,16 @@ def cmd_components_edit(args: argparse.Namespace) -> int:
     loaded = run.load(args.run)
     controls, targets = run.read_controls(args.controls)
     t0 = time.perf_counter()
-    result = run.editor(loaded).edit(controls, targets, steps=args.steps)
+    ed = run.editor(loaded)
+    result = ed.edit(controls, targets, steps=args.steps, stages=None if args.one_stage else ed.stages)
     positions = np.asarray(result.positions)
     if not np.all(np.isfinite(positions)):
         raise ValueError("the edit did not converge to a finite mesh; try fewer or closer control points.")
     with _writing(out):
         save_mesh(out, positions, loaded.faces)
+    stages = "" if ed.stages is None or args.one_stage else f", coarse to fine over {len(ed.stages)} levels"
     print(f"edited {loaded.method} run with {controls.size} control points in {time.perf_counter() - t0:.2f} s "
-          f"({int(result.steps)} steps); mean control residual {float(result.control_error):.3g}; wrote {out}")
+          f"({int(result.steps)} steps{stages}); mean control residual {float(result.control_error):.3g}; wrote {out}")
     return 0
 
 
@@ -847,7 +849,11 @@ def build_parser() -> argparse.ArgumentParser:
     cedit.add_argument("--controls", required=True, metavar="FILE",
                        help="JSON {\"indices\": [...], \"targets\": [[x, y, z], ...]} or lines 'index x y z'")
     cedit.add_argument("--out", "-o", required=True, metavar="MESH.obj", help="edited mesh to write")
-    cedit.add_argument("--steps", type=int, default=50, metavar="N", help="optimiser iterations at most (default 50)")
+    cedit.add_argument("--steps", type=int, default=50, metavar="N",
+                       help="optimiser iterations at most, per stage (default 50)")
+    cedit.add_argument("--one-stage", action="store_true",
+                       help="multiscale runs: optimise every level's codes at once instead of coarse to fine "
+                            "(level 0 first, then all)")
     cedit.set_defaults(func=cmd_components_edit)
 
     hand = sub.add_parser("handles", help="Deep Feature Deformation weights (seed 004): distil, deform, show, serve.",

@@ -65,6 +65,13 @@ def test_train_evaluate_show(seq_dir, tmp_path, capsys, method):
                  "--out", str(tmp_path / "e.obj")]) == 0
     edited, _ = load_mesh(tmp_path / "e.obj")
     assert edited.shape == loaded.rest.shape and np.all(np.isfinite(edited))
+    if method == "multiscale":  # two levels: coarse to fine by default, --one-stage edits every code at once
+        assert "coarse to fine over 2 levels" in capsys.readouterr().out
+        assert main(["components", "edit", str(out), "--controls", str(tmp_path / "c.json"), "--one-stage",
+                     "--out", str(tmp_path / "e1.obj")]) == 0
+        assert "coarse to fine" not in capsys.readouterr().out
+        one, _ = load_mesh(tmp_path / "e1.obj")
+        assert np.all(np.isfinite(one)) and not np.allclose(one, edited)
 
 
 def test_latent_tanh_config_round_trips(seq_dir, tmp_path):

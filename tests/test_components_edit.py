@@ -192,6 +192,30 @@ def test_edit_multiscale_model_latents(case64):
 # --------------------------------------------------------------------------------------------------
 
 
+def test_staged_edit_is_a_coarse_edit_then_a_full_edit(case64):
+    """stages=(1, 2) equals an edit of latent 0 alone (latent 1 held at its start) followed by an edit of both
+    latents from there; the in-span target is still recovered, and steps add up over the stages."""
+    v, f, ac, decode = case64
+    w_true = np.array([0.6, 0.4])
+    gt = ground_truth(ac, decode, w_true, refine=1)
+    controls = np.asarray(E.furthest_point_sampling(v, 6))
+    w_start = jnp.asarray([0.0, 0.1])
+    staged = E.edit(decode, w_start, ac, None, controls, gt[controls], method="lm", stages=(1, 2))
+    coarse = E.edit(lambda u: decode(jnp.concatenate([u, w_start[1:]])), w_start[:1], ac, None, controls,
+                    gt[controls], method="lm")
+    assert float(coarse.control_error) > 1e-3  # latent 0 alone cannot meet a twisted target
+    w1 = jnp.concatenate([coarse.latent, w_start[1:]])
+    full = E.edit(decode, w1, ac, None, controls, gt[controls], method="lm")
+    np.testing.assert_allclose(np.asarray(staged.latent), np.asarray(full.latent), atol=1e-8)
+    np.testing.assert_allclose(np.asarray(staged.positions), np.asarray(full.positions), atol=1e-8)
+    assert int(staged.steps) == int(coarse.steps) + int(full.steps)
+    np.testing.assert_allclose(np.asarray(staged.latent), w_true, atol=1e-4)
+    # one stage over every latent is the default
+    one = E.edit(decode, w_start, ac, None, controls, gt[controls], method="lm", stages=(2,))
+    plain = E.edit(decode, w_start, ac, None, controls, gt[controls], method="lm")
+    np.testing.assert_array_equal(np.asarray(one.latent), np.asarray(plain.latent))
+
+
 def test_edit_positions_linear_model_and_protocol(case64):
     v, f, ac, _ = case64
     comps = jnp.asarray(np.stack([bend(v, 1.5) - v, twist(v, 1.2) - v]))
@@ -265,12 +289,15 @@ def test_edit_positions_more_latents_than_control_rows(case64):
         ({"regularization": -1.0}, "regularization"),
         ({"method": "sgd"}, "unknown method"),
         ({"anchor": 100}, "anchor"),
+        ({"stages": (2, 1)}, "stages must be increasing"),
+        ({"stages": (1,)}, "up to the latent size 2"),
+        ({"stages": "a"}, "stages must be"),
     ],
 )
 def test_bad_input_raises_clear_errors(case64, change, match):
     v, f, ac, decode = case64
     kw = {"decode": decode, "latent0": jnp.zeros(2), "controls": np.array([0, 5]), "targets": np.zeros((2, 3))}
-    opts = {k: change.pop(k) for k in ("steps", "regularization", "method", "anchor") if k in change}
+    opts = {k: change.pop(k) for k in ("steps", "regularization", "method", "anchor", "stages") if k in change}
     kw.update(change)
     with pytest.raises(E.EditInputError, match=match) as info:
         E.edit(kw["decode"], kw["latent0"], ac, None, kw["controls"], kw["targets"], **opts)

@@ -34,7 +34,10 @@ def test_fig6_test_config(tmp_path):
     result = exp.main(["fig6", "--config", "test", "--out", str(tmp_path), "--epochs", "3", "--methods", "multiscale",
                        "pca-xyz"])
     rows = result["rows"]
-    assert set(rows) == {"tube/multiscale", "tube/pca-xyz"}
+    # the two-level model edits coarse to fine (its level-0 code count, then all), with the one-stage ablation
+    assert set(rows) == {"tube/multiscale", "tube/multiscale (one stage)", "tube/pca-xyz"}
+    assert tuple(rows["tube/multiscale"]["3"]["stages"]) == (3, 3 + 3 * 2)  # test config kz = (3, 2)
+    assert rows["tube/multiscale (one stage)"]["3"]["stages"] is None
     for per_n in rows.values():
         assert set(per_n) == {"3", "6"}
         for v in per_n.values():

@@ -49,6 +49,13 @@ Start. The paper defers the deformation itself to [19], whose optimisation start
 :func:`edit_error` therefore starts at ``latent0`` = the code of the rest shape (for a linear model centred
 on the rest shape, zeros; for PCA about the mean, the projection of the rest features).
 
+Stages (coarse to fine). ``stages=(k_1, ..., K)`` runs one edit per stage: stage s optimises the first
+``k_s`` latents, starting from the result of stage s - 1, with the others held. For the multiscale model
+(latents ordered level by level) this is the paper's editing order, "users usually start with editing of the
+overall shape, and then focus on adjusting the details" (Sec. 5.4): the level-0 codes first, then every code.
+The default (``None``) is one stage over all latents. The held latents enter through a traced 0/1 mask, so
+all stages run one compiled function.
+
 Everything after argument checks is one jitted function; the decoder, the ACAP object and the scaler are
 static (compared by identity, the scaler by value), so a second call with the same objects and shapes does
 not retrace.
@@ -229,7 +236,7 @@ class _Scaled(NamedTuple):
     atol: Array  # absolute tolerance (a length)
 
 
-def _scaled(model, free_translation, tolerance, w0, controls, targets, regularization) -> _Scaled:
+def _scaled(model, free_translation, tolerance, w0, controls, targets, regularization, free) -> _Scaled:
     """Damping (LM) and the first BFGS step are not invariant to the latents' units: optimise
     z = c (w - w0), with c the column norms of the Jacobian at the start, so that every column starts at
     unit norm; z and the residuals are then lengths, and the absolute tolerance is relative to the
@@ -237,6 +244,11 @@ def _scaled(model, free_translation, tolerance, w0, controls, targets, regulariz
 
     def control_rows(w):
         return _control_residuals(model, free_translation, w, controls, targets)[0].astype(w0.dtype)
+
+    # latents outside this stage (free == 0) stay at w0: their Jacobian columns vanish, so they get c = 1
+    # below and never move (BFGS from an identity inverse Hessian, and LM, keep zero-gradient directions fixed)
+    inner = control_rows
+    control_rows = lambda w: inner(w0 + free * (w - w0))  # noqa: E731
 
     jac0 = None
     # the Jacobian of the control rows (3M, K) by forward mode when K <= 3M (few latents, the usual case)
@@ -277,11 +289,12 @@ def _bfgs(problem: _Scaled, steps, tolerance, z0):
     return sol.value, sol.stats["num_steps"]
 
 
-def _adam(model, free_translation, steps, w0, controls, targets, regularization, learning_rate):
+def _adam(model, free_translation, steps, w0, controls, targets, regularization, learning_rate, free):
     """``steps`` Adam steps on w itself (``learning_rate`` in latent units) under ``lax.scan``."""
     opt = optax.adam(learning_rate)
 
     def objective(w):
+        w = w0 + free * (w - w0)
         r, _, _ = _control_residuals(model, free_translation, w, controls, targets)
         return jnp.sum(r.astype(w.dtype) ** 2) + regularization * jnp.sum((w - w0) ** 2)
 
@@ -292,22 +305,23 @@ def _adam(model, free_translation, steps, w0, controls, targets, regularization,
         return (optax.apply_updates(w, updates), state), None
 
     (w, _), _ = jax.lax.scan(step, (w0, opt.init(w0)), None, length=steps)
-    return w, jnp.asarray(steps)
+    return w0 + free * (w - w0), jnp.asarray(steps)
 
 
 @functools.partial(jax.jit, static_argnames=("model", "method", "steps", "tolerance", "free_translation"))
-def _edit_jit(model: _Model, w0, controls, targets, regularization, learning_rate, *, method: str, steps: int,
+def _edit_jit(model: _Model, w0, controls, targets, regularization, learning_rate, free, *, method: str, steps: int,
               tolerance: float, free_translation: bool) -> EditResult:
     # the optimiser works in the default float type (float64: jaxdeform enables x64) whatever the decoder's
     # dtype: optimistix keeps its own scalars in that type, and the K latents cost nothing
     latent_dtype, w0 = w0.dtype, w0.astype(jnp.result_type(float))
+    free = free.astype(w0.dtype)  # (K,) 1 = optimised in this stage, 0 = held at w0 (traced: stages share one compile)
     if method == "adam":
-        w, taken = _adam(model, free_translation, steps, w0, controls, targets, regularization, learning_rate)
+        w, taken = _adam(model, free_translation, steps, w0, controls, targets, regularization, learning_rate, free)
     else:
-        problem = _scaled(model, free_translation, tolerance, w0, controls, targets, regularization)
+        problem = _scaled(model, free_translation, tolerance, w0, controls, targets, regularization, free)
         solve = _lm if method == "lm" else _bfgs
         z, taken = solve(problem, steps, tolerance, jnp.zeros_like(w0))
-        w = w0 + z / problem.c
+        w = w0 + free * z / problem.c
     r, t, p = _control_residuals(model, free_translation, w, controls, targets)
     objective = jnp.sum(r.astype(w0.dtype) ** 2) + regularization * jnp.sum((w - w0) ** 2)
     return EditResult(w.astype(latent_dtype), p + t, t, jnp.mean(jnp.linalg.norm(r, axis=-1)), objective, taken)
@@ -381,13 +395,38 @@ def _default_tolerance(dtype) -> float:
     return 1e-6 if jnp.dtype(dtype) == jnp.float64 else 1e-5
 
 
+def _check_stages(stages, k: int) -> tuple[int, ...]:
+    """``stages`` as increasing latent-prefix sizes ending at K (None: one stage over every latent)."""
+    if stages is None:
+        return (k,)
+    try:
+        st = tuple(int(x) for x in stages)
+    except (TypeError, ValueError):
+        raise EditInputError(f"stages must be a sequence of latent counts, got {stages!r}.") from None
+    if not st or any(b <= a for a, b in zip(st, st[1:])) or st[0] < 1 or st[-1] != k:
+        raise EditInputError(f"stages must be increasing latent counts from 1 up to the latent size {k}, got {st}.")
+    return st
+
+
 def _run(model: _Model, w0, controls, targets, dtype, *, steps, learning_rate, regularization, method,
-         tolerance, free_translation) -> EditResult:
+         tolerance, free_translation, stages=None) -> EditResult:
+    """One edit per stage (coarse to fine): stage s optimises the first ``stages[s]`` latents from the result
+    of stage s - 1, the others held; every stage calls the same compiled function (the mask is traced)."""
+    k = int(w0.shape[0])
+    stages = _check_stages(stages, k)
     tol = _default_tolerance(dtype) if tolerance is None else float(tolerance)
     fdtype = jnp.result_type(float)
-    return _edit_jit(model, w0, controls, jnp.asarray(targets, dtype), jnp.asarray(regularization, fdtype),
-                     jnp.asarray(learning_rate, fdtype), method=method, steps=int(steps), tolerance=tol,
-                     free_translation=bool(free_translation))
+    targets = jnp.asarray(targets, dtype)
+    index = np.arange(k)
+    result, taken = None, 0
+    for prefix in stages:
+        free = jnp.asarray(index < prefix)
+        result = _edit_jit(model, w0, controls, targets, jnp.asarray(regularization, fdtype),
+                           jnp.asarray(learning_rate, fdtype), free, method=method, steps=int(steps), tolerance=tol,
+                           free_translation=bool(free_translation))
+        w0 = result.latent
+        taken = taken + result.steps
+    return result._replace(steps=taken)
 
 
 # --------------------------------------------------------------------------------------------------
@@ -399,7 +438,8 @@ def edit(decode_features: Callable[[Array], Array], latent0: Float[Array, " k"],
          scaler: Scaler | None, controls: Int[Array, " m"], targets: Float[Array, "m 3"], *,
          steps: int = DEFAULT_STEPS, learning_rate: float = DEFAULT_LEARNING_RATE,
          regularization: float = DEFAULT_REGULARIZATION, method: Method = "bfgs", anchor: int = 0,
-         refine: int = DEFAULT_REFINE, free_translation: bool = True, tolerance: float | None = None) -> EditResult:
+         refine: int = DEFAULT_REFINE, free_translation: bool = True, tolerance: float | None = None,
+         stages: tuple[int, ...] | None = None) -> EditResult:
     """Latent weights whose ACAP-reconstructed mesh meets ``targets`` at the ``controls`` vertices.
 
     ``decode_features(w (K,)) -> (V, 9)`` ACAP features (scaled when ``scaler`` is given; ``scaler.inverse``
@@ -410,8 +450,9 @@ def edit(decode_features: Callable[[Array], Array], latent0: Float[Array, " k"],
     many BFGS/LM iterations (exactly that many Adam steps, with ``learning_rate``). ``regularization``
     weighs |w - latent0|^2 against squared control distances (length^2 per squared latent unit).
     ``tolerance``: relative (and, times the targets' spread, absolute) stopping tolerance; default 1e-6 for
-    float64 positions, 1e-5 for float32. Pass the same ``decode_features`` object again to reuse the
-    compiled editor.
+    float64 positions, 1e-5 for float32. ``stages``: increasing latent-prefix counts ending at K for a
+    coarse-to-fine edit (module docstring); ``steps`` then applies per stage. Pass the same
+    ``decode_features`` object again to reuse the compiled editor.
     """
     acap = _resolve_acap(acap_or_rest_faces)
     n = acap.topo.n_vertices
@@ -425,14 +466,15 @@ def edit(decode_features: Callable[[Array], Array], latent0: Float[Array, " k"],
     model = _Model(decode_features, acap, scaler, int(anchor), int(refine), str(w0.dtype))
     acap.reconstructor(model.anchors)  # host factorisation now: it cannot happen while tracing
     return _run(model, w0, c, t, acap.rest.dtype, steps=steps, learning_rate=learning_rate,
-                regularization=regularization, method=method, tolerance=tolerance, free_translation=free_translation)
+                regularization=regularization, method=method, tolerance=tolerance, free_translation=free_translation,
+                stages=stages)
 
 
 def edit_positions(decode_positions: Callable[[Array], Array], latent0: Float[Array, " k"],
                    controls: Int[Array, " m"], targets: Float[Array, "m 3"], *, steps: int = DEFAULT_STEPS,
                    learning_rate: float = DEFAULT_LEARNING_RATE, regularization: float = DEFAULT_REGULARIZATION,
                    method: Method = "bfgs", free_translation: bool = True,
-                   tolerance: float | None = None) -> EditResult:
+                   tolerance: float | None = None, stages: tuple[int, ...] | None = None) -> EditResult:
     """:func:`edit` for coordinate-space models: ``decode_positions(w (K,)) -> (V, 3)`` positions directly.
 
     Same objective, optimiser and free translation as :func:`edit`, so methods compare under one protocol.
@@ -452,7 +494,8 @@ def edit_positions(decode_positions: Callable[[Array], Array], latent0: Float[Ar
                              what="decode_positions")
     model = _Model(decode_positions, None, None, 0, 0, str(w0.dtype))
     return _run(model, w0, c, t, out.dtype, steps=steps, learning_rate=learning_rate,
-                regularization=regularization, method=method, tolerance=tolerance, free_translation=free_translation)
+                regularization=regularization, method=method, tolerance=tolerance, free_translation=free_translation,
+                stages=stages)
 
 
 def bounding_box_diagonal(vertices: Float[Array, "v 3"]) -> float:

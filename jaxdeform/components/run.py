@@ -406,13 +406,17 @@ class Editor:
 
     ``decode(w)`` gives scaled ACAP features (``space="features"``: multiscale, tan, pca) or positions
     (``"positions"``: pca-xyz, splocs); ``latent0`` is the code of the reference shape (the edit's start).
-    Build it once per run and reuse it: the compiled editor is cached on the identity of ``decode``.
+    ``stages``: for a model of several levels, the cumulative latent counts per level, so that an edit runs
+    coarse to fine (level 0's codes first, then every code; :mod:`jaxdeform.components.edit`); None for one
+    level. An edit's own ``stages=`` argument overrides it. Build the editor once per run and reuse it: the
+    compiled editor is cached on the identity of ``decode``.
     """
 
     decode: Callable
     latent0: np.ndarray
     space: str
     run: Run
+    stages: tuple[int, ...] | None = None
 
     def _acap(self):
         a = acap.cached(self.run.rest, self.run.faces)
@@ -422,6 +426,7 @@ class Editor:
     def edit(self, controls, targets, **kw):
         from jaxdeform.components import edit as ed
 
+        kw.setdefault("stages", self.stages)
         if self.space == "features":
             return ed.edit(self.decode, self.latent0, self._acap(), self.run.scaler, controls, targets, **kw)
         return ed.edit_positions(self.decode, self.latent0, controls, targets, **kw)
@@ -429,6 +434,7 @@ class Editor:
     def edit_error(self, ground_truth, n_controls: int, **kw):
         from jaxdeform.components import edit as ed
 
+        kw.setdefault("stages", self.stages)
         rest_arg = self._acap() if self.space == "features" else self.run.rest
         return ed.edit_error(self.decode, self.latent0, rest_arg, self.run.scaler, ground_truth, n_controls,
                              space=self.space, **kw)
@@ -455,7 +461,8 @@ def editor(run: Run) -> Editor:
             return model.decode_latents(params, tuple(parts), rings)[0]
 
         latent0 = np.concatenate([np.asarray(z).ravel() for z in codes])
-        return Editor(decode, latent0, "features", run)
+        stages = tuple(int(x) for x in np.cumsum(sizes)) if len(sizes) > 1 else None
+        return Editor(decode, latent0, "features", run, stages)
     lin = dataclasses.replace(run.linear, mean=to64(run.linear.mean), components=to64(run.linear.components))
 
     def decode_linear(w):
