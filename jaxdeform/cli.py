@@ -853,7 +853,7 @@ def build_parser() -> argparse.ArgumentParser:
                        help="optimiser iterations at most, per stage (default 50)")
     cedit.add_argument("--one-stage", action="store_true",
                        help="multiscale runs: optimise every level's codes at once instead of coarse to fine "
-                            "(level 0 first, then all)")
+                            "(one stage per level: level 0's codes first)")
     cedit.set_defaults(func=cmd_components_edit)
 
     hand = sub.add_parser("handles", help="Deep Feature Deformation weights (seed 004): distil, deform, show, serve.",

@@ -4,8 +4,8 @@ For every method's Table-2 run (trained when missing): control vertices by furth
 reference shape, targets = an unseen shape's positions there, one edit from the reference shape's code
 (:class:`jaxdeform.components.run.Editor`), mean vertex error of the whole edited mesh against the unseen shape
 over the bounding-box diagonal; averaged over a fixed subset of the unseen shapes. The multiscale model edits
-coarse to fine (level-0 codes, then every code: Sec. 5.4's editing order); its edit of every code at once is
-shown as the "(one stage)" row. Writes results.md and fig6.png (one curve per row) next to results.json.
+coarse to fine, one stage per level (level-0 codes first: Sec. 5.4's editing order); its edit of every code at
+once is shown as the "(one stage)" row. Writes results.md and fig6.png (one curve per row) next to results.json.
 """
 
 from __future__ import annotations

@@ -26,7 +26,7 @@ alone (variable projection) has exactly the minimisers of the joint problem. The
 used for coordinate models so that every method is compared under the same protocol
 (``free_translation=False`` keeps positions as decoded).
 
-Optimiser (everything in one jitted call, at most ``steps`` iterations, stopping early once the step and
+Optimiser (one jitted call per stage, at most ``steps`` iterations each, stopping early once the step and
 the objective change fall below ``tolerance``). The latents are first rescaled, z = c (w - w0) with c the
 column norms of the control Jacobian at w0, so that damping, line searches and tolerances do not depend on
 the latents' units. The Jacobian of the 3M control rows is taken by forward mode (K batched JVPs through
@@ -50,13 +50,14 @@ Start. The paper defers the deformation itself to [19], whose optimisation start
 on the rest shape, zeros; for PCA about the mean, the projection of the rest features).
 
 Stages (coarse to fine). ``stages=(k_1, ..., K)`` runs one edit per stage: stage s optimises the first
-``k_s`` latents, starting from the result of stage s - 1, with the others held. For the multiscale model
-(latents ordered level by level) this is the paper's editing order, "users usually start with editing of the
-overall shape, and then focus on adjusting the details" (Sec. 5.4): the level-0 codes first, then every code.
-The default (``None``) is one stage over all latents. The held latents enter through a traced 0/1 mask, so
-all stages run one compiled function.
+``k_s`` latents, starting from the result of stage s - 1, with the others held; every stage minimises the same
+E, regularised toward ``latent0``. For the multiscale model (latents ordered level by level, one stage per
+level) this is the paper's editing order, "users usually start with editing of the overall shape, and then
+focus on adjusting the details" (Sec. 5.4): level 0's codes, then levels 0-1, ..., then every code. The
+default (``None``) is one stage over all latents. The held latents enter through a traced 0/1 mask, so all
+stages call one compiled function.
 
-Everything after argument checks is one jitted function; the decoder, the ACAP object and the scaler are
+Everything after argument checks is one jitted function (called once per stage); the decoder, the ACAP object and the scaler are
 static (compared by identity, the scaler by value), so a second call with the same objects and shapes does
 not retrace.
 """
@@ -236,7 +237,7 @@ class _Scaled(NamedTuple):
     atol: Array  # absolute tolerance (a length)
 
 
-def _scaled(model, free_translation, tolerance, w0, controls, targets, regularization, free) -> _Scaled:
+def _scaled(model, free_translation, tolerance, w0, w_ref, controls, targets, regularization, free) -> _Scaled:
     """Damping (LM) and the first BFGS step are not invariant to the latents' units: optimise
     z = c (w - w0), with c the column norms of the Jacobian at the start, so that every column starts at
     unit norm; z and the residuals are then lengths, and the absolute tolerance is relative to the
@@ -245,8 +246,9 @@ def _scaled(model, free_translation, tolerance, w0, controls, targets, regulariz
     def control_rows(w):
         return _control_residuals(model, free_translation, w, controls, targets)[0].astype(w0.dtype)
 
-    # latents outside this stage (free == 0) stay at w0: their Jacobian columns vanish, so they get c = 1
-    # below and never move (BFGS from an identity inverse Hessian, and LM, keep zero-gradient directions fixed)
+    # latents outside this stage (free == 0) stay at w0: their Jacobian columns vanish, they get c = 1 below
+    # and never move (their gradient is zero; BFGS from an identity inverse Hessian, and LM's damped solve,
+    # keep zero-gradient directions fixed; the result is masked again in _edit_jit)
     inner = control_rows
     control_rows = lambda w: inner(w0 + free * (w - w0))  # noqa: E731
 
@@ -263,10 +265,12 @@ def _scaled(model, free_translation, tolerance, w0, controls, targets, regulariz
         jac0 = jax.jacrev(control_rows)(w0)
     jac0 = jac0.reshape(-1, w0.shape[0])
     c = jnp.sqrt(jnp.sum(jac0**2, axis=0) + regularization)
-    c = jnp.where(c > 0, c, 1.0)
+    c = jnp.where((c > 0) & (free > 0), c, 1.0)
     sqrt_reg = jnp.sqrt(regularization).astype(w0.dtype)
     spread = jnp.sqrt(jnp.mean(jnp.sum((targets - jnp.mean(targets, axis=0)) ** 2, axis=-1)))
-    return _Scaled(rows=lambda z: control_rows(w0 + z / c), reg_rows=lambda z: sqrt_reg * (z / c), c=c,
+    # the regularization pulls toward w_ref (latent0) in every stage; a stage starts at w0
+    return _Scaled(rows=lambda z: control_rows(w0 + z / c),
+                   reg_rows=lambda z: sqrt_reg * (w0 - w_ref + free * z / c), c=c,
                    atol=tolerance * jnp.where(spread > 0, spread, 1.0))
 
 
@@ -289,14 +293,14 @@ def _bfgs(problem: _Scaled, steps, tolerance, z0):
     return sol.value, sol.stats["num_steps"]
 
 
-def _adam(model, free_translation, steps, w0, controls, targets, regularization, learning_rate, free):
+def _adam(model, free_translation, steps, w0, w_ref, controls, targets, regularization, learning_rate, free):
     """``steps`` Adam steps on w itself (``learning_rate`` in latent units) under ``lax.scan``."""
     opt = optax.adam(learning_rate)
 
     def objective(w):
         w = w0 + free * (w - w0)
         r, _, _ = _control_residuals(model, free_translation, w, controls, targets)
-        return jnp.sum(r.astype(w.dtype) ** 2) + regularization * jnp.sum((w - w0) ** 2)
+        return jnp.sum(r.astype(w.dtype) ** 2) + regularization * jnp.sum((w - w_ref) ** 2)
 
     def step(carry, _):
         w, state = carry
@@ -309,21 +313,23 @@ def _adam(model, free_translation, steps, w0, controls, targets, regularization,
 
 
 @functools.partial(jax.jit, static_argnames=("model", "method", "steps", "tolerance", "free_translation"))
-def _edit_jit(model: _Model, w0, controls, targets, regularization, learning_rate, free, *, method: str, steps: int,
-              tolerance: float, free_translation: bool) -> EditResult:
+def _edit_jit(model: _Model, w0, w_ref, controls, targets, regularization, learning_rate, free, *, method: str,
+              steps: int, tolerance: float, free_translation: bool) -> EditResult:
     # the optimiser works in the default float type (float64: jaxdeform enables x64) whatever the decoder's
     # dtype: optimistix keeps its own scalars in that type, and the K latents cost nothing
     latent_dtype, w0 = w0.dtype, w0.astype(jnp.result_type(float))
+    w_ref = w_ref.astype(w0.dtype)  # the regularization's reference (latent0); w0 is this stage's start
     free = free.astype(w0.dtype)  # (K,) 1 = optimised in this stage, 0 = held at w0 (traced: stages share one compile)
     if method == "adam":
-        w, taken = _adam(model, free_translation, steps, w0, controls, targets, regularization, learning_rate, free)
+        w, taken = _adam(model, free_translation, steps, w0, w_ref, controls, targets, regularization, learning_rate,
+                         free)
     else:
-        problem = _scaled(model, free_translation, tolerance, w0, controls, targets, regularization, free)
+        problem = _scaled(model, free_translation, tolerance, w0, w_ref, controls, targets, regularization, free)
         solve = _lm if method == "lm" else _bfgs
         z, taken = solve(problem, steps, tolerance, jnp.zeros_like(w0))
         w = w0 + free * z / problem.c
     r, t, p = _control_residuals(model, free_translation, w, controls, targets)
-    objective = jnp.sum(r.astype(w0.dtype) ** 2) + regularization * jnp.sum((w - w0) ** 2)
+    objective = jnp.sum(r.astype(w0.dtype) ** 2) + regularization * jnp.sum((w - w_ref) ** 2)
     return EditResult(w.astype(latent_dtype), p + t, t, jnp.mean(jnp.linalg.norm(r, axis=-1)), objective, taken)
 
 
@@ -400,9 +406,11 @@ def _check_stages(stages, k: int) -> tuple[int, ...]:
     if stages is None:
         return (k,)
     try:
+        if isinstance(stages, (str, bytes)) or any(int(x) != x for x in stages):
+            raise TypeError
         st = tuple(int(x) for x in stages)
     except (TypeError, ValueError):
-        raise EditInputError(f"stages must be a sequence of latent counts, got {stages!r}.") from None
+        raise EditInputError(f"stages must be a sequence of integer latent counts, got {stages!r}.") from None
     if not st or any(b <= a for a, b in zip(st, st[1:])) or st[0] < 1 or st[-1] != k:
         raise EditInputError(f"stages must be increasing latent counts from 1 up to the latent size {k}, got {st}.")
     return st
@@ -418,10 +426,10 @@ def _run(model: _Model, w0, controls, targets, dtype, *, steps, learning_rate, r
     fdtype = jnp.result_type(float)
     targets = jnp.asarray(targets, dtype)
     index = np.arange(k)
-    result, taken = None, 0
+    result, taken, w_ref = None, 0, w0
     for prefix in stages:
         free = jnp.asarray(index < prefix)
-        result = _edit_jit(model, w0, controls, targets, jnp.asarray(regularization, fdtype),
+        result = _edit_jit(model, w0, w_ref, controls, targets, jnp.asarray(regularization, fdtype),
                            jnp.asarray(learning_rate, fdtype), free, method=method, steps=int(steps), tolerance=tol,
                            free_translation=bool(free_translation))
         w0 = result.latent

@@ -407,8 +407,8 @@ class Editor:
     ``decode(w)`` gives scaled ACAP features (``space="features"``: multiscale, tan, pca) or positions
     (``"positions"``: pca-xyz, splocs); ``latent0`` is the code of the reference shape (the edit's start).
     ``stages``: for a model of several levels, the cumulative latent counts per level, so that an edit runs
-    coarse to fine (level 0's codes first, then every code; :mod:`jaxdeform.components.edit`); None for one
-    level. An edit's own ``stages=`` argument overrides it. Build the editor once per run and reuse it: the
+    coarse to fine, one stage per level (level 0's codes, then levels 0-1, ...;
+    :mod:`jaxdeform.components.edit`); None for one level. An edit's own ``stages=`` argument overrides it. Build the editor once per run and reuse it: the
     compiled editor is cached on the identity of ``decode``.
     """
 
