@@ -72,9 +72,9 @@ def markdown(rows: dict, controls, hw: str) -> str:
 
 def plot(rows: dict, controls, path: Path, size=(640, 420)) -> None:
     """A line chart (PIL): mean error against the number of control points, one polyline per run."""
-    w, h = size
-    left, right, top, bottom = 70, 170, 20, 50
-    img = Image.new("RGB", size, "white")
+    left, right, top, bottom = 70, max(170, 20 + 7 * max((len(k) for k in rows), default=0)), 20, 50
+    w, h = size[0] + right - 170, size[1]  # the legend's column grows with the longest row name
+    img = Image.new("RGB", (w, h), "white")
     d = ImageDraw.Draw(img)
     font = ImageFont.load_default()
     values = [v["mean_error"] for per_n in rows.values() for v in per_n.values()]
