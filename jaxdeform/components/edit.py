@@ -57,9 +57,9 @@ focus on adjusting the details" (Sec. 5.4): level 0's codes, then levels 0-1, ..
 default (``None``) is one stage over all latents. The held latents enter through a traced 0/1 mask, so all
 stages call one compiled function.
 
-Everything after argument checks is one jitted function (called once per stage); the decoder, the ACAP object and the scaler are
-static (compared by identity, the scaler by value), so a second call with the same objects and shapes does
-not retrace.
+Everything after argument checks is one jitted function (called once per stage); the decoder, the ACAP
+object and the scaler are static (compared by identity, the scaler by value), so a second call with the same
+objects and shapes does not retrace.
 """
 
 from __future__ import annotations
@@ -229,11 +229,11 @@ def _forward_jacobian(fn: Callable):
 
 
 class _Scaled(NamedTuple):
-    """The problem in scaled coordinates z = c (w - w0) (see :func:`_scaled`)."""
+    """The problem in scaled coordinates z = c (w - w0) of this stage's free latents (see :func:`_scaled`)."""
 
+    latent: Callable  # z -> w = w0 + free * z / c (held latents stay at w0 whatever z holds)
     rows: Callable  # z -> control residual rows (M, 3)
-    reg_rows: Callable  # z -> sqrt(regularization) (w - w0)
-    c: Array  # (K,) column scales
+    reg_rows: Callable  # z -> sqrt(regularization) (w - w_ref)
     atol: Array  # absolute tolerance (a length)
 
 
@@ -245,12 +245,6 @@ def _scaled(model, free_translation, tolerance, w0, w_ref, controls, targets, re
 
     def control_rows(w):
         return _control_residuals(model, free_translation, w, controls, targets)[0].astype(w0.dtype)
-
-    # latents outside this stage (free == 0) stay at w0: their Jacobian columns vanish, they get c = 1 below
-    # and never move (their gradient is zero; BFGS from an identity inverse Hessian, and LM's damped solve,
-    # keep zero-gradient directions fixed; the result is masked again in _edit_jit)
-    inner = control_rows
-    control_rows = lambda w: inner(w0 + free * (w - w0))  # noqa: E731
 
     jac0 = None
     # the Jacobian of the control rows (3M, K) by forward mode when K <= 3M (few latents, the usual case)
@@ -268,9 +262,15 @@ def _scaled(model, free_translation, tolerance, w0, w_ref, controls, targets, re
     c = jnp.where((c > 0) & (free > 0), c, 1.0)
     sqrt_reg = jnp.sqrt(regularization).astype(w0.dtype)
     spread = jnp.sqrt(jnp.mean(jnp.sum((targets - jnp.mean(targets, axis=0)) ** 2, axis=-1)))
+
+    # latents outside this stage (free == 0) are masked out of w: their z gets zero gradient, so BFGS (from an
+    # identity inverse Hessian) and LM's damped solve leave it at 0, and w ignores it anyway
+    def latent(z):
+        return w0 + free * z / c
+
     # the regularization pulls toward w_ref (latent0) in every stage; a stage starts at w0
-    return _Scaled(rows=lambda z: control_rows(w0 + z / c),
-                   reg_rows=lambda z: sqrt_reg * (w0 - w_ref + free * z / c), c=c,
+    return _Scaled(latent=latent, rows=lambda z: control_rows(latent(z)),
+                   reg_rows=lambda z: sqrt_reg * (latent(z) - w_ref),
                    atol=tolerance * jnp.where(spread > 0, spread, 1.0))
 
 
@@ -327,7 +327,7 @@ def _edit_jit(model: _Model, w0, w_ref, controls, targets, regularization, learn
         problem = _scaled(model, free_translation, tolerance, w0, w_ref, controls, targets, regularization, free)
         solve = _lm if method == "lm" else _bfgs
         z, taken = solve(problem, steps, tolerance, jnp.zeros_like(w0))
-        w = w0 + free * z / problem.c
+        w = problem.latent(z)
     r, t, p = _control_residuals(model, free_translation, w, controls, targets)
     objective = jnp.sum(r.astype(w0.dtype) ** 2) + regularization * jnp.sum((w - w_ref) ** 2)
     return EditResult(w.astype(latent_dtype), p + t, t, jnp.mean(jnp.linalg.norm(r, axis=-1)), objective, taken)

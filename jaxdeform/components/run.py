@@ -408,8 +408,8 @@ class Editor:
     (``"positions"``: pca-xyz, splocs); ``latent0`` is the code of the reference shape (the edit's start).
     ``stages``: for a model of several levels, the cumulative latent counts per level, so that an edit runs
     coarse to fine, one stage per level (level 0's codes, then levels 0-1, ...;
-    :mod:`jaxdeform.components.edit`); None for one level. An edit's own ``stages=`` argument overrides it. Build the editor once per run and reuse it: the
-    compiled editor is cached on the identity of ``decode``.
+    :mod:`jaxdeform.components.edit`); None for one level. An edit's own ``stages=`` argument overrides it.
+    Build the editor once per run and reuse it: the compiled editor is cached on the identity of ``decode``.
     """
 
     decode: Callable
