@@ -32,6 +32,7 @@ from jaxdeform.components import train
 from jaxdeform.mesh import load_sequence
 from jaxdeform.mesh.io import atomic_path
 from jaxdeform.mesh.topology import build_topology
+from jaxdeform.nn import native
 from jaxdeform.nn.graph_conv import rings_from_topology
 from jaxdeform.components import model
 from benchmarks.acap import cpu_info
@@ -65,6 +66,7 @@ def main(argv=None) -> dict:
     parser.add_argument("--repeats", type=int, default=10)
     parser.add_argument("--cases", nargs="+", default=[f"{m}:{c}" for m, c in CASES], metavar="METHOD:CONFIG")
     args = parser.parse_args(argv)
+    native.tune_host_allocator()  # as the CLI and the experiments do
     vertices, faces = load_sequence(args.data)
     train_idx, _ = crun.split_indices(vertices.shape[0])
     rest = vertices[0]

@@ -4,7 +4,8 @@
   ball": every shape is centred on its centroid, each reconstructed shape is rotated onto its reference by a
   proper Procrustes fit (optional), and both sequences are scaled by one factor that puts the reference
   sequence inside the unit ball.
-- :func:`erms`: 1000 * sqrt(sum over shapes and vertices |v - v'|^2) / sqrt(3 N V) (the group's ERMS.m).
+- :func:`erms`: 1000 * sqrt(sum over shapes and vertices |v - v'|^2) / sqrt(3 N V) (the group's ERMS.m);
+  :func:`erms_per_shape` splits it by shape.
 - :func:`relative_squared_error`: eq. (8) of seed 000, |X_i - X^_i|_F^2 / |X_i|_F^2 per shape (features).
 - :func:`sted`: the spatial-temporal edge difference of Vasa and Skala (2011), as documented there in words
   (no public code exists); our choices are stated in its docstring.
@@ -67,6 +68,14 @@ def erms(ref, rec, *, normalize: bool = True, rotate: bool = True) -> float:
     ref, rec = normalize_pair(ref, rec, rotate=rotate) if normalize else _check_pair(ref, rec)
     n, v = ref.shape[:2]
     return float(1000.0 * np.sqrt(np.sum((ref - rec) ** 2)) / np.sqrt(3.0 * n * v))
+
+
+def erms_per_shape(ref, rec, *, normalize: bool = True, rotate: bool = True) -> np.ndarray:
+    """(N,) Erms of each shape under the sequence's normalization (:func:`normalize_pair` of the whole pair):
+    their root mean square is :func:`erms` of the sequence."""
+    ref, rec = normalize_pair(ref, rec, rotate=rotate) if normalize else _check_pair(ref, rec)
+    v = ref.shape[1]
+    return 1000.0 * np.sqrt(np.sum((ref - rec) ** 2, axis=(1, 2))) / np.sqrt(3.0 * v)
 
 
 def relative_squared_error(x, x_hat) -> np.ndarray:

@@ -19,6 +19,8 @@ def test_experiment_test_config(tmp_path, experiment, rows):
     assert table.count("| tube/") == rows
     for row in result["rows"].values():
         assert row["test"]["erms"] >= 0 and row["test"]["shapes"] == 10
+        per = np.asarray(row["test"]["erms_per_shape"])  # rounded to 4 decimals
+        assert per.shape == (10,) and np.sqrt(np.mean(per**2)) == pytest.approx(row["test"]["erms"], abs=1e-3)
     if experiment == "table5":  # relative squared errors of every level count
         assert all("max_relative_squared_error" in r["test"] for r in result["rows"].values())
 

@@ -32,6 +32,19 @@ def test_erms_is_zero_for_rigid_copies_and_known_for_an_offset():
     assert metrics.erms(np.zeros((2, 5, 3)), np.ones((2, 5, 3)), normalize=False) == pytest.approx(1000.0)
 
 
+def test_erms_per_shape_splits_the_sequence_erms():
+    rng = np.random.default_rng(3)
+    ref = rng.normal(size=(4, 30, 3))
+    rec = ref + rng.normal(scale=[[[0.0]], [[0.01]], [[0.02]], [[0.05]]], size=(4, 30, 3))
+    per = metrics.erms_per_shape(ref, rec)
+    assert per.shape == (4,) and per[0] == pytest.approx(0.0, abs=1e-9)
+    assert np.all(np.diff(per) > 0)  # more noise, more error
+    assert np.sqrt(np.mean(per**2)) == pytest.approx(metrics.erms(ref, rec), rel=1e-12)
+    # a shape alone: the same as the sequence measure of that one shape without normalization
+    assert metrics.erms_per_shape(ref, rec, normalize=False)[2] == pytest.approx(
+        metrics.erms(ref[2:3], rec[2:3], normalize=False), rel=1e-12)
+
+
 def test_erms_scales_into_the_unit_ball():
     ref, _ = _sequence()
     noisy = ref + 0.01 * np.random.default_rng(1).normal(size=ref.shape)

@@ -52,6 +52,7 @@ from jaxdeform.cloth import evaluate as ceval
 from jaxdeform.cloth import features as cfeat
 from jaxdeform.cloth import run as crun
 from jaxdeform.mesh.io import atomic_path
+from jaxdeform.nn import native
 
 METHODS = {  # name -> (model kind, representation, residual over the upsampled coarse features[, skip, position weight])
     "ours": ("transformer", "ts-acap", True),
@@ -308,6 +309,7 @@ def main(argv=None) -> int:
                     choices=["data", "train", "evaluate", "linear", "jumps", "timing", "floor", "figures"])
     ap.add_argument("--force", action="store_true", help="redo cached data and runs")
     args = ap.parse_args(argv)
+    native.tune_host_allocator()
     root = Path(__file__).resolve().parent
     out = Path(args.out) if args.out else (root / "results" if args.config == "default"
                                           else Path("out/experiments/cloth-test"))

@@ -26,6 +26,7 @@ from pathlib import Path
 import jaxdeform  # noqa: F401  (x64)
 from jaxdeform.components import run as crun
 from jaxdeform.mesh.io import atomic_path, save_mesh
+from jaxdeform.nn import native
 
 #: data set -> split mode (Sec. 5.1: sequences every 10th, pose sets a random half)
 SPLITS = {"horse-gallop": "every10", "samba": "every10", "cactus": "half", "tube": "every10"}
@@ -172,6 +173,7 @@ def main(argv=None) -> dict:
     parser.add_argument("--epochs", type=int, help="override the training epochs of every run")
     parser.add_argument("--force", action="store_true", help="retrain runs that exist")
     args = parser.parse_args(argv)
+    native.tune_host_allocator()
     t0 = time.perf_counter()
     if args.experiment == "fig6":
         from experiments.components import editing

@@ -324,6 +324,7 @@ def _reconstruct_features(params, x, rings, config, chunk: int = 16):
 
 def set_metrics(ref: np.ndarray, rec: dict, faces: np.ndarray) -> dict:
     out = {"shapes": int(ref.shape[0]), "erms": metrics.erms(ref, rec["positions"]),
+           "erms_per_shape": [round(float(e), 4) for e in metrics.erms_per_shape(ref, rec["positions"])],
            "sted": float(metrics.sted(ref, rec["positions"], faces, temporal=False)["sted"])}
     if "scaled" in rec:
         rse = metrics.relative_squared_error(rec["scaled"], rec["scaled_hat"])

@@ -101,6 +101,33 @@ def available() -> bool:
         return _state["ok"]
 
 
+#: glibc mallopt parameters (malloc.h)
+_M_TRIM_THRESHOLD, _M_MMAP_MAX, _M_ARENA_MAX = -1, -4, -8
+
+
+def tune_host_allocator() -> bool:
+    """Keep freed host memory in the process for reuse (glibc only; for long CPU runs: training, experiments).
+
+    XLA on CPU allocates every step's large buffers afresh. glibc serves allocations above 32 MB, and those
+    of its per-thread arenas, by ``mmap`` and unmaps them on free, so the next step touches new pages: about
+    22,000 page faults and 70 ms of kernel time per seed-000 training step on horse-gallop, on a 2-core VM.
+    With one arena, no ``mmap`` and no trimming, the same step faults about once and runs 5-15 % faster
+    (alternated runs). The memory then stays with the process until it exits.
+
+    Takes full effect when called before JAX starts its CPU client (the first computation); later it only
+    affects threads that have not allocated yet. The command-line entry points call it first thing.
+    ``JAXDEFORM_HOST_ALLOCATOR=0`` turns it off. Returns whether the settings were applied.
+    """
+    if os.environ.get("JAXDEFORM_HOST_ALLOCATOR", "1") == "0" or platform.libc_ver()[0] != "glibc":
+        return False
+    try:
+        libc = ctypes.CDLL(None)
+        settings = ((_M_ARENA_MAX, 1), (_M_MMAP_MAX, 0), (_M_TRIM_THRESHOLD, 2**31 - 1))
+        return all(libc.mallopt(param, value) == 1 for param, value in settings)
+    except (OSError, AttributeError):
+        return False
+
+
 def compiler_options() -> dict:
     """XLA options for the jitted programs of the mesh networks (training steps, encoders).
 
