@@ -30,6 +30,15 @@ def test_experiment_runs_subset(tmp_path):
                        "no-attention"])
     assert set(result["rows"]) == {"tube/separate", "tube/no-attention"}
     assert sorted(p.name for p in (tmp_path / "table4" / "tube").iterdir()) == ["no-attention", "separate"]
+    # --trained-only tabulates the two runs that exist, trains none of the others, and gives the same figures
+    again = exp.main(["table4", "--config", "test", "--out", str(tmp_path), "--trained-only"])
+    assert set(again["rows"]) == {"tube/separate", "tube/no-attention"}
+    assert sorted(p.name for p in (tmp_path / "table4" / "tube").iterdir()) == ["no-attention", "separate"]
+    for key, row in again["rows"].items():
+        assert row["test"]["erms"] == pytest.approx(result["rows"][key]["test"]["erms"], rel=1e-6)
+    assert (tmp_path / "table4" / "results.md").read_text().count("| tube/") == 2
+    with pytest.raises(SystemExit):
+        exp.main(["table4", "--config", "test", "--out", str(tmp_path), "--trained-only", "--force"])
 
 
 def test_fig6_test_config(tmp_path):

@@ -3,13 +3,14 @@ levels) and Fig. 6 (editing error against the number of control points).
 
     python -m experiments.components.run table2|table4|table5|fig6 [--config default|test] [--data DIR]
                                           [--out OUT] [--datasets NAME ...] [--methods M ...]
-                                          [--runs CONFIG ...] [--epochs N] [--force]
+                                          [--runs CONFIG ...] [--epochs N] [--force] [--trained-only]
 
 Every experiment trains through :mod:`jaxdeform.components.run` (the same code as ``jaxdeform components
 train``) into OUT/<experiment>/<data set>/<run>, evaluates the generalization protocol of Sec. 5.1 (every 10th
 shape of a sequence trains, a seeded random half of a pose set) and writes OUT/<experiment>/results.json and
 results.md (atomically), plus the component figures of the multiscale runs. Existing runs are reused (their
-run.json is the cache key); ``--force`` retrains.
+run.json is the cache key); ``--force`` retrains; ``--trained-only`` trains nothing and tabulates the runs that
+exist (for example runs trained by separate invocations).
 
 ``--config test`` runs the same code paths in seconds: every method's "test" configuration on a small synthetic
 bending-tube sequence (written to OUT/data/tube), so CI exercises each experiment.
@@ -52,11 +53,16 @@ def synthetic_tube(out: Path) -> Path:
     return d
 
 
-def train_and_evaluate(data: Path, folder: Path, method: str, config: str, split: str, epochs, force: bool) -> dict:
-    """Train (or reuse) one run and evaluate it; returns the evaluation with the run's timing."""
+def train_and_evaluate(data: Path, folder: Path, method: str, config: str, split: str, epochs, force: bool,
+                       train: bool = True) -> dict | None:
+    """Train (or reuse) one run and evaluate it; returns the evaluation with the run's timing. With
+    ``train=False`` a run that does not exist yet is not trained: None."""
     if force and folder.exists():
         shutil.rmtree(folder)
     if not (folder / "run.json").is_file():
+        if not train:
+            print(f"   not trained yet: {folder} (left out)", flush=True)
+            return None
         if folder.exists():
             shutil.rmtree(folder)  # an interrupted run
         folder.mkdir(parents=True)
@@ -92,8 +98,9 @@ def table2(args) -> dict:
             folder = Path(args.out) / "table2" / name / method
             print(f"== table 2: {name} / {method}", flush=True)
             rows[f"{name}/{method}"] = train_and_evaluate(path, folder, method, args.config,
-                                                          SPLITS.get(name, "every10"), args.epochs, args.force)
-    return rows
+                                                          SPLITS.get(name, "every10"), args.epochs, args.force,
+                                                          train=not args.trained_only)
+    return {k: v for k, v in rows.items() if v is not None}
 
 
 def _multiscale_table(args, experiment: str, configs) -> dict:
@@ -105,8 +112,8 @@ def _multiscale_table(args, experiment: str, configs) -> dict:
             print(f"== {experiment}: {name} / {cfg}", flush=True)
             config = cfg if args.config != "test" else ("test" if cfg == "default" else f"test-{cfg}")
             rows[f"{name}/{cfg}"] = train_and_evaluate(path, folder, "multiscale", config, SPLITS.get(name, "every10"),
-                                                       args.epochs, args.force)
-    return rows
+                                                       args.epochs, args.force, train=not args.trained_only)
+    return {k: v for k, v in rows.items() if v is not None}
 
 
 def table4(args) -> dict:
@@ -172,7 +179,11 @@ def main(argv=None) -> dict:
                         help="table4/table5: a subset of their configurations (the others are left out)")
     parser.add_argument("--epochs", type=int, help="override the training epochs of every run")
     parser.add_argument("--force", action="store_true", help="retrain runs that exist")
+    parser.add_argument("--trained-only", action="store_true",
+                        help="table2/table4/table5: evaluate the runs that exist and leave the others out (no training)")
     args = parser.parse_args(argv)
+    if args.trained_only and args.force:
+        parser.error("--trained-only evaluates existing runs; it cannot be combined with --force.")
     native.tune_host_allocator()
     t0 = time.perf_counter()
     if args.experiment == "fig6":
