@@ -15,10 +15,13 @@
 // sums are recomputed once per ring slot in the backward pass), and runs the 9x9 channel mixes as batched
 // matrix products with N = 9 at a fraction of memory speed. Here each row of 9 channels is read once.
 #include <algorithm>
+#include <cmath>
 #include <cstdint>
 #include <cstdlib>
 #include <cstring>
+#include <memory>
 #include <thread>
+#include <type_traits>
 #include <vector>
 
 #include "xla/ffi/api/ffi.h"
@@ -45,6 +48,19 @@ int64_t MaxThreads() {
   return n;
 }
 
+// Runs fn(thread_index, begin, end) over [0, n) in ranges of `chunk` (the last one shorter), thread 0 on the
+// calling thread, the others each on their own
+template <typename Fn>
+void RunChunks(int64_t n, int64_t threads, int64_t chunk, Fn fn) {
+  std::vector<std::thread> pool;
+  for (int64_t t = 1; t < threads; ++t) {
+    const int64_t b = t * chunk, e = std::min(n, b + chunk);
+    if (b < e) pool.emplace_back(fn, t, b, e);
+  }
+  fn(0, 0, std::min(n, chunk));
+  for (auto& th : pool) th.join();
+}
+
 // Runs fn(thread_index, plane_begin, plane_end) over `planes` split into contiguous ranges; thread_index is
 // below MaxThreads().
 template <typename Fn>
@@ -55,14 +71,7 @@ void ParallelPlanes(int64_t planes, int64_t work_per_plane, Fn fn) {
     fn(0, 0, planes);
     return;
   }
-  std::vector<std::thread> pool;
-  const int64_t chunk = (planes + threads - 1) / threads;
-  for (int64_t t = 1; t < threads; ++t) {
-    const int64_t b = t * chunk, e = std::min(planes, b + chunk);
-    if (b < e) pool.emplace_back(fn, t, b, e);
-  }
-  fn(0, 0, std::min(planes, chunk));
-  for (auto& th : pool) th.join();
+  RunChunks(planes, threads, (planes + threads - 1) / threads, fn);
 }
 
 // Any channel counts up to kLanes, read from the geometry. The 9-channel case of seed 000 runs Forward9 /
@@ -440,6 +449,775 @@ ffi::Error BackwardDispatch(ffi::AnyBuffer x, ffi::AnyBuffer gy, ffi::AnyBuffer 
   return Backward<double>(x, gy, nbr, count, inv, wp, wn, gx, gwp, gwn, gb);
 }
 
+// ---------------------------------------------------------------------------------------------------------
+// The two halves of seed 000's autoencoder block (jaxdeform/nn/graph_conv.py), each fused into one call:
+//
+//   encoder  z[g,p]  = C[g] flatten(tanh(conv_enc(x[g,p])))             (no activation on z)
+//   decoder  xh[g,p] = tanh(conv_dec(tanh(reshape(z[g,p] C[g]))))
+//
+// x, xh (G, P, V, 9); z (G, P, Kz); C (Gc, Kz, 9V); conv weights (Gw, 9, 9) and biases (Gw, 9), Gc and Gw each
+// 1 (shared) or G. The gradients come back per group of their output buffer (summed where it has one group).
+// Why: with one call per convolution, XLA still ran the tanh layers, the fully connected products with C and
+// their adjoints as separate passes over (G, P, V, 9) arrays (15 MB each on the horse split). Fused, the
+// products with C run over tiles of 64 vertices that stay in cache, and the hidden layers are recomputed in the
+// backward pass instead of stored. Inside a tile the arithmetic runs on groups of 8 vertices held channel by
+// channel (Soa9: one 8-lane vector per channel), so a 9x9 channel mix is 81 full-width multiply-adds per 8
+// vertices, where the row layout of the convolution kernels above spends 18 vector and 18 scalar ones per
+// vertex; the one-ring gathers stay on rows. tanh: float32, Eigen's 13/6 rational interpolant (a few ulp);
+// float64, std::tanh. Work is split over vertex ranges, so the rows of dC a thread writes are its own; the
+// reductions over vertices (z, dz, weight gradients) are summed per thread, then in thread order.
+
+constexpr int64_t kVertexTile = 64;  // a multiple of 8
+
+template <typename T>
+struct Soa9 {  // 8 vertices x 9 channels, channel-major
+  typedef T V __attribute__((vector_size(8 * sizeof(T))));
+  V c[9];
+  static Soa9 Zero() {
+    Soa9 r;
+    for (auto& v : r.c) v = V{};
+    return r;
+  }
+  // n <= 8 rows of 9 channels at src (contiguous); the missing rows read as zero
+  static Soa9 FromRows(const T* src, int n) {
+    alignas(64) T buf[9][8];
+    if (n == 8) {
+      for (int t = 0; t < 8; ++t)
+        for (int ch = 0; ch < 9; ++ch) buf[ch][t] = src[t * 9 + ch];
+    } else {
+      for (int t = 0; t < 8; ++t)
+        for (int ch = 0; ch < 9; ++ch) buf[ch][t] = t < n ? src[t * 9 + ch] : T(0);
+    }
+    Soa9 r;
+    for (int ch = 0; ch < 9; ++ch) std::memcpy(&r.c[ch], buf[ch], sizeof(V));
+    return r;
+  }
+  void ToRows(T* dst, int n) const {
+    alignas(64) T buf[9][8];
+    for (int ch = 0; ch < 9; ++ch) std::memcpy(buf[ch], &c[ch], sizeof(V));
+    if (n == 8) {
+      for (int t = 0; t < 8; ++t)
+        for (int ch = 0; ch < 9; ++ch) dst[t * 9 + ch] = buf[ch][t];
+    } else {
+      for (int t = 0; t < n; ++t)
+        for (int ch = 0; ch < 9; ++ch) dst[t * 9 + ch] = buf[ch][t];
+    }
+  }
+};
+
+template <typename T>
+typename Soa9<T>::V TanhV(typename Soa9<T>::V x) {
+  typedef typename Soa9<T>::V V;
+  if constexpr (std::is_same_v<T, float>) {
+    const V hi = V{} + 7.90531110763549805f;  // tanh rounds to +-1 in float32 beyond
+    x = x < hi ? x : hi;
+    x = x > -hi ? x : -hi;
+    const V x2 = x * x;
+    V p = x2 * -2.76076847742355e-16f + 2.00018790482477e-13f;
+    p = x2 * p + -8.60467152213735e-11f;
+    p = x2 * p + 5.12229709037114e-08f;
+    p = x2 * p + 1.48572235717979e-05f;
+    p = x2 * p + 6.37261928875436e-04f;
+    p = x2 * p + 4.89352455891786e-03f;
+    V q = x2 * 1.19825839466702e-06f + 1.18534705686654e-04f;
+    q = x2 * q + 2.26843463243900e-03f;
+    q = x2 * q + 4.89352518554385e-03f;
+    return x * p / q;
+  } else {
+    for (int t = 0; t < 8; ++t) x[t] = std::tanh(x[t]);
+    return x;
+  }
+}
+
+template <typename T>
+void TanhSoa(Soa9<T>& a) {
+  for (auto& v : a.c) v = TanhV<T>(v);
+}
+
+template <typename T>
+T HSum(typename Soa9<T>::V v) {
+  T s = 0;
+  for (int t = 0; t < 8; ++t) s += v[t];
+  return s;
+}
+
+// o[e] += sum_f a[f] w[f * 9 + e]
+template <typename T>
+void MixAdd(Soa9<T>& o, const Soa9<T>& a, const T* __restrict__ w) {
+  for (int e = 0; e < 9; ++e) {
+    typename Soa9<T>::V acc = o.c[e];
+    for (int f = 0; f < 9; ++f) acc += a.c[f] * w[f * 9 + e];
+    o.c[e] = acc;
+  }
+}
+
+// The conv weights of one group: W_point, W_neighbor as given (forward) or transposed (adjoint), and the bias.
+template <typename T>
+struct ConvW {
+  T p[81], n[81], b[9];
+  void Load(const T* wp, const T* wn, const T* bias, int64_t g, bool transpose) {
+    for (int c = 0; c < 9; ++c)
+      for (int d = 0; d < 9; ++d) {
+        p[c * 9 + d] = transpose ? wp[g * 81 + d * 9 + c] : wp[g * 81 + c * 9 + d];
+        n[c * 9 + d] = transpose ? wn[g * 81 + d * 9 + c] : wn[g * 81 + c * 9 + d];
+      }
+    for (int d = 0; d < 9; ++d) b[d] = bias != nullptr ? bias[g * 9 + d] : T(0);
+  }
+  Soa9<T> Bias() const {
+    Soa9<T> r;
+    for (int d = 0; d < 9; ++d) r.c[d] = typename Soa9<T>::V{} + b[d];
+    return r;
+  }
+};
+
+template <typename T>
+Row9<T> TanhBack(const Row9<T>& a, const Row9<T>& t) {  // a * (1 - t^2): the cotangent through tanh(.) = t
+  Row9<T> r;
+  r.v = a.v - a.v * t.v * t.v;
+  r.s = a.s - a.s * t.s * t.s;
+  return r;
+}
+
+// G: the groups of the outputs' batch shape. For each output group g, the group each input reads: numpy
+// broadcasting of the leading (batch) dimensions, so under nested jax.vmap an input that one of the maps does
+// not batch (a shared C, the primal arguments of a vmapped adjoint) is read in place, never copied.
+struct AeGeometry {
+  int64_t G = 1, P = 1, V = 0, K = 0, Kz = 0;
+  std::vector<int64_t> in, aux, cot, c, w;  // x or z | h or x_hat | dz or dx_hat | C | W_point, W_neighbor, b
+};
+
+// Runs fn(thread_index, v0, v1) over vertex ranges (multiples of kVertexTile), one per thread.
+template <typename Fn>
+void ParallelVertices(int64_t V, int64_t work_per_vertex, Fn fn) {
+  const int64_t tiles = (V + kVertexTile - 1) / kVertexTile;
+  const int64_t threads =
+      std::min<int64_t>({MaxThreads(), tiles, std::max<int64_t>(1, V * work_per_vertex / (1 << 16))});
+  if (threads <= 1) {
+    fn(0, 0, V);
+    return;
+  }
+  RunChunks(V, threads, (tiles + threads - 1) / threads * kVertexTile, fn);
+}
+
+// (inv[i] sum_k a[n_ik]) over the ring of vertex i of one plane of rows
+template <typename T>
+Row9<T> RingMean(const T* plane, const int32_t* nbr, const int32_t* count, const T* inv, int64_t K, int64_t i) {
+  const int32_t* ring = nbr + i * K;
+  Row9<T> r = Row9<T>::Zero();
+  for (int32_t k = 0; k < count[i]; ++k) r += Row9<T>::Load(plane + static_cast<int64_t>(ring[k]) * 9);
+  r.Scale(inv[i]);
+  return r;
+}
+
+// sum_k inv[n_ik] a[n_ik] over the ring of vertex i (the adjoint of the ring mean, rings being symmetric)
+template <typename T>
+Row9<T> RingAdjoint(const T* plane, const int32_t* nbr, const int32_t* count, const T* inv, int64_t K, int64_t i) {
+  const int32_t* ring = nbr + i * K;
+  Row9<T> r = Row9<T>::Zero();
+  for (int32_t k = 0; k < count[i]; ++k) {
+    const int64_t j = ring[k];
+    r.Fma(inv[j], Row9<T>::Load(plane + j * 9));
+  }
+  return r;
+}
+
+// Ring means (or adjoint sums) of the vertices [i0, i0 + nt) of a plane, as rows into buf
+template <typename T>
+void TileRings(const T* plane, const int32_t* nbr, const int32_t* count, const T* inv, int64_t K, int64_t i0,
+               int64_t nt, bool adjoint, T* buf) {
+  for (int64_t t = 0; t < nt; ++t)
+    (adjoint ? RingAdjoint(plane, nbr, count, inv, K, i0 + t) : RingMean(plane, nbr, count, inv, K, i0 + t))
+        .Store(buf + t * 9);
+}
+
+// Per thread weight-gradient partial sums: gWp (81) | gWn (81) | gb (9) per output group.
+constexpr int64_t kWeightStride = 2 * 81 + 9;
+
+// 8-lane accumulators of a^T d, a^T sg and d (gWp, gWn, gb of one group; sg: the adjoint ring sums of d, see
+// ConvAdjointRows), summed over lanes at the end
+template <typename T>
+struct WeightGrads {
+  typename Soa9<T>::V acc[kWeightStride];
+  void Zero() {
+    for (auto& v : acc) v = typename Soa9<T>::V{};
+  }
+  void Add(const Soa9<T>& a, const Soa9<T>& sg, const Soa9<T>& d) {
+    for (int c = 0; c < 9; ++c)
+      for (int e = 0; e < 9; ++e) {
+        acc[c * 9 + e] += a.c[c] * d.c[e];
+        acc[81 + c * 9 + e] += a.c[c] * sg.c[e];
+      }
+    for (int e = 0; e < 9; ++e) acc[162 + e] += d.c[e];
+  }
+  void FlushInto(T* out) const {
+    for (int64_t e = 0; e < kWeightStride; ++e) out[e] += HSum<T>(acc[e]);
+  }
+};
+
+template <typename T>
+void ReduceWeightGrads(const std::vector<T>& acc, int64_t groups, T* gwp, T* gwn, T* gb) {
+  std::fill(gwp, gwp + groups * 81, T(0));
+  std::fill(gwn, gwn + groups * 81, T(0));
+  std::fill(gb, gb + groups * 9, T(0));
+  const int64_t threads = static_cast<int64_t>(acc.size()) / (groups * kWeightStride);
+  for (int64_t t = 0; t < threads; ++t)
+    for (int64_t g = 0; g < groups; ++g) {
+      const T* a = acc.data() + (t * groups + g) * kWeightStride;
+      for (int e = 0; e < 81; ++e) gwp[g * 81 + e] += a[e];
+      for (int e = 0; e < 81; ++e) gwn[g * 81 + e] += a[81 + e];
+      for (int e = 0; e < 9; ++e) gb[g * 9 + e] += a[162 + e];
+    }
+}
+
+template <typename T>
+std::unique_ptr<T[]> Scratch(int64_t n) {
+  return std::unique_ptr<T[]>(new T[static_cast<size_t>(std::max<int64_t>(n, 1))]);
+}
+
+// The tile's rows of C (Kz of them, from vertex i0, nt vertices) as groups of 8: out[k * 8 + j]
+template <typename T>
+void TileC(const T* cg, int64_t Kz, int64_t V, int64_t i0, int64_t nt, Soa9<T>* out) {
+  for (int64_t k = 0; k < Kz; ++k)
+    for (int64_t j = 0; j * 8 < nt; ++j)
+      out[k * 8 + j] = Soa9<T>::FromRows(cg + (k * V + i0 + 8 * j) * 9, static_cast<int>(std::min<int64_t>(8, nt - 8 * j)));
+}
+
+// Writes (first) or adds the tile's dC groups into dC's rows
+template <typename T>
+void FlushTileC(const Soa9<T>* d, int64_t Kz, int64_t V, int64_t i0, int64_t nt, bool first, T* dcg) {
+  for (int64_t k = 0; k < Kz; ++k)
+    for (int64_t j = 0; j * 8 < nt; ++j) {
+      const int n = static_cast<int>(std::min<int64_t>(8, nt - 8 * j));
+      T* dst = dcg + (k * V + i0 + 8 * j) * 9;
+      if (first) {
+        d[k * 8 + j].ToRows(dst, n);
+      } else {
+        Soa9<T> s = Soa9<T>::FromRows(dst, n);
+        for (int ch = 0; ch < 9; ++ch) s.c[ch] += d[k * 8 + j].c[ch];
+        s.ToRows(dst, n);
+      }
+    }
+}
+
+// ---- encoder ----
+
+template <typename T>
+void EncoderForward(const AeGeometry& s, const T* x, const int32_t* nbr, const int32_t* count, const T* inv,
+                    const T* wp, const T* wn, const T* b, const T* c, T* z, T* hidden) {
+  typedef typename Soa9<T>::V V8;
+  const int64_t Kz = s.Kz, V = s.V, P = s.P;
+  std::vector<T> part(static_cast<size_t>(MaxThreads() * s.G * P * Kz), T(0));
+  ParallelVertices(V, P * (s.K + 10 + Kz) * 9, [&](int64_t t, int64_t v0, int64_t v1) {
+    T* zp = part.data() + t * s.G * P * Kz;
+    std::vector<Soa9<T>> cs(static_cast<size_t>(Kz * 8));
+    std::vector<V8> acc(static_cast<size_t>(Kz));
+    alignas(64) T rm[kVertexTile * 9];
+    ConvW<T> w;
+    for (int64_t g = 0; g < s.G; ++g) {
+      w.Load(wp, wn, b, s.w[g], false);
+      const T* cg = c + s.c[g] * Kz * V * 9;
+      for (int64_t i0 = v0; i0 < v1; i0 += kVertexTile) {
+        const int64_t nt = std::min(v1, i0 + kVertexTile) - i0;
+        TileC(cg, Kz, V, i0, nt, cs.data());
+        for (int64_t p = 0; p < P; ++p) {
+          const T* plane = x + (s.in[g] * P + p) * V * 9;
+          TileRings(plane, nbr, count, inv, s.K, i0, nt, false, rm);
+          for (auto& a : acc) a = V8{};
+          for (int64_t j = 0; j * 8 < nt; ++j) {
+            const int n = static_cast<int>(std::min<int64_t>(8, nt - 8 * j));
+            Soa9<T> h = w.Bias();
+            MixAdd(h, Soa9<T>::FromRows(plane + (i0 + 8 * j) * 9, n), w.p);
+            MixAdd(h, Soa9<T>::FromRows(rm + 8 * j * 9, n), w.n);
+            TanhSoa(h);
+            if (hidden != nullptr) h.ToRows(hidden + ((g * P + p) * V + i0 + 8 * j) * 9, n);
+            for (int64_t k = 0; k < Kz; ++k) {
+              const Soa9<T>& ck = cs[k * 8 + j];  // zero in the missing rows
+              V8 a = acc[k];
+              for (int ch = 0; ch < 9; ++ch) a += ck.c[ch] * h.c[ch];
+              acc[k] = a;
+            }
+          }
+          for (int64_t k = 0; k < Kz; ++k) zp[(g * P + p) * Kz + k] += HSum<T>(acc[k]);
+        }
+      }
+    }
+  });
+  const int64_t n = s.G * P * Kz;
+  std::fill(z, z + n, T(0));
+  for (size_t t = 0; t < part.size() / static_cast<size_t>(std::max<int64_t>(n, 1)); ++t)
+    for (int64_t e = 0; e < n; ++e) z[e] += part[t * n + e];
+}
+
+// out[g,p] = conv^T(d[g,p]): the input cotangent of a conv with input rows a and pre-activation cotangent d;
+// its weight gradients go to acc (per thread and output group): gWp = sum_i a_i^T d_i, gb = sum_i d_i and
+// gWn = sum_i ring_mean(a)_i^T d_i = sum_j a_j^T sg_j with sg_j = sum_{i in N(j)} d_i / D_i (symmetric rings),
+// the adjoint ring sums the input cotangent needs anyway.
+template <typename T>
+void ConvAdjointRows(const AeGeometry& s, const T* d, const T* a, const int32_t* nbr, const int32_t* count,
+                     const T* inv, const T* wp, const T* wn, T* out, std::vector<T>& acc, int64_t weight_groups) {
+  ParallelVertices(s.V, s.G * s.P * (s.K + 40) * 9, [&](int64_t t, int64_t v0, int64_t v1) {
+    ConvW<T> w;
+    alignas(64) T sg[kVertexTile * 9];
+    auto wg = std::make_unique<WeightGrads<T>>();
+    for (int64_t g = 0; g < s.G; ++g) {
+      w.Load(wp, wn, nullptr, s.w[g], true);
+      wg->Zero();
+      for (int64_t p = 0; p < s.P; ++p) {
+        const T* dp = d + (g * s.P + p) * s.V * 9;
+        const T* ap = a + (s.in[g] * s.P + p) * s.V * 9;
+        T* o = out + (g * s.P + p) * s.V * 9;
+        for (int64_t i0 = v0; i0 < v1; i0 += kVertexTile) {
+          const int64_t nt = std::min(v1, i0 + kVertexTile) - i0;
+          TileRings(dp, nbr, count, inv, s.K, i0, nt, true, sg);
+          for (int64_t j = 0; j * 8 < nt; ++j) {
+            const int n = static_cast<int>(std::min<int64_t>(8, nt - 8 * j));
+            const Soa9<T> ds = Soa9<T>::FromRows(dp + (i0 + 8 * j) * 9, n);
+            const Soa9<T> ss = Soa9<T>::FromRows(sg + 8 * j * 9, n);
+            Soa9<T> r = Soa9<T>::Zero();
+            MixAdd(r, ds, w.p);
+            MixAdd(r, ss, w.n);
+            r.ToRows(o + (i0 + 8 * j) * 9, n);
+            wg->Add(Soa9<T>::FromRows(ap + (i0 + 8 * j) * 9, n), ss, ds);
+          }
+        }
+      }
+      wg->FlushInto(acc.data() + (t * weight_groups + (weight_groups == 1 ? 0 : g)) * kWeightStride);
+    }
+  });
+}
+
+// Given the forward's hidden layer h = tanh(conv(x)) (its second output)
+template <typename T>
+void EncoderBackward(const AeGeometry& s, int64_t weight_groups, int64_t c_groups, const T* x, const T* hidden,
+                     const T* dz, const int32_t* nbr, const int32_t* count, const T* inv, const T* wp,
+                     const T* wn, const T* c, T* dx, T* gwp, T* gwn, T* gb, T* dc) {
+  const int64_t Kz = s.Kz, V = s.V, P = s.P;
+  auto dpre = Scratch<T>(s.G * P * V * 9);  // cotangent of the conv's pre-activation
+  ParallelVertices(V, s.G * P * (10 + 2 * Kz) * 9, [&](int64_t, int64_t v0, int64_t v1) {
+    std::vector<Soa9<T>> cs(static_cast<size_t>(Kz * 8)), dcs(static_cast<size_t>(Kz * 8));
+    for (int64_t g = 0; g < s.G; ++g) {
+      const T* cg = c + s.c[g] * Kz * V * 9;
+      T* dcg = dc + (c_groups == 1 ? 0 : g) * Kz * V * 9;
+      for (int64_t i0 = v0; i0 < v1; i0 += kVertexTile) {
+        const int64_t nt = std::min(v1, i0 + kVertexTile) - i0;
+        TileC(cg, Kz, V, i0, nt, cs.data());
+        for (auto& a : dcs) a = Soa9<T>::Zero();
+        for (int64_t p = 0; p < P; ++p) {
+          const int64_t plane = (g * P + p) * V * 9;
+          const T* hp = hidden + (s.aux[g] * P + p) * V * 9;
+          const T* dzp = dz + (s.cot[g] * P + p) * Kz;
+          for (int64_t j = 0; j * 8 < nt; ++j) {
+            const int n = static_cast<int>(std::min<int64_t>(8, nt - 8 * j));
+            const Soa9<T> h = Soa9<T>::FromRows(hp + (i0 + 8 * j) * 9, n);
+            Soa9<T> d = Soa9<T>::Zero();  // cotangent of h, then of the pre-activation
+            for (int64_t k = 0; k < Kz; ++k) {
+              const T a = dzp[k];
+              const Soa9<T>& ck = cs[k * 8 + j];
+              Soa9<T>& dk = dcs[k * 8 + j];
+              for (int ch = 0; ch < 9; ++ch) {
+                d.c[ch] += a * ck.c[ch];
+                dk.c[ch] += a * h.c[ch];
+              }
+            }
+            for (int ch = 0; ch < 9; ++ch) d.c[ch] -= d.c[ch] * h.c[ch] * h.c[ch];
+            d.ToRows(dpre.get() + plane + (i0 + 8 * j) * 9, n);
+          }
+        }
+        FlushTileC(dcs.data(), Kz, V, i0, nt, c_groups != 1 || g == 0, dcg);
+      }
+    }
+  });
+  std::vector<T> acc(static_cast<size_t>(MaxThreads() * weight_groups * kWeightStride), T(0));
+  ConvAdjointRows(s, dpre.get(), x, nbr, count, inv, wp, wn, dx, acc, weight_groups);
+  ReduceWeightGrads(acc, weight_groups, gwp, gwn, gb);
+}
+
+// ---- decoder ----
+
+// S[g,p,i] = tanh(sum_k z[g,p,k] C[g,k,i]) for vertices [v0, v1)
+template <typename T>
+void DecoderHidden(const AeGeometry& s, const T* z, const T* c, T* S, int64_t v0, int64_t v1) {
+  const int64_t Kz = s.Kz, V = s.V, P = s.P;
+  std::vector<Soa9<T>> cs(static_cast<size_t>(Kz * 8));
+  for (int64_t g = 0; g < s.G; ++g) {
+    const T* cg = c + s.c[g] * Kz * V * 9;
+    for (int64_t i0 = v0; i0 < v1; i0 += kVertexTile) {
+      const int64_t nt = std::min(v1, i0 + kVertexTile) - i0;
+      TileC(cg, Kz, V, i0, nt, cs.data());
+      for (int64_t p = 0; p < P; ++p) {
+        const T* zp = z + (s.in[g] * P + p) * Kz;
+        T* out = S + (g * P + p) * V * 9;
+        for (int64_t j = 0; j * 8 < nt; ++j) {
+          Soa9<T> a = Soa9<T>::Zero();
+          for (int64_t k = 0; k < Kz; ++k)
+            for (int ch = 0; ch < 9; ++ch) a.c[ch] += zp[k] * cs[k * 8 + j].c[ch];
+          TanhSoa(a);
+          a.ToRows(out + (i0 + 8 * j) * 9, static_cast<int>(std::min<int64_t>(8, nt - 8 * j)));
+        }
+      }
+    }
+  }
+}
+
+template <typename T>
+void DecoderForward(const AeGeometry& s, const T* z, const int32_t* nbr, const int32_t* count, const T* inv,
+                    const T* wp, const T* wn, const T* b, const T* c, T* xh) {
+  const int64_t V = s.V, P = s.P;
+  auto S = Scratch<T>(s.G * P * V * 9);
+  ParallelVertices(V, s.G * P * (s.Kz + 10) * 9, [&](int64_t, int64_t v0, int64_t v1) {
+    DecoderHidden(s, z, c, S.get(), v0, v1);
+  });
+  ParallelVertices(V, s.G * P * (s.K + 10) * 9, [&](int64_t, int64_t v0, int64_t v1) {
+    ConvW<T> w;
+    alignas(64) T rm[kVertexTile * 9];
+    for (int64_t g = 0; g < s.G; ++g) {
+      w.Load(wp, wn, b, s.w[g], false);
+      for (int64_t p = 0; p < P; ++p) {
+        const T* plane = S.get() + (g * P + p) * V * 9;
+        T* out = xh + (g * P + p) * V * 9;
+        for (int64_t i0 = v0; i0 < v1; i0 += kVertexTile) {
+          const int64_t nt = std::min(v1, i0 + kVertexTile) - i0;
+          TileRings(plane, nbr, count, inv, s.K, i0, nt, false, rm);
+          for (int64_t j = 0; j * 8 < nt; ++j) {
+            const int n = static_cast<int>(std::min<int64_t>(8, nt - 8 * j));
+            Soa9<T> h = w.Bias();
+            MixAdd(h, Soa9<T>::FromRows(plane + (i0 + 8 * j) * 9, n), w.p);
+            MixAdd(h, Soa9<T>::FromRows(rm + 8 * j * 9, n), w.n);
+            TanhSoa(h);
+            h.ToRows(out + (i0 + 8 * j) * 9, n);
+          }
+        }
+      }
+    }
+  });
+}
+
+template <typename T>
+void DecoderBackward(const AeGeometry& s, int64_t weight_groups, int64_t c_groups, const T* z, const T* xh,
+                     const T* dxh, const int32_t* nbr, const int32_t* count, const T* inv, const T* wp,
+                     const T* wn, const T* c, T* dz, T* gwp, T* gwn, T* gb, T* dc) {
+  typedef typename Soa9<T>::V V8;
+  const int64_t Kz = s.Kz, V = s.V, P = s.P;
+  auto S = Scratch<T>(s.G * P * V * 9);   // hidden layer tanh(z C)
+  auto Dd = Scratch<T>(s.G * P * V * 9);  // cotangent of the conv's pre-activation
+  ParallelVertices(V, s.G * P * (s.Kz + 20) * 9, [&](int64_t, int64_t v0, int64_t v1) {
+    DecoderHidden(s, z, c, S.get(), v0, v1);
+    for (int64_t g = 0; g < s.G; ++g)
+      for (int64_t p = 0; p < P; ++p)
+        for (int64_t i = v0; i < v1; ++i) {
+          const int64_t o = ((g * P + p) * V + i) * 9;
+          TanhBack(Row9<T>::Load(dxh + ((s.cot[g] * P + p) * V + i) * 9),
+                   Row9<T>::Load(xh + ((s.aux[g] * P + p) * V + i) * 9))
+              .Store(Dd.get() + o);
+        }
+  });
+  std::vector<T> acc(static_cast<size_t>(MaxThreads() * weight_groups * kWeightStride), T(0));
+  std::vector<T> part(static_cast<size_t>(MaxThreads() * s.G * P * Kz), T(0));
+  ParallelVertices(V, P * (s.K + 40 + 2 * Kz) * 9, [&](int64_t t, int64_t v0, int64_t v1) {
+    ConvW<T> w;
+    std::vector<Soa9<T>> cs(static_cast<size_t>(Kz * 8)), dcs(static_cast<size_t>(Kz * 8));
+    std::vector<V8> dza(static_cast<size_t>(Kz));
+    alignas(64) T sg[kVertexTile * 9];
+    auto wg = std::make_unique<WeightGrads<T>>();
+    T* zpart = part.data() + t * s.G * P * Kz;
+    for (int64_t g = 0; g < s.G; ++g) {
+      w.Load(wp, wn, nullptr, s.w[g], true);
+      const T* cg = c + s.c[g] * Kz * V * 9;
+      T* dcg = dc + (c_groups == 1 ? 0 : g) * Kz * V * 9;
+      wg->Zero();
+      for (int64_t i0 = v0; i0 < v1; i0 += kVertexTile) {
+        const int64_t nt = std::min(v1, i0 + kVertexTile) - i0;
+        TileC(cg, Kz, V, i0, nt, cs.data());
+        for (auto& a : dcs) a = Soa9<T>::Zero();
+        for (int64_t p = 0; p < P; ++p) {
+          const T* sp = S.get() + (g * P + p) * V * 9;
+          const T* dp = Dd.get() + (g * P + p) * V * 9;
+          const T* zp = z + (s.in[g] * P + p) * Kz;
+          TileRings(dp, nbr, count, inv, s.K, i0, nt, true, sg);
+          for (auto& a : dza) a = V8{};
+          for (int64_t j = 0; j * 8 < nt; ++j) {
+            const int n = static_cast<int>(std::min<int64_t>(8, nt - 8 * j));
+            const Soa9<T> dd = Soa9<T>::FromRows(dp + (i0 + 8 * j) * 9, n);
+            const Soa9<T> ss = Soa9<T>::FromRows(sp + (i0 + 8 * j) * 9, n);
+            const Soa9<T> gs = Soa9<T>::FromRows(sg + 8 * j * 9, n);
+            Soa9<T> da = Soa9<T>::Zero();  // cotangent of S, then of (z C)
+            MixAdd(da, dd, w.p);
+            MixAdd(da, gs, w.n);
+            for (int ch = 0; ch < 9; ++ch) da.c[ch] -= da.c[ch] * ss.c[ch] * ss.c[ch];
+            for (int64_t k = 0; k < Kz; ++k) {
+              const T a = zp[k];
+              const Soa9<T>& ck = cs[k * 8 + j];
+              Soa9<T>& dk = dcs[k * 8 + j];
+              V8 u = dza[k];
+              for (int ch = 0; ch < 9; ++ch) {
+                u += ck.c[ch] * da.c[ch];
+                dk.c[ch] += a * da.c[ch];
+              }
+              dza[k] = u;
+            }
+            wg->Add(ss, gs, dd);  // zero in the missing rows; gWn as in ConvAdjointRows
+          }
+          for (int64_t k = 0; k < Kz; ++k) zpart[(g * P + p) * Kz + k] += HSum<T>(dza[k]);
+        }
+        FlushTileC(dcs.data(), Kz, V, i0, nt, c_groups != 1 || g == 0, dcg);
+      }
+      wg->FlushInto(acc.data() + (t * weight_groups + (weight_groups == 1 ? 0 : g)) * kWeightStride);
+    }
+  });
+  ReduceWeightGrads(acc, weight_groups, gwp, gwn, gb);
+  const int64_t n = s.G * P * Kz;
+  std::fill(dz, dz + n, T(0));
+  for (size_t t = 0; t < part.size() / static_cast<size_t>(std::max<int64_t>(n, 1)); ++t)
+    for (int64_t e = 0; e < n; ++e) dz[e] += part[t * n + e];
+}
+
+// ---- shapes and dispatch ----
+
+int64_t Groups(ffi::AnyBuffer a, int64_t inner) {
+  return inner == 0 ? 0 : static_cast<int64_t>(a.element_count()) / inner;
+}
+
+typedef std::vector<int64_t> Dims;
+
+Dims DimsOf(ffi::AnyBuffer a) {
+  auto d = a.dimensions();
+  return Dims(d.begin(), d.end());
+}
+
+// The trailing `core` dimensions of a buffer, or an empty vector where it has fewer
+Dims Core(const Dims& d, size_t core) { return d.size() < core ? Dims() : Dims(d.end() - core, d.end()); }
+
+// map[g] = the group of an input with dimensions d (its last `core` ones per group) that output group g of
+// the batch shape `batch` reads; false where the leading dimensions do not broadcast against `batch`.
+bool BroadcastMap(const Dims& d, size_t core, const Dims& batch, std::vector<int64_t>* map) {
+  if (d.size() < core || d.size() - core > batch.size()) return false;
+  const size_t nb = d.size() - core, off = batch.size() - nb;
+  Dims stride(batch.size(), 0);
+  int64_t st = 1;
+  for (size_t k = nb; k-- > 0;) {
+    if (d[k] != batch[off + k] && d[k] != 1) return false;
+    if (d[k] != 1) stride[off + k] = st;
+    st *= d[k];
+  }
+  int64_t groups = 1;
+  for (int64_t b : batch) groups *= b;
+  map->assign(static_cast<size_t>(groups), 0);
+  for (int64_t g = 0; g < groups; ++g) {
+    int64_t rest = g, at = 0;
+    for (size_t r = batch.size(); r-- > 0;) {
+      at += (rest % batch[r]) * stride[r];
+      rest /= batch[r];
+    }
+    (*map)[static_cast<size_t>(g)] = at;
+  }
+  return true;
+}
+
+// Shapes from an output `out` of (batch..., P, V, 9) (planes) or (batch..., P, Kz) (codes), C (..., Kz, 9V)
+// and the rings; the group maps of C and the conv weights.
+ffi::Error MakeAeGeometry(const Dims& out, bool planes, ffi::AnyBuffer nbr, ffi::AnyBuffer wp, ffi::AnyBuffer wn,
+                          ffi::AnyBuffer b, ffi::AnyBuffer c, AeGeometry* s) {
+  const Dims cd = DimsOf(c), nd = DimsOf(nbr);
+  if (cd.size() < 2 || nd.size() < 2) return ffi::Error::InvalidArgument("ae_block: C and neighbors need rank >= 2");
+  s->Kz = cd[cd.size() - 2];
+  if (cd.back() % 9 != 0) return ffi::Error::InvalidArgument("ae_block: C's rows are not 9 per vertex");
+  s->V = cd.back() / 9;
+  s->K = nd.back();
+  if (nd[nd.size() - 2] != s->V) return ffi::Error::InvalidArgument("ae_block: neighbors do not match C's vertices");
+  const size_t core = planes ? 3 : 2;
+  if (out.size() < core || (planes && (out.back() != 9 || out[out.size() - 2] != s->V)) ||
+      (!planes && out.back() != s->Kz))
+    return ffi::Error::InvalidArgument("ae_block: the output does not match C's latent size or vertices");
+  s->P = out[out.size() - core];
+  const Dims batch(out.begin(), out.end() - core);
+  s->G = 1;
+  for (int64_t e : batch) s->G *= e;
+  std::vector<int64_t> wn_map, b_map;
+  if (Core(DimsOf(wp), 2) != Dims{9, 9} || Core(DimsOf(wn), 2) != Dims{9, 9} || Core(DimsOf(b), 1) != Dims{9})
+    return ffi::Error::InvalidArgument("ae_block: conv weights must be (..., 9, 9) with biases (..., 9)");
+  if (!BroadcastMap(cd, 2, batch, &s->c) || !BroadcastMap(DimsOf(wp), 2, batch, &s->w) ||
+      !BroadcastMap(DimsOf(wn), 2, batch, &wn_map) || !BroadcastMap(DimsOf(b), 1, batch, &b_map) ||
+      wn_map != s->w || b_map != s->w)
+    return ffi::Error::InvalidArgument("ae_block: batch dimensions of the arrays do not line up");
+  return ffi::Error::Success();
+}
+
+// The group map of an input of planes (..., P, V, 9) or codes (..., P, Kz) against the output batch shape
+ffi::Error InputMap(ffi::AnyBuffer a, bool planes, const Dims& out, const AeGeometry& s, std::vector<int64_t>* map) {
+  const size_t core = planes ? 3 : 2;
+  const Dims want = planes ? Dims{s.P, s.V, 9} : Dims{s.P, s.Kz};
+  const Dims d = DimsOf(a);
+  if (Core(d, core) != want || !BroadcastMap(d, core, Dims(out.begin(), out.end() - core), map))
+    return ffi::Error::InvalidArgument("ae_block: an input's shape does not match the output's");
+  return ffi::Error::Success();
+}
+
+// Gradient outputs: one group (summed) or one per output group
+ffi::Error CheckOutGroups(const AeGeometry& s, int64_t groups) {
+  if (groups != 1 && groups != s.G) return ffi::Error::InvalidArgument("ae_block: gradient batch dimensions do not line up");
+  return ffi::Error::Success();
+}
+
+template <typename T>
+const T* In(ffi::AnyBuffer a) { return static_cast<const T*>(a.untyped_data()); }
+template <typename T>
+T* Out(ffi::Result<ffi::AnyBuffer>& a) { return static_cast<T*>(a->untyped_data()); }
+const int32_t* Ints(ffi::AnyBuffer a) { return static_cast<const int32_t*>(a.untyped_data()); }
+
+// n >= 1 more buffer arguments (Args) or results (Rets) on a binding (bindings only move into a longer one)
+template <int n, typename B>
+auto Args(B&& bind) {
+  if constexpr (n == 1)
+    return std::move(bind).template Arg<ffi::AnyBuffer>();
+  else
+    return Args<n - 1>(std::move(bind).template Arg<ffi::AnyBuffer>());
+}
+template <int n, typename B>
+auto Rets(B&& bind) {
+  if constexpr (n == 1)
+    return std::move(bind).template Ret<ffi::AnyBuffer>();
+  else
+    return Rets<n - 1>(std::move(bind).template Ret<ffi::AnyBuffer>());
+}
+
+// The arguments every block half takes after its own: neighbors, counts, inverse degrees, W_point, W_neighbor, b,
+// C (..., Kz, 9V)
+template <typename B>
+auto BlockArgs(B&& bind) { return Args<7>(std::move(bind)); }
+
+// The adjoints' results: the input cotangent (dx or dz), gW_point, gW_neighbor, gb, dC
+template <typename B>
+auto GradRets(B&& bind) { return Rets<5>(std::move(bind)); }
+
+// Calls fn(T{}) with T the float type of t (float32 or float64, as SameFloat established)
+template <typename Fn>
+void ByFloat(ffi::DataType t, Fn fn) {
+  if (t == ffi::DataType::F32)
+    fn(float{});
+  else
+    fn(double{});
+}
+
+// The group counts of the adjoints' gradient outputs (gW_point, gW_neighbor, gb: wg; dC: cg), checked
+ffi::Error GradOutputs(const AeGeometry& s, ffi::Result<ffi::AnyBuffer>& gwp, ffi::Result<ffi::AnyBuffer>& gwn,
+                       ffi::Result<ffi::AnyBuffer>& gb, ffi::Result<ffi::AnyBuffer>& dc, int64_t* wg, int64_t* cg) {
+  *wg = Groups(*gwp, 81);
+  *cg = Groups(*dc, s.Kz * s.V * 9);
+  if (auto e = CheckOutGroups(s, *wg); e.failure()) return e;
+  if (auto e = CheckOutGroups(s, *cg); e.failure()) return e;
+  if (Groups(*gwn, 81) != *wg || Groups(*gb, 9) != *wg)
+    return ffi::Error::InvalidArgument("ae_block: gradient buffers have the wrong sizes");
+  return ffi::Error::Success();
+}
+
+ffi::Error RingsFor(const AeGeometry& s, ffi::AnyBuffer nbr, ffi::AnyBuffer count, ffi::AnyBuffer inv) {
+  Geometry g;
+  g.V = s.V;
+  g.K = s.K;
+  return CheckRings(g, nbr, count, inv);
+}
+
+ffi::Error EncoderFwdDispatch(ffi::AnyBuffer x, ffi::AnyBuffer nbr, ffi::AnyBuffer count, ffi::AnyBuffer inv,
+                              ffi::AnyBuffer wp, ffi::AnyBuffer wn, ffi::AnyBuffer b, ffi::AnyBuffer c,
+                              ffi::Result<ffi::AnyBuffer> z, ffi::Result<ffi::AnyBuffer> h) {
+  AeGeometry s;
+  const Dims out = DimsOf(*h);
+  if (auto e = MakeAeGeometry(out, true, nbr, wp, wn, b, c, &s); e.failure()) return e;
+  if (auto e = InputMap(x, true, out, s, &s.in); e.failure()) return e;
+  if (auto e = RingsFor(s, nbr, count, inv); e.failure()) return e;
+  if (Groups(*z, s.P * s.Kz) != s.G) return ffi::Error::InvalidArgument("ae_block: z has the wrong size");
+  ffi::DataType t;
+  if (!SameFloat({x.element_type(), inv.element_type(), wp.element_type(), wn.element_type(), b.element_type(),
+                  c.element_type(), z->element_type(), h->element_type()}, &t))
+    return ffi::Error::InvalidArgument("ae_block: float arrays must all be float32 or all float64");
+  ByFloat(t, [&](auto zero) {
+    using T = decltype(zero);
+    EncoderForward<T>(s, In<T>(x), Ints(nbr), Ints(count), In<T>(inv), In<T>(wp), In<T>(wn), In<T>(b), In<T>(c),
+                      Out<T>(z), Out<T>(h));
+  });
+  return ffi::Error::Success();
+}
+
+ffi::Error EncoderBwdDispatch(ffi::AnyBuffer x, ffi::AnyBuffer h, ffi::AnyBuffer dz, ffi::AnyBuffer nbr, ffi::AnyBuffer count,
+                              ffi::AnyBuffer inv, ffi::AnyBuffer wp, ffi::AnyBuffer wn, ffi::AnyBuffer b,
+                              ffi::AnyBuffer c, ffi::Result<ffi::AnyBuffer> dx, ffi::Result<ffi::AnyBuffer> gwp,
+                              ffi::Result<ffi::AnyBuffer> gwn, ffi::Result<ffi::AnyBuffer> gb,
+                              ffi::Result<ffi::AnyBuffer> dc) {
+  AeGeometry s;
+  const Dims out = DimsOf(*dx);
+  if (auto e = MakeAeGeometry(out, true, nbr, wp, wn, b, c, &s); e.failure()) return e;
+  if (auto e = InputMap(x, true, out, s, &s.in); e.failure()) return e;
+  if (auto e = InputMap(h, true, out, s, &s.aux); e.failure()) return e;
+  Dims zout(out.begin(), out.end() - 3);
+  zout.insert(zout.end(), {s.P, s.Kz});
+  if (auto e = InputMap(dz, false, zout, s, &s.cot); e.failure()) return e;
+  if (auto e = RingsFor(s, nbr, count, inv); e.failure()) return e;
+  int64_t wg, cg;
+  if (auto e = GradOutputs(s, gwp, gwn, gb, dc, &wg, &cg); e.failure()) return e;
+  ffi::DataType t;
+  if (!SameFloat({x.element_type(), h.element_type(), dz.element_type(), inv.element_type(), wp.element_type(), wn.element_type(),
+                  b.element_type(), c.element_type(), dx->element_type(), gwp->element_type(),
+                  gwn->element_type(), gb->element_type(), dc->element_type()}, &t))
+    return ffi::Error::InvalidArgument("ae_block: float arrays must all be float32 or all float64");
+  ByFloat(t, [&](auto zero) {
+    using T = decltype(zero);
+    EncoderBackward<T>(s, wg, cg, In<T>(x), In<T>(h), In<T>(dz), Ints(nbr), Ints(count), In<T>(inv), In<T>(wp),
+                       In<T>(wn), In<T>(c), Out<T>(dx), Out<T>(gwp), Out<T>(gwn), Out<T>(gb), Out<T>(dc));
+  });
+  return ffi::Error::Success();
+}
+
+ffi::Error DecoderFwdDispatch(ffi::AnyBuffer z, ffi::AnyBuffer nbr, ffi::AnyBuffer count, ffi::AnyBuffer inv,
+                              ffi::AnyBuffer wp, ffi::AnyBuffer wn, ffi::AnyBuffer b, ffi::AnyBuffer c,
+                              ffi::Result<ffi::AnyBuffer> xh) {
+  AeGeometry s;
+  const Dims out = DimsOf(*xh);
+  if (auto e = MakeAeGeometry(out, true, nbr, wp, wn, b, c, &s); e.failure()) return e;
+  Dims zout(out.begin(), out.end() - 3);
+  zout.insert(zout.end(), {s.P, s.Kz});
+  if (auto e = InputMap(z, false, zout, s, &s.in); e.failure()) return e;
+  if (auto e = RingsFor(s, nbr, count, inv); e.failure()) return e;
+  ffi::DataType t;
+  if (!SameFloat({z.element_type(), inv.element_type(), wp.element_type(), wn.element_type(), b.element_type(),
+                  c.element_type(), xh->element_type()}, &t))
+    return ffi::Error::InvalidArgument("ae_block: float arrays must all be float32 or all float64");
+  ByFloat(t, [&](auto zero) {
+    using T = decltype(zero);
+    DecoderForward<T>(s, In<T>(z), Ints(nbr), Ints(count), In<T>(inv), In<T>(wp), In<T>(wn), In<T>(b), In<T>(c),
+                      Out<T>(xh));
+  });
+  return ffi::Error::Success();
+}
+
+ffi::Error DecoderBwdDispatch(ffi::AnyBuffer z, ffi::AnyBuffer xh, ffi::AnyBuffer dxh, ffi::AnyBuffer nbr,
+                              ffi::AnyBuffer count, ffi::AnyBuffer inv, ffi::AnyBuffer wp, ffi::AnyBuffer wn,
+                              ffi::AnyBuffer b, ffi::AnyBuffer c, ffi::Result<ffi::AnyBuffer> dz,
+                              ffi::Result<ffi::AnyBuffer> gwp, ffi::Result<ffi::AnyBuffer> gwn,
+                              ffi::Result<ffi::AnyBuffer> gb, ffi::Result<ffi::AnyBuffer> dc) {
+  AeGeometry s;
+  const Dims out = DimsOf(*dz);
+  if (auto e = MakeAeGeometry(out, false, nbr, wp, wn, b, c, &s); e.failure()) return e;
+  if (auto e = InputMap(z, false, out, s, &s.in); e.failure()) return e;
+  Dims pout(out.begin(), out.end() - 2);
+  pout.insert(pout.end(), {s.P, s.V, 9});
+  if (auto e = InputMap(xh, true, pout, s, &s.aux); e.failure()) return e;
+  if (auto e = InputMap(dxh, true, pout, s, &s.cot); e.failure()) return e;
+  if (auto e = RingsFor(s, nbr, count, inv); e.failure()) return e;
+  int64_t wg, cg;
+  if (auto e = GradOutputs(s, gwp, gwn, gb, dc, &wg, &cg); e.failure()) return e;
+  ffi::DataType t;
+  if (!SameFloat({z.element_type(), xh.element_type(), dxh.element_type(), inv.element_type(), wp.element_type(),
+                  wn.element_type(), b.element_type(), c.element_type(), dz->element_type(), gwp->element_type(),
+                  gwn->element_type(), gb->element_type(), dc->element_type()}, &t))
+    return ffi::Error::InvalidArgument("ae_block: float arrays must all be float32 or all float64");
+  ByFloat(t, [&](auto zero) {
+    using T = decltype(zero);
+    DecoderBackward<T>(s, wg, cg, In<T>(z), In<T>(xh), In<T>(dxh), Ints(nbr), Ints(count), In<T>(inv), In<T>(wp),
+                       In<T>(wn), In<T>(c), Out<T>(dz), Out<T>(gwp), Out<T>(gwn), Out<T>(gb), Out<T>(dc));
+  });
+  return ffi::Error::Success();
+}
+
 }  // namespace
 
 XLA_FFI_DEFINE_HANDLER_SYMBOL(JaxdeformMeshConvFwd, ForwardDispatch,
@@ -466,3 +1244,24 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(JaxdeformMeshConvBwd, BackwardDispatch,
                                   .Ret<ffi::AnyBuffer>()  // gW_point
                                   .Ret<ffi::AnyBuffer>()  // gW_neighbor
                                   .Ret<ffi::AnyBuffer>());  // gb
+
+XLA_FFI_DEFINE_HANDLER_SYMBOL(JaxdeformAeEncoderFwd, EncoderFwdDispatch,
+                              BlockArgs(ffi::Ffi::Bind().Arg<ffi::AnyBuffer>())  // x (..., P, V, 9), then BlockArgs
+                                  .Ret<ffi::AnyBuffer>()  // z (..., P, Kz)
+                                  .Ret<ffi::AnyBuffer>());  // h = tanh(conv(x)) (..., P, V, 9), for the adjoint
+
+XLA_FFI_DEFINE_HANDLER_SYMBOL(JaxdeformAeEncoderBwd, EncoderBwdDispatch,
+                              GradRets(BlockArgs(ffi::Ffi::Bind()
+                                                     .Arg<ffi::AnyBuffer>()     // x
+                                                     .Arg<ffi::AnyBuffer>()     // h (the forward's second output)
+                                                     .Arg<ffi::AnyBuffer>())));  // cotangent of z; returns dx first
+
+XLA_FFI_DEFINE_HANDLER_SYMBOL(JaxdeformAeDecoderFwd, DecoderFwdDispatch,
+                              BlockArgs(ffi::Ffi::Bind().Arg<ffi::AnyBuffer>())  // z (..., P, Kz), then BlockArgs
+                                  .Ret<ffi::AnyBuffer>());                     // x_hat (..., P, V, 9)
+
+XLA_FFI_DEFINE_HANDLER_SYMBOL(JaxdeformAeDecoderBwd, DecoderBwdDispatch,
+                              GradRets(BlockArgs(ffi::Ffi::Bind()
+                                                     .Arg<ffi::AnyBuffer>()     // z
+                                                     .Arg<ffi::AnyBuffer>()     // x_hat (the forward's output)
+                                                     .Arg<ffi::AnyBuffer>())));  // cotangent of x_hat; returns dz first

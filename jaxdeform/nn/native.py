@@ -1,4 +1,5 @@
-"""The mesh convolution as native XLA FFI custom calls on CPU (``mesh_conv_kernel.cc``).
+"""The mesh convolution, and the two halves of seed 000's autoencoder block, as native XLA FFI custom calls on
+CPU (``mesh_conv_kernel.cc``).
 
 Why: on CPU, XLA fuses the producer of a gather's operand into the gather. In a mesh network that operand
 is an elementwise chain (tanh, its derivative) or another one-ring sum, so the chain is recomputed once per
@@ -35,6 +36,13 @@ import jax.numpy as jnp
 _SOURCE = Path(__file__).with_name("mesh_conv_kernel.cc")
 FORWARD = "jaxdeform_mesh_conv_fwd"
 BACKWARD = "jaxdeform_mesh_conv_bwd"
+#: the fused halves of seed 000's autoencoder block: (FFI target, symbol in the library)
+_AE_TARGETS = {
+    "encoder_fwd": ("jaxdeform_ae_encoder_fwd", "JaxdeformAeEncoderFwd"),
+    "encoder_bwd": ("jaxdeform_ae_encoder_bwd", "JaxdeformAeEncoderBwd"),
+    "decoder_fwd": ("jaxdeform_ae_decoder_fwd", "JaxdeformAeDecoderFwd"),
+    "decoder_bwd": ("jaxdeform_ae_decoder_bwd", "JaxdeformAeDecoderBwd"),
+}
 MAX_CHANNELS = 16  # kLanes in the kernel source
 _lock = threading.Lock()
 _state: dict = {}
@@ -92,6 +100,8 @@ def available() -> bool:
                 lib = ctypes.cdll.LoadLibrary(str(build()))
                 jax.ffi.register_ffi_target(FORWARD, jax.ffi.pycapsule(lib.JaxdeformMeshConvFwd), platform="cpu")
                 jax.ffi.register_ffi_target(BACKWARD, jax.ffi.pycapsule(lib.JaxdeformMeshConvBwd), platform="cpu")
+                for target, symbol in _AE_TARGETS.values():
+                    jax.ffi.register_ffi_target(target, jax.ffi.pycapsule(getattr(lib, symbol)), platform="cpu")
                 _state["lib"] = lib  # keeps the library loaded
                 _state["ok"] = True
             except Exception as exc:  # noqa: BLE001 (any build or load failure falls back to pure JAX)
@@ -162,6 +172,50 @@ def conv_backward(x, gy, neighbors, counts, inv_deg, w_point, w_neighbor):
            jax.ShapeDtypeStruct(w_neighbor.shape, dt), jax.ShapeDtypeStruct(w_point.shape[:-2] + w_point.shape[-1:], dt))
     call = jax.ffi.ffi_call(BACKWARD, out, vmap_method="broadcast_all")
     return call(x, gy, neighbors, counts, inv_deg, w_point, w_neighbor)
+
+
+def _like(*arrays):
+    return tuple(jax.ShapeDtypeStruct(a.shape, a.dtype) for a in arrays)
+
+
+# The fused block halves take vmap's batch dimension as a leading group axis of every argument; an argument
+# without it (a shared table or weight) comes in with a leading 1 ("expand_dims"), so nothing is broadcast.
+
+
+def ae_encoder_forward(x, neighbors, counts, inv_deg, w_point, w_neighbor, b, c):
+    """(z, h): h = tanh(conv(x)) and z = flatten(h) C^T for x (..., P, V, 9), C (..., Kz, 9V); z (..., P, Kz).
+
+    No autodiff rule; h is what the adjoint needs."""
+    _require()
+    out = (jax.ShapeDtypeStruct(x.shape[:-2] + (c.shape[-2],), x.dtype), jax.ShapeDtypeStruct(x.shape, x.dtype))
+    call = jax.ffi.ffi_call(_AE_TARGETS["encoder_fwd"][0], out, vmap_method="expand_dims")
+    return call(x, neighbors, counts, inv_deg, w_point, w_neighbor, b, c)
+
+
+def _block_adjoint(which, primal, saved, cotangent, neighbors, counts, inv_deg, w_point, w_neighbor, b, c):
+    """(d primal, gW_point, gW_neighbor, gb, dC) of one block half, from its primal input, what its forward
+    saved and the cotangent of its output."""
+    _require()
+    call = jax.ffi.ffi_call(_AE_TARGETS[which][0], _like(primal, w_point, w_neighbor, b, c), vmap_method="expand_dims")
+    return call(primal, saved, cotangent, neighbors, counts, inv_deg, w_point, w_neighbor, b, c)
+
+
+def ae_encoder_backward(x, h, dz, neighbors, counts, inv_deg, w_point, w_neighbor, b, c):
+    """(dx, gW_point, gW_neighbor, gb, dC) of :func:`ae_encoder_forward`'s z for the cotangent ``dz``."""
+    return _block_adjoint("encoder_bwd", x, h, dz, neighbors, counts, inv_deg, w_point, w_neighbor, b, c)
+
+
+def ae_decoder_forward(z, neighbors, counts, inv_deg, w_point, w_neighbor, b, c):
+    """x_hat = tanh(conv(tanh(reshape(z C)))) for z (..., P, Kz), C (..., Kz, 9V): (..., P, V, 9)."""
+    _require()
+    out = jax.ShapeDtypeStruct(z.shape[:-1] + (c.shape[-1] // 9, 9), z.dtype)
+    call = jax.ffi.ffi_call(_AE_TARGETS["decoder_fwd"][0], out, vmap_method="expand_dims")
+    return call(z, neighbors, counts, inv_deg, w_point, w_neighbor, b, c)
+
+
+def ae_decoder_backward(z, x_hat, dx_hat, neighbors, counts, inv_deg, w_point, w_neighbor, b, c):
+    """(dz, gW_point, gW_neighbor, gb, dC) of :func:`ae_decoder_forward`, given its output ``x_hat``."""
+    return _block_adjoint("decoder_bwd", z, x_hat, dx_hat, neighbors, counts, inv_deg, w_point, w_neighbor, b, c)
 
 
 def ring_tables(neighbors, degree, dtype):
