@@ -14,7 +14,7 @@ the pure-JAX definition, used on other backends and checked against the kernels 
 The block's two halves go one step further on CPU: :func:`ae_encode` (conv, tanh, product with ``C^T``) and
 :func:`ae_decode` (product with ``C``, tanh, conv, tanh) are one native call each, with one hand-written
 adjoint each, so the (B, V, 9) hidden layers and their cotangents are not separate XLA passes over memory
-(horse multiscale training step, same process, alternating: 112-155 ms against 167-205 ms layer by layer).
+(horse multiscale training step, same process, alternating: 123-141 ms against 149-182 ms layer by layer).
 :func:`ae_encode_reference` and :func:`ae_decode_reference` compose the layers; the tests check that both give
 the same values and gradients, and the fused gradients against finite differences.
 
@@ -219,18 +219,18 @@ _encode_native.defvjp(_encode_native_fwd, _encode_native_bwd)
 
 @jax.custom_vjp
 def _decode_native(z, neighbors, counts, inv_deg, w_point, w_neighbor, b, c):
-    return native.ae_decoder_forward(z, neighbors, counts, inv_deg, w_point, w_neighbor, b, c)
+    return native.ae_decoder_forward(z, neighbors, counts, inv_deg, w_point, w_neighbor, b, c)[0]
 
 
 def _decode_native_fwd(z, neighbors, counts, inv_deg, w_point, w_neighbor, b, c):
-    x_hat = native.ae_decoder_forward(z, neighbors, counts, inv_deg, w_point, w_neighbor, b, c)
-    return x_hat, (z, x_hat, neighbors, counts, inv_deg, w_point, w_neighbor, b, c)
+    x_hat, hidden = native.ae_decoder_forward(z, neighbors, counts, inv_deg, w_point, w_neighbor, b, c)
+    return x_hat, (z, x_hat, hidden, neighbors, counts, inv_deg, w_point, w_neighbor, b, c)
 
 
 def _decode_native_bwd(res, dx_hat):
-    z, x_hat, neighbors, counts, inv_deg, w_point, w_neighbor, b, c = res
-    dz, gwp, gwn, gb, dc = native.ae_decoder_backward(z, x_hat, dx_hat, neighbors, counts, inv_deg, w_point,
-                                                      w_neighbor, b, c)
+    z, x_hat, hidden, neighbors, counts, inv_deg, w_point, w_neighbor, b, c = res
+    dz, gwp, gwn, gb, dc = native.ae_decoder_backward(z, x_hat, hidden, dx_hat, neighbors, counts, inv_deg,
+                                                      w_point, w_neighbor, b, c)
     return dz, None, None, None, gwp, gwn, gb, dc
 
 

@@ -455,12 +455,13 @@ ffi::Error BackwardDispatch(ffi::AnyBuffer x, ffi::AnyBuffer gy, ffi::AnyBuffer 
 //   encoder  z[g,p]  = C[g] flatten(tanh(conv_enc(x[g,p])))             (no activation on z)
 //   decoder  xh[g,p] = tanh(conv_dec(tanh(reshape(z[g,p] C[g]))))
 //
-// x, xh (G, P, V, 9); z (G, P, Kz); C (Gc, Kz, 9V); conv weights (Gw, 9, 9) and biases (Gw, 9), Gc and Gw each
-// 1 (shared) or G. The gradients come back per group of their output buffer (summed where it has one group).
+// x, xh (..., P, V, 9); z (..., P, Kz); C (..., Kz, 9V); conv weights (..., 9, 9) and biases (..., 9). The
+// leading (batch) dimensions of the inputs broadcast against those of the outputs (AeGeometry). The gradients
+// come back per group of their output buffer (summed where it has one group). Each forward also returns its
+// hidden layer (encoder tanh(conv(x)), decoder tanh(z C)) for its adjoint.
 // Why: with one call per convolution, XLA still ran the tanh layers, the fully connected products with C and
 // their adjoints as separate passes over (G, P, V, 9) arrays (15 MB each on the horse split). Fused, the
-// products with C run over tiles of 64 vertices that stay in cache, and the hidden layers are recomputed in the
-// backward pass instead of stored. Inside a tile the arithmetic runs on groups of 8 vertices held channel by
+// products with C run over tiles of 64 vertices that stay in cache. Inside a tile the arithmetic runs on groups of 8 vertices held channel by
 // channel (Soa9: one 8-lane vector per channel), so a 9x9 channel mix is 81 full-width multiply-adds per 8
 // vertices, where the row layout of the convolution kernels above spends 18 vector and 18 scalar ones per
 // vertex; the one-ring gathers stay on rows. tanh: float32, Eigen's 13/6 rational interpolant (a few ulp);
@@ -861,11 +862,10 @@ void DecoderHidden(const AeGeometry& s, const T* z, const T* c, T* S, int64_t v0
 
 template <typename T>
 void DecoderForward(const AeGeometry& s, const T* z, const int32_t* nbr, const int32_t* count, const T* inv,
-                    const T* wp, const T* wn, const T* b, const T* c, T* xh) {
+                    const T* wp, const T* wn, const T* b, const T* c, T* xh, T* S) {
   const int64_t V = s.V, P = s.P;
-  auto S = Scratch<T>(s.G * P * V * 9);
   ParallelVertices(V, s.G * P * (s.Kz + 10) * 9, [&](int64_t, int64_t v0, int64_t v1) {
-    DecoderHidden(s, z, c, S.get(), v0, v1);
+    DecoderHidden(s, z, c, S, v0, v1);
   });
   ParallelVertices(V, s.G * P * (s.K + 10) * 9, [&](int64_t, int64_t v0, int64_t v1) {
     ConvW<T> w;
@@ -873,7 +873,7 @@ void DecoderForward(const AeGeometry& s, const T* z, const int32_t* nbr, const i
     for (int64_t g = 0; g < s.G; ++g) {
       w.Load(wp, wn, b, s.w[g], false);
       for (int64_t p = 0; p < P; ++p) {
-        const T* plane = S.get() + (g * P + p) * V * 9;
+        const T* plane = S + (g * P + p) * V * 9;
         T* out = xh + (g * P + p) * V * 9;
         for (int64_t i0 = v0; i0 < v1; i0 += kVertexTile) {
           const int64_t nt = std::min(v1, i0 + kVertexTile) - i0;
@@ -892,16 +892,15 @@ void DecoderForward(const AeGeometry& s, const T* z, const int32_t* nbr, const i
   });
 }
 
+// Given the forward's output x_hat and hidden layer S = tanh(z C) (its two outputs)
 template <typename T>
 void DecoderBackward(const AeGeometry& s, int64_t weight_groups, int64_t c_groups, const T* z, const T* xh,
-                     const T* dxh, const int32_t* nbr, const int32_t* count, const T* inv, const T* wp,
+                     const T* S, const T* dxh, const int32_t* nbr, const int32_t* count, const T* inv, const T* wp,
                      const T* wn, const T* c, T* dz, T* gwp, T* gwn, T* gb, T* dc) {
   typedef typename Soa9<T>::V V8;
   const int64_t Kz = s.Kz, V = s.V, P = s.P;
-  auto S = Scratch<T>(s.G * P * V * 9);   // hidden layer tanh(z C)
   auto Dd = Scratch<T>(s.G * P * V * 9);  // cotangent of the conv's pre-activation
-  ParallelVertices(V, s.G * P * (s.Kz + 20) * 9, [&](int64_t, int64_t v0, int64_t v1) {
-    DecoderHidden(s, z, c, S.get(), v0, v1);
+  ParallelVertices(V, s.G * P * 20, [&](int64_t, int64_t v0, int64_t v1) {
     for (int64_t g = 0; g < s.G; ++g)
       for (int64_t p = 0; p < P; ++p)
         for (int64_t i = v0; i < v1; ++i) {
@@ -930,7 +929,7 @@ void DecoderBackward(const AeGeometry& s, int64_t weight_groups, int64_t c_group
         TileC(cg, Kz, V, i0, nt, cs.data());
         for (auto& a : dcs) a = Soa9<T>::Zero();
         for (int64_t p = 0; p < P; ++p) {
-          const T* sp = S.get() + (g * P + p) * V * 9;
+          const T* sp = S + (s.aux[g] * P + p) * V * 9;
           const T* dp = Dd.get() + (g * P + p) * V * 9;
           const T* zp = z + (s.in[g] * P + p) * Kz;
           TileRings(dp, nbr, count, inv, s.K, i0, nt, true, sg);
@@ -1169,7 +1168,7 @@ ffi::Error EncoderBwdDispatch(ffi::AnyBuffer x, ffi::AnyBuffer h, ffi::AnyBuffer
 
 ffi::Error DecoderFwdDispatch(ffi::AnyBuffer z, ffi::AnyBuffer nbr, ffi::AnyBuffer count, ffi::AnyBuffer inv,
                               ffi::AnyBuffer wp, ffi::AnyBuffer wn, ffi::AnyBuffer b, ffi::AnyBuffer c,
-                              ffi::Result<ffi::AnyBuffer> xh) {
+                              ffi::Result<ffi::AnyBuffer> xh, ffi::Result<ffi::AnyBuffer> hidden) {
   AeGeometry s;
   const Dims out = DimsOf(*xh);
   if (auto e = MakeAeGeometry(out, true, nbr, wp, wn, b, c, &s); e.failure()) return e;
@@ -1178,18 +1177,21 @@ ffi::Error DecoderFwdDispatch(ffi::AnyBuffer z, ffi::AnyBuffer nbr, ffi::AnyBuff
   if (auto e = InputMap(z, false, zout, s, &s.in); e.failure()) return e;
   if (auto e = RingsFor(s, nbr, count, inv); e.failure()) return e;
   ffi::DataType t;
+  if (hidden->element_count() != xh->element_count())
+    return ffi::Error::InvalidArgument("ae_block: the hidden layer has the wrong size");
   if (!SameFloat({z.element_type(), inv.element_type(), wp.element_type(), wn.element_type(), b.element_type(),
-                  c.element_type(), xh->element_type()}, &t))
+                  c.element_type(), xh->element_type(), hidden->element_type()}, &t))
     return ffi::Error::InvalidArgument("ae_block: float arrays must all be float32 or all float64");
   ByFloat(t, [&](auto zero) {
     using T = decltype(zero);
     DecoderForward<T>(s, In<T>(z), Ints(nbr), Ints(count), In<T>(inv), In<T>(wp), In<T>(wn), In<T>(b), In<T>(c),
-                      Out<T>(xh));
+                      Out<T>(xh), Out<T>(hidden));
   });
   return ffi::Error::Success();
 }
 
-ffi::Error DecoderBwdDispatch(ffi::AnyBuffer z, ffi::AnyBuffer xh, ffi::AnyBuffer dxh, ffi::AnyBuffer nbr,
+ffi::Error DecoderBwdDispatch(ffi::AnyBuffer z, ffi::AnyBuffer xh, ffi::AnyBuffer hidden, ffi::AnyBuffer dxh,
+                              ffi::AnyBuffer nbr,
                               ffi::AnyBuffer count, ffi::AnyBuffer inv, ffi::AnyBuffer wp, ffi::AnyBuffer wn,
                               ffi::AnyBuffer b, ffi::AnyBuffer c, ffi::Result<ffi::AnyBuffer> dz,
                               ffi::Result<ffi::AnyBuffer> gwp, ffi::Result<ffi::AnyBuffer> gwn,
@@ -1202,17 +1204,20 @@ ffi::Error DecoderBwdDispatch(ffi::AnyBuffer z, ffi::AnyBuffer xh, ffi::AnyBuffe
   pout.insert(pout.end(), {s.P, s.V, 9});
   if (auto e = InputMap(xh, true, pout, s, &s.aux); e.failure()) return e;
   if (auto e = InputMap(dxh, true, pout, s, &s.cot); e.failure()) return e;
+  std::vector<int64_t> hidden_map;
+  if (auto e = InputMap(hidden, true, pout, s, &hidden_map); e.failure()) return e;
+  if (hidden_map != s.aux) return ffi::Error::InvalidArgument("ae_block: x_hat and the hidden layer do not line up");
   if (auto e = RingsFor(s, nbr, count, inv); e.failure()) return e;
   int64_t wg, cg;
   if (auto e = GradOutputs(s, gwp, gwn, gb, dc, &wg, &cg); e.failure()) return e;
   ffi::DataType t;
-  if (!SameFloat({z.element_type(), xh.element_type(), dxh.element_type(), inv.element_type(), wp.element_type(),
+  if (!SameFloat({z.element_type(), xh.element_type(), hidden.element_type(), dxh.element_type(), inv.element_type(), wp.element_type(),
                   wn.element_type(), b.element_type(), c.element_type(), dz->element_type(), gwp->element_type(),
                   gwn->element_type(), gb->element_type(), dc->element_type()}, &t))
     return ffi::Error::InvalidArgument("ae_block: float arrays must all be float32 or all float64");
   ByFloat(t, [&](auto zero) {
     using T = decltype(zero);
-    DecoderBackward<T>(s, wg, cg, In<T>(z), In<T>(xh), In<T>(dxh), Ints(nbr), Ints(count), In<T>(inv), In<T>(wp),
+    DecoderBackward<T>(s, wg, cg, In<T>(z), In<T>(xh), In<T>(hidden), In<T>(dxh), Ints(nbr), Ints(count), In<T>(inv), In<T>(wp),
                        In<T>(wn), In<T>(c), Out<T>(dz), Out<T>(gwp), Out<T>(gwn), Out<T>(gb), Out<T>(dc));
   });
   return ffi::Error::Success();
@@ -1258,10 +1263,12 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(JaxdeformAeEncoderBwd, EncoderBwdDispatch,
 
 XLA_FFI_DEFINE_HANDLER_SYMBOL(JaxdeformAeDecoderFwd, DecoderFwdDispatch,
                               BlockArgs(ffi::Ffi::Bind().Arg<ffi::AnyBuffer>())  // z (..., P, Kz), then BlockArgs
-                                  .Ret<ffi::AnyBuffer>());                     // x_hat (..., P, V, 9)
+                                  .Ret<ffi::AnyBuffer>()                        // x_hat (..., P, V, 9)
+                                  .Ret<ffi::AnyBuffer>());  // S = tanh(reshape(z C)) (..., P, V, 9), for the adjoint
 
 XLA_FFI_DEFINE_HANDLER_SYMBOL(JaxdeformAeDecoderBwd, DecoderBwdDispatch,
                               GradRets(BlockArgs(ffi::Ffi::Bind()
-                                                     .Arg<ffi::AnyBuffer>()     // z
-                                                     .Arg<ffi::AnyBuffer>()     // x_hat (the forward's output)
+                                                     .Arg<ffi::AnyBuffer>()      // z
+                                                     .Arg<ffi::AnyBuffer>()      // x_hat (the forward's output)
+                                                     .Arg<ffi::AnyBuffer>()      // S (its second output)
                                                      .Arg<ffi::AnyBuffer>())));  // cotangent of x_hat; returns dz first

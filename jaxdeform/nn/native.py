@@ -193,29 +193,30 @@ def ae_encoder_forward(x, neighbors, counts, inv_deg, w_point, w_neighbor, b, c)
 
 
 def _block_adjoint(which, primal, saved, cotangent, neighbors, counts, inv_deg, w_point, w_neighbor, b, c):
-    """(d primal, gW_point, gW_neighbor, gb, dC) of one block half, from its primal input, what its forward
-    saved and the cotangent of its output."""
+    """(d primal, gW_point, gW_neighbor, gb, dC) of one block half, from its primal input, the outputs of its
+    forward call (a tuple) and the cotangent of its output."""
     _require()
     call = jax.ffi.ffi_call(_AE_TARGETS[which][0], _like(primal, w_point, w_neighbor, b, c), vmap_method="expand_dims")
-    return call(primal, saved, cotangent, neighbors, counts, inv_deg, w_point, w_neighbor, b, c)
+    return call(primal, *saved, cotangent, neighbors, counts, inv_deg, w_point, w_neighbor, b, c)
 
 
 def ae_encoder_backward(x, h, dz, neighbors, counts, inv_deg, w_point, w_neighbor, b, c):
     """(dx, gW_point, gW_neighbor, gb, dC) of :func:`ae_encoder_forward`'s z for the cotangent ``dz``."""
-    return _block_adjoint("encoder_bwd", x, h, dz, neighbors, counts, inv_deg, w_point, w_neighbor, b, c)
+    return _block_adjoint("encoder_bwd", x, (h,), dz, neighbors, counts, inv_deg, w_point, w_neighbor, b, c)
 
 
 def ae_decoder_forward(z, neighbors, counts, inv_deg, w_point, w_neighbor, b, c):
-    """x_hat = tanh(conv(tanh(reshape(z C)))) for z (..., P, Kz), C (..., Kz, 9V): (..., P, V, 9)."""
+    """(x_hat, S): S = tanh(reshape(z C)) and x_hat = tanh(conv(S)) for z (..., P, Kz), C (..., Kz, 9V); both
+    (..., P, V, 9). No autodiff rule; S is what the adjoint needs."""
     _require()
-    out = jax.ShapeDtypeStruct(z.shape[:-1] + (c.shape[-1] // 9, 9), z.dtype)
+    out = (jax.ShapeDtypeStruct(z.shape[:-1] + (c.shape[-1] // 9, 9), z.dtype),) * 2
     call = jax.ffi.ffi_call(_AE_TARGETS["decoder_fwd"][0], out, vmap_method="expand_dims")
     return call(z, neighbors, counts, inv_deg, w_point, w_neighbor, b, c)
 
 
-def ae_decoder_backward(z, x_hat, dx_hat, neighbors, counts, inv_deg, w_point, w_neighbor, b, c):
-    """(dz, gW_point, gW_neighbor, gb, dC) of :func:`ae_decoder_forward`, given its output ``x_hat``."""
-    return _block_adjoint("decoder_bwd", z, x_hat, dx_hat, neighbors, counts, inv_deg, w_point, w_neighbor, b, c)
+def ae_decoder_backward(z, x_hat, hidden, dx_hat, neighbors, counts, inv_deg, w_point, w_neighbor, b, c):
+    """(dz, gW_point, gW_neighbor, gb, dC) of :func:`ae_decoder_forward`, given its outputs ``x_hat`` and S."""
+    return _block_adjoint("decoder_bwd", z, (x_hat, hidden), dx_hat, neighbors, counts, inv_deg, w_point, w_neighbor, b, c)
 
 
 def ring_tables(neighbors, degree, dtype):
