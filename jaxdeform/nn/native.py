@@ -179,7 +179,8 @@ def _like(*arrays):
 
 
 # The fused block halves take vmap's batch dimension as a leading group axis of every argument; an argument
-# without it (a shared table or weight) comes in with a leading 1 ("expand_dims"), so nothing is broadcast.
+# without it (a shared table or weight, the primals of a vmapped adjoint) comes in with a leading 1
+# ("expand_dims") and the kernel broadcasts it, so nothing is copied per group.
 
 
 def ae_encoder_forward(x, neighbors, counts, inv_deg, w_point, w_neighbor, b, c):
@@ -216,7 +217,8 @@ def ae_decoder_forward(z, neighbors, counts, inv_deg, w_point, w_neighbor, b, c)
 
 def ae_decoder_backward(z, x_hat, hidden, dx_hat, neighbors, counts, inv_deg, w_point, w_neighbor, b, c):
     """(dz, gW_point, gW_neighbor, gb, dC) of :func:`ae_decoder_forward`, given its outputs ``x_hat`` and S."""
-    return _block_adjoint("decoder_bwd", z, (x_hat, hidden), dx_hat, neighbors, counts, inv_deg, w_point, w_neighbor, b, c)
+    return _block_adjoint("decoder_bwd", z, (x_hat, hidden), dx_hat, neighbors, counts, inv_deg, w_point,
+                          w_neighbor, b, c)
 
 
 def ring_tables(neighbors, degree, dtype):
