@@ -19,6 +19,7 @@
 #include <cstdint>
 #include <cstdlib>
 #include <cstring>
+#include <initializer_list>
 #include <memory>
 #include <thread>
 #include <type_traits>
@@ -214,6 +215,28 @@ Row9<T> Mix9(const Row9<T>& init, const T* a, const Row9<T>* A, const T* b, cons
   return o[0];
 }
 
+// (inv[i] sum_k a[n_ik]) over the ring of vertex i of one plane of rows
+template <typename T>
+Row9<T> RingMean(const T* plane, const int32_t* nbr, const int32_t* count, const T* inv, int64_t K, int64_t i) {
+  const int32_t* ring = nbr + i * K;
+  Row9<T> r = Row9<T>::Zero();
+  for (int32_t k = 0; k < count[i]; ++k) r += Row9<T>::Load(plane + static_cast<int64_t>(ring[k]) * 9);
+  r.Scale(inv[i]);
+  return r;
+}
+
+// sum_k inv[n_ik] a[n_ik] over the ring of vertex i (the adjoint of the ring mean, rings being symmetric)
+template <typename T>
+Row9<T> RingAdjoint(const T* plane, const int32_t* nbr, const int32_t* count, const T* inv, int64_t K, int64_t i) {
+  const int32_t* ring = nbr + i * K;
+  Row9<T> r = Row9<T>::Zero();
+  for (int32_t k = 0; k < count[i]; ++k) {
+    const int64_t j = ring[k];
+    r.Fma(inv[j], Row9<T>::Load(plane + j * 9));
+  }
+  return r;
+}
+
 template <typename T>
 void Forward9(const Geometry& s, const T* __restrict__ x, const int32_t* __restrict__ nbr,
               const int32_t* __restrict__ count, const T* __restrict__ inv, const T* __restrict__ wp,
@@ -233,13 +256,8 @@ void Forward9(const Geometry& s, const T* __restrict__ x, const int32_t* __restr
     const T* __restrict__ plane = x + q * V * 9;
     T* __restrict__ out = y + q * V * 9;
     for (int64_t i = 0; i < V; ++i) {
-      const int32_t* ring = nbr + i * K;
-      const int32_t n = count[i];
-      R r = R::Zero();
-      for (int32_t k = 0; k < n; ++k) r += R::Load(plane + static_cast<int64_t>(ring[k]) * 9);
-      r.Scale(inv[i]);
       T rm[9];
-      r.Store(rm);
+      RingMean(plane, nbr, count, inv, K, i).Store(rm);
       Mix9(B, plane + i * 9, Wp, rm, Wn).Store(out + i * 9);
     }
   }
@@ -372,6 +390,32 @@ ffi::Error Forward(ffi::AnyBuffer x, ffi::AnyBuffer nbr, ffi::AnyBuffer count, f
   return ffi::Error::Success();
 }
 
+// Sums the per-thread weight-gradient partials acc (threads x groups x [gWp (cc) | gWn (cc) | gb (co)], with
+// cc = Ci Co) into the outputs, in thread order
+template <typename T>
+void ReduceWeightGrads(const std::vector<T>& acc, int64_t groups, int64_t cc, int64_t co, T* gwp, T* gwn, T* gb) {
+  std::fill(gwp, gwp + groups * cc, T(0));
+  std::fill(gwn, gwn + groups * cc, T(0));
+  std::fill(gb, gb + groups * co, T(0));
+  const int64_t stride = 2 * cc + co;
+  const int64_t threads = static_cast<int64_t>(acc.size()) / (groups * stride);
+  for (int64_t t = 0; t < threads; ++t)
+    for (int64_t g = 0; g < groups; ++g) {
+      const T* a = acc.data() + (t * groups + g) * stride;
+      for (int64_t e = 0; e < cc; ++e) gwp[g * cc + e] += a[e];
+      for (int64_t e = 0; e < cc; ++e) gwn[g * cc + e] += a[cc + e];
+      for (int64_t e = 0; e < co; ++e) gb[g * co + e] += a[2 * cc + e];
+    }
+}
+
+// Sums per-thread partials (threads x n, as many threads as part holds) into out (n), in thread order
+template <typename T>
+void SumThreadParts(const std::vector<T>& part, int64_t n, T* out) {
+  std::fill(out, out + n, T(0));
+  for (size_t t = 0; t < part.size() / static_cast<size_t>(std::max<int64_t>(n, 1)); ++t)
+    for (int64_t e = 0; e < n; ++e) out[e] += part[t * n + e];
+}
+
 template <typename T>
 ffi::Error Backward(ffi::AnyBuffer x, ffi::AnyBuffer gy, ffi::AnyBuffer nbr, ffi::AnyBuffer count,
                     ffi::AnyBuffer inv, ffi::AnyBuffer wp, ffi::AnyBuffer wn, ffi::Result<ffi::AnyBuffer> gx,
@@ -400,23 +444,8 @@ ffi::Error Backward(ffi::AnyBuffer x, ffi::AnyBuffer gy, ffi::AnyBuffer nbr, ffi
     if (nine) Backward9<T>(s, xp, gp, np_, cp, ip, wpp, wnp, gxp, a, p0, p1);
     else BackwardPlanes<T>(s, xp, gp, np_, cp, ip, wpp, wnp, gxp, a, p0, p1);
   });
-  T* out_p = static_cast<T*>(gwp->untyped_data());
-  T* out_n = static_cast<T*>(gwn->untyped_data());
-  T* out_b = static_cast<T*>(gb->untyped_data());
-  const int64_t cc = s.Ci * s.Co;
-  std::fill(out_p, out_p + s.G * cc, T(0));
-  std::fill(out_n, out_n + s.G * cc, T(0));
-  std::fill(out_b, out_b + s.G * s.Co, T(0));
-  const int64_t threads = static_cast<int64_t>(acc.size()) / (s.G * stride);
-  for (int64_t t = 0; t < threads; ++t) {
-    const T* a = acc.data() + t * s.G * stride;
-    for (int64_t g = 0; g < s.G; ++g) {
-      const T* ag = a + g * stride;
-      for (int64_t e = 0; e < cc; ++e) out_p[g * cc + e] += ag[e];
-      for (int64_t e = 0; e < cc; ++e) out_n[g * cc + e] += ag[cc + e];
-      for (int64_t e = 0; e < s.Co; ++e) out_b[g * s.Co + e] += ag[2 * cc + e];
-    }
-  }
+  ReduceWeightGrads(acc, s.G, s.Ci * s.Co, s.Co, static_cast<T*>(gwp->untyped_data()),
+                    static_cast<T*>(gwn->untyped_data()), static_cast<T*>(gb->untyped_data()));
   return ffi::Error::Success();
 }
 
@@ -461,9 +490,9 @@ ffi::Error BackwardDispatch(ffi::AnyBuffer x, ffi::AnyBuffer gy, ffi::AnyBuffer 
 // hidden layer (encoder tanh(conv(x)), decoder tanh(z C)) for its adjoint.
 // Why: with one call per convolution, XLA still ran the tanh layers, the fully connected products with C and
 // their adjoints as separate passes over (G, P, V, 9) arrays (15 MB each on the horse split). Fused, the
-// products with C run over tiles of 64 vertices that stay in cache. Inside a tile the arithmetic runs on groups of 8 vertices held channel by
-// channel (Soa9: one 8-lane vector per channel), so a 9x9 channel mix is 81 full-width multiply-adds per 8
-// vertices, where the row layout of the convolution kernels above spends 18 vector and 18 scalar ones per
+// products with C run over tiles of 64 vertices that stay in cache. Inside a tile the arithmetic runs on groups
+// of 8 vertices held channel by channel (Soa9: one 8-lane vector per channel), so a 9x9 channel mix is 81
+// full-width multiply-adds per 8 vertices, where the row layout of the convolution kernels above spends 18 vector and 18 scalar ones per
 // vertex; the one-ring gathers stay on rows. tanh: float32, Eigen's 13/6 rational interpolant (a few ulp);
 // float64, std::tanh. Work is split over vertex ranges, so the rows of dC a thread writes are its own; the
 // reductions over vertices (z, dz, weight gradients) are summed per thread, then in thread order.
@@ -600,28 +629,6 @@ void ParallelVertices(int64_t V, int64_t work_per_vertex, Fn fn) {
   RunChunks(V, threads, (tiles + threads - 1) / threads * kVertexTile, fn);
 }
 
-// (inv[i] sum_k a[n_ik]) over the ring of vertex i of one plane of rows
-template <typename T>
-Row9<T> RingMean(const T* plane, const int32_t* nbr, const int32_t* count, const T* inv, int64_t K, int64_t i) {
-  const int32_t* ring = nbr + i * K;
-  Row9<T> r = Row9<T>::Zero();
-  for (int32_t k = 0; k < count[i]; ++k) r += Row9<T>::Load(plane + static_cast<int64_t>(ring[k]) * 9);
-  r.Scale(inv[i]);
-  return r;
-}
-
-// sum_k inv[n_ik] a[n_ik] over the ring of vertex i (the adjoint of the ring mean, rings being symmetric)
-template <typename T>
-Row9<T> RingAdjoint(const T* plane, const int32_t* nbr, const int32_t* count, const T* inv, int64_t K, int64_t i) {
-  const int32_t* ring = nbr + i * K;
-  Row9<T> r = Row9<T>::Zero();
-  for (int32_t k = 0; k < count[i]; ++k) {
-    const int64_t j = ring[k];
-    r.Fma(inv[j], Row9<T>::Load(plane + j * 9));
-  }
-  return r;
-}
-
 // Ring means (or adjoint sums) of the vertices [i0, i0 + nt) of a plane, as rows into buf
 template <typename T>
 void TileRings(const T* plane, const int32_t* nbr, const int32_t* count, const T* inv, int64_t K, int64_t i0,
@@ -632,7 +639,7 @@ void TileRings(const T* plane, const int32_t* nbr, const int32_t* count, const T
 }
 
 // Per thread weight-gradient partial sums: gWp (81) | gWn (81) | gb (9) per output group.
-constexpr int64_t kWeightStride = 2 * 81 + 9;
+constexpr int64_t kWeightStride = 2 * 81 + 9;  // ReduceWeightGrads' stride for 9 channels
 
 // 8-lane accumulators of a^T d, a^T sg and d (gWp, gWn, gb of one group; sg: the adjoint ring sums of d, see
 // ConvAdjointRows), summed over lanes at the end
@@ -654,21 +661,6 @@ struct WeightGrads {
     for (int64_t e = 0; e < kWeightStride; ++e) out[e] += HSum<T>(acc[e]);
   }
 };
-
-template <typename T>
-void ReduceWeightGrads(const std::vector<T>& acc, int64_t groups, T* gwp, T* gwn, T* gb) {
-  std::fill(gwp, gwp + groups * 81, T(0));
-  std::fill(gwn, gwn + groups * 81, T(0));
-  std::fill(gb, gb + groups * 9, T(0));
-  const int64_t threads = static_cast<int64_t>(acc.size()) / (groups * kWeightStride);
-  for (int64_t t = 0; t < threads; ++t)
-    for (int64_t g = 0; g < groups; ++g) {
-      const T* a = acc.data() + (t * groups + g) * kWeightStride;
-      for (int e = 0; e < 81; ++e) gwp[g * 81 + e] += a[e];
-      for (int e = 0; e < 81; ++e) gwn[g * 81 + e] += a[81 + e];
-      for (int e = 0; e < 9; ++e) gb[g * 9 + e] += a[162 + e];
-    }
-}
 
 template <typename T>
 std::unique_ptr<T[]> Scratch(int64_t n) {
@@ -743,10 +735,7 @@ void EncoderForward(const AeGeometry& s, const T* x, const int32_t* nbr, const i
       }
     }
   });
-  const int64_t n = s.G * P * Kz;
-  std::fill(z, z + n, T(0));
-  for (size_t t = 0; t < part.size() / static_cast<size_t>(std::max<int64_t>(n, 1)); ++t)
-    for (int64_t e = 0; e < n; ++e) z[e] += part[t * n + e];
+  SumThreadParts(part, s.G * P * Kz, z);
 }
 
 // out[g,p] = conv^T(d[g,p]): the input cotangent of a conv with input rows a and pre-activation cotangent d;
@@ -830,7 +819,7 @@ void EncoderBackward(const AeGeometry& s, int64_t weight_groups, int64_t c_group
   });
   std::vector<T> acc(static_cast<size_t>(MaxThreads() * weight_groups * kWeightStride), T(0));
   ConvAdjointRows(s, dpre.get(), x, nbr, count, inv, wp, wn, dx, acc, weight_groups);
-  ReduceWeightGrads(acc, weight_groups, gwp, gwn, gb);
+  ReduceWeightGrads(acc, weight_groups, int64_t{81}, int64_t{9}, gwp, gwn, gb);
 }
 
 // ---- decoder ----
@@ -963,11 +952,8 @@ void DecoderBackward(const AeGeometry& s, int64_t weight_groups, int64_t c_group
       wg->FlushInto(acc.data() + (t * weight_groups + (weight_groups == 1 ? 0 : g)) * kWeightStride);
     }
   });
-  ReduceWeightGrads(acc, weight_groups, gwp, gwn, gb);
-  const int64_t n = s.G * P * Kz;
-  std::fill(dz, dz + n, T(0));
-  for (size_t t = 0; t < part.size() / static_cast<size_t>(std::max<int64_t>(n, 1)); ++t)
-    for (int64_t e = 0; e < n; ++e) dz[e] += part[t * n + e];
+  ReduceWeightGrads(acc, weight_groups, int64_t{81}, int64_t{9}, gwp, gwn, gb);
+  SumThreadParts(part, s.G * P * Kz, dz);
 }
 
 // ---- shapes and dispatch ----
@@ -1012,10 +998,17 @@ bool BroadcastMap(const Dims& d, size_t core, const Dims& batch, std::vector<int
   return true;
 }
 
+ffi::Error RingsFor(const AeGeometry& s, ffi::AnyBuffer nbr, ffi::AnyBuffer count, ffi::AnyBuffer inv) {
+  Geometry g;
+  g.V = s.V;
+  g.K = s.K;
+  return CheckRings(g, nbr, count, inv);
+}
+
 // Shapes from an output `out` of (batch..., P, V, 9) (planes) or (batch..., P, Kz) (codes), C (..., Kz, 9V)
-// and the rings; the group maps of C and the conv weights.
-ffi::Error MakeAeGeometry(const Dims& out, bool planes, ffi::AnyBuffer nbr, ffi::AnyBuffer wp, ffi::AnyBuffer wn,
-                          ffi::AnyBuffer b, ffi::AnyBuffer c, AeGeometry* s) {
+// and the rings (checked); the group maps of C and the conv weights.
+ffi::Error MakeAeGeometry(const Dims& out, bool planes, ffi::AnyBuffer nbr, ffi::AnyBuffer count, ffi::AnyBuffer inv,
+                          ffi::AnyBuffer wp, ffi::AnyBuffer wn, ffi::AnyBuffer b, ffi::AnyBuffer c, AeGeometry* s) {
   const Dims cd = DimsOf(c), nd = DimsOf(nbr);
   if (cd.size() < 2 || nd.size() < 2) return ffi::Error::InvalidArgument("ae_block: C and neighbors need rank >= 2");
   s->Kz = cd[cd.size() - 2];
@@ -1038,7 +1031,14 @@ ffi::Error MakeAeGeometry(const Dims& out, bool planes, ffi::AnyBuffer nbr, ffi:
       !BroadcastMap(DimsOf(wn), 2, batch, &wn_map) || !BroadcastMap(DimsOf(b), 1, batch, &b_map) ||
       wn_map != s->w || b_map != s->w)
     return ffi::Error::InvalidArgument("ae_block: batch dimensions of the arrays do not line up");
-  return ffi::Error::Success();
+  return RingsFor(*s, nbr, count, inv);
+}
+
+// The dimensions of `out` with its last `core` ones replaced by `with`
+Dims WithCore(const Dims& out, size_t core, std::initializer_list<int64_t> with) {
+  Dims d(out.begin(), out.end() - static_cast<std::ptrdiff_t>(core));
+  d.insert(d.end(), with);
+  return d;
 }
 
 // The group map of an input of planes (..., P, V, 9) or codes (..., P, Kz) against the output batch shape
@@ -1046,7 +1046,7 @@ ffi::Error InputMap(ffi::AnyBuffer a, bool planes, const Dims& out, const AeGeom
   const size_t core = planes ? 3 : 2;
   const Dims want = planes ? Dims{s.P, s.V, 9} : Dims{s.P, s.Kz};
   const Dims d = DimsOf(a);
-  if (Core(d, core) != want || !BroadcastMap(d, core, Dims(out.begin(), out.end() - core), map))
+  if (Core(d, core) != want || !BroadcastMap(d, core, WithCore(out, core, {}), map))
     return ffi::Error::InvalidArgument("ae_block: an input's shape does not match the output's");
   return ffi::Error::Success();
 }
@@ -1109,21 +1109,13 @@ ffi::Error GradOutputs(const AeGeometry& s, ffi::Result<ffi::AnyBuffer>& gwp, ff
   return ffi::Error::Success();
 }
 
-ffi::Error RingsFor(const AeGeometry& s, ffi::AnyBuffer nbr, ffi::AnyBuffer count, ffi::AnyBuffer inv) {
-  Geometry g;
-  g.V = s.V;
-  g.K = s.K;
-  return CheckRings(g, nbr, count, inv);
-}
-
 ffi::Error EncoderFwdDispatch(ffi::AnyBuffer x, ffi::AnyBuffer nbr, ffi::AnyBuffer count, ffi::AnyBuffer inv,
                               ffi::AnyBuffer wp, ffi::AnyBuffer wn, ffi::AnyBuffer b, ffi::AnyBuffer c,
                               ffi::Result<ffi::AnyBuffer> z, ffi::Result<ffi::AnyBuffer> h) {
   AeGeometry s;
   const Dims out = DimsOf(*h);
-  if (auto e = MakeAeGeometry(out, true, nbr, wp, wn, b, c, &s); e.failure()) return e;
+  if (auto e = MakeAeGeometry(out, true, nbr, count, inv, wp, wn, b, c, &s); e.failure()) return e;
   if (auto e = InputMap(x, true, out, s, &s.in); e.failure()) return e;
-  if (auto e = RingsFor(s, nbr, count, inv); e.failure()) return e;
   if (Groups(*z, s.P * s.Kz) != s.G) return ffi::Error::InvalidArgument("ae_block: z has the wrong size");
   ffi::DataType t;
   if (!SameFloat({x.element_type(), inv.element_type(), wp.element_type(), wn.element_type(), b.element_type(),
@@ -1144,13 +1136,10 @@ ffi::Error EncoderBwdDispatch(ffi::AnyBuffer x, ffi::AnyBuffer h, ffi::AnyBuffer
                               ffi::Result<ffi::AnyBuffer> dc) {
   AeGeometry s;
   const Dims out = DimsOf(*dx);
-  if (auto e = MakeAeGeometry(out, true, nbr, wp, wn, b, c, &s); e.failure()) return e;
+  if (auto e = MakeAeGeometry(out, true, nbr, count, inv, wp, wn, b, c, &s); e.failure()) return e;
   if (auto e = InputMap(x, true, out, s, &s.in); e.failure()) return e;
   if (auto e = InputMap(h, true, out, s, &s.aux); e.failure()) return e;
-  Dims zout(out.begin(), out.end() - 3);
-  zout.insert(zout.end(), {s.P, s.Kz});
-  if (auto e = InputMap(dz, false, zout, s, &s.cot); e.failure()) return e;
-  if (auto e = RingsFor(s, nbr, count, inv); e.failure()) return e;
+  if (auto e = InputMap(dz, false, WithCore(out, 3, {s.P, s.Kz}), s, &s.cot); e.failure()) return e;
   int64_t wg, cg;
   if (auto e = GradOutputs(s, gwp, gwn, gb, dc, &wg, &cg); e.failure()) return e;
   ffi::DataType t;
@@ -1171,11 +1160,8 @@ ffi::Error DecoderFwdDispatch(ffi::AnyBuffer z, ffi::AnyBuffer nbr, ffi::AnyBuff
                               ffi::Result<ffi::AnyBuffer> xh, ffi::Result<ffi::AnyBuffer> hidden) {
   AeGeometry s;
   const Dims out = DimsOf(*xh);
-  if (auto e = MakeAeGeometry(out, true, nbr, wp, wn, b, c, &s); e.failure()) return e;
-  Dims zout(out.begin(), out.end() - 3);
-  zout.insert(zout.end(), {s.P, s.Kz});
-  if (auto e = InputMap(z, false, zout, s, &s.in); e.failure()) return e;
-  if (auto e = RingsFor(s, nbr, count, inv); e.failure()) return e;
+  if (auto e = MakeAeGeometry(out, true, nbr, count, inv, wp, wn, b, c, &s); e.failure()) return e;
+  if (auto e = InputMap(z, false, WithCore(out, 3, {s.P, s.Kz}), s, &s.in); e.failure()) return e;
   ffi::DataType t;
   if (hidden->element_count() != xh->element_count())
     return ffi::Error::InvalidArgument("ae_block: the hidden layer has the wrong size");
@@ -1198,16 +1184,14 @@ ffi::Error DecoderBwdDispatch(ffi::AnyBuffer z, ffi::AnyBuffer xh, ffi::AnyBuffe
                               ffi::Result<ffi::AnyBuffer> gb, ffi::Result<ffi::AnyBuffer> dc) {
   AeGeometry s;
   const Dims out = DimsOf(*dz);
-  if (auto e = MakeAeGeometry(out, false, nbr, wp, wn, b, c, &s); e.failure()) return e;
+  if (auto e = MakeAeGeometry(out, false, nbr, count, inv, wp, wn, b, c, &s); e.failure()) return e;
   if (auto e = InputMap(z, false, out, s, &s.in); e.failure()) return e;
-  Dims pout(out.begin(), out.end() - 2);
-  pout.insert(pout.end(), {s.P, s.V, 9});
+  const Dims pout = WithCore(out, 2, {s.P, s.V, 9});
   if (auto e = InputMap(xh, true, pout, s, &s.aux); e.failure()) return e;
   if (auto e = InputMap(dxh, true, pout, s, &s.cot); e.failure()) return e;
   std::vector<int64_t> hidden_map;
   if (auto e = InputMap(hidden, true, pout, s, &hidden_map); e.failure()) return e;
   if (hidden_map != s.aux) return ffi::Error::InvalidArgument("ae_block: x_hat and the hidden layer do not line up");
-  if (auto e = RingsFor(s, nbr, count, inv); e.failure()) return e;
   int64_t wg, cg;
   if (auto e = GradOutputs(s, gwp, gwn, gb, dc, &wg, &cg); e.failure()) return e;
   ffi::DataType t;
