@@ -134,6 +134,23 @@ def test_resumed_training_is_bit_identical(setup, tmp_path, joint):
     np.testing.assert_array_equal(h_full, h_res)
 
 
+@pytest.mark.parametrize("joint", [True, False])
+def test_loss_history_is_every_step_loss_in_order(setup, tmp_path, joint):
+    # the history reaches the host in pieces (at each checkpoint, 7 epochs apart here, and at the end of each
+    # stage): it must hold each epoch's loss at its epoch, as the per-step log saw it
+    pts, rings, dist, x = setup
+    config = model.Config(kz=(3, 2), d=(0.5, 0.3))
+    tc = train.TrainConfig(epochs=30, batch=16, seed=2, joint=joint)
+    logged = {}
+    _, h_ck = train.train(x, rings, dist, config, tc, checkpoint_dir=tmp_path / "ck", checkpoint_every=7,
+                          log=lambda e, loss, terms: logged.__setitem__(e, loss), log_every=1)
+    _, h_plain = train.train(x, rings, dist, config, tc)
+    n = tc.epochs * (1 if joint else config.levels)
+    assert h_ck.shape == (n,) and sorted(logged) == list(range(n))
+    np.testing.assert_array_equal(h_ck, np.array([logged[e] for e in range(n)], np.float32))
+    np.testing.assert_array_equal(h_ck, h_plain)
+
+
 class _Interrupt(Exception):
     pass
 

@@ -3,6 +3,7 @@ tube, a few epochs): the code paths of Tables 2, 4, 5 and the JSON/markdown they
 
 import json
 
+import jax
 import numpy as np
 import pytest
 
@@ -27,13 +28,19 @@ def test_experiment_test_config(tmp_path, experiment, rows):
 
 def test_experiment_runs_subset(tmp_path):
     result = exp.main(["table4", "--config", "test", "--out", str(tmp_path), "--epochs", "2", "--runs", "separate",
-                       "no-attention"])
+                       "no-attention", "--no-figures"])
     assert set(result["rows"]) == {"tube/separate", "tube/no-attention"}
-    assert sorted(p.name for p in (tmp_path / "table4" / "tube").iterdir()) == ["no-attention", "separate"]
+    runs = tmp_path / "table4" / "tube"
+    assert sorted(p.name for p in runs.iterdir()) == ["no-attention", "separate"]
+    assert not any((runs / r / "figures").exists() for r in ("no-attention", "separate"))
     # --trained-only tabulates the two runs that exist, trains none of the others, and gives the same figures
+    # (and draws the component figures the first call left out)
     again = exp.main(["table4", "--config", "test", "--out", str(tmp_path), "--trained-only"])
     assert set(again["rows"]) == {"tube/separate", "tube/no-attention"}
-    assert sorted(p.name for p in (tmp_path / "table4" / "tube").iterdir()) == ["no-attention", "separate"]
+    assert sorted(p.name for p in runs.iterdir()) == ["no-attention", "separate"]
+    assert all((runs / r / "figures" / "components.png").is_file() for r in ("no-attention", "separate"))
+    if jax.default_backend() == "cpu":  # the table names the accelerator when one trained
+        assert again["hardware"].endswith("cores, CPU only")
     for key, row in again["rows"].items():
         assert row["test"]["erms"] == pytest.approx(result["rows"][key]["test"]["erms"], rel=1e-6)
     assert (tmp_path / "table4" / "results.md").read_text().count("| tube/") == 2

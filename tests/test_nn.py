@@ -485,3 +485,15 @@ def test_tune_host_allocator_reuses_freed_buffers():
     assert out["1", "1"][0] == 1 and out["1", "0"][0] == 0
     assert out["0", "1"][0] == 0  # the opt-out
     assert out["1", "1"][1] < 50 and out["1", "1"][1] < out["1", "0"][1]
+
+
+def test_host_scalars_keeps_values_and_order():
+    from jaxdeform.nn.host import host_scalars, recent_mean
+
+    xs = [jnp.asarray(v, jnp.float32) for v in (0.5, -2.0, 3.25, 7.0)]
+    got = host_scalars(xs)
+    assert got.dtype == np.float32 and got.shape == (4,)
+    np.testing.assert_array_equal(got, [0.5, -2.0, 3.25, 7.0])
+    assert host_scalars([]).shape == (0,)
+    assert recent_mean(xs, 2) == pytest.approx(5.125)
+    assert recent_mean(xs, 10) == pytest.approx(8.75 / 4)

@@ -4,13 +4,16 @@ levels) and Fig. 6 (editing error against the number of control points).
     python -m experiments.components.run table2|table4|table5|fig6 [--config default|test] [--data DIR]
                                           [--out OUT] [--datasets NAME ...] [--methods M ...]
                                           [--runs CONFIG ...] [--epochs N] [--force] [--trained-only]
+                                          [--no-figures]
 
 Every experiment trains through :mod:`jaxdeform.components.run` (the same code as ``jaxdeform components
 train``) into OUT/<experiment>/<data set>/<run>, evaluates the generalization protocol of Sec. 5.1 (every 10th
 shape of a sequence trains, a seeded random half of a pose set) and writes OUT/<experiment>/results.json and
 results.md (atomically), plus the component figures of the multiscale runs. Existing runs are reused (their
 run.json is the cache key); ``--force`` retrains; ``--trained-only`` trains nothing and tabulates the runs that
-exist (for example runs trained by separate invocations).
+exist (for example runs trained by separate invocations); ``--no-figures`` skips the component figures (a
+three-level model has 60 blocks to draw). The table names the hardware: the CPU, or the accelerator of JAX's
+default backend.
 
 ``--config test`` runs the same code paths in seconds: every method's "test" configuration on a small synthetic
 bending-tube sequence (written to OUT/data/tube), so CI exercises each experiment.
@@ -54,9 +57,10 @@ def synthetic_tube(out: Path) -> Path:
 
 
 def train_and_evaluate(data: Path, folder: Path, method: str, config: str, split: str, epochs, force: bool,
-                       train: bool = True) -> dict | None:
+                       train: bool = True, figures: bool = True) -> dict | None:
     """Train (or reuse) one run and evaluate it; returns the evaluation with the run's timing. With
-    ``train=False`` a run that does not exist yet is not trained: None."""
+    ``train=False`` a run that does not exist yet is not trained: None. ``figures=False`` skips the component
+    figures of the autoencoder runs."""
     if force and folder.exists():
         shutil.rmtree(folder)
     if not (folder / "run.json").is_file():
@@ -71,7 +75,7 @@ def train_and_evaluate(data: Path, folder: Path, method: str, config: str, split
     result = crun.evaluate(loaded, data)
     result["timing"] = loaded.record.get("timing", {})
     result["run"] = str(folder)
-    if method in crun.AUTOENCODERS and not (folder / "figures" / "components.png").is_file():
+    if figures and method in crun.AUTOENCODERS and not (folder / "figures" / "components.png").is_file():
         crun.show(loaded, folder / "figures")
     return result
 
@@ -99,7 +103,7 @@ def table2(args) -> dict:
             print(f"== table 2: {name} / {method}", flush=True)
             rows[f"{name}/{method}"] = train_and_evaluate(path, folder, method, args.config,
                                                           SPLITS.get(name, "every10"), args.epochs, args.force,
-                                                          train=not args.trained_only)
+                                                          train=not args.trained_only, figures=not args.no_figures)
     return {k: v for k, v in rows.items() if v is not None}
 
 
@@ -112,7 +116,8 @@ def _multiscale_table(args, experiment: str, configs) -> dict:
             print(f"== {experiment}: {name} / {cfg}", flush=True)
             config = cfg if args.config != "test" else ("test" if cfg == "default" else f"test-{cfg}")
             rows[f"{name}/{cfg}"] = train_and_evaluate(path, folder, "multiscale", config, SPLITS.get(name, "every10"),
-                                                       args.epochs, args.force, train=not args.trained_only)
+                                                       args.epochs, args.force, train=not args.trained_only,
+                                                       figures=not args.no_figures)
     return {k: v for k, v in rows.items() if v is not None}
 
 
@@ -153,9 +158,15 @@ def markdown(experiment: str, rows: dict, hardware: str) -> str:
 
 
 def hardware() -> str:
+    """The CPU, and the accelerator that trained when JAX's default backend is not the CPU."""
+    import jax
+
     from benchmarks.acap import cpu_info
 
-    return f"{cpu_info()} cores, CPU only"
+    dev = jax.devices()[0]
+    if dev.platform == "cpu":
+        return f"{cpu_info()} cores, CPU only"
+    return f"{getattr(dev, 'device_kind', dev.platform)} ({dev.platform}), host {cpu_info()} cores"
 
 
 def _write(path: Path, text: str) -> None:
@@ -181,6 +192,7 @@ def main(argv=None) -> dict:
     parser.add_argument("--force", action="store_true", help="retrain runs that exist")
     parser.add_argument("--trained-only", action="store_true",
                         help="table2/table4/table5: evaluate the runs that exist and leave the others out (no training)")
+    parser.add_argument("--no-figures", action="store_true", help="skip the component figures (PNGs) of the runs")
     args = parser.parse_args(argv)
     if args.trained_only and args.force:
         parser.error("--trained-only evaluates existing runs; it cannot be combined with --force.")

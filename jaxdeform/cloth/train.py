@@ -63,6 +63,7 @@ from jaxdeform.cloth.model import DetailModel, ModelConfig, new_model
 from jaxdeform.errors import JaxDeformError
 from jaxdeform.nn import native
 from jaxdeform.nn.archive import load_state, read_archive, save_module
+from jaxdeform.nn.host import host_scalars, recent_mean
 from jaxdeform.nn.graph_conv import Rings
 
 FORMAT = "jaxdeform-cloth-model"
@@ -324,9 +325,9 @@ def train(
                 loss.block_until_ready()
                 compile_s = time.perf_counter() - t0
             if (t + 1) % tc.log_every == 0 or t + 1 == tc.steps:
-                bar.set_postfix(loss=f"{float(jnp.mean(jnp.stack(losses[-tc.log_every:]))):.5f}")
+                bar.set_postfix(loss=f"{recent_mean(losses, tc.log_every):.5f}")
                 bar.update((t + 1) - bar.n)
-    loss_arr = np.asarray(jnp.stack(losses), dtype=np.float32)
+    loss_arr = host_scalars(losses)
     seconds = time.perf_counter() - t0
     nnx.update(model, params, rest)
     model.eval()

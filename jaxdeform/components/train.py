@@ -30,6 +30,7 @@ import optax
 from jaxdeform.components import model
 from jaxdeform.nn import native
 from jaxdeform.nn.graph_conv import Rings
+from jaxdeform.nn.host import host_scalars
 
 
 @dataclasses.dataclass(frozen=True)
@@ -169,7 +170,15 @@ def train(data, rings: Rings, dist, config: model.Config, tc: TrainConfig, *, pa
         first = start_epoch if stage_index == start_stage else 0
         if opt_state is None or first == 0:
             opt_state = _opt_init(tc, sub, stage)
-        losses = []
+        losses = []  # this stage's step losses still on the device, from epoch `first + n_host` on
+        n_host = 0
+
+        def flush(upto: int) -> None:  # the losses of epochs < upto into `history`, one device_get
+            nonlocal losses, n_host
+            base = stage_index * tc.epochs
+            history[base + first + n_host: base + upto] = host_scalars(losses)
+            n_host, losses = upto - first, []
+
         for epoch in range(first, tc.epochs):
             if epoch == first and timing is not None:  # the first call compiles: timed apart
                 t0 = time.perf_counter()
@@ -190,7 +199,7 @@ def train(data, rings: Rings, dist, config: model.Config, tc: TrainConfig, *, pa
                 bar.update(done - bar.n + stage_index * tc.epochs)
             if ckpt is not None and (done % checkpoint_every == 0 or done == tc.epochs):
                 base = stage_index * tc.epochs
-                history[base + first: base + done] = np.asarray(jnp.stack(losses))
+                flush(done)
                 full = sub if stage is None else tuple(sub) + tuple(params[stage + 1:])
                 if done < tc.epochs:
                     saved = _state(full, opt_state, key, history, stage_index, done)
@@ -200,13 +209,11 @@ def train(data, rings: Rings, dist, config: model.Config, tc: TrainConfig, *, pa
                 else:
                     saved = _state(full, opt_state, key, history, len(stages), 0)
                 ckpt.save(base + done, saved)
-        if timing is not None and losses:
+        if timing is not None and tc.epochs > first:
             jax.block_until_ready(sub)
             timing["run_s"] = timing.get("run_s", 0.0) + time.perf_counter() - t_run
-            timing["epochs_timed"] = timing.get("epochs_timed", 0) + len(losses) - 1
-        if losses:
-            base = stage_index * tc.epochs
-            history[base + first: base + tc.epochs] = np.asarray(jnp.stack(losses))
+            timing["epochs_timed"] = timing.get("epochs_timed", 0) + tc.epochs - first - 1
+        flush(tc.epochs)
         params = sub if stage is None else tuple(sub) + tuple(params[stage + 1:])
         opt_state = None
     if bar is not None:

@@ -71,6 +71,7 @@ from jaxtyping import Array, Float, Int
 
 from jaxdeform.errors import JaxDeformError
 from jaxdeform.nn.archive import RecordConfig, load_state, read_archive, save_module
+from jaxdeform.nn.host import host_scalars, recent_mean
 
 FORMAT = "jaxdeform-feature-field"
 FORMAT_VERSION = 1
@@ -319,10 +320,10 @@ def distill(
                 loss.block_until_ready()
                 compile_s = time.perf_counter() - t0
             if (t + 1) % log_every == 0 or t + 1 == config.steps:
-                recent = float(jnp.mean(jnp.stack(losses[-log_every:])))
+                recent = recent_mean(losses, log_every)
                 bar.set_postfix(loss=f"{recent:.4f}")
                 bar.update((t + 1) - bar.n)
-    loss_arr = np.asarray(jnp.stack(losses)) if losses else np.zeros(0, np.float32)
+    loss_arr = host_scalars(losses)
     seconds = time.perf_counter() - t0
     nnx.update(field, params)
     return field, History(loss_arr, seconds, compile_s)
