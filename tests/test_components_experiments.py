@@ -4,6 +4,7 @@ tube, a few epochs): the code paths of Tables 2, 4, 5 and the JSON/markdown they
 import json
 
 import jax
+import jax.numpy as jnp
 import numpy as np
 import pytest
 
@@ -128,3 +129,41 @@ def test_ceiling_on_the_tube(tmp_path):
     assert result["rows"][0]["xyz"]["erms"] == pytest.approx(expected, rel=1e-6)
     assert all(np.isfinite(r["acap"]["erms"]) for r in result["rows"])
     assert "| 4 |" in (tmp_path / "ceiling" / "results.md").read_text()
+
+
+def test_projection_fits_codes_back_to_a_decoder_output():
+    """A shape the decoders can produce is found again from perturbed codes."""
+    from experiments.components.projection import fit_codes
+    from jaxdeform.components import model
+    from jaxdeform.data.synthetic import bending_tube_sequence
+    from jaxdeform.mesh.topology import build_topology
+    from jaxdeform.nn.graph_conv import rings_from_topology
+
+    verts, faces = bending_tube_sequence(n_frames=2, n_around=8, n_along=12)
+    rings = rings_from_topology(build_topology(faces, verts.shape[1]))
+    config = model.Config(kz=(3, 2), d=(0.5, 0.3))
+    params = model.init(jax.random.PRNGKey(0), verts.shape[1], config, jnp.float32)
+    keys = jax.random.split(jax.random.PRNGKey(1), 4)
+    # codes per level: (blocks, shapes, kz)
+    target = (jax.random.normal(keys[0], (1, 2, 3), jnp.float32), jax.random.normal(keys[1], (3, 2, 2), jnp.float32))
+    x = model.decode_latents(params, target, rings)
+    start = tuple(t + 0.5 * jax.random.normal(k, t.shape, jnp.float32) for t, k in zip(target, keys[2:]))
+    codes, losses = fit_codes(params, rings, x, start, steps=400, lr=0.02)
+    final = float(jnp.sum((model.decode_latents(params, codes, rings) - x) ** 2))
+    assert losses.shape == (400,) and losses[0] > 0
+    assert final < 1e-3 * losses[0]
+
+
+def test_projection_encoder_row_is_the_protocol(tmp_path):
+    """The experiment's encoder-code row scores exactly what `components evaluate` reports for the test split."""
+    from experiments.components import projection
+    from jaxdeform.components import run as crun
+
+    data = exp.synthetic_tube(tmp_path)
+    (tmp_path / "run").mkdir()
+    crun.fit(tmp_path / "run", data, "multiscale", "test", epochs=3, progress=False, log=lambda s: None)
+    result = projection.main([str(tmp_path / "run"), "--steps", "3", "--json", str(tmp_path / "p.json")])
+    expected = crun.evaluate(crun.load(tmp_path / "run"), data)["test"]
+    for key in ("erms", "sted", "max_relative_squared_error"):
+        assert result["encoder"][key] == pytest.approx(expected[key], rel=1e-6)
+    assert json.loads((tmp_path / "p.json").read_text())["fitted"]["shapes"] == expected["shapes"]

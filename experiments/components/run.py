@@ -12,7 +12,7 @@ shape of a sequence trains, a seeded random half of a pose set) and writes OUT/<
 results.md (atomically), plus the component figures of the multiscale runs. Existing runs are reused (their
 run.json is the cache key); ``--force`` retrains; ``--trained-only`` trains nothing and tabulates the runs that
 exist (for example runs trained by separate invocations); ``--no-figures`` skips the component figures (a
-three-level model has 60 blocks to draw). The table names the hardware: the CPU, or the accelerator of JAX's
+three-level model has 61 blocks to draw). The table names the hardware: the CPU, or the accelerator of JAX's
 default backend.
 
 ``--config test`` runs the same code paths in seconds: every method's "test" configuration on a small synthetic
