@@ -25,7 +25,6 @@ import jax
 import jax.numpy as jnp
 import optax
 
-from jaxdeform import acap
 from jaxdeform.components import model
 from jaxdeform.components import run as crun
 from jaxdeform.mesh.topology import build_topology
@@ -74,10 +73,9 @@ def main(argv=None) -> dict:
     run = crun.load(Path(args.run))
     if run.method not in crun.AUTOENCODERS:
         raise SystemExit(f"{args.run}: a {run.method} run has no decoders to fit codes through.")
-    vertices, faces = crun.load_data(args.data or run.record["data"])
+    vertices, faces = crun.run_data(run, args.data)
     ref = vertices[run.test_idx]
-    dtype = np.dtype(run.record.get("dtype", "float32"))
-    x = jnp.asarray(np.asarray(run.scaler.transform(np.asarray(acap.encode(run.rest, faces, ref), dtype)), dtype))
+    x = crun.scaled_features(run, ref)
     rings = rings_from_topology(build_topology(faces, run.rest.shape[0]))
     codes0 = tuple(model.encode(run.params, x, rings, run.config))
     t0 = time.perf_counter()
@@ -88,9 +86,8 @@ def main(argv=None) -> dict:
               "fit_s": round(fit_s, 1)}
     for name, c in (("encoder", codes0), ("fitted", codes)):
         xh = model.decode_latents(run.params, c, rings)
-        feats = jnp.asarray(np.asarray(run.scaler.inverse(xh)), jnp.float64)
-        pos = np.asarray(acap.decode(feats, run.rest, faces))
-        m = crun.set_metrics(ref, {"positions": pos, "scaled": np.asarray(x), "scaled_hat": np.asarray(xh)}, faces)
+        rec = {"positions": crun.positions_from_scaled(run, xh), "scaled": np.asarray(x), "scaled_hat": np.asarray(xh)}
+        m = crun.set_metrics(ref, rec, faces)
         m["feature_loss"] = float(jnp.sum((xh - x) ** 2))
         result[name] = m
         print(f"{name} codes: test Erms {m['erms']:.3f}, STED {m['sted']:.4f}, max relative squared error "

@@ -300,20 +300,38 @@ def _check_data(run: Run, vertices: np.ndarray, faces: np.ndarray, where: str) -
 # ---------------------------------------------------------------------------------------- evaluate
 
 
+def run_data(run: Run, data=None) -> tuple[np.ndarray, np.ndarray]:
+    """Shapes and faces of ``data`` (default: the folder the run was trained on), checked against the run."""
+    data = run.record["data"] if data is None else data
+    vertices, faces = load_data(data)
+    _check_data(run, vertices, faces, str(data))
+    return vertices, faces
+
+
+def scaled_features(run: Run, vertices: np.ndarray, dtype=None) -> jnp.ndarray:
+    """The scaled ACAP features (N, V, 9) of ``vertices``, as the run's ACAP-based model sees them (in ``dtype``,
+    default the run's)."""
+    dtype = np.dtype(run.record.get("dtype", "float32") if dtype is None else dtype)
+    feats = np.asarray(acap.encode(run.rest, run.faces, vertices), dtype)
+    return jnp.asarray(np.asarray(run.scaler.transform(feats), dtype))
+
+
+def positions_from_scaled(run: Run, scaled) -> np.ndarray:
+    """Positions (N, V, 3) of scaled ACAP features (N, V, 9): unscaled, then the ACAP reconstruction (float64)."""
+    feats = np.asarray(run.scaler.inverse(scaled))
+    return np.asarray(acap.decode(jnp.asarray(feats, jnp.float64), run.rest, run.faces))
+
+
 def reconstruct(run: Run, vertices: np.ndarray) -> dict:
     """Positions (N, V, 3) of ``vertices`` passed through the run's model; plus features when ACAP-based."""
-    dtype = np.dtype(run.record.get("dtype", "float32"))
     if run.method in ("multiscale", "tan", "pca"):
-        feats = np.asarray(acap.encode(run.rest, run.faces, vertices), dtype)
-        x = jnp.asarray(np.asarray(run.scaler.transform(feats), dtype))
+        x = scaled_features(run, vertices)
         if run.method == "pca":
             xh = baselines.reconstruct(run.linear, x)
         else:
             rings = rings_from_topology(build_topology(run.faces, run.rest.shape[0]))
             xh = _reconstruct_features(run.params, x, rings, run.config)
-        feats_hat = np.asarray(run.scaler.inverse(xh))
-        positions = np.asarray(acap.decode(jnp.asarray(feats_hat, jnp.float64), run.rest, run.faces))
-        return {"positions": positions, "scaled": np.asarray(x), "scaled_hat": np.asarray(xh)}
+        return {"positions": positions_from_scaled(run, xh), "scaled": np.asarray(x), "scaled_hat": np.asarray(xh)}
     return {"positions": np.asarray(baselines.reconstruct(run.linear, jnp.asarray(vertices)))}
 
 
@@ -336,8 +354,7 @@ def set_metrics(ref: np.ndarray, rec: dict, faces: np.ndarray) -> dict:
 
 def evaluate(run: Run, data) -> dict:
     """``{"train": {...}, "test": {...}}`` metrics of the run on its split of ``data``."""
-    vertices, faces = load_data(data)
-    _check_data(run, vertices, faces, str(data))
+    vertices, faces = run_data(run, data)
     result = {"method": run.method, "config": run.record["config_name"]}
     for name, idx in (("train", run.train_idx), ("test", run.test_idx)):
         t0 = time.perf_counter()
@@ -446,11 +463,10 @@ def editor(run: Run) -> Editor:
     """The run's :class:`Editor`; it computes in float64 (the ACAP reconstruction's dtype), whatever the run's."""
     dtype = np.float64
     to64 = lambda a: jnp.asarray(a, dtype)  # noqa: E731
-    rest_feats = np.asarray(acap.encode(run.rest, run.faces, run.rest[None]), dtype)
     if run.method in AUTOENCODERS:
         rings = rings_from_topology(build_topology(run.faces, run.rest.shape[0]))
         params, config = jax.tree_util.tree_map(to64, run.params), run.config
-        x0 = jnp.asarray(np.asarray(run.scaler.transform(rest_feats), dtype))
+        x0 = scaled_features(run, run.rest[None], dtype)
         codes = model.encode(params, x0, rings, config)  # per level (n_l, 1, Kz_l)
         shapes = [z.shape for z in codes]
         sizes = [int(np.prod(s)) for s in shapes]
@@ -471,7 +487,7 @@ def editor(run: Run) -> Editor:
         return baselines.decode(lin, w[None])[0]
 
     if run.method == "pca":
-        x0 = jnp.asarray(np.asarray(run.scaler.transform(rest_feats), dtype))
+        x0 = scaled_features(run, run.rest[None], dtype)
         return Editor(decode_linear, np.asarray(baselines.project(lin, x0))[0], "features", run)
     return Editor(decode_linear, np.asarray(baselines.project(lin, jnp.asarray(run.rest[None])))[0], "positions", run)
 

@@ -170,14 +170,13 @@ def train(data, rings: Rings, dist, config: model.Config, tc: TrainConfig, *, pa
         first = start_epoch if stage_index == start_stage else 0
         if opt_state is None or first == 0:
             opt_state = _opt_init(tc, sub, stage)
-        losses = []  # this stage's step losses still on the device, from epoch `first + n_host` on
-        n_host = 0
+        losses, on_host = [], first  # the step losses of epochs on_host, on_host + 1, ... still on the device
 
         def flush(upto: int) -> None:  # the losses of epochs < upto into `history`, one device_get
-            nonlocal losses, n_host
+            nonlocal losses, on_host
             base = stage_index * tc.epochs
-            history[base + first + n_host: base + upto] = host_scalars(losses)
-            n_host, losses = upto - first, []
+            history[base + on_host: base + upto] = host_scalars(losses)
+            losses, on_host = [], upto
 
         for epoch in range(first, tc.epochs):
             if epoch == first and timing is not None:  # the first call compiles: timed apart

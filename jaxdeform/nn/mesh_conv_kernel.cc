@@ -492,8 +492,8 @@ ffi::Error BackwardDispatch(ffi::AnyBuffer x, ffi::AnyBuffer gy, ffi::AnyBuffer 
 // their adjoints as separate passes over (G, P, V, 9) arrays (15 MB each on the horse split). Fused, the
 // products with C run over tiles of 64 vertices that stay in cache. Inside a tile the arithmetic runs on groups
 // of 8 vertices held channel by channel (Soa9: one 8-lane vector per channel), so a 9x9 channel mix is 81
-// full-width multiply-adds per 8 vertices, where the row layout of the convolution kernels above spends 18 vector and 18 scalar ones per
-// vertex; the one-ring gathers stay on rows. tanh: float32, Eigen's 13/6 rational interpolant (a few ulp);
+// full-width multiply-adds per 8 vertices, where the row layout of the convolution kernels above spends 18
+// vector and 18 scalar ones per vertex; the one-ring gathers stay on rows. tanh: float32, Eigen's 13/6 rational interpolant (a few ulp);
 // float64, std::tanh. Work is split over vertex ranges, so the rows of dC a thread writes are its own; the
 // reductions over vertices (z, dz, weight gradients) are summed per thread, then in thread order.
 
