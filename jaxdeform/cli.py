@@ -390,10 +390,13 @@ def cmd_components_train(args: argparse.Namespace) -> int:
     _check_out_folder(out, args.force)
     data = args.data if len(args.data) > 1 else args.data[0]
     run.resolve_config(args.method, args.config, args.epochs, args.seed)  # bad names fail before any work
+    q = run.SCALE_QUANTILE if args.scale_quantile is None else args.scale_quantile
+    if not 0.0 <= q < 0.5:
+        raise ValueError(f"--scale-quantile must lie in [0, 0.5), got {q}.")
     run.load_data(data)  # fewer than 2 shapes or mixed connectivity: one sentence, nothing written
     with _staged_folder(out) as tmp:
         record = run.fit(tmp, data, args.method, args.config, epochs=args.epochs, seed=args.seed,
-                         split=args.split, split_seed=args.split_seed, progress=not args.quiet)
+                         split=args.split, split_seed=args.split_seed, progress=not args.quiet, scale_quantile=q)
     t = record["timing"]
     extra = ""
     if "run_s" in t:
@@ -826,6 +829,9 @@ def build_parser() -> argparse.ArgumentParser:
     ctrain.add_argument("--split", choices=("every10", "half"), default="every10",
                         help="every10: shapes 0, 10, 20, ... train (sequences, default); half: a seeded random half")
     ctrain.add_argument("--split-seed", type=int, default=0, metavar="S", help="seed of the 'half' split (default 0)")
+    ctrain.add_argument("--scale-quantile", type=float, metavar="Q",
+                        help="ACAP methods: feature scaler bounds at the Q and 1 - Q quantiles of the training "
+                             "features, outliers clipped (default 1e-3; 0: the official min/max)")
     ctrain.add_argument("--quiet", action="store_true", help="no progress bar")
     ctrain.add_argument("--force", action="store_true", help="replace RUN if it exists and is not empty")
     ctrain.set_defaults(func=cmd_components_train)

@@ -133,6 +133,45 @@ def test_temporal_consistency_is_continuous_in_time():
     assert ang_t[-1].max() > 2 * np.pi
 
 
+def test_align_turns_picks_the_nearest_branch_of_the_same_rotation():
+    rng = np.random.default_rng(3)
+    w = rng.normal(size=(50, 3))
+    w /= np.linalg.norm(w, axis=1, keepdims=True)
+    theta = rng.uniform(0.1, 3.1, size=(50, 1))
+    v = theta * w
+    ref = (theta - 2 * np.pi + rng.uniform(-0.5, 0.5, size=(50, 1))) * w  # near the branch one turn down
+    out = np.asarray(cons.align_turns(jnp.asarray(v), jnp.asarray(ref)))
+    np.testing.assert_allclose(out, (theta - 2 * np.pi) * w, atol=1e-12)
+    # the same rotations
+    np.testing.assert_allclose(np.asarray(exp_rotation(jnp.asarray(out))), np.asarray(exp_rotation(jnp.asarray(v))),
+                               atol=1e-12)
+    # no other branch is nearer, for random references; aligning again changes nothing
+    ref = rng.normal(size=(50, 3)) * 6
+    out = np.asarray(cons.align_turns(jnp.asarray(v), jnp.asarray(ref)))
+    d_out = np.linalg.norm(out - ref, axis=1)
+    for k in range(-3, 4):
+        assert np.all(d_out <= np.linalg.norm((theta + 2 * np.pi * k) * w - ref, axis=1) + 1e-12)
+    np.testing.assert_array_equal(np.asarray(cons.align_turns(jnp.asarray(out), jnp.asarray(ref))), out)
+    # a zero rotation has no axis: it stays
+    assert np.all(np.asarray(cons.align_turns(jnp.zeros((2, 3)), jnp.full((2, 3), 5.0))) == 0)
+
+
+def test_turn_reference_brings_a_shape_off_by_a_turn_back():
+    rng = np.random.default_rng(4)
+    w = rng.normal(size=(30, 3))
+    w /= np.linalg.norm(w, axis=1, keepdims=True)
+    theta = rng.uniform(2.8, 3.1, size=(6, 30, 1))  # near pi: where shapes' own solves may disagree
+    v = theta * w
+    off = v.copy()
+    off[2, :10] = (theta[2, :10] - 2 * np.pi) * w[:10]  # shape 2: ten vertices one turn down
+    feats = np.concatenate([off, np.ones((6, 30, 6))], axis=-1)
+    ref = np.asarray(acap.turn_reference(jnp.asarray(feats)))
+    np.testing.assert_allclose(ref, v.mean(0), atol=1e-12)
+    aligned = np.asarray(acap.align_turns(jnp.asarray(feats), jnp.asarray(ref)))
+    np.testing.assert_allclose(aligned[..., :3], v, atol=1e-12)
+    np.testing.assert_array_equal(aligned[..., 3:], feats[..., 3:])
+
+
 def test_scaler_range_and_inverse(acap_bar):
     verts, faces, _ = acap_bar
     feats = acap.encode(verts[0], faces, verts)
@@ -142,6 +181,27 @@ def test_scaler_range_and_inverse(acap_bar):
     assert scaled[..., :3].min() == pytest.approx(-0.95, abs=1e-5)
     np.testing.assert_allclose(np.asarray(sc.inverse(scaled)), np.asarray(feats), atol=1e-10)
     np.testing.assert_allclose(acap.Scaler.from_array(sc.to_array()).to_array(), sc.to_array())
+
+
+def test_scaler_quantile_bounds_clip_outliers():
+    rng = np.random.default_rng(0)
+    feats = rng.normal(size=(4, 500, 9))
+    feats[0, 0, 4] = 40.0  # one outlier S entry
+    full = acap.Scaler.fit(feats)
+    robust = acap.Scaler.fit(feats, quantile=1e-3)
+    assert full.s_max > 40 and robust.s_max < 4
+    np.testing.assert_allclose(robust.s_max, np.quantile(feats[..., 3:], 1 - 1e-3) + 1e-6)
+    scaled = np.asarray(robust.transform(feats))
+    assert scaled.min() >= -0.95 - 1e-12 and scaled.max() <= 0.95 + 1e-12
+    assert scaled[0, 0, 4] == pytest.approx(0.95, abs=1e-6)  # clipped to the bound
+    inside = (feats[..., 3:] > robust.s_min) & (feats[..., 3:] < robust.s_max)
+    back = np.asarray(robust.inverse(scaled))[..., 3:]
+    np.testing.assert_allclose(back[inside], feats[..., 3:][inside], atol=1e-12)
+    # stored with its quantile; four-entry arrays (older files) load as unclipped scalers
+    assert acap.Scaler.from_array(robust.to_array()) == robust
+    assert full.to_array().shape == (4,) and acap.Scaler.from_array(full.to_array()) == full
+    with pytest.raises(ValueError, match="quantile"):
+        acap.Scaler.fit(feats, quantile=0.5)
 
 
 def test_round_trip_acap_bar(acap_bar):
@@ -162,6 +222,16 @@ def test_round_trip_horse_gallop(horse):
     err = np.linalg.norm((out - out.mean(1, keepdims=True)) - (verts - verts.mean(1, keepdims=True)), axis=-1) / diag
     assert err.mean() <= 1e-3, err.mean()
     assert err.max() <= 1e-2, err.max()
+
+
+@pytest.mark.slow
+def test_aligned_turns_decode_to_the_same_horse(horse):
+    verts, faces = horse
+    a = acap.prepare(verts[0], faces)
+    feats = a.encode(verts[::3])
+    aligned = acap.align_turns(feats, acap.turn_reference(feats[::3]))
+    assert np.abs(np.asarray(aligned) - np.asarray(feats)).max() > 6  # some leg vertices changed branch
+    np.testing.assert_allclose(np.asarray(a.decode(aligned)), np.asarray(a.decode(feats)), atol=1e-9)
 
 
 def test_decode_gradient_matches_finite_differences(acap_bar):

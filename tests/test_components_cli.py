@@ -55,6 +55,14 @@ def test_train_evaluate_show(seq_dir, tmp_path, capsys, method):
     assert info["components"] >= info["n_kept"] >= 1
     loaded = run.load(out)
     assert loaded.method == method and loaded.rest.shape == (8 * 16, 3)
+    if method != "splocs":  # ACAP methods: branch reference and clipped scaler stored, and used on new shapes
+        assert loaded.turns.shape == (8 * 16, 3) and loaded.scaler.quantile == run.SCALE_QUANTILE
+        shapes = run.load_data(seq_dir)[0][:3]
+        from jaxdeform import acap
+
+        feats = acap.align_turns(acap.encode(loaded.rest, loaded.faces, shapes), loaded.turns)
+        np.testing.assert_allclose(np.asarray(run.scaled_features(loaded, shapes)),
+                                   np.asarray(loaded.scaler.transform(np.asarray(feats, np.float32))), atol=1e-6)
     # edit: pull three vertices to a test shape's positions; the control residual falls below the start's
     from jaxdeform.mesh.io import load_mesh
 
@@ -114,6 +122,9 @@ def test_bad_names_and_mismatched_data(seq_dir, tmp_path, capsys):
     out = tmp_path / "run"
     line = _one_line_error(capsys, main(["components", "train", str(seq_dir), "--out", str(out), "--config", "huge"]))
     assert "no config 'huge'" in line and not out.exists()
+    line = _one_line_error(capsys, main(["components", "train", str(seq_dir), "--out", str(out), "--scale-quantile",
+                                         "0.5"]))
+    assert "--scale-quantile" in line and not out.exists()
     _one_line_error(capsys, main(["components", "evaluate", str(tmp_path), "--data", str(seq_dir)]))
     assert main(["components", "train", str(seq_dir), "--out", str(out), "--method", "pca", "--config", "test",
                  "--quiet"]) == 0

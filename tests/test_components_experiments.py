@@ -104,8 +104,10 @@ def test_sweep_runs_on_a_tube(tmp_path):
     for k, v in enumerate(verts):
         save_mesh(tmp_path / "tube" / f"f{k:02d}.obj", v, faces)
     out = tmp_path / "s.jsonl"
-    res = sweep.main(["--data", str(tmp_path / "tube"), "--kz", "3,2", "--epochs", "3", "--jsonl", str(out)])
+    res = sweep.main(["--data", str(tmp_path / "tube"), "--kz", "3,2", "--epochs", "3", "--jsonl", str(out),
+                      "--scale-quantile", "1e-3"])
     assert json.loads(out.read_text()) == json.loads(json.dumps(res))
+    assert res["config"]["turns"] == "aligned" and res["config"]["scale_quantile"] == 1e-3
     assert res["train_shapes"] == 2 and res["test_shapes"] == 10
     for key in ("train_erms", "test_erms", "level0_train_erms", "level0_test_erms"):
         assert np.isfinite(res[key]) and res[key] >= 0
@@ -129,6 +131,9 @@ def test_ceiling_on_the_tube(tmp_path):
     assert result["rows"][0]["xyz"]["erms"] == pytest.approx(expected, rel=1e-6)
     assert all(np.isfinite(r["acap"]["erms"]) for r in result["rows"])
     assert "| 4 |" in (tmp_path / "ceiling" / "results.md").read_text()
+    assert result["turns"] == "aligned" and "branches aligned" in (tmp_path / "ceiling" / "results.md").read_text()
+    own = ceiling.main(["--data", str(data), "--regions", "1", "--out", str(tmp_path / "own"), "--turns", "per-shape"])
+    assert own["turns"] == "per-shape" and own["rows"][0]["xyz"] == result["rows"][0]["xyz"]  # coordinates: the same
 
 
 def test_projection_fits_codes_back_to_a_decoder_output():

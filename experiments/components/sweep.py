@@ -62,7 +62,14 @@ def main(argv=None) -> dict:
     ap.add_argument("--no-attention", action="store_true")
     ap.add_argument("--attention-gradient", action="store_true")
     ap.add_argument("--separate", action="store_true", help="level-by-level training (Table 4)")
+    ap.add_argument("--turns", choices=("aligned", "per-shape"), default="aligned",
+                    help="rotation branches: aligned across shapes to the training shapes' reference (acap.align_turns; "
+                         "the run default) or as each shape's own consistency solve left them")
+    ap.add_argument("--scale-quantile", type=float, default=0.0,
+                    help="feature scaler bounds at this quantile of the training features, clipped (acap.Scaler)")
     ap.add_argument("--epochs", type=int, default=2000)
+    ap.add_argument("--eval-every", type=int, metavar="N",
+                    help="also evaluate train and test Erms every N epochs (the learning curve, key 'curve')")
     ap.add_argument("--lr", type=float, default=1e-3)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--jsonl", help="append the result line to this file")
@@ -77,13 +84,11 @@ def main(argv=None) -> dict:
     rest = vertices[0]
     dist = crun.normalized_geodesics(rest, faces)
     feats = np.asarray(acap.encode(rest, faces, vertices), np.float32)
-    scaler = acap.Scaler.fit(feats[tr])
+    if a.turns == "aligned":
+        feats = np.asarray(acap.align_turns(feats, acap.turn_reference(feats[tr])), np.float32)
+    scaler = acap.Scaler.fit(feats[tr], a.scale_quantile)
     x = np.asarray(scaler.transform(feats), np.float32)
     rings = rings_from_topology(build_topology(faces, rest.shape[0]))
-
-    t0 = time.perf_counter()
-    params, history = train.train(x[tr], rings, dist, cfg, tc, progress=True)
-    seconds = time.perf_counter() - t0
 
     def evaluate(idx, p, c):
         xs = jnp.asarray(x[idx])
@@ -91,7 +96,18 @@ def main(argv=None) -> dict:
         pos = np.asarray(acap.decode(jnp.asarray(np.asarray(scaler.inverse(xh)), jnp.float64), rest, faces))
         return metrics.erms(vertices[idx], pos), float(np.mean((np.asarray(xh) - x[idx]) ** 2))
 
-    result = {"config": {**dataclasses.asdict(cfg), **dataclasses.asdict(tc)}, "data": str(a.data),
+    curve = []
+
+    def snapshot(epoch, p):
+        curve.append({"epoch": epoch, "train_erms": evaluate(tr, p, cfg)[0], "test_erms": evaluate(te, p, cfg)[0]})
+        print(json.dumps(curve[-1]), flush=True)
+
+    t0 = time.perf_counter()
+    params, history = train.train(x[tr], rings, dist, cfg, tc, progress=True, snapshot=snapshot if a.eval_every else None,
+                                  snapshot_every=a.eval_every or 1000)
+    seconds = time.perf_counter() - t0
+
+    result = {"config": {**dataclasses.asdict(cfg), **dataclasses.asdict(tc), "turns": a.turns, "scale_quantile": a.scale_quantile}, "data": str(a.data),
               "train_shapes": len(tr), "test_shapes": len(te), "train_seconds": round(seconds, 1),
               "final_loss": float(history[-1])}
     result["train_erms"], result["train_feature_mse"] = evaluate(tr, params, cfg)
@@ -100,6 +116,8 @@ def main(argv=None) -> dict:
         c0 = dataclasses.replace(cfg, kz=cfg.kz[:1], d=cfg.d[:1])
         result["level0_train_erms"] = evaluate(tr, params[:1], c0)[0]
         result["level0_test_erms"] = evaluate(te, params[:1], c0)[0]
+    if curve:
+        result["curve"] = curve
     result["inside_fraction"] = [inside_fraction(np.asarray(p["C"]), dist, cfg.d[lvl]) for lvl, p in enumerate(params)]
     line = json.dumps(result, default=float)
     print(line)

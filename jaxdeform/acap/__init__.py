@@ -4,6 +4,7 @@ Public API: :func:`encode`, :func:`decode`, :class:`Scaler`, :func:`prepare` (an
 for many calls on one reference).
 """
 
-from jaxdeform.acap.features import Acap, Scaler, cached, decode, encode, features_from, gradients_from_features, prepare, split_features
+from jaxdeform.acap.features import (Acap, Scaler, align_turns, cached, decode, encode, features_from, gradients_from_features,
+                                     prepare, split_features, turn_reference)
 
-__all__ = ["Acap", "Scaler", "cached", "decode", "encode", "features_from", "gradients_from_features", "prepare", "split_features"]
+__all__ = ["Acap", "Scaler", "align_turns", "cached", "decode", "encode", "features_from", "gradients_from_features", "prepare", "split_features", "turn_reference"]

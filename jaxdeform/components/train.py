@@ -123,11 +123,13 @@ def _state(params, opt_state, key, history, stage_index, epoch):
 def train(data, rings: Rings, dist, config: model.Config, tc: TrainConfig, *, params=None,
           checkpoint_dir=None, checkpoint_every: int = 1000, resume: bool = False, progress: bool = False,
           log: Callable[[int, float, dict], None] | None = None, log_every: int = 100,
-          timing: dict | None = None):
+          timing: dict | None = None, snapshot: Callable[[int, tuple], None] | None = None,
+          snapshot_every: int = 1000):
     """Train for ``tc.epochs`` epochs (per level when ``tc.joint`` is False).
 
     Returns (params, loss history (stages * epochs,)). ``params``: start from these instead of a fresh
     initialization. ``progress``: a tqdm bar with the loss terms (refreshed every ``log_every`` epochs).
+    ``snapshot(epochs_done, params)`` is called every ``snapshot_every`` epochs of a stage (learning curves).
     """
     data = jnp.asarray(data)
     dtype = data.dtype
@@ -196,6 +198,8 @@ def train(data, rings: Rings, dist, config: model.Config, tc: TrainConfig, *, pa
                     bar.set_postfix_str(_terms_text(float(loss), terms_f), refresh=False)
             if bar is not None and (done % log_every == 0 or done == tc.epochs):
                 bar.update(done - bar.n + stage_index * tc.epochs)
+            if snapshot is not None and done % snapshot_every == 0:
+                snapshot(stage_index * tc.epochs + done, sub if stage is None else tuple(sub) + tuple(params[stage + 1:]))
             if ckpt is not None and (done % checkpoint_every == 0 or done == tc.epochs):
                 base = stage_index * tc.epochs
                 flush(done)
