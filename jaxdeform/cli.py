@@ -383,6 +383,7 @@ def cmd_parts_show(args: argparse.Namespace) -> int:
 
 
 def cmd_components_train(args: argparse.Namespace) -> int:
+    from jaxdeform.acap.features import check_quantile
     from jaxdeform.components import run
 
     _check_exists(args.data)
@@ -391,8 +392,7 @@ def cmd_components_train(args: argparse.Namespace) -> int:
     data = args.data if len(args.data) > 1 else args.data[0]
     run.resolve_config(args.method, args.config, args.epochs, args.seed)  # bad names fail before any work
     q = run.SCALE_QUANTILE if args.scale_quantile is None else args.scale_quantile
-    if not 0.0 <= q < 0.5:
-        raise ValueError(f"--scale-quantile must lie in [0, 0.5), got {q}.")
+    check_quantile(q, "--scale-quantile")  # before any work (Scaler.fit checks it too, after encoding)
     run.load_data(data)  # fewer than 2 shapes or mixed connectivity: one sentence, nothing written
     with _staged_folder(out) as tmp:
         record = run.fit(tmp, data, args.method, args.config, epochs=args.epochs, seed=args.seed,

@@ -302,6 +302,12 @@ SCALE_LIMIT = 0.95
 SCALE_PAD = 1e-6
 
 
+def check_quantile(quantile: float, name: str = "quantile") -> None:
+    """ValueError unless ``quantile`` (the :meth:`Scaler.fit` argument, or the option ``name``) lies in [0, 0.5)."""
+    if not 0.0 <= quantile < 0.5:
+        raise ValueError(f"{name} must lie in [0, 0.5), got {quantile}.")
+
+
 @dataclasses.dataclass(frozen=True)
 class Scaler:
     """Maps rotation entries (features 0-2) and S entries (3-8) linearly to [-0.95, 0.95].
@@ -322,8 +328,7 @@ class Scaler:
     @staticmethod
     def fit(features, quantile: float = 0.0) -> "Scaler":
         f = np.asarray(features)
-        if not 0.0 <= quantile < 0.5:
-            raise ValueError(f"quantile must lie in [0, 0.5), got {quantile}.")
+        check_quantile(quantile)
         if quantile == 0.0:
             return Scaler(float(f[..., :3].min()) - SCALE_PAD, float(f[..., :3].max()) + SCALE_PAD,
                           float(f[..., 3:].min()) - SCALE_PAD, float(f[..., 3:].max()) + SCALE_PAD)
