@@ -6,7 +6,6 @@ This checks that the script runs and writes every field; it measures nothing (th
 
 import json
 import math
-import time
 
 import numpy as np
 
@@ -28,10 +27,10 @@ def test_benchmark_script_smoke(tmp_path):
         save_mesh(data / f"frame{k:02d}.obj", v, faces)
     out = tmp_path / "bench" / "nested" / "acap.json"
 
-    t0 = time.perf_counter()
-    # float32 only: each dtype pays JAX's cold compilation again (~5-10 s on a 2-core machine)
+    # float32 only: each dtype pays JAX's cold compilation again (~5-10 s on a 2-core machine). No wall-clock bound
+    # here (timings belong to the benchmarks): the records check below fails if the big case or a float64 pass
+    # sneaks into the smoke run.
     payload = bench.main(["--data", str(data), "--json", str(out), "--skip-big", "--no-float64", "--repeats", "1"])
-    elapsed = time.perf_counter() - t0
 
     assert out.is_file()
     on_disk = json.loads(out.read_text())
@@ -60,9 +59,6 @@ def test_benchmark_script_smoke(tmp_path):
 
     table = bench.format_table(records)
     assert "float32" in table and "dataset" in table
-    # about 10-15 s on 2 cores, mostly first-call compilation; a loose bound so a loaded machine does not flake,
-    # tight enough to catch the big case or a float64 pass sneaking into the smoke run
-    assert elapsed < 45.0, f"the smoke run took {elapsed:.1f} s"
 
 
 def test_handles_benchmark_smoke(tmp_path):
@@ -75,10 +71,8 @@ def test_handles_benchmark_smoke(tmp_path):
     mesh = tmp_path / "ico.obj"
     save_mesh(mesh, np.asarray(m.vertices), np.asarray(m.faces))
     out = tmp_path / "bench" / "handles.json"
-    t0 = time.perf_counter()
     payload = hbench.main(["--mesh", str(mesh), "--json", str(out), "--channels", "8", "--handles", "1", "3",
                            "--repeats", "2", "--pose-faces", "300", "--pose-handles", "3", "--pose-frames", "2"])
-    elapsed = time.perf_counter() - t0
     on_disk = json.loads(out.read_text())
     assert on_disk == json.loads(json.dumps(payload))
     assert not [p for p in out.parent.iterdir() if p.name != out.name]
@@ -94,4 +88,3 @@ def test_handles_benchmark_smoke(tmp_path):
     assert all(r["fps_median"] > 0 and math.isfinite(r["fps_median"]) for r in on_disk["pose"])
     assert set(on_disk["pose_fps"]) == {r["variant"] for r in on_disk["pose"]}
     assert "rebind" in hbench.format_table(on_disk)
-    assert elapsed < 40.0, f"the smoke run took {elapsed:.1f} s"

@@ -105,9 +105,13 @@ def test_sweep_runs_on_a_tube(tmp_path):
         save_mesh(tmp_path / "tube" / f"f{k:02d}.obj", v, faces)
     out = tmp_path / "s.jsonl"
     res = sweep.main(["--data", str(tmp_path / "tube"), "--kz", "3,2", "--epochs", "3", "--jsonl", str(out),
-                      "--scale-quantile", "1e-3"])
+                      "--scale-quantile", "1e-3", "--decay-rate", "0.5", "--clip-norm", "2"])
     assert json.loads(out.read_text()) == json.loads(json.dumps(res))
     assert res["config"]["turns"] == "aligned" and res["config"]["scale_quantile"] == 1e-3
+    assert res["config"]["decay_rate"] == 0.5 and res["config"]["clip_norm"] == 2.0
+    # fewer than 100 epochs: one window, its last loss the run's final loss, its largest at least that
+    assert len(res["loss_per_100"]) == 1 and res["loss_per_100"][0][0] == res["final_loss"]
+    assert res["loss_per_100"][0][1] >= res["final_loss"]
     assert res["train_shapes"] == 2 and res["test_shapes"] == 10
     for key in ("train_erms", "test_erms", "level0_train_erms", "level0_test_erms"):
         assert np.isfinite(res[key]) and res[key] >= 0
@@ -172,3 +176,29 @@ def test_projection_encoder_row_is_the_protocol(tmp_path):
     for key in ("erms", "sted", "max_relative_squared_error"):
         assert result["encoder"][key] == pytest.approx(expected[key], rel=1e-6)
     assert json.loads((tmp_path / "p.json").read_text())["fitted"]["shapes"] == expected["shapes"]
+
+
+def test_feature_transform_aligns_then_scales():
+    """components.run.fit_feature_transform / apply_feature_transform, shared by runs, the sweep and the ceiling:
+    a shape whose rotation vectors sit one turn off is scaled as the shape itself once aligned, not otherwise;
+    and the scaler is the one fitted on the aligned training features."""
+    from jaxdeform import acap
+    from jaxdeform.components import run as crun
+
+    rng = np.random.default_rng(7)
+    w = rng.normal(size=(20, 3))
+    w /= np.linalg.norm(w, axis=1, keepdims=True)
+    theta = rng.uniform(2.8, 3.1, size=(5, 20, 1))
+    v = theta * w
+    feats = np.concatenate([v, rng.uniform(0.8, 1.2, size=(5, 20, 6))], axis=-1)
+    off = feats.copy()
+    off[3, :8, :3] = (theta[3, :8] - 2 * np.pi) * w[:8]  # one turn down, the same rotations
+    turns, scaler = crun.fit_feature_transform(off, 0.0)
+    np.testing.assert_allclose(turns, v.mean(0), atol=1e-9)
+    x = crun.apply_feature_transform(off, turns, scaler)
+    np.testing.assert_allclose(x, np.asarray(acap.Scaler.fit(feats).transform(feats)), atol=1e-9)
+    none, plain = crun.fit_feature_transform(off, 0.0, align=False)
+    assert none is None
+    x_own = crun.apply_feature_transform(off, None, plain)
+    assert np.abs(x_own[3, :8, :3] - x[3, :8, :3]).max() > 0.1  # per-shape branches: shape 3 scaled elsewhere
+    assert crun.apply_feature_transform(off.astype(np.float32), turns, scaler).dtype == np.float32

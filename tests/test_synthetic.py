@@ -1,6 +1,5 @@
 """Tests of the synthetic mesh sequences (jaxdeform.data.synthetic)."""
 
-import time
 
 import numpy as np
 import pytest
@@ -207,14 +206,6 @@ def test_no_self_intersection(seq):
     seg /= np.linalg.norm(seg, axis=-1, keepdims=True)
     bend = np.arccos(np.clip(np.einsum("nli,nli->nl", seg[:, 1:], seg[:, :-1]), -1.0, 1.0))
     assert np.all(step / np.maximum(bend, 1e-12) > RADIUS)
-
-
-def test_fast():
-    synthetic.bending_tube_sequence()
-    t0 = time.perf_counter()
-    for _ in range(5):
-        synthetic.bending_tube_sequence()
-    assert (time.perf_counter() - t0) / 5 < 0.05
 
 
 def test_invalid_arguments():

@@ -45,10 +45,9 @@ def ceiling(data, regions=(1, 10, 25, 50, 100), split: str | None = None, turns:
     rest = vertices[0]
     dist = crun.normalized_geodesics(rest, faces, np.float64)
     feats = np.asarray(acap.encode(rest, faces, vertices), np.float64)
-    if turns == "aligned":
-        feats = np.asarray(acap.align_turns(feats, acap.turn_reference(feats[tr])))
-    scaler = acap.Scaler.fit(feats[tr])
-    x = np.asarray(scaler.transform(feats), np.float64)
+    # the official min/max scaler (quantile 0): the ceiling is of the features, not of their clipping
+    reference, scaler = crun.fit_feature_transform(feats[tr], 0.0, align=turns == "aligned")
+    x = crun.apply_feature_transform(feats, reference, scaler, np.float64)
 
     def scores(positions):  # the metrics of the generalization protocol, as `components evaluate` reports them
         m = crun.set_metrics(vertices[te], {"positions": positions}, faces)

@@ -65,12 +65,15 @@ def main(argv=None) -> dict:
     ap.add_argument("--turns", choices=("aligned", "per-shape"), default="aligned",
                     help="rotation branches: aligned across shapes to the training shapes' reference (acap.align_turns; "
                          "the run default) or as each shape's own consistency solve left them")
-    ap.add_argument("--scale-quantile", type=float, default=0.0,
+    ap.add_argument("--scale-quantile", type=float, default=crun.SCALE_QUANTILE,
                     help="feature scaler bounds at this quantile of the training features, clipped (acap.Scaler)")
     ap.add_argument("--epochs", type=int, default=2000)
     ap.add_argument("--eval-every", type=int, metavar="N",
                     help="also evaluate train and test Erms every N epochs (the learning curve, key 'curve')")
     ap.add_argument("--lr", type=float, default=1e-3)
+    ap.add_argument("--decay-rate", type=float, default=train.TrainConfig.decay_rate,
+                    help="learning rate multiplied by this every 1,000 steps")
+    ap.add_argument("--clip-norm", type=float, help="clip each step's gradient to this global norm before Adam")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--jsonl", help="append the result line to this file")
     a = ap.parse_args(argv)
@@ -78,16 +81,15 @@ def main(argv=None) -> dict:
     cfg = model.Config(kz=tuple(int(k) for k in _floats(a.kz)), d=_floats(a.d), lambda_recon=a.lambda_recon,
                        lambda_sparse=a.lambda_sparse, mask=a.mask, latent=a.latent, attention=not a.no_attention,
                        attention_gradient=a.attention_gradient)
-    tc = train.TrainConfig(epochs=a.epochs, learning_rate=a.lr, seed=a.seed, joint=not a.separate)
+    tc = train.TrainConfig(epochs=a.epochs, learning_rate=a.lr, seed=a.seed, joint=not a.separate,
+                          decay_rate=a.decay_rate, clip_norm=a.clip_norm)
     vertices, faces = crun.load_data(a.data)
     tr, te = crun.split_indices(vertices.shape[0])
     rest = vertices[0]
     dist = crun.normalized_geodesics(rest, faces)
     feats = np.asarray(acap.encode(rest, faces, vertices), np.float32)
-    if a.turns == "aligned":
-        feats = np.asarray(acap.align_turns(feats, acap.turn_reference(feats[tr])), np.float32)
-    scaler = acap.Scaler.fit(feats[tr], a.scale_quantile)
-    x = np.asarray(scaler.transform(feats), np.float32)
+    turns, scaler = crun.fit_feature_transform(feats[tr], a.scale_quantile, align=a.turns == "aligned")
+    x = crun.apply_feature_transform(feats, turns, scaler, np.float32)
     rings = rings_from_topology(build_topology(faces, rest.shape[0]))
 
     def evaluate(idx, p, c):
@@ -109,7 +111,9 @@ def main(argv=None) -> dict:
 
     result = {"config": {**dataclasses.asdict(cfg), **dataclasses.asdict(tc), "turns": a.turns, "scale_quantile": a.scale_quantile}, "data": str(a.data),
               "train_shapes": len(tr), "test_shapes": len(te), "train_seconds": round(seconds, 1),
-              "final_loss": float(history[-1])}
+              "final_loss": float(history[-1]),
+              # the loss per 100 epochs: last value and largest (spikes of Adam's instability show here)
+              "loss_per_100": [[float(w[-1]), float(w.max())] for w in np.array_split(history, max(1, len(history) // 100))]}
     result["train_erms"], result["train_feature_mse"] = evaluate(tr, params, cfg)
     result["test_erms"], result["test_feature_mse"] = evaluate(te, params, cfg)
     if cfg.levels > 1:
