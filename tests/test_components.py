@@ -232,3 +232,9 @@ def test_learning_rate_schedule_and_gradient_clipping():
     for g in grads:
         u_unclipped, s_p = plain.update(g, s_p, params)
     assert not np.allclose(np.asarray(u_unclipped["w"]), np.asarray(u_opt["w"]), rtol=1e-3)
+
+
+@pytest.mark.parametrize("bad", [{"decay_rate": 0.0}, {"decay_rate": 1.5}, {"clip_norm": 0.0}, {"clip_norm": -1.0}])
+def test_train_config_refuses_a_bad_rate_or_clip(bad):
+    with pytest.raises(ValueError):
+        train.TrainConfig(**bad)

@@ -49,6 +49,31 @@ def test_experiment_runs_subset(tmp_path):
         exp.main(["table4", "--config", "test", "--out", str(tmp_path), "--trained-only", "--force"])
 
 
+def test_runs_of_another_configuration_are_not_reused(tmp_path):
+    """A run whose run.json holds another training configuration than the named one trains now (say an older
+    learning-rate decay) is left out by --trained-only and retrained otherwise; a field added since (clip_norm)
+    is compared with its default, so its absence alone does not make a run stale."""
+    args = ["table4", "--config", "test", "--out", str(tmp_path), "--epochs", "2", "--runs", "separate", "no-attention",
+            "--no-figures"]
+    first = exp.main(args)
+    runs = tmp_path / "table4" / "tube"
+    for name, decay in (("separate", 0.96), ("no-attention", None)):
+        record = json.loads((runs / name / "run.json").read_text())
+        del record["train_config"]["clip_norm"]
+        if decay is not None:
+            record["train_config"]["decay_rate"] = decay
+        (runs / name / "run.json").write_text(json.dumps(record))
+    kept = exp.main(["table4", "--config", "test", "--out", str(tmp_path), "--runs", "separate", "no-attention",
+                     "--trained-only", "--no-figures"])
+    assert set(kept["rows"]) == {"tube/no-attention"}
+    assert kept["rows"]["tube/no-attention"]["test"]["erms"] == pytest.approx(first["rows"]["tube/no-attention"]["test"]["erms"])
+    again = exp.main(args)
+    assert set(again["rows"]) == {"tube/separate", "tube/no-attention"}
+    retrained = json.loads((runs / "separate" / "run.json").read_text())
+    assert retrained["train_config"]["decay_rate"] != 0.96 and "clip_norm" in retrained["train_config"]
+    assert "clip_norm" not in json.loads((runs / "no-attention" / "run.json").read_text())["train_config"]  # reused
+
+
 def test_fig6_test_config(tmp_path):
     result = exp.main(["fig6", "--config", "test", "--out", str(tmp_path), "--epochs", "3", "--methods", "multiscale",
                        "pca-xyz"])
@@ -97,6 +122,7 @@ def test_sweep_inside_fraction_analytic():
 
 def test_sweep_runs_on_a_tube(tmp_path):
     from experiments.components import sweep
+    from jaxdeform.components import run as crun
     from jaxdeform.data.synthetic import bending_tube_sequence
     from jaxdeform.mesh import save_mesh
 
@@ -104,14 +130,15 @@ def test_sweep_runs_on_a_tube(tmp_path):
     for k, v in enumerate(verts):
         save_mesh(tmp_path / "tube" / f"f{k:02d}.obj", v, faces)
     out = tmp_path / "s.jsonl"
-    res = sweep.main(["--data", str(tmp_path / "tube"), "--kz", "3,2", "--epochs", "3", "--jsonl", str(out),
-                      "--scale-quantile", "1e-3", "--decay-rate", "0.5", "--clip-norm", "2"])
+    res = sweep.main(["--data", str(tmp_path / "tube"), "--kz", "3,2", "--epochs", "150", "--jsonl", str(out),
+                      "--decay-rate", "0.5", "--clip-norm", "2"])
     assert json.loads(out.read_text()) == json.loads(json.dumps(res))
-    assert res["config"]["turns"] == "aligned" and res["config"]["scale_quantile"] == 1e-3
+    assert res["config"]["turns"] == "aligned" and res["config"]["scale_quantile"] == crun.SCALE_QUANTILE
     assert res["config"]["decay_rate"] == 0.5 and res["config"]["clip_norm"] == 2.0
-    # fewer than 100 epochs: one window, its last loss the run's final loss, its largest at least that
-    assert len(res["loss_per_100"]) == 1 and res["loss_per_100"][0][0] == res["final_loss"]
-    assert res["loss_per_100"][0][1] >= res["final_loss"]
+    # windows of 100 epochs, the last one short: [last loss, largest loss] of each
+    assert len(res["loss_per_100"]) == 2 and res["loss_per_100"][-1][0] == res["final_loss"]
+    assert all(top >= last for last, top in res["loss_per_100"])
+    assert res["loss_per_100"][0][1] > res["loss_per_100"][1][0]  # the loss falls (the first window holds epoch 0)
     assert res["train_shapes"] == 2 and res["test_shapes"] == 10
     for key in ("train_erms", "test_erms", "level0_train_erms", "level0_test_erms"):
         assert np.isfinite(res[key]) and res[key] >= 0
@@ -136,6 +163,7 @@ def test_ceiling_on_the_tube(tmp_path):
     assert all(np.isfinite(r["acap"]["erms"]) for r in result["rows"])
     assert "| 4 |" in (tmp_path / "ceiling" / "results.md").read_text()
     assert result["turns"] == "aligned" and "branches aligned" in (tmp_path / "ceiling" / "results.md").read_text()
+    assert result["scale_quantile"] == 0.0  # the ceiling of the features, not of the runs' clipping
     own = ceiling.main(["--data", str(data), "--regions", "1", "--out", str(tmp_path / "own"), "--turns", "per-shape"])
     assert own["turns"] == "per-shape" and own["rows"][0]["xyz"] == result["rows"][0]["xyz"]  # coordinates: the same
 

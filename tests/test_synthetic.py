@@ -1,6 +1,5 @@
 """Tests of the synthetic mesh sequences (jaxdeform.data.synthetic)."""
 
-
 import numpy as np
 import pytest
 

@@ -9,8 +9,9 @@ levels) and Fig. 6 (editing error against the number of control points).
 Every experiment trains through :mod:`jaxdeform.components.run` (the same code as ``jaxdeform components
 train``) into OUT/<experiment>/<data set>/<run>, evaluates the generalization protocol of Sec. 5.1 (every 10th
 shape of a sequence trains, a seeded random half of a pose set) and writes OUT/<experiment>/results.json and
-results.md (atomically), plus the component figures of the multiscale runs. Existing runs are reused (their
-run.json is the cache key); ``--force`` retrains; ``--trained-only`` trains nothing and tabulates the runs that
+results.md (atomically), plus the component figures of the multiscale runs. Existing runs are reused when their
+run.json holds what the named configuration trains now (``components.run.stale_reason``; otherwise they are
+retrained); ``--force`` retrains; ``--trained-only`` trains nothing and tabulates the runs that
 exist (for example runs trained by separate invocations); ``--no-figures`` skips the component figures (a
 three-level model has 61 blocks to draw). The table names the hardware: the CPU, or the accelerator of JAX's
 default backend.
@@ -63,6 +64,14 @@ def train_and_evaluate(data: Path, folder: Path, method: str, config: str, split
     figures of the autoencoder runs."""
     if force and folder.exists():
         shutil.rmtree(folder)
+    if (folder / "run.json").is_file():
+        reason = crun.stale_reason(json.loads((folder / "run.json").read_text()), method, config, epochs)
+        if reason is not None and not train:
+            print(f"   not what {method}/{config} trains now ({reason}): {folder} (left out)", flush=True)
+            return None
+        if reason is not None:
+            print(f"   retraining {folder}: {reason}", flush=True)
+            shutil.rmtree(folder)
     if not (folder / "run.json").is_file():
         if not train:
             print(f"   not trained yet: {folder} (left out)", flush=True)

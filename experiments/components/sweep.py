@@ -2,7 +2,8 @@
 
     python -m experiments.components.sweep --data ../shared/data/horse-gallop --kz 10,5 --d 0.4,0.2 \\
         [--lambda-recon 10] [--lambda-sparse 1] [--mask step|linear] [--latent linear|tanh] [--no-attention] [--attention-gradient] \\
-        [--separate] [--epochs 2000] [--lr 1e-3] [--seed 0] [--jsonl OUT.jsonl]
+        [--separate] [--turns aligned|per-shape] [--scale-quantile 1e-3] [--epochs 2000] [--eval-every N] \\
+        [--lr 1e-3] [--decay-rate 0.794] [--clip-norm C] [--seed 0] [--jsonl OUT.jsonl]
 
 Unlike ``experiments.components.run`` (named configurations, run folders, STED), this trains any configuration
 in memory on the every-10th split and prints one JSON line (appended to ``--jsonl``):
@@ -113,7 +114,7 @@ def main(argv=None) -> dict:
               "train_shapes": len(tr), "test_shapes": len(te), "train_seconds": round(seconds, 1),
               "final_loss": float(history[-1]),
               # the loss per 100 epochs: last value and largest (spikes of Adam's instability show here)
-              "loss_per_100": [[float(w[-1]), float(w.max())] for w in np.array_split(history, max(1, len(history) // 100))]}
+              "loss_per_100": [[float(w[-1]), float(w.max())] for w in (history[i:i + 100] for i in range(0, len(history), 100))]}
     result["train_erms"], result["train_feature_mse"] = evaluate(tr, params, cfg)
     result["test_erms"], result["test_feature_mse"] = evaluate(te, params, cfg)
     if cfg.levels > 1:

@@ -102,7 +102,7 @@ CONFIGS: dict[str, dict[str, tuple[model.Config | None, train.TrainConfig]]] = {
     "tan": {
         # their public code's 2,000 epochs; the decay rate these figures were measured with (0.96 per 1,000)
         "default": (_tan(kz=(50,)), train.TrainConfig(epochs=2000, decay_rate=0.96)),
-        "test": (_tan(kz=(4,)), train.TrainConfig(epochs=30)),
+        "test": (_tan(kz=(4,)), train.TrainConfig(epochs=30, decay_rate=0.96)),
     },
     "pca": {"default": (None, train.TrainConfig()), "test": (None, train.TrainConfig())},
     "pca-xyz": {"default": (None, train.TrainConfig()), "test": (None, train.TrainConfig())},
@@ -126,6 +126,31 @@ def resolve_config(method: str, name: str, epochs: int | None = None, seed: int 
     if seed is not None:
         tc = dataclasses.replace(tc, seed=seed)
     return cfg, tc
+
+
+def stale_reason(record: dict, method: str, name: str, epochs: int | None = None) -> str | None:
+    """Why a stored run (its run.json ``record``) is not what ``resolve_config(method, name, epochs)`` and this
+    code's feature preparation would train now, or None. The epoch count is compared only when ``epochs`` is
+    given (a run trained with ``--epochs N`` is reused by a later call without it). A run written before a field
+    existed is compared with that field's default (``clip_norm``: None). Linear baselines have no training
+    configuration to compare."""
+    if record.get("method") != method:
+        return f"it is a {record.get('method')} run, not {method}"
+    cfg, tc = resolve_config(method, name, epochs)
+    if method in ("multiscale", "tan", "pca"):
+        if record.get("feature_turns") != "aligned":
+            return "its features keep per-shape rotation branches"
+        if record.get("feature_scale_quantile", 0.0) != SCALE_QUANTILE:
+            return f"its scaler quantile is {record.get('feature_scale_quantile', 0.0)}, not {SCALE_QUANTILE}"
+    if method not in AUTOENCODERS:
+        return None
+    if record.get("config") != _json_config(cfg):
+        return "its model configuration differs"
+    stored = dataclasses.asdict(train.TrainConfig(**record.get("train_config", {})))
+    for key, value in dataclasses.asdict(tc).items():
+        if stored[key] != value and (key != "epochs" or epochs is not None):
+            return f"its {key} is {stored[key]}, not {value}"
+    return None
 
 
 # ------------------------------------------------------------------------------------------- data

@@ -49,6 +49,12 @@ class TrainConfig:
     # Largest global norm of a step's gradient before Adam (None: no clipping; the paper mentions none).
     clip_norm: float | None = None
 
+    def __post_init__(self):
+        if not 0 < self.decay_rate <= 1:
+            raise ValueError(f"decay_rate must lie in (0, 1], got {self.decay_rate}.")
+        if self.clip_norm is not None and not self.clip_norm > 0:
+            raise ValueError(f"clip_norm must be positive, got {self.clip_norm}.")
+
 
 def schedule(tc: TrainConfig) -> optax.Schedule:
     """Learning rate per step: ``learning_rate * decay_rate ** (step / decay_steps)``."""
