@@ -58,6 +58,7 @@ METHODS = ("multiscale", "tan", "pca", "pca-xyz", "splocs")
 # model's test Erms from 18.1 to 15.0 (2,000 epochs; 1e-4: 15.7); 0 restores the official bounds.
 SCALE_QUANTILE = 1e-3
 AUTOENCODERS = ("multiscale", "tan")
+ACAP_METHODS = ("multiscale", "tan", "pca")  # the methods that learn from ACAP features
 SPLITS = ("every10", "half")
 
 
@@ -137,7 +138,7 @@ def stale_reason(record: dict, method: str, name: str, epochs: int | None = None
     if record.get("method") != method:
         return f"it is a {record.get('method')} run, not {method}"
     cfg, tc = resolve_config(method, name, epochs)
-    if method in ("multiscale", "tan", "pca"):
+    if method in ACAP_METHODS:
         if record.get("feature_turns") != "aligned":
             return "its features keep per-shape rotation branches"
         if record.get("feature_scale_quantile", 0.0) != SCALE_QUANTILE:
@@ -238,7 +239,7 @@ def fit(out: Path, data, method: str = "multiscale", config: str = "default", *,
               "dtype": np.dtype(dtype).name}
     scaler = turns = None
     t0 = time.perf_counter()
-    if method in ("multiscale", "tan", "pca"):
+    if method in ACAP_METHODS:
         feats = np.asarray(acap.encode(rest, faces, vertices[train_idx]), dtype)
         turns, scaler = fit_feature_transform(feats, scale_quantile)
         record["feature_turns"] = "aligned"
@@ -390,7 +391,7 @@ def positions_from_scaled(run: Run, scaled) -> np.ndarray:
 
 def reconstruct(run: Run, vertices: np.ndarray) -> dict:
     """Positions (N, V, 3) of ``vertices`` passed through the run's model; plus features when ACAP-based."""
-    if run.method in ("multiscale", "tan", "pca"):
+    if run.method in ACAP_METHODS:
         x = scaled_features(run, vertices)
         if run.method == "pca":
             xh = baselines.reconstruct(run.linear, x)
