@@ -455,7 +455,8 @@ def cmd_components_edit(args: argparse.Namespace) -> int:
     controls, targets = run.read_controls(args.controls)
     t0 = time.perf_counter()
     ed = run.editor(loaded)
-    result = ed.edit(controls, targets, steps=args.steps, stages=None if args.one_stage else ed.stages)
+    result = ed.edit(controls, targets, steps=args.steps, stages=None if args.one_stage else ed.stages,
+                     objective=args.objective)
     positions = np.asarray(result.positions)
     if not np.all(np.isfinite(positions)):
         raise ValueError("the edit did not converge to a finite mesh; try fewer or closer control points.")
@@ -464,6 +465,9 @@ def cmd_components_edit(args: argparse.Namespace) -> int:
     stages = "" if ed.stages is None or args.one_stage else f", coarse to fine over {len(ed.stages)} levels"
     print(f"edited {loaded.method} run with {controls.size} control points in {time.perf_counter() - t0:.2f} s "
           f"({int(result.steps)} steps{stages}); mean control residual {float(result.control_error):.3g}; wrote {out}")
+    if not bool(result.converged):
+        print(f"warning: the optimiser stopped at the cap of {args.steps} iterations per stage before converging; "
+              "a larger --steps may fit the controls better.", file=sys.stderr)
     return 0
 
 
@@ -855,8 +859,13 @@ def build_parser() -> argparse.ArgumentParser:
     cedit.add_argument("--controls", required=True, metavar="FILE",
                        help="JSON {\"indices\": [...], \"targets\": [[x, y, z], ...]} or lines 'index x y z'")
     cedit.add_argument("--out", "-o", required=True, metavar="MESH.obj", help="edited mesh to write")
-    cedit.add_argument("--steps", type=int, default=50, metavar="N",
-                       help="optimiser iterations at most, per stage (default 50)")
+    cedit.add_argument("--steps", type=int, default=500, metavar="N",
+                       help="optimiser iterations at most, per stage (default 500; BFGS stops once converged)")
+    cedit.add_argument("--objective", choices=("deformation", "controls"), default="deformation",
+                       help="runs on ACAP features: 'deformation' (default) holds the control vertices at their "
+                            "targets and finds the codes whose deformation fits them best (the data-driven "
+                            "deformation of seed 000's ref. [19]); 'controls' moves the decoded mesh as near the "
+                            "targets as the codes allow. Coordinate runs (pca-xyz, splocs) always do the latter.")
     cedit.add_argument("--one-stage", action="store_true",
                        help="multiscale runs: optimise every level's codes at once instead of coarse to fine "
                             "(one stage per level: level 0's codes first)")

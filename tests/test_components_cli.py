@@ -73,6 +73,13 @@ def test_train_evaluate_show(seq_dir, tmp_path, capsys, method):
                  "--out", str(tmp_path / "e.obj")]) == 0
     edited, _ = load_mesh(tmp_path / "e.obj")
     assert edited.shape == loaded.rest.shape and np.all(np.isfinite(edited))
+    if method in run.ACAP_METHODS:  # default objective "deformation": the controls are held at their targets
+        diag = np.linalg.norm(np.ptp(loaded.rest, axis=0))
+        assert np.linalg.norm(edited[idx] - target[idx], axis=1).max() < 1e-3 * diag
+        assert main(["components", "edit", str(out), "--controls", str(tmp_path / "c.json"), "--objective",
+                     "controls", "--out", str(tmp_path / "e2.obj")]) == 0
+        fitted, _ = load_mesh(tmp_path / "e2.obj")
+        assert np.all(np.isfinite(fitted)) and not np.allclose(fitted, edited)
     if method == "multiscale":  # two levels: coarse to fine by default, --one-stage edits every code at once
         assert "coarse to fine over 2 levels" in capsys.readouterr().out
         assert main(["components", "edit", str(out), "--controls", str(tmp_path / "c.json"), "--one-stage",

@@ -12,6 +12,7 @@ import pytest
 from jaxdeform import acap
 from jaxdeform.acap import Scaler
 from jaxdeform.components import edit as E
+from jaxdeform.components.edit import EditInputError
 from jaxdeform.data.synthetic import tube
 from jaxdeform.errors import JaxDeformError
 
@@ -121,6 +122,91 @@ def test_edit_recovers_in_span_weights_with_scaler(case64):
     assert float(res.control_error) < 1e-5 * diag
     assert np.linalg.norm(np.asarray(res.positions) - gt, axis=1).mean() < 1e-5 * diag
     assert 0 < int(res.steps) <= E.DEFAULT_STEPS
+    assert bool(res.converged)
+
+
+@pytest.mark.parametrize("method", ["bfgs", "lm"])
+def test_edit_cut_short_is_not_converged(case64, method):
+    # an off-span target (a bend the two components do not hold) needs more than one iteration: capped at one,
+    # the edit says it did not converge, and stages report it when any stage is cut short
+    v, f, ac, decode = case64
+    gt = bend(v, 2.5)
+    controls = np.asarray(E.furthest_point_sampling(v, 8))
+    short = E.edit(decode, jnp.zeros(2), ac, None, controls, gt[controls], steps=1, method=method)
+    assert int(short.steps) == 1 and not bool(short.converged)
+    full = E.edit(decode, jnp.zeros(2), ac, None, controls, gt[controls], method=method)
+    assert bool(full.converged) and 1 < int(full.steps) < E.DEFAULT_STEPS
+    assert float(full.objective) < float(short.objective)
+    staged = E.edit(decode, jnp.zeros(2), ac, None, controls, gt[controls], steps=1, method=method, stages=(1, 2))
+    assert not bool(staged.converged)
+    adam = E.edit(decode, jnp.zeros(2), ac, None, controls, gt[controls], steps=5, method="adam")
+    assert int(adam.steps) == 5 and not bool(adam.converged)  # a fixed number of steps: no stopping test
+
+
+def test_deformation_energy_analytic(case64):
+    v, f, ac, decode = case64
+    rest_features = decode(jnp.zeros(2))
+    rec = ac.reconstructor(None)
+    edges = np.asarray(v)[np.asarray(rec.edge_i)] - np.asarray(v)[np.asarray(rec.edge_j)]
+    weights = np.asarray(rec.sqrt_w) ** 2
+    # the rest features' gradients are the identity: zero at the rest shape and any translate of it, and
+    # s^2 sum_e w_e |q_i - q_j|^2 for the shape scaled by (1 + s)
+    assert abs(float(ac.deformation_energy(rest_features, v + SHIFT))) < 1e-20
+    expected = 0.1**2 * np.sum(weights * np.sum(edges**2, axis=1))
+    np.testing.assert_allclose(float(ac.deformation_energy(rest_features, 1.1 * v)), expected, rtol=1e-10)
+    # batched, and the plain reconstruction (refine=0) minimises it under its anchors: the refined mesh, with the
+    # same anchor, is not better
+    feats = jnp.stack([decode(jnp.asarray([0.6, 0.4])), rest_features])
+    plain, refined = ac.decode(feats, refine=0), ac.decode(feats, refine=1)
+    e_plain, e_refined = np.asarray(ac.deformation_energy(feats, plain)), np.asarray(ac.deformation_energy(feats, refined))
+    assert e_plain.shape == (2,) and np.all(e_plain <= e_refined + 1e-15) and e_plain[0] > 0
+
+
+@pytest.mark.parametrize("method, steps", [("bfgs", 500), ("adam", 300)])
+def test_deformation_objective_holds_controls_and_recovers_weights(case64, method, steps):
+    v, f, ac, decode = case64
+    w_true = np.array([0.6, 0.4])
+    gt = ground_truth(ac, decode, w_true, refine=0)
+    controls = np.asarray(E.furthest_point_sampling(v, 6))
+    diag = E.bounding_box_diagonal(v)
+    res = E.edit(decode, jnp.zeros(2), ac, None, controls, gt[controls], objective="deformation", method=method,
+                 steps=steps, learning_rate=0.02)
+    # the controls are anchors of the reconstruction (met up to the anchors' finite weight), translation included
+    assert float(res.control_error) < 1e-5 * diag
+    np.testing.assert_allclose(np.asarray(res.translation), 0.0)
+    # the shape lies in the span: the weights that made it explain the controls with (almost) no distortion
+    np.testing.assert_allclose(np.asarray(res.latent), w_true, atol=5e-3)
+    assert np.linalg.norm(np.asarray(res.positions) - gt, axis=1).mean() < 1e-3 * diag
+    assert float(res.objective) < 1e-3  # relative to the rest code's energy with the same controls
+    assert bool(res.converged) == (method == "bfgs")
+    # an off-span target: the controls are still met, where the "controls" objective can only approach them
+    far = bend(v, 2.5)
+    held = E.edit(decode, jnp.zeros(2), ac, None, controls, far[controls], objective="deformation")
+    fitted = E.edit(decode, jnp.zeros(2), ac, None, controls, far[controls])
+    assert float(held.control_error) < 1e-5 * diag < float(fitted.control_error)
+
+
+def test_deformation_objective_staged_and_bad_input(case64):
+    v, f, ac, decode = case64
+    gt = ground_truth(ac, decode, np.array([0.6, 0.4]), refine=0)
+    controls = np.asarray(E.furthest_point_sampling(v, 6))
+    staged = E.edit(decode, jnp.zeros(2), ac, None, controls, gt[controls], objective="deformation", stages=(1, 2))
+    whole = E.edit(decode, jnp.zeros(2), ac, None, controls, gt[controls], objective="deformation")
+    np.testing.assert_allclose(np.asarray(staged.latent), np.asarray(whole.latent), atol=1e-4)
+    with pytest.raises(EditInputError, match="least-squares"):
+        E.edit(decode, jnp.zeros(2), ac, None, controls, gt[controls], objective="deformation", method="lm")
+    dup = np.r_[controls, controls[:1]]
+    with pytest.raises(EditInputError, match="distinct"):
+        E.edit(decode, jnp.zeros(2), ac, None, dup, gt[dup], objective="deformation")
+    with pytest.raises(EditInputError, match="objective"):
+        E.edit(decode, jnp.zeros(2), ac, None, controls, gt[controls], objective="energy")
+
+
+def test_cli_edit_steps_default_is_the_library_cap():
+    from jaxdeform.cli import build_parser
+
+    args = build_parser().parse_args(["components", "edit", "RUN", "--controls", "c.json", "--out", "e.obj"])
+    assert args.steps == E.DEFAULT_STEPS
 
 
 def test_more_controls_do_not_increase_error(case64):

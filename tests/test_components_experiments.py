@@ -86,7 +86,14 @@ def test_fig6_test_config(tmp_path):
         assert set(per_n) == {"3", "6"}
         for v in per_n.values():
             assert 0 <= v["mean_error"] < 1 and 0 <= v["control_error"] < 1
+            assert len(v["iterations"]) == len(v["shapes"]) and 0 <= v["converged"] <= len(v["shapes"])
     assert (tmp_path / "fig6" / "fig6.png").is_file() and (tmp_path / "fig6" / "results.md").is_file()
+    # a subset of the control counts, without the one-stage ablation row
+    sub = exp.main(["fig6", "--config", "test", "--out", str(tmp_path), "--epochs", "3", "--methods", "multiscale",
+                    "--controls", "4", "--skip-one-stage"])["rows"]
+    assert set(sub) == {"tube/multiscale"} and set(sub["tube/multiscale"]) == {"4"}
+    with pytest.raises(SystemExit):
+        exp.main(["fig6", "--config", "test", "--out", str(tmp_path), "--controls", "0"])
 
 
 def test_training_benchmark_smoke(tmp_path):

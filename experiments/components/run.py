@@ -202,9 +202,19 @@ def main(argv=None) -> dict:
     parser.add_argument("--trained-only", action="store_true",
                         help="table2/table4/table5: evaluate the runs that exist and leave the others out (no training)")
     parser.add_argument("--no-figures", action="store_true", help="skip the component figures (PNGs) of the runs")
+    parser.add_argument("--controls", nargs="+", type=int, metavar="N",
+                        help="fig6: these control-point counts instead of the configuration's (5 10 20 40)")
+    parser.add_argument("--edit-objective", choices=("deformation", "controls"), default="deformation",
+                        help="fig6: how the methods on ACAP features edit (jaxdeform.components.edit): 'deformation' "
+                             "(default: the controls held, the codes minimise the deformation energy, the paper's "
+                             "data-driven deformation) or 'controls' (the decoded mesh fitted to the controls)")
+    parser.add_argument("--skip-one-stage", action="store_true",
+                        help="fig6: leave out the multiscale model's one-stage edit (the ablation row)")
     args = parser.parse_args(argv)
     if args.trained_only and args.force:
         parser.error("--trained-only evaluates existing runs; it cannot be combined with --force.")
+    if args.controls and min(args.controls) < 1:
+        parser.error("--controls takes positive control-point counts.")
     native.tune_host_allocator()
     t0 = time.perf_counter()
     if args.experiment == "fig6":

@@ -151,6 +151,20 @@ class Acap:
             self._reconstructors[key] = Reconstructor.build(self.rest, self.topo, self.frame.weights, anchors)
         return self._reconstructors[key]
 
+    def deformation_energy(self, features, positions) -> Float[Array, "..."]:
+        """The ACAP reconstruction's objective without its anchor term, per shape:
+        sum over edges of w_ij |(p_i - p_j) - (T_i + T_j)/2 (q_i - q_j)|^2, with T the deformation gradients of
+        ``features`` (..., V, 9) and p = ``positions`` (..., V, 3). Zero when the positions realise the features'
+        gradients exactly; :meth:`decode` with ``refine=0`` minimises it under its anchors. Differentiable in both.
+        """
+        rec = self.reconstructor(None)  # the edge terms are the same for every anchor set
+        features = jnp.asarray(features)
+        lead, v = features.shape[:-2], features.shape[-2]
+        target = rec.edge_targets_vm(_decode_gradients(_features_cm(features)))  # (E, 3, B)
+        p = jnp.moveaxis(jnp.asarray(positions, target.dtype).reshape(-1, v, 3), 0, -1)  # (V, 3, B)
+        diff = rec.sqrt_w.astype(target.dtype)[:, None, None] * (p[rec.edge_i] - p[rec.edge_j]) - target
+        return jnp.sum(diff**2, axis=(0, 1)).reshape(lead)
+
     def decode(self, features, *, anchors=None, targets=None, refine: int = DEFAULT_REFINE) -> Float[Array, "... v 3"]:
         """Positions (..., V, 3) from features (..., V, 9); differentiable in features and targets.
 

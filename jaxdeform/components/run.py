@@ -515,12 +515,15 @@ class Editor:
         kw.setdefault("stages", self.stages)
         if self.space == "features":
             return ed.edit(self.decode, self.latent0, self._acap(), self.run.scaler, controls, targets, **kw)
+        kw.pop("objective", None)  # coordinate models: the decoded mesh is fitted to the controls
         return ed.edit_positions(self.decode, self.latent0, controls, targets, **kw)
 
     def edit_error(self, ground_truth, n_controls: int, **kw):
         from jaxdeform.components import edit as ed
 
         kw.setdefault("stages", self.stages)
+        if self.space == "positions":
+            kw.pop("objective", None)  # coordinate models: the decoded mesh is fitted to the controls
         rest_arg = self._acap() if self.space == "features" else self.run.rest
         return ed.edit_error(self.decode, self.latent0, rest_arg, self.run.scaler, ground_truth, n_controls,
                              space=self.space, **kw)
