@@ -179,6 +179,8 @@ def test_deformation_objective_holds_controls_and_recovers_weights(case64, metho
     assert np.linalg.norm(np.asarray(res.positions) - gt, axis=1).mean() < 1e-3 * diag
     assert float(res.objective) < 1e-3  # relative to the rest code's energy with the same controls
     assert bool(res.converged) == (method == "bfgs")
+    if method != "bfgs":
+        return
     # an off-span target: the controls are still met, where the "controls" objective can only approach them
     far = bend(v, 2.5)
     held = E.edit(decode, jnp.zeros(2), ac, None, controls, far[controls], objective="deformation")
