@@ -19,7 +19,7 @@ $(STAMP): pyproject.toml
 # compiled code (tests/conftest.py) behave as in a serial run; most of the suite's time is single-threaded XLA
 # compilation, which the second core otherwise leaves idle
 test: $(STAMP)
-	$(PY) -m pytest -q -n auto --dist loadfile
+	$(PY) -m pytest -q -n auto --dist loadfile --durations=30
 
 demo: $(STAMP)
 	$(PY) -m jaxdeform.demo --out out/demo

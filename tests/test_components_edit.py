@@ -204,11 +204,20 @@ def test_deformation_objective_staged_and_bad_input(case64):
         E.edit(decode, jnp.zeros(2), ac, None, controls, gt[controls], objective="energy")
 
 
-def test_cli_edit_steps_default_is_the_library_cap():
+def test_cli_edit_defaults_follow_the_library():
+    """The CLI spells its edit defaults out (it parses before importing jax): they must stay the library's."""
     from jaxdeform.cli import build_parser
 
-    args = build_parser().parse_args(["components", "edit", "RUN", "--controls", "c.json", "--out", "e.obj"])
+    parser = build_parser()
+    args = parser.parse_args(["components", "edit", "RUN", "--controls", "c.json", "--out", "e.obj"])
     assert args.steps == E.DEFAULT_STEPS
+    assert args.objective in E.OBJECTIVES
+    for objective in E.OBJECTIVES:  # every library objective is offered; an unknown one is refused
+        assert parser.parse_args(["components", "edit", "RUN", "--controls", "c.json", "--out", "e.obj",
+                                  "--objective", objective]).objective == objective
+    with pytest.raises(SystemExit):
+        parser.parse_args(["components", "edit", "RUN", "--controls", "c.json", "--out", "e.obj",
+                           "--objective", "energy"])
 
 
 def test_more_controls_do_not_increase_error(case64):

@@ -30,6 +30,7 @@ from pathlib import Path
 
 import jaxdeform  # noqa: F401  (x64)
 from jaxdeform.components import run as crun
+from jaxdeform.components.edit import OBJECTIVES
 from jaxdeform.mesh.io import atomic_path, save_mesh
 from jaxdeform.nn import native
 
@@ -204,7 +205,7 @@ def main(argv=None) -> dict:
     parser.add_argument("--no-figures", action="store_true", help="skip the component figures (PNGs) of the runs")
     parser.add_argument("--controls", nargs="+", type=int, metavar="N",
                         help="fig6: these control-point counts instead of the configuration's (5 10 20 40)")
-    parser.add_argument("--edit-objective", choices=("deformation", "controls"), default="deformation",
+    parser.add_argument("--edit-objective", choices=OBJECTIVES, default="deformation",
                         help="fig6: how the methods on ACAP features edit (jaxdeform.components.edit): 'deformation' "
                              "(default: the controls held, the codes minimise the deformation energy, the paper's "
                              "data-driven deformation) or 'controls' (the decoded mesh fitted to the controls)")

@@ -330,22 +330,28 @@ def _bfgs(problem: _Scaled, steps, tolerance, z0):
     return sol.value, sol.stats["num_steps"], sol.result == optx.RESULTS.successful
 
 
-def _adam(model, free_translation, steps, w0, w_ref, controls, targets, regularization, learning_rate, free):
-    """``steps`` Adam steps on w itself (``learning_rate`` in latent units) under ``lax.scan``."""
+def _adam_scan(objective: Callable[[Array], Array], x0: Array, steps: int, learning_rate) -> Array:
+    """``steps`` optax Adam steps on ``objective`` from ``x0`` under ``lax.scan``."""
     opt = optax.adam(learning_rate)
+
+    def step(carry, _):
+        x, state = carry
+        updates, state = opt.update(jax.grad(objective)(x), state, x)
+        return (optax.apply_updates(x, updates), state), None
+
+    (x, _), _ = jax.lax.scan(step, (x0, opt.init(x0)), None, length=steps)
+    return x
+
+
+def _adam(model, free_translation, steps, w0, w_ref, controls, targets, regularization, learning_rate, free):
+    """``steps`` Adam steps on w itself (``learning_rate`` in latent units)."""
 
     def objective(w):
         w = w0 + free * (w - w0)
         r, _, _ = _control_residuals(model, free_translation, w, controls, targets)
         return jnp.sum(r.astype(w.dtype) ** 2) + regularization * jnp.sum((w - w_ref) ** 2)
 
-    def step(carry, _):
-        w, state = carry
-        g = jax.grad(objective)(w)
-        updates, state = opt.update(g, state, w)
-        return (optax.apply_updates(w, updates), state), None
-
-    (w, _), _ = jax.lax.scan(step, (w0, opt.init(w0)), None, length=steps)
+    w = _adam_scan(objective, w0, steps, learning_rate)
     return w0 + free * (w - w0), jnp.asarray(steps)
 
 
@@ -353,33 +359,32 @@ def _deformation_solve(model: _Model, method, steps, tolerance, w0, w_ref, targe
                        free):
     """Objective "deformation": minimise E(w) / E(latent0) + regularization |w - latent0|^2 over this stage's free
     latents (raw latent units), E the deformation energy of the mesh whose control vertices are held at the
-    targets. Returns (w, iterations, converged)."""
+    targets. Returns (w, iterations, converged, objective at w, mesh of w)."""
     e_ref = jax.lax.stop_gradient(model.deformation(w_ref, targets)[0])
     e_ref = jnp.where(e_ref > 0, e_ref, 1.0)
 
     def latent(z):
         return w0 + free * z
 
+    def objective_and_mesh(w):
+        energy, mesh = model.deformation(w, targets)
+        return energy.astype(w0.dtype) / e_ref + regularization * jnp.sum((w - w_ref) ** 2), mesh
+
     def objective(z, _=None):
-        w = latent(z)
-        return (model.deformation(w, targets)[0].astype(w0.dtype) / e_ref
-                + regularization * jnp.sum((w - w_ref) ** 2))
+        return objective_and_mesh(latent(z))[0]
 
     z0 = jnp.zeros_like(w0)
     if method == "adam":
-        opt = optax.adam(learning_rate)
-
-        def step(carry, _):
-            z, state = carry
-            updates, state = opt.update(jax.grad(objective)(z), state, z)
-            return (optax.apply_updates(z, updates), state), None
-
-        (z, _), _ = jax.lax.scan(step, (z0, opt.init(z0)), None, length=steps)
-        return latent(z), jnp.asarray(steps), jnp.asarray(False)
-    # the objective starts near 1 (it is relative to the rest code's energy): tolerances are relative ones
-    sol = optx.minimise(objective, optx.BFGS(rtol=tolerance, atol=1e-3 * tolerance), z0, max_steps=steps,
-                        throw=False)
-    return latent(sol.value), sol.stats["num_steps"], sol.result == optx.RESULTS.successful
+        z = _adam_scan(objective, z0, steps, learning_rate)
+        taken, converged = jnp.asarray(steps), jnp.asarray(False)
+    else:
+        # the objective starts near 1 (it is relative to the rest code's energy): tolerances are relative ones
+        sol = optx.minimise(objective, optx.BFGS(rtol=tolerance, atol=1e-3 * tolerance), z0, max_steps=steps,
+                            throw=False)
+        z, taken, converged = sol.value, sol.stats["num_steps"], sol.result == optx.RESULTS.successful
+    w = latent(z)
+    value, mesh = objective_and_mesh(w)
+    return w, taken, converged, value, mesh
 
 
 @functools.partial(jax.jit, static_argnames=("model", "method", "steps", "tolerance", "free_translation"))
@@ -391,12 +396,8 @@ def _edit_jit(model: _Model, w0, w_ref, controls, targets, regularization, learn
     w_ref = w_ref.astype(w0.dtype)  # the regularization's reference (latent0); w0 is this stage's start
     free = free.astype(w0.dtype)  # (K,) 1 = optimised in this stage, 0 = held at w0 (traced: stages share one compile)
     if model.objective == "deformation":
-        w, taken, converged = _deformation_solve(model, method, steps, tolerance, w0, w_ref, targets, regularization,
-                                                 learning_rate, free)
-        energy, p = model.deformation(w, targets)
-        e_ref = model.deformation(w_ref, targets)[0]
-        objective = (energy / jnp.where(e_ref > 0, e_ref, 1.0)).astype(w0.dtype) + regularization * jnp.sum(
-            (w - w_ref) ** 2)
+        w, taken, converged, objective, p = _deformation_solve(model, method, steps, tolerance, w0, w_ref, targets,
+                                                               regularization, learning_rate, free)
         r = p[controls] - targets
         return EditResult(w.astype(latent_dtype), p, jnp.zeros((3,), p.dtype), jnp.mean(jnp.linalg.norm(r, axis=-1)),
                           objective, taken, converged)

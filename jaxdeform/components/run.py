@@ -509,24 +509,27 @@ class Editor:
         a.reconstructor(None)  # built on the host now, not inside the editor's trace
         return a
 
+    def _options(self, kw: dict) -> dict:
+        kw = dict(kw)
+        kw.setdefault("stages", self.stages)
+        if self.space == "positions":
+            kw.pop("objective", None)  # coordinate models: the decoded mesh is fitted to the controls
+        return kw
+
     def edit(self, controls, targets, **kw):
         from jaxdeform.components import edit as ed
 
-        kw.setdefault("stages", self.stages)
+        kw = self._options(kw)
         if self.space == "features":
             return ed.edit(self.decode, self.latent0, self._acap(), self.run.scaler, controls, targets, **kw)
-        kw.pop("objective", None)  # coordinate models: the decoded mesh is fitted to the controls
         return ed.edit_positions(self.decode, self.latent0, controls, targets, **kw)
 
     def edit_error(self, ground_truth, n_controls: int, **kw):
         from jaxdeform.components import edit as ed
 
-        kw.setdefault("stages", self.stages)
-        if self.space == "positions":
-            kw.pop("objective", None)  # coordinate models: the decoded mesh is fitted to the controls
         rest_arg = self._acap() if self.space == "features" else self.run.rest
         return ed.edit_error(self.decode, self.latent0, rest_arg, self.run.scaler, ground_truth, n_controls,
-                             space=self.space, **kw)
+                             space=self.space, **self._options(kw))
 
 
 def editor(run: Run) -> Editor:
