@@ -6,13 +6,15 @@ For each configuration (multiscale default Kz = [10, 5]; multiscale one level; T
 the training split of ``--data`` (every 10th shape): the first call of the jitted step (``compile_s``:
 compilation plus one step) and ``--repeats`` further steps, each blocked; ms per step (= per epoch: the horse
 split of 5 shapes fits one batch) as median and min, and the projected time of the configuration's full
-training (``epochs`` x median). The JSON is written atomically. Not a test: tests/test_benchmarks_smoke.py
+training (``epochs`` x median); with ``--breakdown``, the parts of each multiscale step timed alone
+(:func:`breakdown`). The JSON is written atomically. Not a test: tests/test_benchmarks_smoke.py
 only runs it once on a tiny sequence so it cannot rot.
 """
 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import datetime as _dt
 import json
 import shlex
@@ -26,6 +28,7 @@ import numpy as np
 import jaxdeform  # noqa: F401  (x64)
 import jax
 import jax.numpy as jnp
+import optax
 from jaxdeform import acap
 from jaxdeform.components import run as crun
 from jaxdeform.components import train
@@ -59,12 +62,53 @@ def time_step(x, rings, dist, cfg: model.Config, tc: train.TrainConfig, repeats:
             "loss_finite": bool(np.isfinite(float(loss)))}
 
 
+def _median_ms(fn, args, repeats: int) -> float:
+    jax.block_until_ready(fn(*args))  # compile
+    times = []
+    for _ in range(repeats):
+        t0 = time.perf_counter()
+        jax.block_until_ready(fn(*args))
+        times.append(1e3 * (time.perf_counter() - t0))
+    return round(statistics.median(times), 2)
+
+
+def breakdown(x, rings, dist, cfg: model.Config, tc: train.TrainConfig, repeats: int) -> dict:
+    """Median ms of the parts of the step, each compiled alone with the step's compiler options: the loss
+    (forward), loss and gradient, Adam's update, the group-sparsity terms with their gradient, and level 0 alone."""
+    from jaxdeform.nn.losses import group_sparsity
+
+    params = model.init(jax.random.PRNGKey(0), x.shape[1], cfg, x.dtype)
+    opt = train.optimizer(tc)
+    opt_state = opt.init(params)
+    jit = lambda f: jax.jit(f, compiler_options=native.compiler_options())  # noqa: E731
+    loss = lambda p, c=cfg: model.forward(p, x, rings, dist, c).loss  # noqa: E731
+    grads = jit(jax.grad(loss))(params)
+
+    def adam(g, state, p):
+        updates, state = opt.update(g, state, p)
+        return optax.apply_updates(p, updates), state
+
+    def sparsity(p):
+        return sum(jnp.sum(jax.vmap(lambda c: group_sparsity(c, dist, cfg.sparsity_cutoff(level), cfg.mask))(q["C"]))
+                   for level, q in enumerate(p))
+
+    level0 = dataclasses.replace(cfg, kz=cfg.kz[:1], d=cfg.d[:1])
+    return {"forward_ms": _median_ms(jit(loss), (params,), repeats),
+            "loss_and_gradient_ms": _median_ms(jit(jax.value_and_grad(loss)), (params,), repeats),
+            "adam_ms": _median_ms(jit(adam), (grads, opt_state, params), repeats),
+            "sparsity_and_gradient_ms": _median_ms(jit(jax.value_and_grad(sparsity)), (params,), repeats),
+            "level0_loss_and_gradient_ms": _median_ms(
+                jit(jax.value_and_grad(lambda p: loss(p, level0))), (params[:1],), repeats)}
+
+
 def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--data", required=True)
     parser.add_argument("--json", required=True)
     parser.add_argument("--repeats", type=int, default=10)
     parser.add_argument("--cases", nargs="+", default=[f"{m}:{c}" for m, c in CASES], metavar="METHOD:CONFIG")
+    parser.add_argument("--breakdown", action="store_true",
+                        help="also time the parts of each multiscale step (forward, gradient, Adam, sparsity, level 0)")
     args = parser.parse_args(argv)
     native.tune_host_allocator()  # as the CLI and the experiments do
     vertices, faces = load_sequence(args.data)
@@ -84,6 +128,8 @@ def main(argv=None) -> dict:
                "blocks": [cfg.blocks(level) for level in range(cfg.levels)], "dtype": "float32",
                "device": jax.devices()[0].platform, "cpu": cpu_info()}
         rec.update(time_step(x, rings, dist, cfg, tc, args.repeats))
+        if args.breakdown and method == "multiscale":
+            rec["breakdown"] = breakdown(x, rings, dist, cfg, tc, args.repeats)
         print(json.dumps(rec), flush=True)
         records.append(rec)
     payload = {"date": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
