@@ -830,8 +830,9 @@ def build_parser() -> argparse.ArgumentParser:
                              "no-attention-separate, levels1, levels3")
     ctrain.add_argument("--epochs", type=int, metavar="N", help="override the configuration's epochs")
     ctrain.add_argument("--seed", type=int, metavar="S", help="override the training seed")
-    ctrain.add_argument("--split", choices=("every10", "half"), default="every10",
-                        help="every10: shapes 0, 10, 20, ... train (sequences, default); half: a seeded random half")
+    ctrain.add_argument("--split", choices=("every10", "half", "all"), default="every10",
+                        help="every10: shapes 0, 10, 20, ... train (sequences, default); half: a seeded random half; "
+                             "all: every shape trains and evaluate reports the whole data set as 'test'")
     ctrain.add_argument("--split-seed", type=int, default=0, metavar="S", help="seed of the 'half' split (default 0)")
     ctrain.add_argument("--scale-quantile", type=float, metavar="Q",
                         help="ACAP methods: feature scaler bounds at the Q and 1 - Q quantiles of the training "

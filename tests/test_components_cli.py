@@ -162,5 +162,18 @@ def test_split_indices():
     tr2, te2 = run.split_indices(19, "half", seed=3)
     assert len(tr2) == 10 and len(te2) == 9 and sorted(tr2.tolist() + te2.tolist()) == list(range(19))
     assert run.split_indices(19, "half", seed=3)[0].tolist() == tr2.tolist()
+    tr3, te3 = run.split_indices(7, "all")  # Table 5 as the whole data set's representation error
+    assert tr3.tolist() == te3.tolist() == list(range(7))
     with pytest.raises(ValueError, match="at least 2"):
         run.split_indices(1)
+    with pytest.raises(ValueError, match="unknown split"):
+        run.split_indices(9, "thirds")
+
+
+def test_stale_reason_compares_the_split():
+    """A run trained on one split is not reused for another (experiments' --split)."""
+    record = {"method": "pca", "split": {"mode": "every10"}, "feature_turns": "aligned",
+              "feature_scale_quantile": run.SCALE_QUANTILE}
+    assert run.stale_reason(record, "pca", "default") is None
+    assert run.stale_reason(record, "pca", "default", split="every10") is None
+    assert "every10 split, not all" in run.stale_reason(record, "pca", "default", split="all")

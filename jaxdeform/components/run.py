@@ -59,7 +59,7 @@ METHODS = ("multiscale", "tan", "pca", "pca-xyz", "splocs")
 SCALE_QUANTILE = 1e-3
 AUTOENCODERS = ("multiscale", "tan")
 ACAP_METHODS = ("multiscale", "tan", "pca")  # the methods that learn from ACAP features
-SPLITS = ("every10", "half")
+SPLITS = ("every10", "half", "all")
 
 
 class RunError(JaxDeformError):
@@ -129,14 +129,17 @@ def resolve_config(method: str, name: str, epochs: int | None = None, seed: int 
     return cfg, tc
 
 
-def stale_reason(record: dict, method: str, name: str, epochs: int | None = None) -> str | None:
+def stale_reason(record: dict, method: str, name: str, epochs: int | None = None,
+                 split: str | None = None) -> str | None:
     """Why a stored run (its run.json ``record``) is not what ``resolve_config(method, name, epochs)`` and this
     code's feature preparation would train now, or None. The epoch count is compared only when ``epochs`` is
-    given (a run trained with ``--epochs N`` is reused by a later call without it). A run written before a field
-    existed is compared with that field's default (``clip_norm``: None). Linear baselines have no training
+    given (a run trained with ``--epochs N`` is reused by a later call without it), the split only when ``split``
+    is given. A run written before a field existed is compared with that field's default (``clip_norm``: None). Linear baselines have no training
     configuration to compare."""
     if record.get("method") != method:
         return f"it is a {record.get('method')} run, not {method}"
+    if split is not None and record.get("split", {}).get("mode") != split:
+        return f"it trained on the {record.get('split', {}).get('mode')} split, not {split}"
     cfg, tc = resolve_config(method, name, epochs)
     if method in ACAP_METHODS:
         if record.get("feature_turns") != "aligned":
@@ -158,11 +161,16 @@ def stale_reason(record: dict, method: str, name: str, epochs: int | None = None
 
 
 def split_indices(n: int, mode: str = "every10", seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """(train, test) shape indices: every 10th shape (0, 10, ...) or a seeded random half."""
+    """(train, test) shape indices: every 10th shape (0, 10, ...), a seeded random half, or "all": every shape
+    trains and the "test" set is the whole data set again (the representation error of Table 5, eq. 8, read as
+    the maximum "in the whole dataset")."""
     if n < 2:
         raise ValueError(f"a components run needs at least 2 shapes, got {n}.")
     if mode == "every10":
         train_idx = np.arange(0, n, 10)
+    elif mode == "all":
+        every = np.arange(n, dtype=np.int64)
+        return every, every.copy()
     elif mode == "half":
         perm = np.random.default_rng(seed).permutation(n)
         train_idx = np.sort(perm[: (n + 1) // 2])
