@@ -43,19 +43,32 @@ from benchmarks.acap import cpu_info
 CASES = (("multiscale", "default"), ("multiscale", "levels1"), ("tan", "default"))
 
 
-def time_step(x, rings, dist, cfg: model.Config, tc: train.TrainConfig, repeats: int) -> dict:
-    params = model.init(jax.random.PRNGKey(0), x.shape[1], cfg, x.dtype)
-    opt_state = train.optimizer(tc).init(params)
-    step = train.make_step(cfg, tc, rings, dist)
-    key = jax.random.PRNGKey(1)
+def _timed(call, args, repeats: int) -> tuple[float, list[float], tuple]:
+    """Compile ``call`` on ``args`` (the first call), then time ``repeats`` more calls. Returns (compile seconds,
+    per-call ms, the last result)."""
     t0 = time.perf_counter()
-    params, opt_state, key, loss, _ = jax.block_until_ready(step(params, opt_state, key, x))
+    out = jax.block_until_ready(call(*args))
     compile_s = time.perf_counter() - t0
     times = []
     for _ in range(repeats):
         t0 = time.perf_counter()
-        params, opt_state, key, loss, _ = jax.block_until_ready(step(params, opt_state, key, x))
+        out = jax.block_until_ready(call(*args))
         times.append(1e3 * (time.perf_counter() - t0))
+    return compile_s, times, out
+
+
+def time_step(x, rings, dist, cfg: model.Config, tc: train.TrainConfig, repeats: int) -> dict:
+    params = model.init(jax.random.PRNGKey(0), x.shape[1], cfg, x.dtype)
+    opt_state = train.optimizer(tc).init(params)
+    step = train.make_step(cfg, tc, rings, dist)
+    state = [params, opt_state, jax.random.PRNGKey(1)]
+
+    def threaded(*_):  # every call continues the training from the previous call's parameters
+        out = step(*state, x)
+        state[:] = out[:3]
+        return out
+
+    compile_s, times, (_, _, _, loss, _) = _timed(threaded, (), repeats)
     med = statistics.median(times)
     return {"compile_s": round(compile_s, 3), "step_ms_median": round(med, 2), "step_ms_min": round(min(times), 2),
             "epochs": tc.epochs, "projected_training_min": round(tc.epochs * med / 6e4, 2),
@@ -63,20 +76,12 @@ def time_step(x, rings, dist, cfg: model.Config, tc: train.TrainConfig, repeats:
 
 
 def _median_ms(fn, args, repeats: int) -> float:
-    jax.block_until_ready(fn(*args))  # compile
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        jax.block_until_ready(fn(*args))
-        times.append(1e3 * (time.perf_counter() - t0))
-    return round(statistics.median(times), 2)
+    return round(statistics.median(_timed(fn, args, repeats)[1]), 2)
 
 
 def breakdown(x, rings, dist, cfg: model.Config, tc: train.TrainConfig, repeats: int) -> dict:
     """Median ms of the parts of the step, each compiled alone with the step's compiler options: the loss
     (forward), loss and gradient, Adam's update, the group-sparsity terms with their gradient, and level 0 alone."""
-    from jaxdeform.nn.losses import group_sparsity
-
     params = model.init(jax.random.PRNGKey(0), x.shape[1], cfg, x.dtype)
     opt = train.optimizer(tc)
     opt_state = opt.init(params)
@@ -89,8 +94,7 @@ def breakdown(x, rings, dist, cfg: model.Config, tc: train.TrainConfig, repeats:
         return optax.apply_updates(p, updates), state
 
     def sparsity(p):
-        return sum(jnp.sum(jax.vmap(lambda c: group_sparsity(c, dist, cfg.sparsity_cutoff(level), cfg.mask))(q["C"]))
-                   for level, q in enumerate(p))
+        return sum(jnp.sum(model.level_sparsity(q, dist, cfg, level)) for level, q in enumerate(p))
 
     level0 = dataclasses.replace(cfg, kz=cfg.kz[:1], d=cfg.d[:1])
     return {"forward_ms": _median_ms(jit(loss), (params,), repeats),

@@ -135,6 +135,11 @@ def reconstruction(params: tuple[dict, ...], x: Float[Array, "b v 9"], rings: Ri
     return sum(jnp.sum(x_hat, axis=0) for _, _, x_hat in _levels(params, x, rings, config))
 
 
+def level_sparsity(p: dict, dist: Float[Array, "v v"], config: Config, level: int) -> Float[Array, "k"]:
+    """Omega(C) (eq. 3) of every block of one level, ``p`` that level's parameters (C stacked over its blocks)."""
+    return jax.vmap(lambda c: group_sparsity(c, dist, config.sparsity_cutoff(level), config.mask))(p["C"])
+
+
 def forward(params: tuple[dict, ...], x: Float[Array, "b v 9"], rings: Rings, dist: Float[Array, "v v"],
             config: Config) -> Output:
     """Run every level on a batch of scaled features and return the reconstruction and the total loss.
@@ -146,7 +151,7 @@ def forward(params: tuple[dict, ...], x: Float[Array, "b v 9"], rings: Rings, di
     terms, latents = [], []
     for level, (p, (inputs, z, x_hat)) in enumerate(zip(params, _levels(params, x, rings, config))):
         rec_l = jax.vmap(reconstruction_loss)(inputs, x_hat)
-        sparse_l = jax.vmap(lambda c: group_sparsity(c, dist, config.sparsity_cutoff(level), config.mask))(p["C"])
+        sparse_l = level_sparsity(p, dist, config, level)
         latent_l = jax.vmap(lambda zz: latent_bound(zz, config.theta))(z)
         total = total + jnp.sum(config.lambda_recon * rec_l + config.lambda_sparse * sparse_l
                                 + config.lambda_latent * latent_l)
