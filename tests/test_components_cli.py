@@ -177,3 +177,19 @@ def test_stale_reason_compares_the_split():
     assert run.stale_reason(record, "pca", "default") is None
     assert run.stale_reason(record, "pca", "default", split="every10") is None
     assert "every10 split, not all" in run.stale_reason(record, "pca", "default", split="all")
+
+
+def test_split_all_reports_the_whole_data_set(seq_dir, tmp_path):
+    """--split all: every shape trains, and the "test" metrics are the whole data set's, hence the train ones."""
+    out = tmp_path / "run"
+    assert main(["components", "train", str(seq_dir), "--out", str(out), "--method", "pca", "--split", "all",
+                 "--quiet"]) == 0
+    rec = json.loads((out / "run.json").read_text())
+    assert rec["split"]["mode"] == "all" and rec["split"]["train"] == rec["split"]["test"] == list(range(N_FRAMES))
+    assert main(["components", "evaluate", str(out), "--data", str(seq_dir), "--json", str(tmp_path / "m.json")]) == 0
+    m = json.loads((tmp_path / "m.json").read_text())
+    assert m["test"]["shapes"] == m["train"]["shapes"] == N_FRAMES
+    for key in ("erms", "sted", "max_relative_squared_error"):
+        assert m["test"][key] == pytest.approx(m["train"][key], rel=1e-9, abs=1e-12)
+    # PCA with at least as many components as shapes spans every training feature: eq. 8 vanishes
+    assert m["test"]["max_relative_squared_error"] < 1e-8
