@@ -64,7 +64,14 @@ def _steps_seed(cfg, args: argparse.Namespace):
     return cfg if args.seed is None else replace(cfg, seed=args.seed)
 
 
-def _check_out_folder(out: Path, force: bool) -> None:
+def _check_out_folder(out: Path, force: bool, inputs: Sequence[str | os.PathLike] = ()) -> None:
+    """--out must be a folder, empty unless --force, and neither one of ``inputs`` nor a folder holding one
+    (replacing it would delete what the command reads)."""
+    target = out.resolve()
+    for p in inputs:
+        src = Path(p).resolve()
+        if src == target or target in src.parents:
+            raise ValueError(f"--out {out} would replace the input {p}; write the output elsewhere.")
     if out.exists() and not out.is_dir():
         raise FileExistsError(f"--out {out} exists and is not a folder.")
     if out.is_dir() and any(out.iterdir()) and not force:
@@ -221,7 +228,7 @@ def cmd_decode(args: argparse.Namespace) -> int:
 
     path = Path(args.features)
     out = Path(args.out)
-    _check_out_folder(out, args.force)
+    _check_out_folder(out, args.force, [path])
     features, reference, faces, weighting = _read_features(path)
     n, nv = features.shape[:2]
     if args.refine is not None and not 0 <= args.refine <= 100:
@@ -305,7 +312,7 @@ def cmd_parts_fit(args: argparse.Namespace) -> int:
 
     _check_exists(args.data)
     out = Path(args.out)
-    _check_out_folder(out, args.force)
+    _check_out_folder(out, args.force, args.data)
     if args.initial_parts < 1:
         raise ValueError(f"--initial-parts must be at least 1, got {args.initial_parts}.")
     if not args.threshold > 0:
@@ -337,7 +344,7 @@ def cmd_parts_interpolate(args: argparse.Namespace) -> int:
 
     _check_exists([args.run])
     out = Path(args.out)
-    _check_out_folder(out, args.force)
+    _check_out_folder(out, args.force, [args.run])
     if args.steps < 2:
         raise ValueError(f"--steps must be at least 2 (the two end shapes), got {args.steps}.")
     fit, vertices, faces = hierarchy.load_run(args.run)
@@ -369,7 +376,7 @@ def cmd_parts_show(args: argparse.Namespace) -> int:
 
     _check_exists([args.run])
     out = Path(args.out)
-    _check_out_folder(out, args.force)
+    _check_out_folder(out, args.force, [args.run])
     fit, vertices, faces = hierarchy.load_run(args.run)
     shape = _shape_index(args.shape, vertices.shape[0], "shape")
     error = np.sqrt(np.mean(np.sum((vertices - fit.reconstruction) ** 2, axis=-1), axis=0))  # (V,) RMS over shapes
@@ -388,9 +395,11 @@ def cmd_components_train(args: argparse.Namespace) -> int:
 
     _check_exists(args.data)
     out = Path(args.out)
-    _check_out_folder(out, args.force)
+    _check_out_folder(out, args.force, args.data)
     data = args.data if len(args.data) > 1 else args.data[0]
     run.resolve_config(args.method, args.config, args.epochs, args.seed)  # bad names fail before any work
+    if args.split_seed < 0:
+        raise ValueError(f"--split-seed must be a non-negative integer, got {args.split_seed}.")
     q = run.SCALE_QUANTILE if args.scale_quantile is None else args.scale_quantile
     check_quantile(q, "--scale-quantile")  # before any work (Scaler.fit checks it too, after encoding)
     run.load_data(data)  # fewer than 2 shapes or mixed connectivity: one sentence, nothing written
@@ -413,6 +422,8 @@ def cmd_components_evaluate(args: argparse.Namespace) -> int:
     from jaxdeform.components import run
 
     _check_exists([args.run] + list(args.data))
+    if args.json and Path(args.json).resolve().parent == Path(args.run).resolve() and Path(args.json).name in run.RUN_FILES:
+        raise ValueError(f"--json {args.json} would overwrite a file of the run; choose another name.")
     loaded = run.load(args.run)
     result = run.evaluate(loaded, args.data if len(args.data) > 1 else args.data[0])
     text = json.dumps(result, indent=2)
@@ -436,7 +447,7 @@ def cmd_components_show(args: argparse.Namespace) -> int:
 
     _check_exists([args.run])
     out = Path(args.out)
-    _check_out_folder(out, args.force)
+    _check_out_folder(out, args.force, [args.run])
     loaded = run.load(args.run)
     with _staged_folder(out) as tmp:
         info = run.show(loaded, tmp)
@@ -678,7 +689,7 @@ def cmd_cloth_train(args: argparse.Namespace) -> int:
     from jaxdeform.cloth.run import save_run, train_run
 
     out = Path(args.out)
-    _check_out_folder(out, args.force)
+    _check_out_folder(out, args.force, [args.data])
     ds = cdata.load_dataset(args.data)
     mcfg, tcfg = _cloth_configs(args)
     run = train_run(ds, representation=args.representation, model_cfg=mcfg, train_cfg=tcfg, progress=not args.quiet,
@@ -697,7 +708,7 @@ def cmd_cloth_synthesize(args: argparse.Namespace) -> int:
 
     run = load_run(args.run)
     out = Path(args.out)
-    _check_out_folder(out, args.force)
+    _check_out_folder(out, args.force, [args.run, args.coarse])
     src = Path(args.coarse)
     if src.is_file():
         seq, shared = cdata.read_sequence(src)

@@ -153,7 +153,70 @@ def test_edit_bad_controls(seq_dir, tmp_path, capsys):
     (tmp_path / "bad.txt").write_text("0 1 2\n")
     _one_line_error(capsys, main(["components", "edit", str(out), "--controls", str(tmp_path / "bad.txt"),
                                   "--out", str(tmp_path / "e.obj")]))
+    # not vertex numbers: a string, a JSON true (numpy would read it as 1), a float beyond int64, an empty file
+    for k, indices in enumerate((["a"], [True], [1e20])):
+        (tmp_path / f"bad{k}.json").write_text(json.dumps({"indices": indices, "targets": [[0, 0, 0]]}))
+        line = _one_line_error(capsys, main(["components", "edit", str(out), "--controls",
+                                             str(tmp_path / f"bad{k}.json"), "--out", str(tmp_path / "e.obj")]))
+        assert "indices" in line, line
+    (tmp_path / "empty.txt").write_text("")
+    line = _one_line_error(capsys, main(["components", "edit", str(out), "--controls", str(tmp_path / "empty.txt"),
+                                         "--out", str(tmp_path / "e.obj")]))
+    assert "M >= 1" in line
     assert not (tmp_path / "e.obj").exists()
+    # evaluate must not write its JSON over the run's own record; the run still loads afterwards
+    line = _one_line_error(capsys, main(["components", "evaluate", str(out), "--data", str(seq_dir), "--json",
+                                         str(out / "run.json")]))
+    assert "overwrite a file of the run" in line and run.load(out).method == "pca-xyz"
+    # show must not replace the run folder it reads
+    line = _one_line_error(capsys, main(["components", "show", str(out), "--out", str(out), "--force"]))
+    assert "would replace the input" in line and (out / "run.json").is_file()
+
+
+def test_train_refuses_to_replace_its_data(seq_dir, tmp_path, capsys):
+    import shutil
+
+    data = tmp_path / "data"
+    shutil.copytree(seq_dir, data)
+    for out in (data, tmp_path):  # the data folder itself, or a folder holding it, with --force
+        line = _one_line_error(capsys, main(["components", "train", str(data), "--out", str(out), "--force",
+                                             "--method", "pca", "--quiet"]))
+        assert "would replace the input" in line
+    assert len(list(data.glob("*.obj"))) == N_FRAMES
+    line = _one_line_error(capsys, main(["components", "train", str(data), "--out", str(tmp_path / "r"), "--split",
+                                         "half", "--split-seed", "-1"]))
+    assert "--split-seed" in line and not (tmp_path / "r").exists()
+
+
+def test_train_refuses_degenerate_meshes(tmp_path, capsys):
+    vertices, faces = bending_tube_sequence(n_frames=3, n_around=8, n_along=16)
+    a, b = faces[0, :2]
+    vertices[:, b] = vertices[:, a]  # the two ends of an edge coincide in every shape
+    d = tmp_path / "degenerate"
+    d.mkdir()
+    for k in range(3):
+        save_mesh(d / f"f{k}.obj", vertices[k], faces)
+    out = tmp_path / "run"
+    line = _one_line_error(capsys, main(["components", "train", str(d), "--out", str(out), "--method", "pca"]))
+    assert "zero-length edge" in line and f"vertices {a} and {b}" in line
+    assert not out.exists() and not list(tmp_path.glob(".run*"))
+    # a zero-area face with edges of positive length (three collinear corners) in the rest shape
+    flat = np.array([[[0.0, 0, 0], [1, 0, 0], [2, 0, 0], [1, 1, 0]]] * 2)
+    with pytest.raises(run.DegenerateMeshError, match="zero-area face"):
+        run.check_nondegenerate(flat, np.array([[0, 1, 3], [0, 2, 1]]), "flat")
+    run.check_nondegenerate(flat, np.array([[0, 1, 3], [1, 2, 3]]), "fine")  # no error
+
+
+def test_unreadable_run_records(seq_dir, tmp_path, capsys):
+    out = tmp_path / "run"
+    assert main(["components", "train", str(seq_dir), "--out", str(out), "--method", "pca-xyz", "--config", "test",
+                 "--quiet"]) == 0
+    capsys.readouterr()
+    for text, expected in (("", "not a readable run record"), ('{"data": "x"}', "lacks method"),
+                           ("[1, 2]", "not a components run record")):
+        (out / "run.json").write_text(text)
+        line = _one_line_error(capsys, main(["components", "evaluate", str(out), "--data", str(seq_dir)]))
+        assert expected in line and "run.json" in line, line
 
 
 def test_split_indices():

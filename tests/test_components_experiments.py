@@ -49,6 +49,22 @@ def test_experiment_runs_subset(tmp_path):
         exp.main(["table4", "--config", "test", "--out", str(tmp_path), "--trained-only", "--force"])
 
 
+def test_split_all_goes_to_its_own_folder_and_says_so(tmp_path):
+    """--split all: runs and results under OUT/table2-all (the protocol's runs, which fig6 reuses, stay), the split
+    recorded in results.json, the table not titled as generalization, and every "test" shape a training shape."""
+    result = exp.main(["table2", "--config", "test", "--out", str(tmp_path), "--methods", "pca-xyz", "--split", "all"])
+    assert result["split"] == "all" and not (tmp_path / "table2").exists()
+    row = result["rows"]["tube/pca-xyz"]
+    assert row["test"]["shapes"] == row["train"]["shapes"] == 12
+    assert json.loads((tmp_path / "table2-all" / "results.json").read_text())["split"] == "all"
+    title = (tmp_path / "table2-all" / "results.md").read_text().splitlines()[0]
+    assert "no unseen shape" in title and "generalization" not in title
+    rec = json.loads((tmp_path / "table2-all" / "tube" / "pca-xyz" / "run.json").read_text())
+    assert rec["split"]["mode"] == "all"
+    with pytest.raises(SystemExit):  # fig6 edits toward unseen shapes: no --split there
+        exp.main(["fig6", "--config", "test", "--out", str(tmp_path), "--split", "all"])
+
+
 def test_runs_of_another_configuration_are_not_reused(tmp_path):
     """A run whose run.json holds another training configuration than the named one trains now (say an older
     learning-rate decay) is left out by --trained-only and retrained otherwise; a field added since (clip_norm)

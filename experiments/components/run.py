@@ -3,8 +3,8 @@ levels) and Fig. 6 (editing error against the number of control points).
 
     python -m experiments.components.run table2|table4|table5|fig6 [--config default|test] [--data DIR]
                                           [--out OUT] [--datasets NAME ...] [--methods M ...]
-                                          [--runs CONFIG ...] [--epochs N] [--force] [--trained-only]
-                                          [--no-figures]
+                                          [--runs CONFIG ...] [--epochs N] [--split every10|half|all]
+                                          [--force] [--trained-only] [--no-figures]
 
 Every experiment trains through :mod:`jaxdeform.components.run` (the same code as ``jaxdeform components
 train``) into OUT/<experiment>/<data set>/<run>, evaluates the generalization protocol of Sec. 5.1 (every 10th
@@ -15,6 +15,10 @@ retrained); ``--force`` retrains; ``--trained-only`` trains nothing and tabulate
 exist (for example runs trained by separate invocations); ``--no-figures`` skips the component figures (a
 three-level model has 61 blocks to draw). The table names the hardware: the CPU, or the accelerator of JAX's
 default backend.
+
+``--split`` trains table2/4/5 on another split than each data set's protocol, into OUT/<experiment>-<split>;
+``--split all`` trains on every shape and reports the whole data set as "test" (Table 5 read as the
+representation error "in the whole dataset").
 
 ``--config test`` runs the same code paths in seconds: every method's "test" configuration on a small synthetic
 bending-tube sequence (written to OUT/data/tube), so CI exercises each experiment.
@@ -66,7 +70,10 @@ def train_and_evaluate(data: Path, folder: Path, method: str, config: str, split
     if force and folder.exists():
         shutil.rmtree(folder)
     if (folder / "run.json").is_file():
-        reason = crun.stale_reason(json.loads((folder / "run.json").read_text()), method, config, epochs, split)
+        try:
+            reason = crun.stale_reason(crun.read_record(folder), method, config, epochs, split)
+        except crun.RunError as exc:  # an unreadable record: retrain
+            reason = str(exc)
         if reason is not None and not train:
             print(f"   not what {method}/{config} trains now ({reason}): {folder} (left out)", flush=True)
             return None
@@ -88,6 +95,12 @@ def train_and_evaluate(data: Path, folder: Path, method: str, config: str, split
     if figures and method in crun.AUTOENCODERS and not (folder / "figures" / "components.png").is_file():
         crun.show(loaded, folder / "figures")
     return result
+
+
+def _root(args, experiment: str) -> Path:
+    """OUT/<experiment>, or OUT/<experiment>-<split> under --split: runs of another protocol never replace the
+    protocol's runs (which fig6 reuses)."""
+    return Path(args.out) / (experiment if not getattr(args, "split", None) else f"{experiment}-{args.split}")
 
 
 def _split(args, name: str) -> str:
@@ -114,7 +127,7 @@ def table2(args) -> dict:
     rows = {}
     for name, path in _datasets(args):
         for method in args.methods or TABLE2_METHODS:
-            folder = Path(args.out) / "table2" / name / method
+            folder = _root(args, "table2") / name / method
             print(f"== table 2: {name} / {method}", flush=True)
             rows[f"{name}/{method}"] = train_and_evaluate(path, folder, method, args.config,
                                                           _split(args, name), args.epochs, args.force,
@@ -127,7 +140,7 @@ def _multiscale_table(args, experiment: str, configs) -> dict:
     rows = {}
     for name, path in _datasets(args):
         for cfg in [c for c in configs if not args.runs or c in args.runs]:
-            folder = Path(args.out) / experiment / name / cfg
+            folder = _root(args, experiment) / name / cfg
             print(f"== {experiment}: {name} / {cfg}", flush=True)
             config = cfg if args.config != "test" else ("test" if cfg == "default" else f"test-{cfg}")
             rows[f"{name}/{cfg}"] = train_and_evaluate(path, folder, "multiscale", config, _split(args, name),
@@ -148,8 +161,11 @@ def _fmt(x, digits=4) -> str:
     return "-" if x is None else f"{x:.{digits}g}"
 
 
-def markdown(experiment: str, rows: dict, hardware: str) -> str:
-    lines = [f"# Seed 000, {experiment} (generalization to unseen shapes)", "", f"Hardware: {hardware}.", ""]
+def markdown(experiment: str, rows: dict, hardware: str, split: str | None = None) -> str:
+    """The results table; ``split`` as given to --split (None: each data set's protocol of Sec. 5.1)."""
+    what = {None: "generalization to unseen shapes",
+            "all": "every shape trains: 'test' is the whole data set, no unseen shape"}.get(split, f"split {split}")
+    lines = [f"# Seed 000, {experiment} ({what})", "", f"Hardware: {hardware}.", ""]
     if experiment in ("table2", "table4"):
         lines += ["| data / run | test Erms | test STED | paper Erms | paper STED | train Erms | train time (s) |",
                   "|---|---|---|---|---|---|---|"]
@@ -207,7 +223,7 @@ def main(argv=None) -> dict:
     parser.add_argument("--split", choices=crun.SPLITS,
                         help="table2/table4/table5: train every run on this split instead of the data set's protocol "
                              "(Sec. 5.1); 'all' trains on every shape and reports the whole data set as 'test' "
-                             "(Table 5 read as the representation error; use its own --out)")
+                             "(Table 5 read as the representation error); runs and results go to OUT/<experiment>-<split>")
     parser.add_argument("--force", action="store_true", help="retrain runs that exist")
     parser.add_argument("--trained-only", action="store_true",
                         help="table2/table4/table5: evaluate the runs that exist and leave the others out (no training)")
@@ -223,6 +239,8 @@ def main(argv=None) -> dict:
     args = parser.parse_args(argv)
     if args.trained_only and args.force:
         parser.error("--trained-only evaluates existing runs; it cannot be combined with --force.")
+    if args.experiment == "fig6" and args.split:
+        parser.error("fig6 edits toward unseen shapes on each data set's own split; --split is for table2/4/5.")
     if args.controls and min(args.controls) < 1:
         parser.error("--controls takes positive control-point counts.")
     native.tune_host_allocator()
@@ -234,11 +252,11 @@ def main(argv=None) -> dict:
     else:
         rows = EXPERIMENTS[args.experiment](args)
     result = {"experiment": args.experiment, "config": args.config, "hardware": hardware(),
-              "seconds": round(time.perf_counter() - t0, 1), "rows": rows}
-    out = Path(args.out) / args.experiment
+              "split": args.split or "protocol", "seconds": round(time.perf_counter() - t0, 1), "rows": rows}
+    out = _root(args, args.experiment)
     _write(out / "results.json", json.dumps(result, indent=2, default=float))
     if args.experiment != "fig6":
-        _write(out / "results.md", markdown(args.experiment, rows, hardware()))
+        _write(out / "results.md", markdown(args.experiment, rows, hardware(), args.split))
     print(f"wrote {out}/results.json" + ("" if args.experiment == "fig6" else " and results.md"))
     return result
 

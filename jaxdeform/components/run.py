@@ -15,7 +15,11 @@ Methods: ``multiscale`` (seed 000), ``tan`` (Tan et al. 2018: one level, 50 comp
 sparsity mask 0.2-0.4, loss weights 1 / 0.5 / 0.5 as in their public code, 2000 full-batch epochs), ``pca``
 (50 components on ACAP features), ``pca-xyz`` (50 on coordinates), ``splocs`` (Neumann et al. 2013 on coordinates). The split follows Sec. 5.1: every 10th shape
 trains for sequences (``split="every10"``, shapes 0, 10, 20, ...), a fixed random half for pose sets
-(``split="half"``, seeded).
+(``split="half"``, seeded); ``split="all"`` trains on every shape and evaluates the whole set as "test".
+
+Data is refused before any work (one sentence) when it holds fewer than 2 shapes, mixes connectivities, has an
+edge of zero length in any shape or a zero-area face in the rest shape; a run.json that is not a run record is
+refused by :func:`load`.
 
 The generalization protocol (:func:`evaluate`): autoencoders encode the ACAP features of a shape, decode
 them and reconstruct positions by the ACAP least squares; linear baselines project and decode. Reported per
@@ -35,6 +39,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import time
+import warnings
 from pathlib import Path
 from typing import Callable
 
@@ -44,8 +49,9 @@ import numpy as np
 
 from jaxdeform import acap, metrics
 from jaxdeform.components import baselines, model, train
-from jaxdeform.errors import JaxDeformError
+from jaxdeform.errors import DegenerateMeshError, JaxDeformError
 from jaxdeform.mesh import geodesic
+from jaxdeform.mesh.geometry import DEGENERATE_RELATIVE_AREA
 from jaxdeform.mesh.io import atomic_path, check_same_connectivity, load_sequence, read_npz_arrays
 from jaxdeform.mesh.topology import build_topology
 from jaxdeform.nn.graph_conv import rings_from_topology
@@ -187,7 +193,27 @@ def load_data(data) -> tuple[np.ndarray, np.ndarray]:
     vertices, faces = load_sequence(data)
     if vertices.shape[0] < 2:
         raise ValueError(f"a components run needs at least 2 shapes; {data} holds {vertices.shape[0]}.")
+    check_nondegenerate(vertices, faces, str(data))
     return vertices, faces
+
+
+def check_nondegenerate(vertices: np.ndarray, faces: np.ndarray, where: str) -> None:
+    """Refuse coincident edge ends in any shape (Erms and STED divide by edge lengths) and zero-area faces in the
+    rest shape, shape 0 (its geodesic distances and cotangent weights): one sentence naming the first."""
+    edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
+    lengths = np.linalg.norm(vertices[:, edges[:, 0]] - vertices[:, edges[:, 1]], axis=-1)  # (N, 3F)
+    if np.any(lengths <= 0):
+        k, e = np.argwhere(lengths <= 0)[0]
+        raise DegenerateMeshError(f"{where}: shape {k} has a zero-length edge (vertices {edges[e, 0]} and "
+                                  f"{edges[e, 1]} coincide); a components run needs every edge of positive length.")
+    rest = np.asarray(vertices[0], np.float64)
+    a, b, c = rest[faces[:, 0]], rest[faces[:, 1]], rest[faces[:, 2]]
+    cross = np.linalg.norm(np.cross(b - a, c - a), axis=-1)
+    longest = np.max(lengths[0].reshape(3, -1), axis=0) ** 2
+    bad = np.flatnonzero(cross <= DEGENERATE_RELATIVE_AREA * longest)
+    if bad.size:
+        raise DegenerateMeshError(f"{where}: the rest shape (shape 0) has {bad.size} zero-area face(s), the first "
+                                  f"face {bad[0]}; its geodesic distances need a mesh without them.")
 
 
 def fit_feature_transform(train_features: np.ndarray, scale_quantile: float = SCALE_QUANTILE,
@@ -343,11 +369,32 @@ class Run:
         return np.asarray(self.record["split"]["test"], np.int64)
 
 
+#: the files and folders of a run (the module docstring); outputs written into a run folder must not take these names
+RUN_FILES = ("run.json", "mesh.npz", "params", "history.npy", "codes.npz", "model.npz")
+#: what every run.json holds (load and evaluate read these)
+RECORD_KEYS = ("method", "n_shapes", "n_vertices", "split", "data")
+
+
+def read_record(path: Path) -> dict:
+    """run.json of the run folder ``path``, checked to be a components run's record (one sentence otherwise)."""
+    try:
+        record = json.loads((path / "run.json").read_text())
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise RunError(f"{path / 'run.json'} is not a readable run record ({exc.__class__.__name__}: it is "
+                       "empty, truncated or not JSON).") from None
+    if not isinstance(record, dict) or any(k not in record for k in RECORD_KEYS):
+        missing = [k for k in RECORD_KEYS if not isinstance(record, dict) or k not in record]
+        raise RunError(f"{path / 'run.json'} is not a components run record (it lacks {', '.join(missing)}).")
+    if record["method"] not in CONFIGS:
+        raise RunError(f"{path / 'run.json'} names an unknown method {record['method']!r}.")
+    return record
+
+
 def load(path) -> Run:
     path = Path(path)
     if not (path / "run.json").is_file() or not (path / "mesh.npz").is_file():
         raise RunError(f"{path} is not a components run (run.json and mesh.npz are missing).")
-    record = json.loads((path / "run.json").read_text())
+    record = read_record(path)
     arrays = read_npz_arrays(path / "mesh.npz")
     scaler = acap.Scaler.from_array(arrays["scaler"]) if "scaler" in arrays else None
     dtype = np.dtype(record.get("dtype", "float32"))
@@ -580,15 +627,21 @@ def read_controls(path) -> tuple[np.ndarray, np.ndarray]:
     try:
         if path.suffix.lower() == ".json":
             d = json.loads(path.read_text())
-            idx, tgt = np.asarray(d["indices"]), np.asarray(d["targets"], np.float64)
+            raw = d["indices"]
+            # JSON numbers only: true/false and strings are not vertex numbers (numpy would take true as 1)
+            if not isinstance(raw, list) or any(isinstance(i, bool) or not isinstance(i, (int, float)) for i in raw):
+                raise RunError(f"{path}: 'indices' must be a list of vertex numbers (integers).")
+            idx, tgt = np.asarray(raw, np.float64), np.asarray(d["targets"], np.float64)
         else:
-            rows = np.loadtxt(path, ndmin=2)
+            with warnings.catch_warnings():  # an empty file: numpy warns, the size check below says why
+                warnings.simplefilter("ignore")
+                rows = np.loadtxt(path, ndmin=2)
             idx, tgt = rows[:, 0], rows[:, 1:]
     except (ValueError, KeyError, TypeError, json.JSONDecodeError) as exc:
         raise RunError(f"{path}: cannot read control points ({exc}); expected JSON with 'indices' and "
                        f"'targets' or lines 'index x y z'.") from None
     if idx.ndim != 1 or idx.size == 0 or tgt.shape != (idx.size, 3):
         raise RunError(f"{path}: expected M >= 1 control indices and an (M, 3) array of targets.")
-    if not np.all(idx == np.round(idx)):
-        raise RunError(f"{path}: control indices must be integers.")
+    if not np.all(np.isfinite(idx)) or np.any(np.abs(idx) > 2**53) or not np.all(idx == np.round(idx)):
+        raise RunError(f"{path}: control indices must be integers (vertex numbers).")
     return idx.astype(np.int64), tgt
