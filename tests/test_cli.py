@@ -314,6 +314,64 @@ def test_render_bad_input(seq_dir, tmp_path, capsys):
     assert_one_line_error(capsys, rc, out)
 
 
+def test_output_files_never_replace_an_input(seq_dir, encoded, tmp_path, capsys):
+    """An output file equal to an input, added to an input folder, or in another format is refused untouched."""
+    mesh = tmp_path / "m.obj"
+    mesh.write_bytes((seq_dir / "frame1.obj").read_bytes())
+    copy = tmp_path / "f.npz"
+    copy.write_bytes(encoded.read_bytes())
+    before = {p: p.read_bytes() for p in (mesh, copy)}
+    ref = ["--reference", str(seq_dir / "frame0.obj")]
+    cases = {
+        "encode over its input": ["acap", "encode", str(copy), *ref, "--out", str(copy)],
+        "encode over its reference": ["acap", "encode", str(seq_dir), "--reference", str(mesh), "--out", str(mesh)],
+        "encode into its input folder": ["acap", "encode", str(seq_dir), *ref, "--out", str(seq_dir / "x.npz")],
+        "encode to another format": ["acap", "encode", str(seq_dir), *ref, "--out", str(tmp_path / "x.obj")],
+        "render over its mesh": ["render", str(mesh), "--out", str(mesh)],
+        "render to jpeg": ["render", str(mesh), "--out", str(tmp_path / "x.jpg")],
+    }
+    for name, argv in cases.items():
+        rc = main(argv)
+        line = assert_one_line_error(capsys, rc)
+        assert "--out" in line, (name, line)
+    assert {p: p.read_bytes() for p in (mesh, copy)} == before
+    assert not (seq_dir / "x.npz").exists() and not (tmp_path / "x.jpg").exists()
+    assert not (tmp_path / "x.obj").exists()
+
+
+def test_decode_bad_frames_and_scaled(encoded, tmp_path, capsys):
+    """No frames, or a 'scaled' array of the wrong type or width, gets one sentence naming the file."""
+    with np.load(encoded) as d:
+        data = {k: d[k] for k in d.files}
+    base = {"reference": data["reference"], "faces": data["faces"]}
+    cases = {
+        "no_frames.npz": {"features": data["features"][:0], **base},
+        "text_scaled.npz": {"scaled": data["scaled"].astype(str), "scaler": data["scaler"], **base},
+        "narrow_scaled.npz": {"scaled": data["scaled"][..., :5], "scaler": data["scaler"], **base},
+    }
+    out = tmp_path / "dec"
+    for name, arrays in cases.items():
+        np.savez(tmp_path / name, **arrays)
+        rc = main(["acap", "decode", str(tmp_path / name), "--out", str(out)])
+        assert name in assert_one_line_error(capsys, rc, out)
+
+
+def test_encode_refuses_a_sequence_without_shapes(seq_dir, tmp_path, tube, capsys):
+    _, faces = tube
+    empty = tmp_path / "none.npz"
+    np.savez(empty, vertices=np.zeros((0, NV, 3)), faces=faces)
+    out = tmp_path / "e.npz"
+    rc = main(["acap", "encode", str(empty), "--reference", str(seq_dir / "frame0.obj"), "--out", str(out)])
+    assert "no shapes" in assert_one_line_error(capsys, rc, out)
+
+
+def test_render_refuses_a_non_finite_angle(seq_dir, tmp_path, capsys):
+    out = tmp_path / "r.png"
+    rc = main(["render", str(seq_dir / "frame1.obj"), "--out", str(out), "--azimuth", "nan"])
+    line = assert_one_line_error(capsys, rc, out)
+    assert "azimuth" in line and "np.float64" not in line, line
+
+
 def test_usage_errors_exit_2(capsys):
     for argv in ([], ["acap"], ["acap", "encode", "x.obj"], ["render"], ["acap", "encode", "a.obj", "--reference",
                  "a.obj", "--out", "f.npz", "--consistency", "sometimes"]):

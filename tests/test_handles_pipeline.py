@@ -128,7 +128,8 @@ def test_cli_deform_moves_the_handle_and_show_writes_a_png(bar_files, tmp_path):
 
 
 @pytest.mark.parametrize("case", ["handle", "anchor", "field-size", "field-faces", "no-faces", "rotate-axis",
-                                  "nan-translate", "inf-rotate", "anchor-is-handle", "npy-field"])
+                                  "nan-translate", "inf-rotate", "anchor-is-handle", "npy-field", "field-count-null",
+                                  "repeated-vertex-face", "out-is-the-mesh", "out-is-the-field", "out-format"])
 def test_cli_bad_input_exits_2_with_one_sentence_and_writes_nothing(bar_files, tmp_path, capsys, case):
     from jaxdeform.cli import main
 
@@ -156,11 +157,28 @@ def test_cli_bad_input_exits_2_with_one_sentence_and_writes_nothing(bar_files, t
         mesh.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\n")
     elif case == "rotate-axis":
         args += ["--rotate", "w", "30"]
+    elif case == "field-count-null":
+        fieldmod.save_field(field, fieldmod.new_field(8, v.min(0), v.max(0), fieldmod.FieldConfig(hidden=16, layers=2)),
+                            {"n_vertices": None, "n_faces": f.shape[0], "backbone": "test"})
+    elif case == "repeated-vertex-face":
+        bad = f.copy()
+        bad[3, 1] = bad[3, 0]
+        from jaxdeform.mesh.io import save_mesh
+
+        save_mesh(mesh, v, bad)
+    elif case in ("out-is-the-mesh", "out-is-the-field", "out-format"):
+        target = {"out-is-the-mesh": mesh, "out-is-the-field": field, "out-format": tmp_path / "out.png"}[case]
+        args[args.index(str(out))] = str(target)
+    before = {p: p.read_bytes() for p in (mesh, field)}
     assert main(args) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("jaxdeform: error: ")
-    assert not out.exists()
-    if case.startswith("field-"):
+    assert not out.exists() and not (tmp_path / "out.png").exists()
+    if case.startswith("out-"):
+        assert {p: p.read_bytes() for p in (mesh, field)} == before and "--out" in err[0]
+    if case in ("field-count-null", "repeated-vertex-face"):
+        assert (field.name if case == "field-count-null" else mesh.name) in err[0]
+    if case in ("field-size", "field-faces"):
         assert "--remap" in err[0]
 
 

@@ -89,3 +89,31 @@ def test_failed_write_leaves_nothing(tmp_path):
             tmp.write_text("partial")
             raise RuntimeError("boom")
     assert list(tmp_path.iterdir()) == []
+
+
+def test_off_of_comments_only(tmp_path):
+    p = tmp_path / "c.off"
+    p.write_text("# only a comment\n# and another\n")
+    with pytest.raises(MeshFormatError, match="only comments"):
+        io.load_mesh(p)
+
+
+def test_truncated_ascii_ply(tmp_path):
+    """trimesh reads a cut ASCII body without complaint; the header's counts catch it."""
+    header = ("ply\nformat ascii 1.0\nelement vertex 4\nproperty float x\nproperty float y\nproperty float z\n"
+              "element face 2\nproperty list uchar int vertex_indices\nend_header\n")
+    body = "".join(" ".join(map(str, v)) + "\n" for v in TRI) + "".join("3 " + " ".join(map(str, f)) + "\n" for f in FACES)
+    whole, cut = tmp_path / "m.ply", tmp_path / "cut.ply"
+    whole.write_text(header + body)
+    cut.write_text(header + "".join(body.splitlines(keepends=True)[:-1]))  # the last face line dropped
+    v, f = io.load_mesh(whole)
+    np.testing.assert_array_equal(f, FACES)
+    with pytest.raises(MeshFormatError, match="truncated"):
+        io.load_mesh(cut)
+
+
+def test_sequence_npz_without_shapes(tmp_path):
+    p = tmp_path / "s.npz"
+    np.savez(p, vertices=np.zeros((0, 4, 3)), faces=FACES)
+    with pytest.raises(MeshFormatError, match="no shapes"):
+        io.load_sequence(p)

@@ -139,17 +139,20 @@ def test_cli_parts_fit_show_interpolate(tmp_path):
     assert gaps["max_gap_over_diagonal"] <= 1e-2
 
 
-@pytest.mark.parametrize("case", ["one shape", "different connectivity"])
+@pytest.mark.parametrize("case", ["one shape", "different connectivity", "more parts than vertices"])
 def test_cli_parts_fit_bad_input(tmp_path, capsys, case):
     shapes, faces, _ = _two_rigid_parts(m=3)
     data = tmp_path / "data"
     if case == "one shape":
         _write_shapes(data, shapes[:1], faces)
+    elif case == "more parts than vertices":
+        _write_shapes(data, shapes, faces)
     else:
         _write_shapes(data, shapes, faces)
         save_mesh(data / "02.obj", shapes[2], faces[::-1])  # same vertices, other triangles
     run = tmp_path / "run"
-    assert main(["parts", "fit", str(data), "--out", str(run)]) == 2
+    extra = ["--initial-parts", str(shapes.shape[1] + 1)] if case == "more parts than vertices" else []
+    assert main(["parts", "fit", str(data), "--out", str(run), *extra]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("jaxdeform: error:")
     assert not run.exists() and not any(p.name.startswith(".run") for p in tmp_path.iterdir())
@@ -170,7 +173,8 @@ def test_experiment_runs_on_a_small_config(tmp_path):
     assert (tmp_path / "out" / "results.md").read_text().startswith("| data |")
 
 
-@pytest.mark.parametrize("damage", ["truncated", "missing array"])
+@pytest.mark.parametrize("damage", ["truncated", "missing array", "float labels", "faces out of range",
+                                    "nan vertices", "summary not an object"])
 def test_cli_parts_show_on_a_damaged_run(tmp_path, capsys, damage):
     shapes, faces, _ = _two_rigid_parts(m=3)
     run = tmp_path / "run"
@@ -179,12 +183,26 @@ def test_cli_parts_show_on_a_damaged_run(tmp_path, capsys, damage):
     model = run / "model.npz"
     if damage == "truncated":
         model.write_bytes(model.read_bytes()[:200])
+    elif damage == "summary not an object":
+        (run / "summary.json").write_text("[1, 2]")
     else:
         with np.load(model) as z:
             arrays = {k: z[k] for k in z.files if k != "rot"}
+            if damage != "missing array":
+                arrays["rot"] = z["rot"]
+        if damage == "float labels":
+            arrays["labels"] = arrays["labels"].astype(float)
+        elif damage == "faces out of range":
+            arrays["faces"] = arrays["faces"].copy()
+            arrays["faces"][0, 0] = 9999
+        elif damage == "nan vertices":
+            arrays["vertices"] = arrays["vertices"].copy()
+            arrays["vertices"][1, 2, 0] = np.nan
         np.savez(model, **arrays)
     capsys.readouterr()
-    assert main(["parts", "show", str(run), "--out", str(tmp_path / "show")]) == 2
-    err = capsys.readouterr().err.strip().splitlines()
-    assert len(err) == 1 and "model.npz" in err[0]
-    assert not (tmp_path / "show").exists()
+    for argv in (["show", str(run), "--out", str(tmp_path / "show")],
+                 ["interpolate", str(run), "--source", "0", "--target", "1", "--steps", "2", "--out", str(tmp_path / "show")]):
+        assert main(["parts", *argv]) == 2
+        err = capsys.readouterr().err.strip().splitlines()
+        assert len(err) == 1 and ("summary.json" if damage.startswith("summary") else "model.npz") in err[0], err
+        assert not (tmp_path / "show").exists()

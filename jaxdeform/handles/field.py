@@ -390,5 +390,8 @@ def load_field(path: str | os.PathLike) -> tuple[FeatureField, dict]:
         field = new_field(int(meta["features"]), lo, hi, config)
     except (KeyError, ValueError, TypeError) as exc:
         raise JaxDeformError(f"{path}: not a jaxdeform feature-field file ({type(exc).__name__}: {exc}).") from None
+    for key in ("n_vertices", "n_faces"):
+        if key in meta and not (isinstance(meta[key], int) and not isinstance(meta[key], bool) and meta[key] > 0):
+            raise JaxDeformError(f"{path}: its record's '{key}' must be a positive whole number, got {meta[key]!r}.")
     load_state(path, field, arrays)
     return field, meta

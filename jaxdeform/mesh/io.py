@@ -112,6 +112,8 @@ def read_off(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
     path = Path(path)
     lines = [ln.split("#")[0].strip() for ln in _read_text(path).splitlines()]
     lines = [ln for ln in lines if ln]
+    if not lines:
+        raise MeshFormatError(f"{path}: the file holds only comments, no mesh.")
     if not lines[0].upper().startswith("OFF"):
         raise MeshFormatError(f"{path}: missing the 'OFF' header.")
     header = lines[0][3:].split() or (lines.pop(1).split() if len(lines) > 1 else [])
@@ -151,7 +153,30 @@ def read_ply(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
         faces = np.asarray(mesh.faces, dtype=np.int64).reshape(-1, 3)
     except Exception as exc:  # trimesh raises many types for corrupt files
         raise MeshFormatError(f"{path}: not a readable PLY mesh ({type(exc).__name__}).") from None
+    declared = _ply_counts(path)
+    nv, nf = declared.get("vertex"), declared.get("face")
+    # trimesh reads a truncated ASCII body without complaint; polygons may split into several triangles
+    if (nv is not None and vertices.shape[0] != nv) or (nf is not None and faces.shape[0] < nf):
+        raise MeshFormatError(f"{path}: the header declares {nv} vertices and {nf} faces but the file holds "
+                              f"{vertices.shape[0]} and {faces.shape[0]} (truncated file).")
     return _finish(path, vertices, faces)
+
+
+def _ply_counts(path: Path) -> dict[str, int]:
+    """The element counts a PLY header declares ({"vertex": N, "face": M, ...}); empty if none is readable."""
+    counts: dict[str, int] = {}
+    with open(path, "rb") as fh:
+        for _ in range(200):  # a header is a few dozen lines
+            line = fh.readline()
+            if not line or line.strip() == b"end_header":
+                break
+            parts = line.split()
+            if len(parts) == 3 and parts[0] == b"element":
+                try:
+                    counts[parts[1].decode("ascii", "replace")] = int(parts[2])
+                except ValueError:
+                    pass
+    return counts
 
 
 def load_mesh(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
@@ -230,6 +255,8 @@ def _read_npz(path: Path) -> tuple[np.ndarray, np.ndarray]:
         verts = verts[None]
     if verts.ndim != 3 or verts.shape[-1] != 3 or faces.ndim != 2 or faces.shape[1] != 3:
         raise MeshFormatError(f"{path}: 'vertices' must be (N,V,3) and 'faces' (F,3).")
+    if verts.shape[0] == 0:
+        raise MeshFormatError(f"{path}: 'vertices' holds no shapes (N = 0).")
     for k in range(verts.shape[0]):
         _finish(Path(f"{path}[{k}]"), verts[k], faces)
     return verts, faces.astype(np.int32)

@@ -115,7 +115,7 @@ def categorical_colors(n: int) -> np.ndarray:
 def _vec3(x, name: str) -> tuple[float, float, float]:
     a = np.asarray(x, dtype=np.float64).reshape(-1)
     if a.shape != (3,) or not np.all(np.isfinite(a)):
-        raise ValueError(f"camera {name} must be 3 finite numbers, got {x!r}.")
+        raise ValueError(f"camera {name} must be 3 finite numbers, got {[float(t) for t in a] if a.size <= 3 else x!r}.")
     return (float(a[0]), float(a[1]), float(a[2]))
 
 
@@ -173,6 +173,9 @@ def auto_camera(
     horizontal plane. ``margin`` > 1 leaves a little room around the sphere.
     """
     v = _check_vertices(vertices)
+    for name, value in (("azimuth", azimuth_deg), ("elevation", elevation_deg), ("field of view", fov_deg)):
+        if not math.isfinite(value):
+            raise ValueError(f"the camera's {name} must be a finite number of degrees, got {float(value)}.")
     centre = 0.5 * (v.min(axis=0) + v.max(axis=0))
     radius = float(np.sqrt(np.max(np.sum((v - centre) ** 2, axis=1))))
     if radius == 0.0:

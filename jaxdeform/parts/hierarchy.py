@@ -307,14 +307,25 @@ def load_run(path) -> tuple[PartsFit, np.ndarray, np.ndarray]:
     bad = [n for n, s in shapes.items() if a[n].shape != s or -1 in s]
     if bad or a["faces"].ndim != 2 or a["faces"].shape[1] != 3:
         raise MeshFormatError(f"{model}: inconsistent array shapes ({', '.join(bad) or 'faces'}).")
+    if a["labels"].dtype.kind not in "iu" or a["faces"].dtype.kind not in "iu":
+        raise MeshFormatError(f"{model}: labels and faces must be integer arrays, got {a['labels'].dtype} and "
+                              f"{a['faces'].dtype}.")
     if a["labels"].min() < 0 or a["labels"].max() >= k:
         raise MeshFormatError(f"{model}: labels outside the model's {k} parts.")
+    if a["faces"].size == 0 or a["faces"].min() < 0 or a["faces"].max() >= v:
+        raise MeshFormatError(f"{model}: faces index vertices outside the model's {v}.")
+    floats = [n for n in ("log_pi", "mu", "rot", "d", "sigma2", "latent", "vertices", "reconstruction")
+              if a[n].dtype.kind != "f" or not np.all(np.isfinite(a[n]))]
+    if floats:
+        raise MeshFormatError(f"{model}: {', '.join(floats)} must hold finite floats.")
     info = {}
     if (path / "summary.json").is_file():
         try:
             info = json.loads((path / "summary.json").read_text())
         except (json.JSONDecodeError, UnicodeDecodeError):
             raise MeshFormatError(f"{path / 'summary.json'}: not valid JSON.") from None
+        if not isinstance(info, dict):
+            raise MeshFormatError(f"{path / 'summary.json'}: not a parts-run summary (a JSON object).")
     p = MFA(log_pi=jnp.asarray(a["log_pi"]), mu=jnp.asarray(a["mu"]), rot=jnp.asarray(a["rot"]),
             d=jnp.asarray(a["d"]), sigma2=jnp.asarray(a["sigma2"]))
     fit_ = PartsFit(params=p, labels=a["labels"], latent=a["latent"], reconstruction=a["reconstruction"],
