@@ -75,10 +75,12 @@ def test_unknown_extension_and_missing_file(tmp_path):
         io.load_mesh(tmp_path / "missing.obj")
 
 
-def test_truncated_off(tmp_path):
+@pytest.mark.parametrize("text, match", [("OFF\n4 2 0\n0 0 0\n1 0 0\n", "truncated"),
+                                         ("# only a comment\n# and another\n", "only comments")])
+def test_bad_off(tmp_path, text, match):
     p = tmp_path / "t.off"
-    p.write_text("OFF\n4 2 0\n0 0 0\n1 0 0\n")
-    with pytest.raises(MeshFormatError, match="truncated"):
+    p.write_text(text)
+    with pytest.raises(MeshFormatError, match=match):
         io.load_mesh(p)
 
 
@@ -89,13 +91,6 @@ def test_failed_write_leaves_nothing(tmp_path):
             tmp.write_text("partial")
             raise RuntimeError("boom")
     assert list(tmp_path.iterdir()) == []
-
-
-def test_off_of_comments_only(tmp_path):
-    p = tmp_path / "c.off"
-    p.write_text("# only a comment\n# and another\n")
-    with pytest.raises(MeshFormatError, match="only comments"):
-        io.load_mesh(p)
 
 
 def test_truncated_ascii_ply(tmp_path):
