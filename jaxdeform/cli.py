@@ -82,7 +82,8 @@ def _check_out_folder(out: Path, force: bool, inputs: Sequence[str | os.PathLike
 def _check_out_file(out: Path, suffixes: Sequence[str], inputs: Sequence[str | os.PathLike], what: str,
                     option: str = "--out") -> None:
     """An output file must not be a folder, must end in one of ``suffixes`` (the format written), and must be
-    neither one of ``inputs`` nor a mesh file added to an input folder (which the command reads whole)."""
+    neither one of ``inputs``, nor a file already in an input folder, nor a mesh file added to an input folder
+    (which the command reads whole)."""
     from jaxdeform.mesh.io import SEQUENCE_SUFFIXES
 
     if out.is_dir():
@@ -96,6 +97,8 @@ def _check_out_file(out: Path, suffixes: Sequence[str], inputs: Sequence[str | o
             raise ValueError(f"{option} {out} would replace the input {p}; write the output elsewhere.")
         if src.is_dir() and target.parent == src and target.suffix.lower() in SEQUENCE_SUFFIXES:
             raise ValueError(f"{option} {out} would add a mesh file to the input folder {p}; write it elsewhere.")
+        if src.is_dir() and src in target.parents and target.exists():
+            raise ValueError(f"{option} {out} would replace a file of the input {p}; write the output elsewhere.")
 
 
 @contextlib.contextmanager
@@ -449,8 +452,8 @@ def cmd_components_evaluate(args: argparse.Namespace) -> int:
     _check_exists([args.run] + list(args.data))
     if args.json:
         _check_out_file(Path(args.json), (".json",), [args.run] + list(args.data), "metrics", "--json")
-    if args.json and Path(args.json).resolve().parent == Path(args.run).resolve() and Path(args.json).name in run.RUN_FILES:
-        raise ValueError(f"--json {args.json} would overwrite a file of the run; choose another name.")
+        if Path(args.json).resolve().parent == Path(args.run).resolve() and Path(args.json).name in run.RUN_FILES:
+            raise ValueError(f"--json {args.json} would overwrite a file of the run; choose another name.")
     loaded = run.load(args.run)
     result = run.evaluate(loaded, args.data if len(args.data) > 1 else args.data[0])
     text = json.dumps(result, indent=2)
@@ -688,6 +691,8 @@ def cmd_cloth_simulate(args: argparse.Namespace) -> int:
     _check_out_folder(out, args.force)
     if args.sequences < 2 or (args.frames is not None and args.frames < 2):
         raise ValueError(f"--sequences and --frames must be at least 2, got {args.sequences} and {args.frames}.")
+    if args.seed < 0:
+        raise ValueError(f"--seed must be a whole number >= 0, got {args.seed}.")
     with _staged_folder(out) as tmp:
         record = generate(args.scenario, tmp, n_sequences=args.sequences, n_frames=args.frames, seed=args.seed,
                           progress=not args.quiet)
@@ -706,6 +711,8 @@ def _cloth_configs(args: argparse.Namespace):
     from jaxdeform.cloth.train import TrainConfig
 
     mcfg = ModelConfig(kind=args.model, skip=args.skip)
+    if args.seed is not None and args.seed < 0:
+        raise ValueError(f"--seed must be a whole number >= 0, got {args.seed}.")
     if args.seed is not None:
         mcfg = replace(mcfg, seed=args.seed)
     tcfg = TrainConfig() if args.position_weight is None else TrainConfig(position_weight=args.position_weight)
@@ -765,13 +772,16 @@ def cmd_cloth_evaluate(args: argparse.Namespace) -> int:
 
     out = Path(args.json)
     _check_out_file(out, (".json",), [args.run, args.data], "metrics", "--json")
-    if out.resolve().parent == Path(args.run).resolve() and (Path(args.run) / out.name).exists():
-        raise ValueError(f"--json {out} would overwrite a file of the run; choose another name.")
     run = load_run(args.run)
     ds = cdata.load_dataset(args.data)
     if not np.array_equal(ds.fine_faces, run.rep.fine_faces) or not np.array_equal(ds.coarse_faces, run.rep.coarse_faces):
         raise ConnectivityError(f"{args.data}: its meshes differ from the ones the run was trained on.")
     if "split" in run.record and Path(run.record.get("dataset", "")) == Path(args.data).resolve():
+        names = {x.name for x in ds.sequences}
+        unknown = [n for part in run.record["split"].values() for n in part if n not in names]
+        if unknown:
+            raise MeshFormatError(f"{Path(args.run) / 'run.json'}: its split names sequences that {args.data} lacks "
+                                  f"({', '.join(unknown[:3])}).")
         ds.split = run.record["split"]
     res = evaluate_run(run, ds, progress=not args.quiet)
     with _writing(out), atomic_path(out) as tmp:

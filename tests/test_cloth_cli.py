@@ -90,6 +90,103 @@ def test_train_refuses_mixed_connectivity(tmp_path, capsys):
     assert not (tmp_path / "run").exists()
 
 
+def _damage_data(data, case):
+    """Rewrite the dataset folder ``data`` (3 sequences of :func:`pair`) with one defect."""
+    pairs = [pair(k) for k in range(3)]
+    index = None
+    if case == "nan pin positions":
+        pairs[1].update(fine_pins=np.array([0, 1]), fine_pin_positions=np.array([[0, 0, 0], [np.nan, 0, 0]]))
+    elif case == "nan obstacle":
+        pairs[1]["obstacles"]["sphere_r"] = np.full_like(pairs[1]["obstacles"]["sphere_r"], np.nan)
+    elif case == "missing obstacle field":
+        del pairs[1]["obstacles"]["ground"]
+    elif case == "short obstacle track":
+        pairs[1]["obstacles"]["sphere_c"] = pairs[1]["obstacles"]["sphere_c"][:2]
+    elif case == "meta not an object":
+        pairs[1]["meta"] = [1, 2]
+    elif case == "zero-area rest face":
+        f = pairs[0]["coarse_faces"][0]
+        for p in pairs:
+            p["coarse_rest"] = p["coarse_rest"].copy()
+            p["coarse_rest"][f[1]] = p["coarse_rest"][f[0]]
+    elif case in ("index a list", "sequences not names", "split not lists", "empty train part"):
+        index = {"index a list": [], "sequences not names": {"sequences": [0, 1, 2]},
+                 "split not lists": {"split": ["seq_000.npz"]}, "empty train part": {"split": {"train": [], "test": ["seq_002.npz"]}}}[case]
+    write(data, pairs)
+    if case == "text frames":
+        with np.load(data / "seq_001.npz") as z:
+            arrays = {k: z[k] for k in z.files}
+        np.savez(data / "seq_001.npz", **{**arrays, "coarse": arrays["coarse"].astype(str)})
+    if index is not None:
+        rec = json.loads((data / "dataset.json").read_text())
+        rec = index if isinstance(index, list) else {**rec, **index}
+        (data / "dataset.json").write_text(json.dumps(rec))
+
+
+@pytest.mark.parametrize("case", ["nan pin positions", "nan obstacle", "missing obstacle field", "short obstacle track",
+                                  "meta not an object", "text frames", "zero-area rest face", "index a list",
+                                  "sequences not names", "split not lists", "empty train part", "negative seed"])
+def test_train_refuses_damaged_data(tmp_path, capsys, case):
+    data = tmp_path / "data"
+    _damage_data(data, case)
+    extra = ["--seed", "-1"] if case == "negative seed" else []
+    code, _, err = run_cli(["cloth", "train", str(data), "--out", str(tmp_path / "run"), "--steps", "2", "--quiet",
+                            *extra], capsys)
+    assert code == 2 and err.count("\n") == 1 and err.startswith("jaxdeform: error: "), err
+    assert "Traceback" not in err and not (tmp_path / "run").exists()
+    assert not [p for p in tmp_path.iterdir() if p.name.startswith(".run")]
+
+
+def test_damaged_runs_and_outputs_over_inputs(tmp_path, capsys):
+    """evaluate never writes its JSON over a file of the run or the data; a damaged run record, representation or
+    split, and a coarse input with a NaN obstacle, get one sentence before any work."""
+    data = tmp_path / "data"
+    write(data, [pair(k) for k in range(3)])
+    run = tmp_path / "run"
+    assert run_cli(["cloth", "train", str(data), "--out", str(run), "--steps", "2", "--quiet"], capsys)[0] == 0
+    kept = {p: p.read_bytes() for p in (run / "run.json", data / "dataset.json")}
+    for target in kept:
+        code, _, err = run_cli(["cloth", "evaluate", str(run), "--data", str(data), "--json", str(target), "--quiet"],
+                               capsys)
+        assert code == 2 and err.count("\n") == 1 and "--json" in err, err
+    assert {p: p.read_bytes() for p in kept} == kept
+
+    def damaged(name, edit):
+        bad = tmp_path / name
+        bad.mkdir()
+        for f in run.iterdir():
+            (bad / f.name).write_bytes(f.read_bytes())
+        edit(bad)
+        return bad
+
+    def record(change):
+        def edit(bad):
+            rec = json.loads((bad / "run.json").read_text())
+            (bad / "run.json").write_text(json.dumps(change(rec)))
+        return edit
+
+    def drop_array(bad):
+        with np.load(bad / "representation.npz") as z:
+            arrays = {k: z[k] for k in z.files if k != "coarse_faces"}
+        np.savez(bad / "representation.npz", **arrays)
+
+    runs = {"a list": damaged("r1", record(lambda r: [])),
+            "thickness": damaged("r2", record(lambda r: {**r, "thickness": "thick"})),
+            "coarse_faces": damaged("r3", drop_array),
+            "seq_007": damaged("r4", record(lambda r: {**r, "split": {"train": ["seq_000.npz"], "test": ["seq_007.npz"]}}))}
+    for expected, bad in runs.items():
+        code, _, err = run_cli(["cloth", "evaluate", str(bad), "--data", str(data), "--json", str(tmp_path / "e.json"),
+                                "--quiet"], capsys)
+        assert code == 2 and err.count("\n") == 1 and (expected in err or "run record" in err), err
+    p = pair(5)
+    p["obstacles"]["sphere_r"] = np.full_like(p["obstacles"]["sphere_r"], np.nan)
+    cdata.write_sequence(tmp_path / "coarse.npz", p)
+    code, _, err = run_cli(["cloth", "synthesize", str(run), "--coarse", str(tmp_path / "coarse.npz"), "--out",
+                            str(tmp_path / "syn")], capsys)
+    assert code == 2 and "obs_sphere_r" in err and not (tmp_path / "syn").exists()
+    assert not (tmp_path / "e.json").exists()
+
+
 def test_bad_paths_are_one_sentence(tmp_path, capsys):
     code, _, err = run_cli(["cloth", "train", str(tmp_path / "nope"), "--out", str(tmp_path / "run")], capsys)
     assert code == 2 and err.count("\n") == 1 and "no such dataset folder" in err

@@ -10,6 +10,7 @@ import pytest
 from jaxdeform.cloth import data as cdata
 from jaxdeform.cloth import evaluate as ceval
 from jaxdeform.cloth import features as cfeat
+from jaxdeform.cloth import obstacles as obst
 from jaxdeform.cloth.refine import Refiner
 from jaxdeform.errors import ConnectivityError, MeshFormatError
 
@@ -34,7 +35,7 @@ def pair(t=4, n=5, seed=0, fine_frames=None):
     return {"coarse": cv[None] + 0.01 * rng.standard_normal((t, len(cv), 3)),
             "fine": fv[None] + 0.01 * rng.standard_normal((fine_frames or t, len(fv), 3)),
             "coarse_rest": cv, "fine_rest": fv, "coarse_faces": cf, "fine_faces": ff,
-            "obstacles": {"sphere_c": np.zeros((t, 1, 3)), "sphere_r": np.full((t, 1), 0.2)},
+            "obstacles": obst.to_dict(obst.static_track(obst.make(spheres=[((0, 0, 0), 0.2)]), t)),
             "meta": {"kind": "sheet", "index": seed}}
 
 

@@ -25,7 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxdeform.errors import ConnectivityError, MeshFormatError
+from jaxdeform.errors import ConnectivityError, DegenerateMeshError, MeshFormatError
+from jaxdeform.mesh.geometry import DEGENERATE_RELATIVE_AREA
 from jaxdeform.mesh.io import atomic_path, natural_key, read_npz_arrays
 
 FORMAT = "jaxdeform-cloth-dataset"
@@ -61,11 +62,20 @@ class ClothDataset:
     info: dict = field(default_factory=dict)
 
     def subset(self, part: str) -> list[Sequence]:
-        """The sequences of the split ``part`` ("train" or "test"); all of them if the split is empty."""
+        """The sequences of the split ``part`` ("train" or "test"); all of them if there is no split at all.
+
+        A split that names ``part`` with no sequence is refused (falling back to every sequence would train on
+        the test set or score the training set as test)."""
+        if not self.split:
+            return list(self.sequences)
         names = self.split.get(part)
         if not names:
-            return list(self.sequences)
+            raise MeshFormatError(f"{self.root}: its split has no {part} sequences.")
         by_name = {s.name: s for s in self.sequences}
+        unknown = [n for n in names if n not in by_name]
+        if unknown:
+            raise MeshFormatError(f"{self.root}: the split's {part} part names sequences that are not there "
+                                  f"({', '.join(unknown[:3])}).")
         return [by_name[n] for n in names]
 
 
@@ -128,24 +138,57 @@ def read_sequence(path: Path) -> tuple[Sequence, dict]:
         raise MeshFormatError(f"{path}: not a cloth sequence (missing {', '.join(missing)}).")
     coarse, fine = arrays["coarse"], arrays["fine"]
     for what, a in (("coarse", coarse), ("fine", fine)):
-        if a.ndim != 3 or a.shape[-1] != 3 or a.shape[0] == 0:
-            raise MeshFormatError(f"{path}: {what} frames must be a non-empty (T, V, 3) array, got {a.shape}.")
+        if a.ndim != 3 or a.shape[-1] != 3 or a.shape[0] == 0 or a.dtype.kind not in "iuf":
+            raise MeshFormatError(f"{path}: {what} frames must be a non-empty numeric (T, V, 3) array, got "
+                                  f"{a.dtype} {a.shape}.")
         if not np.all(np.isfinite(a)):
             raise MeshFormatError(f"{path}: {what} frames hold NaN or infinite coordinates.")
+        rest = arrays[f"{what}_rest"]
+        if rest.ndim != 2 or rest.shape[1] != 3 or rest.dtype.kind not in "iuf" or not np.all(np.isfinite(rest)):
+            raise MeshFormatError(f"{path}: its {what} rest mesh must be a finite (V, 3) array of numbers.")
+        if a.shape[1] != rest.shape[0]:
+            raise ConnectivityError(f"{path}: its {what} frames have {a.shape[1]} vertices but its {what} rest mesh "
+                                    f"has {rest.shape[0]}.")
     try:
         meta = json.loads(str(arrays["meta"]))
     except json.JSONDecodeError:
         raise MeshFormatError(f"{path}: its meta record is not valid JSON.") from None
-    obstacles = {k[4:]: v for k, v in arrays.items() if k.startswith("obs_")}
+    if not isinstance(meta, dict):
+        raise MeshFormatError(f"{path}: its meta record is not a JSON object.")
+    obstacles = _obstacle_track(path, arrays, coarse.shape[0])
     pins = {k: arrays[k] for k in PINS if k in arrays}
     for res in ("coarse", "fine"):
         if f"{res}_pins" in pins:
             idx, pos = pins[f"{res}_pins"], pins.get(f"{res}_pin_positions")
             n = (coarse if res == "coarse" else fine).shape[1]
-            if pos is None or pos.shape != (idx.size, 3) or (idx.size and (idx.min() < 0 or idx.max() >= n)):
+            if (pos is None or pos.shape != (idx.size, 3) or idx.dtype.kind not in "iu"
+                    or (idx.size and (idx.min() < 0 or idx.max() >= n))):
                 raise MeshFormatError(f"{path}: its {res} pins do not match its {res} mesh.")
+            if pos.dtype.kind not in "iuf" or not np.all(np.isfinite(pos)):
+                raise MeshFormatError(f"{path}: its {res} pin positions hold NaN, infinite or non-numeric values.")
     shared = {k: arrays[k] for k in ("coarse_rest", "fine_rest", "coarse_faces", "fine_faces")}
     return Sequence(path.name, coarse.astype(np.float32), fine.astype(np.float32), obstacles, meta, pins), shared
+
+
+def _obstacle_track(path: Path, arrays: dict, frames: int) -> dict:
+    """The obstacle track (name -> (T, ...) array) of a sequence file: none, or every field of
+    :class:`jaxdeform.cloth.obstacles.Obstacles`, numeric and finite, one entry per frame."""
+    from jaxdeform.cloth.obstacles import Obstacles
+
+    track = {k[4:]: v for k, v in arrays.items() if k.startswith("obs_")}
+    if not track:
+        return track
+    missing = [f"obs_{k}" for k in Obstacles._fields if k not in track]
+    if missing:
+        raise MeshFormatError(f"{path}: its obstacle track lacks {', '.join(missing)}.")
+    for name in Obstacles._fields:
+        a = track[name]
+        if a.ndim < 1 or a.shape[0] != frames or a.dtype.kind not in "iuf":
+            raise MeshFormatError(f"{path}: obs_{name} must hold numbers for each of the {frames} frames, got "
+                                  f"{a.dtype} {a.shape}.")
+        if not np.all(np.isfinite(a)):
+            raise MeshFormatError(f"{path}: obs_{name} holds NaN or infinite values.")
+    return track
 
 
 def _sequence_files(root: Path) -> tuple[list[Path], dict]:
@@ -155,9 +198,15 @@ def _sequence_files(root: Path) -> tuple[list[Path], dict]:
             record = json.loads(index.read_text())
         except json.JSONDecodeError:
             raise MeshFormatError(f"{index}: not valid JSON.") from None
-        if record.get("format") != FORMAT:
+        if not isinstance(record, dict) or record.get("format") != FORMAT:
             raise MeshFormatError(f"{index}: not a jaxdeform cloth dataset index.")
-        return [root / n for n in record.get("sequences", [])], record
+        names, split = record.get("sequences", []), record.get("split") or {}
+        if not (isinstance(names, list) and all(isinstance(n, str) and n for n in names)):
+            raise MeshFormatError(f"{index}: 'sequences' must be a list of file names.")
+        if not (isinstance(split, dict) and all(isinstance(v, list) and all(isinstance(n, str) for n in v)
+                                                for v in split.values())):
+            raise MeshFormatError(f"{index}: 'split' must map each part to a list of sequence names.")
+        return [root / n for n in names], record
     files = sorted(root.glob("seq_*.npz"), key=lambda p: natural_key(p.name))
     return files, {}
 
@@ -212,5 +261,13 @@ def _check_faces(path: Path, shared: dict) -> None:
         f, v = shared[f"{res}_faces"], shared[f"{res}_rest"]
         if f.ndim != 2 or f.shape[1] != 3 or f.shape[0] == 0:
             raise MeshFormatError(f"{path.name}: the {res} mesh has no triangle faces.")
-        if f.min() < 0 or f.max() >= v.shape[0]:
+        if f.dtype.kind not in "iu" or f.min() < 0 or f.max() >= v.shape[0]:
             raise ConnectivityError(f"{path.name}: the {res} faces index vertices the rest mesh does not have.")
+        p = np.asarray(v, np.float64)
+        a, b, c = p[f[:, 0]], p[f[:, 1]], p[f[:, 2]]
+        area2 = np.linalg.norm(np.cross(b - a, c - a), axis=-1)
+        longest = np.max(np.stack([np.sum((b - a) ** 2, -1), np.sum((c - b) ** 2, -1), np.sum((a - c) ** 2, -1)]), 0)
+        bad = np.flatnonzero(area2 <= DEGENERATE_RELATIVE_AREA * longest)
+        if bad.size:
+            raise DegenerateMeshError(f"{path.name}: the {res} rest mesh has {bad.size} zero-area face(s), the first "
+                                      f"face {bad[0]}; its ACAP features need a rest mesh without them.")

@@ -218,10 +218,24 @@ def load_run(root: str | Path) -> Run:
         record = json.loads(path.read_text())
     except json.JSONDecodeError:
         raise JaxDeformError(f"{path}: not valid JSON.") from None
-    if record.get("format") != RUN_FORMAT:
+    if not isinstance(record, dict) or record.get("format") != RUN_FORMAT:
         raise JaxDeformError(f"{path}: not a jaxdeform cloth run record.")
+    split = record.get("split", {})
+    if not (isinstance(split, dict) and all(isinstance(v, list) and all(isinstance(n, str) for n in v)
+                                            for v in split.values())):
+        raise JaxDeformError(f"{path}: its 'split' must map each part to a list of sequence names.")
+    thickness = record.get("thickness", 0.005)
+    if isinstance(thickness, bool) or not isinstance(thickness, (int, float)) or not 0 <= thickness < float("inf"):
+        raise JaxDeformError(f"{path}: its 'thickness' must be a finite number >= 0, got {thickness!r}.")
     model, _ = ctrain.load_model(root / "model.npz")
-    rep = cfeat.Representation.from_arrays(read_npz_arrays(root / "representation.npz"))
+    rep_path = root / "representation.npz"
+    arrays = read_npz_arrays(rep_path)
+    try:
+        rep = cfeat.Representation.from_arrays(arrays)
+    except KeyError as exc:
+        raise JaxDeformError(f"{rep_path}: not a cloth feature representation (missing {exc.args[0]}).") from None
+    except (TypeError, ValueError) as exc:
+        raise JaxDeformError(f"{rep_path}: not a cloth feature representation ({exc}).") from None
     return Run(model, rep, record, root)
 
 
