@@ -75,6 +75,9 @@ def _check_out_folder(out: Path, force: bool, inputs: Sequence[str | os.PathLike
             raise ValueError(f"--out {out} would replace the input {p}; write the output elsewhere.")
     if out.exists() and not out.is_dir():
         raise FileExistsError(f"--out {out} exists and is not a folder.")
+    blocking = next((p for p in out.parents if p.exists() and not p.is_dir()), None)
+    if blocking is not None:
+        raise NotADirectoryError(f"--out {out} cannot be created: {blocking} is a file, not a folder.")
     if out.is_dir() and any(out.iterdir()) and not force:
         raise FileExistsError(f"--out {out} exists and is not empty; use --force to replace it.")
 

@@ -365,6 +365,14 @@ def test_encode_refuses_a_sequence_without_shapes(seq_dir, tmp_path, tube, capsy
     assert "no shapes" in assert_one_line_error(capsys, rc, out)
 
 
+def test_out_folder_under_a_file(encoded, tmp_path, capsys):
+    blocker = tmp_path / "a_file"
+    blocker.write_text("keep")
+    rc = main(["acap", "decode", str(encoded), "--out", str(blocker / "sub")])
+    assert "is a file, not a folder" in assert_one_line_error(capsys, rc)
+    assert blocker.read_text() == "keep"
+
+
 def test_render_refuses_a_non_finite_angle(seq_dir, tmp_path, capsys):
     out = tmp_path / "r.png"
     rc = main(["render", str(seq_dir / "frame1.obj"), "--out", str(out), "--azimuth", "nan"])
