@@ -83,10 +83,11 @@ def _check_out_folder(out: Path, force: bool, inputs: Sequence[str | os.PathLike
 
 
 def _check_out_file(out: Path, suffixes: Sequence[str], inputs: Sequence[str | os.PathLike], what: str,
-                    option: str = "--out") -> None:
+                    option: str = "--out", protect: Sequence[str | os.PathLike] = ()) -> None:
     """An output file must not be a folder, must end in one of ``suffixes`` (the format written), and must be
     neither one of ``inputs``, nor a file already in an input folder, nor a mesh file added to an input folder
-    (which the command reads whole)."""
+    (which the command reads whole); nor one of the files in ``protect`` (a run folder's own files: other files,
+    such as earlier metrics, may be replaced there)."""
     from jaxdeform.mesh.io import SEQUENCE_SUFFIXES
 
     if out.is_dir():
@@ -102,6 +103,9 @@ def _check_out_file(out: Path, suffixes: Sequence[str], inputs: Sequence[str | o
             raise ValueError(f"{option} {out} would add a mesh file to the input folder {p}; write it elsewhere.")
         if src.is_dir() and src in target.parents and target.exists():
             raise ValueError(f"{option} {out} would replace a file of the input {p}; write the output elsewhere.")
+    for p in protect:
+        if Path(p).resolve() == target:
+            raise ValueError(f"{option} {out} would replace {p}, which the command reads; write the output elsewhere.")
 
 
 @contextlib.contextmanager
@@ -454,9 +458,8 @@ def cmd_components_evaluate(args: argparse.Namespace) -> int:
 
     _check_exists([args.run] + list(args.data))
     if args.json:
-        _check_out_file(Path(args.json), (".json",), [args.run] + list(args.data), "metrics", "--json")
-        if Path(args.json).resolve().parent == Path(args.run).resolve() and Path(args.json).name in run.RUN_FILES:
-            raise ValueError(f"--json {args.json} would overwrite a file of the run; choose another name.")
+        _check_out_file(Path(args.json), (".json",), list(args.data), "metrics", "--json",
+                        protect=[args.run] + [Path(args.run) / f for f in run.RUN_FILES])
     loaded = run.load(args.run)
     result = run.evaluate(loaded, args.data if len(args.data) > 1 else args.data[0])
     text = json.dumps(result, indent=2)
@@ -770,11 +773,12 @@ def cmd_cloth_evaluate(args: argparse.Namespace) -> int:
     import json
 
     from jaxdeform.cloth import data as cdata
-    from jaxdeform.cloth.run import evaluate_run, load_run
+    from jaxdeform.cloth.run import RUN_FILES, evaluate_run, load_run
     from jaxdeform.mesh.io import atomic_path
 
     out = Path(args.json)
-    _check_out_file(out, (".json",), [args.run, args.data], "metrics", "--json")
+    _check_out_file(out, (".json",), [args.data], "metrics", "--json",
+                    protect=[args.run] + [Path(args.run) / f for f in RUN_FILES])
     run = load_run(args.run)
     ds = cdata.load_dataset(args.data)
     if not np.array_equal(ds.fine_faces, run.rep.fine_faces) or not np.array_equal(ds.coarse_faces, run.rep.coarse_faces):

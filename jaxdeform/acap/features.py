@@ -329,7 +329,7 @@ class Scaler:
     One global min/max over all rotation entries and one over all S entries (all shapes and vertices),
     each padded by 1e-6 (the official convention). With ``quantile`` q > 0 the bounds are the q and 1 - q
     quantiles instead, and :meth:`transform` clips to them: a few badly shaped one-rings can stretch S far
-    beyond the rest (horse-gallop: S entries up to 13 where 99.9 % lie in [-0.8, 2.8]), and a global range
+    beyond the rest (horse-gallop: S entries up to 13 where 99.8 % lie in [-0.8, 2.8]), and a global range
     then leaves the ordinary deformation a narrow band of the [-0.95, 0.95] a tanh decoder can produce.
     """
 

@@ -193,6 +193,10 @@ def _thickness(ds: cdata.ClothDataset) -> float:
     return float(params.get("thickness", 0.005))
 
 
+#: the files of a run folder (what :func:`load_run` reads)
+RUN_FILES = ("model.npz", "representation.npz", "run.json")
+
+
 def save_run(run: Run, root: str | Path) -> Path:
     from jaxdeform.cloth import train as ctrain
 
