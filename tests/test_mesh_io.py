@@ -112,3 +112,9 @@ def test_sequence_npz_without_shapes(tmp_path):
     np.savez(p, vertices=np.zeros((0, 4, 3)), faces=FACES)
     with pytest.raises(MeshFormatError, match="no shapes"):
         io.load_sequence(p)
+
+
+def test_sequence_with_a_face_repeating_a_vertex_names_the_file(tmp_path):
+    io.save_mesh(tmp_path / "a.obj", TRI, np.array([[0, 1, 2], [1, 3, 3]]))
+    with pytest.raises(ConnectivityError, match="a.obj: face 1 repeats a vertex"):
+        io.load_sequence(tmp_path)

@@ -231,6 +231,10 @@ def load_sequence(paths: Sequence[str | os.PathLike] | str | os.PathLike) -> tup
             v, faces = load_mesh(path)
             verts = v[None]
         if faces_ref is None:
+            repeated = (faces[:, 0] == faces[:, 1]) | (faces[:, 1] == faces[:, 2]) | (faces[:, 0] == faces[:, 2])
+            if repeated.any():
+                raise ConnectivityError(f"{path}: face {int(np.argmax(repeated))} repeats a vertex index; faces must "
+                                        "have 3 distinct vertices.")
             faces_ref = faces
             n_ref = verts.shape[1]
         else:
