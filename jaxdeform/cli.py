@@ -784,11 +784,8 @@ def cmd_cloth_evaluate(args: argparse.Namespace) -> int:
     if not np.array_equal(ds.fine_faces, run.rep.fine_faces) or not np.array_equal(ds.coarse_faces, run.rep.coarse_faces):
         raise ConnectivityError(f"{args.data}: its meshes differ from the ones the run was trained on.")
     if "split" in run.record and Path(run.record.get("dataset", "")) == Path(args.data).resolve():
-        names = {x.name for x in ds.sequences}
-        unknown = [n for part in run.record["split"].values() for n in part if n not in names]
-        if unknown:
-            raise MeshFormatError(f"{Path(args.run) / 'run.json'}: its split names sequences that {args.data} lacks "
-                                  f"({', '.join(unknown[:3])}).")
+        cdata.check_split(run.record["split"], f"{Path(args.run) / 'run.json'} (read against {args.data})",
+                          {x.name for x in ds.sequences})
         ds.split = run.record["split"]
     res = evaluate_run(run, ds, progress=not args.quiet)
     with _writing(out), atomic_path(out) as tmp:

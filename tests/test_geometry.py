@@ -7,7 +7,7 @@ import trimesh
 
 from jaxdeform.errors import ConnectivityError
 from jaxdeform.mesh import build_topology, cot_laplacian, cotangent_weights, face_areas, vertex_normals
-from jaxdeform.mesh.geometry import corner_cotangents
+from jaxdeform.mesh.geometry import corner_cotangents, zero_area_faces
 
 
 @pytest.fixture(scope="module")
@@ -81,3 +81,11 @@ def test_degenerate_face_gives_finite_cotangents():
     assert np.all(np.isfinite(w))
     g = jax.grad(lambda x: jnp.sum(cotangent_weights(x, t)))(jnp.asarray(v))
     assert np.all(np.isfinite(np.asarray(g)))
+
+
+def test_zero_area_faces_are_the_faces_without_cotangents():
+    v = np.array([[0, 0, 0], [1, 0, 0], [0, 1, 0], [2, 0, 0], [1, 1, 0]], np.float64)
+    f = np.array([[0, 1, 2], [0, 3, 1], [1, 4, 2]])  # face 1: three collinear corners
+    np.testing.assert_array_equal(zero_area_faces(v, f), [1])
+    cot = np.asarray(corner_cotangents(jnp.asarray(v), build_topology(f, 5)))
+    np.testing.assert_array_equal(np.flatnonzero(np.all(cot == 0, axis=1)), [1])

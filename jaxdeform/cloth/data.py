@@ -26,7 +26,7 @@ from pathlib import Path
 import numpy as np
 
 from jaxdeform.errors import ConnectivityError, DegenerateMeshError, MeshFormatError
-from jaxdeform.mesh.geometry import DEGENERATE_RELATIVE_AREA
+from jaxdeform.mesh.geometry import zero_area_faces
 from jaxdeform.mesh.io import atomic_path, natural_key, read_npz_arrays
 
 FORMAT = "jaxdeform-cloth-dataset"
@@ -72,10 +72,7 @@ class ClothDataset:
         if not names:
             raise MeshFormatError(f"{self.root}: its split has no {part} sequences.")
         by_name = {s.name: s for s in self.sequences}
-        unknown = [n for n in names if n not in by_name]
-        if unknown:
-            raise MeshFormatError(f"{self.root}: the split's {part} part names sequences that are not there "
-                                  f"({', '.join(unknown[:3])}).")
+        check_split({part: names}, self.root, by_name)
         return [by_name[n] for n in names]
 
 
@@ -191,6 +188,17 @@ def _obstacle_track(path: Path, arrays: dict, frames: int) -> dict:
     return track
 
 
+def check_split(split, where, names=None) -> None:
+    """A split must map each part to a list of sequence names, and with ``names`` (the sequences there) name only
+    those; one sentence starting with ``where`` otherwise."""
+    if not (isinstance(split, dict) and all(isinstance(v, list) and all(isinstance(n, str) for n in v)
+                                            for v in split.values())):
+        raise MeshFormatError(f"{where}: 'split' must map each part to a list of sequence names.")
+    unknown = [] if names is None else [n for part in split.values() for n in part if n not in names]
+    if unknown:
+        raise MeshFormatError(f"{where}: the split names sequences that are not there ({', '.join(unknown[:3])}).")
+
+
 def _sequence_files(root: Path) -> tuple[list[Path], dict]:
     index = root / "dataset.json"
     if index.is_file():
@@ -203,9 +211,7 @@ def _sequence_files(root: Path) -> tuple[list[Path], dict]:
         names, split = record.get("sequences", []), record.get("split") or {}
         if not (isinstance(names, list) and all(isinstance(n, str) and n for n in names)):
             raise MeshFormatError(f"{index}: 'sequences' must be a list of file names.")
-        if not (isinstance(split, dict) and all(isinstance(v, list) and all(isinstance(n, str) for n in v)
-                                                for v in split.values())):
-            raise MeshFormatError(f"{index}: 'split' must map each part to a list of sequence names.")
+        check_split(split, index)
         return [root / n for n in names], record
     files = sorted(root.glob("seq_*.npz"), key=lambda p: natural_key(p.name))
     return files, {}
@@ -246,9 +252,7 @@ def load_dataset(root: str | Path) -> ClothDataset:
     shared = ref[1]
     names = [s.name for s in seqs]
     split = record.get("split") or default_split(names)
-    unknown = [n for part in split.values() for n in part if n not in names]
-    if unknown:
-        raise MeshFormatError(f"{root}: the split names sequences that are not there ({', '.join(unknown[:3])}).")
+    check_split(split, root, names)
     info = {k: v for k, v in record.items() if k not in ("format", "version", "scenario", "sequences", "split")}
     return ClothDataset(root, record.get("scenario", seqs[0].meta.get("kind", "unknown")),
                         shared["coarse_rest"].astype(np.float64), shared["coarse_faces"].astype(np.int64),
@@ -263,11 +267,7 @@ def _check_faces(path: Path, shared: dict) -> None:
             raise MeshFormatError(f"{path.name}: the {res} mesh has no triangle faces.")
         if f.dtype.kind not in "iu" or f.min() < 0 or f.max() >= v.shape[0]:
             raise ConnectivityError(f"{path.name}: the {res} faces index vertices the rest mesh does not have.")
-        p = np.asarray(v, np.float64)
-        a, b, c = p[f[:, 0]], p[f[:, 1]], p[f[:, 2]]
-        area2 = np.linalg.norm(np.cross(b - a, c - a), axis=-1)
-        longest = np.max(np.stack([np.sum((b - a) ** 2, -1), np.sum((c - b) ** 2, -1), np.sum((a - c) ** 2, -1)]), 0)
-        bad = np.flatnonzero(area2 <= DEGENERATE_RELATIVE_AREA * longest)
+        bad = zero_area_faces(v, f)
         if bad.size:
             raise DegenerateMeshError(f"{path.name}: the {res} rest mesh has {bad.size} zero-area face(s), the first "
                                       f"face {bad[0]}; its ACAP features need a rest mesh without them.")

@@ -224,10 +224,7 @@ def load_run(root: str | Path) -> Run:
         raise JaxDeformError(f"{path}: not valid JSON.") from None
     if not isinstance(record, dict) or record.get("format") != RUN_FORMAT:
         raise JaxDeformError(f"{path}: not a jaxdeform cloth run record.")
-    split = record.get("split", {})
-    if not (isinstance(split, dict) and all(isinstance(v, list) and all(isinstance(n, str) for n in v)
-                                            for v in split.values())):
-        raise JaxDeformError(f"{path}: its 'split' must map each part to a list of sequence names.")
+    cdata.check_split(record.get("split", {}), path)
     thickness = record.get("thickness", 0.005)
     if isinstance(thickness, bool) or not isinstance(thickness, (int, float)) or not 0 <= thickness < float("inf"):
         raise JaxDeformError(f"{path}: its 'thickness' must be a finite number >= 0, got {thickness!r}.")

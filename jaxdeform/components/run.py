@@ -51,7 +51,7 @@ from jaxdeform import acap, metrics
 from jaxdeform.components import baselines, model, train
 from jaxdeform.errors import DegenerateMeshError, JaxDeformError
 from jaxdeform.mesh import geodesic
-from jaxdeform.mesh.geometry import DEGENERATE_RELATIVE_AREA
+from jaxdeform.mesh.geometry import zero_area_faces
 from jaxdeform.mesh.io import atomic_path, check_same_connectivity, load_sequence, read_npz_arrays
 from jaxdeform.mesh.topology import build_topology
 from jaxdeform.nn.graph_conv import rings_from_topology
@@ -206,11 +206,7 @@ def check_nondegenerate(vertices: np.ndarray, faces: np.ndarray, where: str) -> 
         k, e = np.argwhere(lengths <= 0)[0]
         raise DegenerateMeshError(f"{where}: shape {k} has a zero-length edge (vertices {edges[e, 0]} and "
                                   f"{edges[e, 1]} coincide); a components run needs every edge of positive length.")
-    rest = np.asarray(vertices[0], np.float64)
-    a, b, c = rest[faces[:, 0]], rest[faces[:, 1]], rest[faces[:, 2]]
-    cross = np.linalg.norm(np.cross(b - a, c - a), axis=-1)
-    longest = np.max(lengths[0].reshape(3, -1), axis=0) ** 2
-    bad = np.flatnonzero(cross <= DEGENERATE_RELATIVE_AREA * longest)
+    bad = zero_area_faces(vertices[0], faces)
     if bad.size:
         raise DegenerateMeshError(f"{where}: the rest shape (shape 0) has {bad.size} zero-area face(s), the first "
                                   f"face {bad[0]}; its geodesic distances need a mesh without them.")

@@ -25,6 +25,7 @@ from dataclasses import dataclass, field as dc_field
 import numpy as np
 
 from jaxdeform.errors import DegenerateMeshError
+from jaxdeform.mesh.topology import repeated_vertex_face
 
 
 @dataclass(frozen=True)
@@ -66,10 +67,9 @@ def check_mesh(vertices, faces) -> tuple[np.ndarray, np.ndarray]:
         raise DegenerateMeshError("the mesh has no faces; DFD weights need a surface to render.")
     if not np.all(np.isfinite(v)):
         raise DegenerateMeshError("the mesh has non-finite vertex coordinates.")
-    repeated = (f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 0] == f[:, 2])
-    if repeated.any():
-        raise DegenerateMeshError(f"face {int(np.argmax(repeated))} repeats a vertex index; faces must have 3 "
-                                  "distinct vertices.")
+    bad = repeated_vertex_face(f)
+    if bad >= 0:
+        raise DegenerateMeshError(f"face {bad} repeats a vertex index; faces must have 3 distinct vertices.")
     return v, f.astype(np.int64)
 
 

@@ -33,6 +33,16 @@ def safe_normalize(x: Array, axis: int = -1) -> Array:
     return x / jnp.where(n > 0, n, 1.0)
 
 
+def zero_area_faces(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+    """Indices of the faces whose area is zero relative to their longest edge (host numpy, float64): the
+    faces :func:`corner_cotangents` gives no cotangent."""
+    p = np.asarray(vertices, np.float64)[np.asarray(faces)]
+    u = np.roll(p, -1, axis=1) - p
+    cross = np.linalg.norm(np.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0]), axis=-1)
+    longest = np.max(np.sum(u * u, axis=-1), axis=1)
+    return np.flatnonzero(cross <= DEGENERATE_RELATIVE_AREA * longest)
+
+
 def face_cross(vertices: Float[Array, "v 3"], faces) -> Float[Array, "f 3"]:
     """(p1 - p0) x (p2 - p0): normal direction with length = twice the face area."""
     p = vertices[faces]

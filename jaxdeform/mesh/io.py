@@ -231,10 +231,12 @@ def load_sequence(paths: Sequence[str | os.PathLike] | str | os.PathLike) -> tup
             v, faces = load_mesh(path)
             verts = v[None]
         if faces_ref is None:
-            repeated = (faces[:, 0] == faces[:, 1]) | (faces[:, 1] == faces[:, 2]) | (faces[:, 0] == faces[:, 2])
-            if repeated.any():
-                raise ConnectivityError(f"{path}: face {int(np.argmax(repeated))} repeats a vertex index; faces must "
-                                        "have 3 distinct vertices.")
+            from jaxdeform.mesh.topology import repeated_vertex_face  # jax-importing module: not at start-up
+
+            bad = repeated_vertex_face(faces)
+            if bad >= 0:
+                raise ConnectivityError(f"{path}: face {bad} repeats a vertex index; faces must have 3 distinct "
+                                        "vertices.")
             faces_ref = faces
             n_ref = verts.shape[1]
         else:

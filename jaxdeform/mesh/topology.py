@@ -57,6 +57,13 @@ def unique_edges(faces: np.ndarray) -> np.ndarray:
     return np.unique(np.sort(e, axis=1), axis=0)
 
 
+def repeated_vertex_face(faces: np.ndarray) -> int:
+    """Index of the first face that names one vertex twice, or -1 if every face has 3 distinct vertices."""
+    f = np.asarray(faces)
+    repeated = (f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 0] == f[:, 2])
+    return int(np.argmax(repeated)) if repeated.any() else -1
+
+
 def validate_faces(faces: np.ndarray, n_vertices: int | None = None) -> tuple[np.ndarray, int]:
     """(faces as int64, vertex count) after the checks every connectivity must pass: a non-empty (F, 3)
     integer array, indices in range, three distinct vertices per face, every vertex in some face."""
@@ -69,9 +76,9 @@ def validate_faces(faces: np.ndarray, n_vertices: int | None = None) -> tuple[np
     n = int(faces.max()) + 1 if n_vertices is None else int(n_vertices)
     if faces.min() < 0 or faces.max() >= n:
         raise ConnectivityError(f"faces index vertex {int(faces.max())} but the mesh has {n} vertices.")
-    repeated = (faces[:, 0] == faces[:, 1]) | (faces[:, 1] == faces[:, 2]) | (faces[:, 0] == faces[:, 2])
-    if repeated.any():
-        raise ConnectivityError(f"face {int(np.argmax(repeated))} repeats a vertex index; faces must have 3 distinct vertices.")
+    bad = repeated_vertex_face(faces)
+    if bad >= 0:
+        raise ConnectivityError(f"face {bad} repeats a vertex index; faces must have 3 distinct vertices.")
     used = np.zeros(n, dtype=bool)
     used[faces.ravel()] = True
     if not used.all():
