@@ -77,6 +77,10 @@ def _batch(key, data, batch: int):
 def make_step(config: model.Config, tc: TrainConfig, rings: Rings, dist, stage: int | None = None) -> Callable:
     """The jitted step (params, opt_state, key, data) -> (params, opt_state, key, loss, terms).
 
+    The step donates ``params`` and ``opt_state``: their buffers hold the outputs (Adam updates in place, and
+    one copy of the parameters and moments is alive instead of two), so the arrays passed in are invalid after
+    the call; pass each step the previous step's outputs.
+
     ``stage`` = None: joint training of every level. ``stage`` = l: separate training of level l; ``params``
     is then the prefix of levels 0..l, the levels before l are frozen (no gradient, not updated).
     """
@@ -86,7 +90,7 @@ def make_step(config: model.Config, tc: TrainConfig, rings: Rings, dist, stage: 
         out = model.forward(tuple(frozen) + (trainable,) if stage is not None else trainable, x, rings, dist, config)
         return out.loss, out.terms
 
-    @functools.partial(jax.jit, compiler_options=native.compiler_options())
+    @functools.partial(jax.jit, compiler_options=native.compiler_options(), donate_argnums=(0, 1))
     def step(params, opt_state, key, data):
         key, sub = jax.random.split(key)
         x = _batch(sub, data, tc.batch)
@@ -155,6 +159,8 @@ def train(data, rings: Rings, dist, config: model.Config, tc: TrainConfig, *, pa
     key, init_key = jax.random.split(key)
     if params is None:
         params = model.init(init_key, data.shape[1], config, dtype)
+    else:  # the step donates its parameters: the caller's arrays stay valid
+        params = jax.tree_util.tree_map(jnp.copy, params)
     params = tuple(params)
     stages = _stages(config, tc)
     history = np.zeros(len(stages) * tc.epochs, np.float32)
