@@ -362,11 +362,13 @@ def _block_losses(rings, shared: bool, kz: int):
 
 @pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
 @pytest.mark.parametrize("shared", [False, True])
-def test_native_fused_block_matches_pure_jax(dtype, shared):
+@pytest.mark.parametrize("shapes", [5, 6, 7])
+def test_native_fused_block_matches_pure_jax(dtype, shared, shapes):
     """The fused encoder and decoder calls (forward and adjoint) agree with the block built from the pure-JAX
     layers: values and the gradients of x and of every parameter (C, both convolutions), for three vmapped
     blocks with their own or shared parameters. 400 vertices: several vertex tiles of 64, a partial last
-    one, and a split over threads where the machine has two or more cores."""
+    one, and a split over threads where the machine has two or more cores. 5, 6 and 7 shapes per block: the
+    kernels sum the rings of up to 4 shapes at once, then of the 1, 2 or 3 left over."""
     from jaxdeform.nn import native
 
     if not native.available():
@@ -381,7 +383,7 @@ def test_native_fused_block_matches_pure_jax(dtype, shared):
     p["conv_dec"]["b"] = jnp.linspace(0.2, -0.4, 27, dtype=dtype).reshape(3, 9)
     if shared:
         p = jax.tree_util.tree_map(lambda a: a[1], p)
-    x = 0.5 * jax.random.normal(jax.random.PRNGKey(1), (3, 4, n * n, 9), dtype)
+    x = 0.5 * jax.random.normal(jax.random.PRNGKey(1), (3, shapes, n * n, 9), dtype)
     nat, ref = _block_losses(rings, shared, kz)
     (vn, gn), (vr, gr) = nat(p, x), ref(p, x)
     tol = 1e-11 if dtype == jnp.float64 else 1e-4
