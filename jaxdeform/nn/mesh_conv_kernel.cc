@@ -219,25 +219,30 @@ Row9<T> Mix9(const Row9<T>& init, const T* a, const Row9<T>* A, const T* b, cons
   return o[0];
 }
 
+// Ring sums over the n ring slots `ring` of one vertex in kRun planes at base + q * pstride: r[q] = sum_k a[n_k]
+// (the ring mean before its 1 / D_i), or with kAdjoint sum_k inv[n_k] a[n_k] (the adjoint of the ring mean, rings
+// being symmetric). The ring's indices are read once for all kRun planes, whose sums are independent chains.
+template <typename T, bool kAdjoint, int kRun>
+void RingSums(const T* base, int64_t pstride, const int32_t* ring, int32_t n, const T* inv, Row9<T>* r) {
+  for (int q = 0; q < kRun; ++q) r[q] = Row9<T>::Zero();
+  for (int32_t k = 0; k < n; ++k) {
+    const int64_t j = ring[k];
+    const T* src = base + j * 9;
+    if constexpr (kAdjoint) {
+      const T w = inv[j];
+      for (int q = 0; q < kRun; ++q) r[q].Fma(w, Row9<T>::Load(src + q * pstride));
+    } else {
+      for (int q = 0; q < kRun; ++q) r[q] += Row9<T>::Load(src + q * pstride);
+    }
+  }
+}
+
 // (inv[i] sum_k a[n_ik]) over the ring of vertex i of one plane of rows
 template <typename T>
 Row9<T> RingMean(const T* plane, const int32_t* nbr, const int32_t* count, const T* inv, int64_t K, int64_t i) {
-  const int32_t* ring = nbr + i * K;
-  Row9<T> r = Row9<T>::Zero();
-  for (int32_t k = 0; k < count[i]; ++k) r += Row9<T>::Load(plane + static_cast<int64_t>(ring[k]) * 9);
+  Row9<T> r;
+  RingSums<T, false, 1>(plane, 0, nbr + i * K, count[i], inv, &r);
   r.Scale(inv[i]);
-  return r;
-}
-
-// sum_k inv[n_ik] a[n_ik] over the ring of vertex i (the adjoint of the ring mean, rings being symmetric)
-template <typename T>
-Row9<T> RingAdjoint(const T* plane, const int32_t* nbr, const int32_t* count, const T* inv, int64_t K, int64_t i) {
-  const int32_t* ring = nbr + i * K;
-  Row9<T> r = Row9<T>::Zero();
-  for (int32_t k = 0; k < count[i]; ++k) {
-    const int64_t j = ring[k];
-    r.Fma(inv[j], Row9<T>::Load(plane + j * 9));
-  }
   return r;
 }
 
@@ -692,24 +697,13 @@ void ParallelVertices(int64_t V, int64_t work_per_vertex, Fn fn) {
 }
 
 // The ring means (or adjoint sums) of the vertices [i0, i0 + nt) in P planes at base + p * pstride, as rows into
-// buf + p * kVertexTile * 9. Each ring's indices are read once for a run of up to 4 planes whose sums stay in
-// registers: 4 independent chains of additions, and one loop exit (a mispredicted branch where degrees vary) per
-// vertex and run instead of per vertex and plane. On the horse rings in runs of 5 planes (the training split's
+// buf + p * kVertexTile * 9, in runs of up to 4 planes (RingSums: each ring's indices read once per run, 4
+// independent chains of additions in registers). On the horse rings in runs of 5 planes (the training split's
 // shapes), one plane at a time took 11.7-12.3 ns per vertex and plane on a 2-core EPYC, this way 8.4 ns.
 template <typename T, bool kAdjoint, int kRun>
 void RingRun(const T* base, int64_t pstride, const int32_t* ring, int32_t n, const T* inv, T scale, T* out) {
   Row9<T> r[kRun];
-  for (int q = 0; q < kRun; ++q) r[q] = Row9<T>::Zero();
-  for (int32_t k = 0; k < n; ++k) {
-    const int64_t j = ring[k];
-    const T* src = base + j * 9;
-    if constexpr (kAdjoint) {
-      const T w = inv[j];
-      for (int q = 0; q < kRun; ++q) r[q].Fma(w, Row9<T>::Load(src + q * pstride));
-    } else {
-      for (int q = 0; q < kRun; ++q) r[q] += Row9<T>::Load(src + q * pstride);
-    }
-  }
+  RingSums<T, kAdjoint, kRun>(base, pstride, ring, n, inv, r);
   for (int q = 0; q < kRun; ++q) {
     if constexpr (!kAdjoint) r[q].Scale(scale);
     r[q].Store(out + q * kVertexTile * 9);
