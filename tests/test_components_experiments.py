@@ -171,6 +171,29 @@ def test_sweep_runs_on_a_tube(tmp_path):
     for key in ("train_erms", "test_erms", "level0_train_erms", "level0_test_erms"):
         assert np.isfinite(res[key]) and res[key] >= 0
     assert len(res["inside_fraction"]) == 2 and all(0 <= f <= 1 for f in res["inside_fraction"])
+    # eq. 8 per shape, its maximum and mean; with every shape training the test keys repeat the train ones
+    assert 0 <= res["train_mean_rse"] <= res["train_max_rse"] and 0 <= res["test_mean_rse"] <= res["test_max_rse"]
+    res_all = sweep.main(["--data", str(tmp_path / "tube"), "--kz", "3,2", "--epochs", "100", "--split", "all",
+                          "--eval-every", "50", "--curve", "features", "--jsonl", str(tmp_path / "all.jsonl")])
+    assert res_all["train_shapes"] == res_all["test_shapes"] == 12 and res_all["split"] == "all"
+    assert res_all["test_max_rse"] == res_all["train_max_rse"] and res_all["test_erms"] == res_all["train_erms"]
+    assert [p["epoch"] for p in res_all["curve"]] == [50, 100]
+    assert set(res_all["curve"][0]) == {"epoch", "train_feature_mse", "train_max_rse", "train_mean_rse"}
+    assert res_all["curve"][-1]["train_max_rse"] == pytest.approx(res_all["train_max_rse"], rel=1e-5)
+    # the learning-curve table and figure of Table 5 from that line
+    from experiments.components import curves
+    rows = curves.main([f"two={tmp_path / 'all.jsonl'}", "--out", str(tmp_path / "curves")])
+    assert rows["two"]["levels"] == 2 and rows["two"]["paper_max_relative_squared_error"] == curves.PAPER[2]
+    assert [p["max_rse"] for p in rows["two"]["curve"]] == [p["train_max_rse"] for p in res_all["curve"]]
+    md = (tmp_path / "curves" / "results.md").read_text()
+    assert f"| 100 | {res_all['curve'][-1]['train_max_rse']:.4g} |" in md
+    assert json.loads((tmp_path / "curves" / "results.json").read_text())["rows"]["two"]["epochs"] == 100
+    from PIL import Image
+    assert Image.open(tmp_path / "curves" / "curves.png").size == (640, 420)
+    with pytest.raises(SystemExit, match="LABEL=FILE"):
+        curves.main([str(tmp_path / "all.jsonl"), "--out", str(tmp_path / "c2")])
+    with pytest.raises(SystemExit, match="no learning curve"):
+        curves.main([f"plain={out}", "--out", str(tmp_path / "c3")])
 
 
 def test_ceiling_on_the_tube(tmp_path):

@@ -3,16 +3,23 @@
     python -m experiments.components.sweep --data ../shared/data/horse-gallop --kz 10,5 --d 0.4,0.2 \\
         [--lambda-recon 10] [--lambda-sparse 1] [--mask step|linear] [--latent linear|tanh] [--no-attention] [--attention-gradient] \\
         [--separate] [--turns aligned|per-shape] [--scale-quantile 1e-3] [--epochs 2000] [--eval-every N] \\
-        [--lr 1e-3] [--decay-rate 0.794] [--clip-norm C] [--seed 0] [--jsonl OUT.jsonl]
+        [--curve erms|features] [--split every10|half|all] [--lr 1e-3] [--decay-rate 0.794] [--clip-norm C] \\
+        [--seed 0] [--jsonl OUT.jsonl]
 
 Unlike ``experiments.components.run`` (named configurations, run folders, STED), this trains any configuration
-in memory on the every-10th split and prints one JSON line (appended to ``--jsonl``):
+in memory on one split (every 10th shape by default) and prints one JSON line (appended to ``--jsonl``):
 
 - ``train_erms`` / ``test_erms``: Erms of the whole model (encode -> decode -> ACAP reconstruction);
 - ``level0_train_erms`` / ``level0_test_erms``: the same with AE0 alone (what the higher levels add);
 - ``train_feature_mse`` / ``test_feature_mse``: mean squared error of the scaled features;
+- ``train_max_rse`` / ``test_max_rse`` (and ``_mean_rse``): eq. (8), the relative squared error of the scaled
+  features per shape, its largest and mean value (Table 5);
 - ``inside_fraction``: per level, the median over components of the share of sum_i ||C_k,i|| that lies within
   the level's cut-off d of the component centre (1 = perfectly localized).
+
+With ``--split all`` every shape trains and "test" is the whole set again (Table 5 read as the representation
+error); the test keys then repeat the train ones and are not evaluated twice. ``--curve features`` keeps the
+learning curve to the feature metrics (no ACAP reconstruction per point: cheap enough for every 100 epochs).
 
 It is how the hyper-parameter and variant studies of issue 3's notes were measured.
 """
@@ -71,6 +78,11 @@ def main(argv=None) -> dict:
     ap.add_argument("--epochs", type=int, default=2000)
     ap.add_argument("--eval-every", type=int, metavar="N",
                     help="also evaluate train and test Erms every N epochs (the learning curve, key 'curve')")
+    ap.add_argument("--curve", choices=("erms", "features"), default="erms",
+                    help="what each point of the learning curve holds: Erms (an ACAP reconstruction of every shape) "
+                         "or only the feature metrics (eq. 8 and feature MSE)")
+    ap.add_argument("--split", choices=crun.SPLITS, default="every10",
+                    help="training shapes: every 10th (default), a seeded random half, or all of them")
     ap.add_argument("--lr", type=float, default=1e-3)
     ap.add_argument("--decay-rate", type=float, default=train.TrainConfig.decay_rate,
                     help="learning rate multiplied by this every 1,000 steps")
@@ -85,7 +97,8 @@ def main(argv=None) -> dict:
     tc = train.TrainConfig(epochs=a.epochs, learning_rate=a.lr, seed=a.seed, joint=not a.separate,
                           decay_rate=a.decay_rate, clip_norm=a.clip_norm)
     vertices, faces = crun.load_data(a.data)
-    tr, te = crun.split_indices(vertices.shape[0])
+    tr, te = crun.split_indices(vertices.shape[0], a.split)
+    same = a.split == "all"  # test is the training set again
     rest = vertices[0]
     dist = crun.normalized_geodesics(rest, faces)
     feats = np.asarray(acap.encode(rest, faces, vertices), np.float32)
@@ -93,16 +106,31 @@ def main(argv=None) -> dict:
     x = crun.apply_feature_transform(feats, turns, scaler, np.float32)
     rings = rings_from_topology(build_topology(faces, rest.shape[0]))
 
-    def evaluate(idx, p, c):
+    def features_hat(idx, p, c):
         xs = jnp.asarray(x[idx])
-        xh = jnp.concatenate([train.reconstruct(p, xs[i:i + 16], rings, c) for i in range(0, len(idx), 16)])
+        return jnp.concatenate([train.reconstruct(p, xs[i:i + 16], rings, c) for i in range(0, len(idx), 16)])
+
+    def feature_metrics(idx, xh) -> dict:
+        rse = metrics.relative_squared_error(x[idx], xh)
+        return {"feature_mse": float(np.mean((np.asarray(xh) - x[idx]) ** 2)), "max_rse": float(rse.max()),
+                "mean_rse": float(rse.mean())}
+
+    def evaluate(idx, p, c):
+        xh = features_hat(idx, p, c)
         pos = np.asarray(acap.decode(jnp.asarray(np.asarray(scaler.inverse(xh)), jnp.float64), rest, faces))
-        return metrics.erms(vertices[idx], pos), float(np.mean((np.asarray(xh) - x[idx]) ** 2))
+        return metrics.erms(vertices[idx], pos), feature_metrics(idx, xh)
 
     curve = []
 
     def snapshot(epoch, p):
-        curve.append({"epoch": epoch, "train_erms": evaluate(tr, p, cfg)[0], "test_erms": evaluate(te, p, cfg)[0]})
+        point = {"epoch": epoch}
+        for name, idx in (("train", tr),) if same else (("train", tr), ("test", te)):
+            if a.curve == "erms":
+                point[f"{name}_erms"], fm = evaluate(idx, p, cfg)
+            else:
+                fm = feature_metrics(idx, features_hat(idx, p, cfg))
+            point.update({f"{name}_{k}": v for k, v in fm.items()})
+        curve.append(point)
         print(json.dumps(curve[-1]), flush=True)
 
     t0 = time.perf_counter()
@@ -115,12 +143,17 @@ def main(argv=None) -> dict:
               "final_loss": float(history[-1]),
               # the loss per 100 epochs: last value and largest (spikes of Adam's instability show here)
               "loss_per_100": [[float(w[-1]), float(w.max())] for w in (history[i:i + 100] for i in range(0, len(history), 100))]}
-    result["train_erms"], result["train_feature_mse"] = evaluate(tr, params, cfg)
-    result["test_erms"], result["test_feature_mse"] = evaluate(te, params, cfg)
+    result["split"] = a.split
+    for name, idx in (("train", tr),) if same else (("train", tr), ("test", te)):
+        result[f"{name}_erms"], fm = evaluate(idx, params, cfg)
+        result.update({f"{name}_{k}": v for k, v in fm.items()})
     if cfg.levels > 1:
         c0 = dataclasses.replace(cfg, kz=cfg.kz[:1], d=cfg.d[:1])
-        result["level0_train_erms"] = evaluate(tr, params[:1], c0)[0]
-        result["level0_test_erms"] = evaluate(te, params[:1], c0)[0]
+        for name, idx in (("train", tr),) if same else (("train", tr), ("test", te)):
+            result[f"level0_{name}_erms"] = evaluate(idx, params[:1], c0)[0]
+    if same:
+        result.update({k.replace("train_", "test_", 1): v for k, v in list(result.items())
+                       if "train_" in k and k != "train_seconds"})
     if curve:
         result["curve"] = curve
     result["inside_fraction"] = [inside_fraction(np.asarray(p["C"]), dist, cfg.d[lvl]) for lvl, p in enumerate(params)]
