@@ -489,6 +489,55 @@ def test_tune_host_allocator_reuses_freed_buffers():
     assert out["1", "1"][1] < 50 and out["1", "1"][1] < out["1", "0"][1]
 
 
+_FIT_PROBE = """
+import sys
+import numpy as np
+from jaxdeform.nn import native
+rss = lambda: int(open("/proc/self/statm").read().split()[1]) * 4096  # noqa: E731  (resident bytes)
+before = native.fit_host_allocator(2 << 30)  # not tuned yet: nothing to fit
+tuned = native.tune_host_allocator()
+fitted = native.fit_host_allocator(native.LARGE_PROGRAM_BYTES + int(sys.argv[1]))  # + 0: at the limit
+again = native.fit_host_allocator(2 << 30) if fitted else False  # no change after a switch
+bufs = np.ones(8_000_000)  # a 64 MB buffer, written
+r0 = rss(); del bufs
+print(int(before), int(tuned), int(fitted), int(again), (r0 - rss()) // 2**20, native.host_allocator())
+"""
+
+
+@pytest.mark.skipif(platform.libc_ver()[0] != "glibc", reason="fit_host_allocator sets glibc malloc options")
+def test_fit_host_allocator_maps_large_blocks_only_for_large_programs():
+    """A program with more than LARGE_PROGRAM_BYTES of temporaries switches the tuned heap to mmap for blocks
+    above 32 MiB: a freed 64 MB buffer then leaves the resident set at once; at the limit the tuned heap stays
+    and keeps it for reuse."""
+    out = {}
+    for extra in ("0", "1"):
+        proc = subprocess.run([sys.executable, "-c", _FIT_PROBE, extra], capture_output=True, text=True,
+                              check=True, env={**os.environ, "JAXDEFORM_HOST_ALLOCATOR": "1"})
+        *flags, released_mib, state = proc.stdout.split(maxsplit=5)
+        out[extra] = (list(map(int, flags)), int(released_mib), state.strip())
+    assert out["0"][0] == [0, 1, 0, 0] and out["0"][2] == "tuned" and out["0"][1] < 8
+    assert out["1"][0] == [0, 1, 1, 0] and out["1"][2] == "large blocks by mmap" and out["1"][1] >= 60
+
+
+def test_train_reports_the_step_temporaries(tmp_path):
+    """train() compiles each stage's step ahead and records the largest XLA temporary buffer (what
+    fit_host_allocator decides on)."""
+    from jaxdeform.components import model, train
+    from jaxdeform.data.synthetic import bending_tube_sequence
+    from jaxdeform.mesh.topology import build_topology
+    from jaxdeform.nn.graph_conv import rings_from_topology
+
+    verts, faces = bending_tube_sequence(n_frames=3, n_around=6, n_along=5)
+    rings = rings_from_topology(build_topology(faces, verts.shape[1]))
+    x = jax.random.normal(jax.random.PRNGKey(0), (3, verts.shape[1], 9), jnp.float32) * 0.1
+    dist = jnp.ones((verts.shape[1], verts.shape[1]), jnp.float32) * 0.5
+    timing: dict = {}
+    cfg = model.Config(kz=(2, 2), d=(0.5, 0.3))
+    train.train(x, rings, dist, cfg, train.TrainConfig(epochs=3, joint=False), timing=timing)
+    assert 0 < timing["step_temp_bytes"] < 1_000_000  # kilobytes of temporaries for this tiny tube
+    assert timing["epochs_timed"] == 2 * 2 and timing["compile_s"] > 0
+
+
 def test_host_scalars_keeps_values_and_order():
     from jaxdeform.nn.host import host_scalars, recent_mean
 
