@@ -496,6 +496,7 @@ from jaxdeform.nn import native
 rss = lambda: int(open("/proc/self/statm").read().split()[1]) * 4096  # noqa: E731  (resident bytes)
 before = native.fit_host_allocator(2 << 30)  # not tuned yet: nothing to fit
 tuned = native.tune_host_allocator()
+assert native.fit_host_allocator(None) is False  # size unknown: the tuned heap stays
 fitted = native.fit_host_allocator(native.LARGE_PROGRAM_BYTES + int(sys.argv[1]))  # + 0: at the limit
 again = native.fit_host_allocator(2 << 30) if fitted else False  # no change after a switch
 bufs = np.ones(8_000_000)  # a 64 MB buffer, written

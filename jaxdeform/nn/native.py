@@ -149,19 +149,19 @@ def _mallopt(settings) -> bool:
         return False
 
 
-def fit_host_allocator(temp_bytes: int) -> bool:
+def fit_host_allocator(temp_bytes: int | None) -> bool:
     """After :func:`tune_host_allocator`, before running a program whose XLA temporary buffers take
     ``temp_bytes`` (``compiled.memory_analysis().temp_size_in_bytes``): above :data:`LARGE_PROGRAM_BYTES`,
     blocks above 32 MiB go to ``mmap`` again (freed blocks return to the system) for the rest of the process.
 
-    Why: with one arena and no ``mmap``, a program with gigabytes of temporaries fragments the heap. The
-    three-level seed-000 step on all 48 horse shapes (5.0 GB of temporaries) peaked at 17.3 GB resident within
+    Why: with one arena and no ``mmap``, the heap of a program with gigabytes of temporaries grows far beyond
+    them. The three-level seed-000 step on all 48 horse shapes (5.0 GB of temporaries) peaked at 17.3 GB resident within
     60 steps and was killed by the OOM killer at 24.4 GB after ~800; with large blocks on ``mmap`` it stays at
     7.6 GB (glibc's defaults: 7.5 GB), and its steps take 4.1-4.8 s against 4.0-4.3 s (2-core VM). Such steps
     fault on their large buffers either way (1.3-1.6 M page faults per step). Smaller programs keep the tuned
-    heap. Returns whether the setting changed now.
+    heap, as does a program whose size is unknown (``temp_bytes`` None). Returns whether the setting changed now.
     """
-    if _state.get("allocator") != "tuned" or temp_bytes <= LARGE_PROGRAM_BYTES:
+    if _state.get("allocator") != "tuned" or temp_bytes is None or temp_bytes <= LARGE_PROGRAM_BYTES:
         return False
     if _mallopt(((_M_MMAP_MAX, 65536), (_M_MMAP_THRESHOLD, 32 << 20))):
         _state["allocator"] = "large blocks by mmap"
