@@ -98,7 +98,8 @@ def main(argv=None) -> dict:
                           decay_rate=a.decay_rate, clip_norm=a.clip_norm)
     vertices, faces = crun.load_data(a.data)
     tr, te = crun.split_indices(vertices.shape[0], a.split)
-    same = a.split == "all"  # test is the training set again
+    same = a.split == "all"  # test is the training set again: evaluated once
+    sets = (("train", tr),) if same else (("train", tr), ("test", te))
     rest = vertices[0]
     dist = crun.normalized_geodesics(rest, faces)
     feats = np.asarray(acap.encode(rest, faces, vertices), np.float32)
@@ -124,7 +125,7 @@ def main(argv=None) -> dict:
 
     def snapshot(epoch, p):
         point = {"epoch": epoch}
-        for name, idx in (("train", tr),) if same else (("train", tr), ("test", te)):
+        for name, idx in sets:
             if a.curve == "erms":
                 point[f"{name}_erms"], fm = evaluate(idx, p, cfg)
             else:
@@ -144,12 +145,12 @@ def main(argv=None) -> dict:
               # the loss per 100 epochs: last value and largest (spikes of Adam's instability show here)
               "loss_per_100": [[float(w[-1]), float(w.max())] for w in (history[i:i + 100] for i in range(0, len(history), 100))]}
     result["split"] = a.split
-    for name, idx in (("train", tr),) if same else (("train", tr), ("test", te)):
+    for name, idx in sets:
         result[f"{name}_erms"], fm = evaluate(idx, params, cfg)
         result.update({f"{name}_{k}": v for k, v in fm.items()})
     if cfg.levels > 1:
         c0 = dataclasses.replace(cfg, kz=cfg.kz[:1], d=cfg.d[:1])
-        for name, idx in (("train", tr),) if same else (("train", tr), ("test", te)):
+        for name, idx in sets:
             result[f"level0_{name}_erms"] = evaluate(idx, params[:1], c0)[0]
     if same:
         result.update({k.replace("train_", "test_", 1): v for k, v in list(result.items())
