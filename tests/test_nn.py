@@ -549,3 +549,45 @@ def test_host_scalars_keeps_values_and_order():
     assert host_scalars([]).shape == (0,)
     assert recent_mean(xs, 2) == pytest.approx(5.125)
     assert recent_mean(xs, 10) == pytest.approx(8.75 / 4)
+
+
+_THREADS_PROBE = r"""
+import hashlib, sys
+import jax, jax.numpy as jnp, numpy as np
+from jaxdeform.mesh.topology import build_topology
+from jaxdeform.nn import native
+from jaxdeform.nn.graph_conv import ae_decode, ae_encode, init_ae_block, mesh_conv, rings_from_topology
+n = 48  # 2304 vertices: 36 tiles of 64, cut into several chunks by every kernel
+faces = np.array([[i * n + j, i * n + j + 1, (i + 1) * n + j] for i in range(n - 1) for j in range(n - 1)]
+                 + [[i * n + j + 1, (i + 1) * n + j + 1, (i + 1) * n + j] for i in range(n - 1) for j in range(n - 1)])
+rings = rings_from_topology(build_topology(faces, n * n))
+assert native.available()
+p = jax.vmap(lambda k: init_ae_block(k, n * n, 4, jnp.float32))(jax.random.split(jax.random.PRNGKey(0), 3))
+x = jax.random.uniform(jax.random.PRNGKey(1), (3, 5, n * n, 9), jnp.float32, -0.9, 0.9)
+def loss(p, x):
+    z = jax.vmap(lambda q, xx: ae_encode(q, xx, rings))(p, x)
+    xh = jax.vmap(lambda q, zz: ae_decode(q, zz, rings))(p, z)
+    y = jax.vmap(lambda q, xx: mesh_conv(q["conv_enc"], xx, *rings))(p, x)
+    return jnp.sum(jnp.sin(3 * xh) * x) + jnp.sum(jnp.cos(z)) + jnp.sum(y * y)
+val, grads = jax.jit(jax.value_and_grad(loss, argnums=(0, 1)))(p, x)
+h = hashlib.sha256(np.asarray(val).tobytes())
+for leaf in jax.tree_util.tree_leaves(grads):
+    h.update(np.asarray(leaf).tobytes())
+print(h.hexdigest())
+"""
+
+
+def test_native_results_do_not_depend_on_the_thread_count():
+    """The kernels cut their work into chunks fixed by the sizes and add per-chunk partial sums in chunk order:
+    the loss and every gradient of the fused block halves and of the convolution are the same bit for bit with
+    one, two or three threads (the helpers from XLA's pool, or none)."""
+    from jaxdeform.nn import native
+
+    if not native.available():
+        pytest.skip("native kernels unavailable here (no C++ compiler or not on CPU)")
+    digests = {}
+    for threads in ("1", "2", "3"):
+        proc = subprocess.run([sys.executable, "-c", _THREADS_PROBE], capture_output=True, text=True, check=True,
+                              env={**os.environ, "JAXDEFORM_NATIVE_THREADS": threads})
+        digests[threads] = proc.stdout.strip()
+    assert len(digests["1"]) == 64 and len(set(digests.values())) == 1, digests

@@ -20,7 +20,11 @@
 #include <cstdlib>
 #include <cstring>
 #include <initializer_list>
+#include <atomic>
+#include <condition_variable>
+#include <functional>
 #include <memory>
+#include <mutex>
 #include <thread>
 #include <type_traits>
 #include <vector>
@@ -53,31 +57,91 @@ int64_t MaxThreads() {
   return n;
 }
 
-// Runs fn(thread_index, begin, end) over [0, n) in ranges of `chunk` (the last one shorter), thread 0 on the
-// calling thread, the others each on their own
-template <typename Fn>
-void RunChunks(int64_t n, int64_t threads, int64_t chunk, Fn fn) {
-  std::vector<std::thread> pool;
-  for (int64_t t = 1; t < threads; ++t) {
-    const int64_t b = t * chunk, e = std::min(n, b + chunk);
-    if (b < e) pool.emplace_back(fn, t, b, e);
-  }
-  fn(0, 0, std::min(n, chunk));
-  for (auto& th : pool) th.join();
+// XLA's intra-op thread pool of the call being served (set by the handlers, see PoolScope), or null.
+thread_local ffi::ThreadPool* tls_pool = nullptr;
+
+struct PoolScope {
+  ffi::ThreadPool* prev;
+  explicit PoolScope(ffi::ThreadPool* pool) : prev(tls_pool) { tls_pool = pool; }
+  ~PoolScope() { tls_pool = prev; }
+};
+
+// How a range of work is cut: `chunks` pieces of `len` items (the last one shorter). The cut depends on the
+// sizes only, never on the thread count, and the kernels keep one partial sum per chunk, added in chunk order:
+// results are the same bit for bit whatever the number of threads.
+struct Plan {
+  int64_t chunks = 1, len = 0;
+};
+
+constexpr int64_t kMaxChunks = 16;
+
+// n items of `work` each, cut into pieces of a multiple of `unit` items, at least 2^16 work per piece
+Plan MakePlan(int64_t n, int64_t unit, int64_t work) {
+  const int64_t units = std::max<int64_t>(1, (n + unit - 1) / unit);
+  const int64_t want = std::min<int64_t>({kMaxChunks, units, std::max<int64_t>(1, n * work / (1 << 16))});
+  Plan p;
+  p.len = (units + want - 1) / want * unit;
+  p.chunks = std::max<int64_t>(1, (n + p.len - 1) / p.len);
+  return p;
 }
 
-// Runs fn(thread_index, plane_begin, plane_end) over `planes` split into contiguous ranges; thread_index is
-// below MaxThreads().
+// The chunks of one parallel call; shared with the helper tasks, which may start after the call has returned
+// (they then find no chunk left and touch nothing else).
+struct ChunkQueue {
+  std::atomic<int64_t> next{0}, done{0};
+  int64_t total = 0;
+  const std::function<void(int64_t)>* run = nullptr;  // valid while done < total
+  std::mutex m;
+  std::condition_variable cv;
+
+  void Work() {
+    for (;;) {
+      const int64_t c = next.fetch_add(1);
+      if (c >= total) return;
+      (*run)(c);
+      if (done.fetch_add(1) + 1 == total) {
+        std::lock_guard<std::mutex> lock(m);
+        cv.notify_all();
+      }
+    }
+  }
+};
+
+// Runs fn(chunk, begin, end) for every chunk of `plan` over [0, n). Threads claim chunks one at a time: the
+// calling thread, and up to MaxThreads() - 1 helpers on XLA's own intra-op thread pool where the call has one
+// (std::thread otherwise). A helper the pool cannot start at once (its threads busy with other operations of
+// the program) leaves its chunks to the others, so a call never waits for a core that XLA is using.
 template <typename Fn>
-void ParallelPlanes(int64_t planes, int64_t work_per_plane, Fn fn) {
-  int64_t threads = std::min<int64_t>({MaxThreads(), planes,
-                                       std::max<int64_t>(1, planes * work_per_plane / (1 << 16))});
-  if (threads <= 1) {
-    fn(0, 0, planes);
+void RunPlan(const Plan& plan, int64_t n, Fn fn) {
+  if (plan.chunks <= 1) {
+    fn(int64_t{0}, int64_t{0}, n);
     return;
   }
-  RunChunks(planes, threads, (planes + threads - 1) / threads, fn);
+  const std::function<void(int64_t)> run = [&](int64_t c) {
+    fn(c, c * plan.len, std::min(n, (c + 1) * plan.len));
+  };
+  auto q = std::make_shared<ChunkQueue>();
+  q->total = plan.chunks;
+  q->run = &run;
+  ffi::ThreadPool* pool = tls_pool;
+  const int64_t threads = std::min<int64_t>(plan.chunks, pool != nullptr
+                                                             ? std::min<int64_t>(MaxThreads(), pool->num_threads())
+                                                             : MaxThreads());
+  std::vector<std::thread> own;
+  for (int64_t t = 1; t < threads; ++t) {
+    if (pool != nullptr) pool->Schedule([q] { q->Work(); });
+    else own.emplace_back([q] { q->Work(); });
+  }
+  q->Work();
+  {
+    std::unique_lock<std::mutex> lock(q->m);
+    q->cv.wait(lock, [&] { return q->done.load() == q->total; });
+  }
+  for (auto& th : own) th.join();
 }
+
+// Runs fn(chunk, plane_begin, plane_end) over `planes` (see RunPlan); chunk < PlanPlanes(...).chunks.
+Plan PlanPlanes(int64_t planes, int64_t work_per_plane) { return MakePlan(planes, 1, work_per_plane); }
 
 // Any channel counts up to kLanes, read from the geometry. The 9-channel case of seed 000 runs Forward9 /
 // Backward9 below instead.
@@ -392,23 +456,23 @@ ffi::Error Forward(ffi::AnyBuffer x, ffi::AnyBuffer nbr, ffi::AnyBuffer count, f
   const T* bp = static_cast<const T*>(b.untyped_data());
   T* yp = static_cast<T*>(y->untyped_data());
   const bool nine = s.Ci == 9 && s.Co == 9;
-  ParallelPlanes(s.G * s.P, s.V * (s.K + 2 * s.Co) * s.Ci, [&](int64_t, int64_t p0, int64_t p1) {
+  RunPlan(PlanPlanes(s.G * s.P, s.V * (s.K + 2 * s.Co) * s.Ci), s.G * s.P, [&](int64_t, int64_t p0, int64_t p1) {
     if (nine) Forward9<T>(s, xp, np_, cp, ip, wpp, wnp, bp, yp, p0, p1);
     else ForwardPlanes<T>(s, xp, np_, cp, ip, wpp, wnp, bp, yp, p0, p1);
   });
   return ffi::Error::Success();
 }
 
-// Sums the per-thread weight-gradient partials acc (threads x groups x [gWp (cc) | gWn (cc) | gb (co)], with
-// cc = Ci Co) into the outputs, in thread order
+// Sums the per-chunk weight-gradient partials acc (chunks x groups x [gWp (cc) | gWn (cc) | gb (co)], with
+// cc = Ci Co) into the outputs, in chunk order
 template <typename T>
 void ReduceWeightGrads(const std::vector<T>& acc, int64_t groups, int64_t cc, int64_t co, T* gwp, T* gwn, T* gb) {
   std::fill(gwp, gwp + groups * cc, T(0));
   std::fill(gwn, gwn + groups * cc, T(0));
   std::fill(gb, gb + groups * co, T(0));
   const int64_t stride = 2 * cc + co;
-  const int64_t threads = static_cast<int64_t>(acc.size()) / (groups * stride);
-  for (int64_t t = 0; t < threads; ++t)
+  const int64_t chunks = static_cast<int64_t>(acc.size()) / (groups * stride);
+  for (int64_t t = 0; t < chunks; ++t)
     for (int64_t g = 0; g < groups; ++g) {
       const T* a = acc.data() + (t * groups + g) * stride;
       for (int64_t e = 0; e < cc; ++e) gwp[g * cc + e] += a[e];
@@ -417,7 +481,7 @@ void ReduceWeightGrads(const std::vector<T>& acc, int64_t groups, int64_t cc, in
     }
 }
 
-// Sums per-thread partials (threads x n, as many threads as part holds) into out (n), in thread order
+// Sums per-chunk partials (chunks x n, as many chunks as part holds) into out (n), in chunk order
 template <typename T>
 void SumThreadParts(const std::vector<T>& part, int64_t n, T* out) {
   std::fill(out, out + n, T(0));
@@ -438,7 +502,8 @@ ffi::Error Backward(ffi::AnyBuffer x, ffi::AnyBuffer gy, ffi::AnyBuffer nbr, ffi
   if (static_cast<int64_t>(gb->element_count()) != s.G * s.Co)
     return ffi::Error::InvalidArgument("mesh_conv: bias gradient has the wrong size");
   const int64_t stride = 2 * s.Ci * s.Co + s.Co;
-  std::vector<T> acc(static_cast<size_t>(MaxThreads() * s.G * stride), T(0));
+  const Plan plan = PlanPlanes(s.G * s.P, s.V * (2 * s.K + 4 * s.Co) * s.Ci);
+  std::vector<T> acc(static_cast<size_t>(plan.chunks * s.G * stride), T(0));
   const T* xp = static_cast<const T*>(x.untyped_data());
   const T* gp = static_cast<const T*>(gy.untyped_data());
   const int32_t* np_ = static_cast<const int32_t*>(nbr.untyped_data());
@@ -448,7 +513,7 @@ ffi::Error Backward(ffi::AnyBuffer x, ffi::AnyBuffer gy, ffi::AnyBuffer nbr, ffi
   const T* wnp = static_cast<const T*>(wn.untyped_data());
   T* gxp = static_cast<T*>(gx->untyped_data());
   const bool nine = s.Ci == 9 && s.Co == 9;
-  ParallelPlanes(s.G * s.P, s.V * (2 * s.K + 4 * s.Co) * s.Ci, [&](int64_t t, int64_t p0, int64_t p1) {
+  RunPlan(plan, s.G * s.P, [&](int64_t t, int64_t p0, int64_t p1) {
     T* a = acc.data() + t * s.G * stride;
     if (nine) Backward9<T>(s, xp, gp, np_, cp, ip, wpp, wnp, gxp, a, p0, p1);
     else BackwardPlanes<T>(s, xp, gp, np_, cp, ip, wpp, wnp, gxp, a, p0, p1);
@@ -465,8 +530,9 @@ bool SameFloat(std::initializer_list<ffi::DataType> types, ffi::DataType* t) {
   return *t == ffi::DataType::F32 || *t == ffi::DataType::F64;
 }
 
-ffi::Error ForwardDispatch(ffi::AnyBuffer x, ffi::AnyBuffer nbr, ffi::AnyBuffer count, ffi::AnyBuffer inv,
+ffi::Error ForwardDispatch(ffi::ThreadPool pool, ffi::AnyBuffer x, ffi::AnyBuffer nbr, ffi::AnyBuffer count, ffi::AnyBuffer inv,
                            ffi::AnyBuffer wp, ffi::AnyBuffer wn, ffi::AnyBuffer b, ffi::Result<ffi::AnyBuffer> y) {
+  PoolScope scope(&pool);
   ffi::DataType t;
   if (!SameFloat({x.element_type(), inv.element_type(), wp.element_type(), wn.element_type(), b.element_type(),
                   y->element_type()}, &t))
@@ -475,10 +541,11 @@ ffi::Error ForwardDispatch(ffi::AnyBuffer x, ffi::AnyBuffer nbr, ffi::AnyBuffer 
   return Forward<double>(x, nbr, count, inv, wp, wn, b, y);
 }
 
-ffi::Error BackwardDispatch(ffi::AnyBuffer x, ffi::AnyBuffer gy, ffi::AnyBuffer nbr, ffi::AnyBuffer count,
+ffi::Error BackwardDispatch(ffi::ThreadPool pool, ffi::AnyBuffer x, ffi::AnyBuffer gy, ffi::AnyBuffer nbr, ffi::AnyBuffer count,
                             ffi::AnyBuffer inv, ffi::AnyBuffer wp, ffi::AnyBuffer wn,
                             ffi::Result<ffi::AnyBuffer> gx, ffi::Result<ffi::AnyBuffer> gwp,
                             ffi::Result<ffi::AnyBuffer> gwn, ffi::Result<ffi::AnyBuffer> gb) {
+  PoolScope scope(&pool);
   ffi::DataType t;
   if (!SameFloat({x.element_type(), gy.element_type(), inv.element_type(), wp.element_type(), wn.element_type(),
                   gx->element_type(), gwp->element_type(), gwn->element_type(), gb->element_type()}, &t))
@@ -504,7 +571,7 @@ ffi::Error BackwardDispatch(ffi::AnyBuffer x, ffi::AnyBuffer gy, ffi::AnyBuffer 
 // full-width multiply-adds per 8 vertices, where the row layout of the convolution kernels above spends 18
 // vector and 18 scalar ones per vertex; the one-ring gathers stay on rows. tanh: float32, Eigen's 13/6 rational interpolant (a few ulp);
 // float64, std::tanh. Work is split over vertex ranges, so the rows of dC a thread writes are its own; the
-// reductions over vertices (z, dz, weight gradients) are summed per thread, then in thread order.
+// reductions over vertices (z, dz, weight gradients) are summed per chunk (Plan), then in chunk order.
 
 constexpr int64_t kVertexTile = 64;  // a multiple of 8
 
@@ -667,34 +734,16 @@ struct ConvW {
   }
 };
 
-template <typename T>
-Row9<T> TanhBack(const Row9<T>& a, const Row9<T>& t) {  // a * (1 - t^2): the cotangent through tanh(.) = t
-  Row9<T> r;
-  r.v = a.v - a.v * t.v * t.v;
-  r.s = a.s - a.s * t.s * t.s;
-  return r;
-}
-
 // G: the groups of the outputs' batch shape. For each output group g, the group each input reads: numpy
 // broadcasting of the leading (batch) dimensions, so under nested jax.vmap an input that one of the maps does
 // not batch (a shared C, the primal arguments of a vmapped adjoint) is read in place, never copied.
 struct AeGeometry {
   int64_t G = 1, P = 1, V = 0, K = 0, Kz = 0;
-  std::vector<int64_t> in, aux, cot, c, w;  // x or z | h or x_hat | dz or dx_hat | C | W_point, W_neighbor, b
+  std::vector<int64_t> in, aux, cot, c, w;  // x or z | h or S | dz or the decoder's dpre | C | W_point, W_neighbor, b
 };
 
-// Runs fn(thread_index, v0, v1) over vertex ranges (multiples of kVertexTile), one per thread.
-template <typename Fn>
-void ParallelVertices(int64_t V, int64_t work_per_vertex, Fn fn) {
-  const int64_t tiles = (V + kVertexTile - 1) / kVertexTile;
-  const int64_t threads =
-      std::min<int64_t>({MaxThreads(), tiles, std::max<int64_t>(1, V * work_per_vertex / (1 << 16))});
-  if (threads <= 1) {
-    fn(0, 0, V);
-    return;
-  }
-  RunChunks(V, threads, (tiles + threads - 1) / threads * kVertexTile, fn);
-}
+// Vertex ranges of whole tiles (RunPlan(plan, V, fn) runs fn(chunk, v0, v1) over them)
+Plan PlanVertices(int64_t V, int64_t work_per_vertex) { return MakePlan(V, kVertexTile, work_per_vertex); }
 
 // The ring means (or adjoint sums) of the vertices [i0, i0 + nt) in P planes at base + p * pstride, as rows into
 // buf + p * kVertexTile * 9, in runs of up to 4 planes (RingSums: each ring's indices read once per run, 4
@@ -799,8 +848,9 @@ void EncoderForward(const AeGeometry& s, const T* x, const int32_t* nbr, const i
                     const T* wp, const T* wn, const T* b, const T* c, T* z, T* hidden) {
   typedef typename Soa9<T>::V V8;
   const int64_t Kz = s.Kz, V = s.V, P = s.P;
-  std::vector<T> part(static_cast<size_t>(MaxThreads() * s.G * P * Kz), T(0));
-  ParallelVertices(V, P * (s.K + 10 + Kz) * 9, [&](int64_t t, int64_t v0, int64_t v1) {
+  const Plan plan = PlanVertices(V, s.G * P * (s.K + 10 + Kz) * 9);
+  std::vector<T> part(static_cast<size_t>(plan.chunks * s.G * P * Kz), T(0));
+  RunPlan(plan, V, [&](int64_t t, int64_t v0, int64_t v1) {
     T* zp = part.data() + t * s.G * P * Kz;
     std::vector<Soa9<T>> cs(static_cast<size_t>(Kz * 8));
     std::vector<V8> acc(static_cast<size_t>(Kz));
@@ -840,13 +890,15 @@ void EncoderForward(const AeGeometry& s, const T* x, const int32_t* nbr, const i
 }
 
 // out[g,p] = conv^T(d[g,p]): the input cotangent of a conv with input rows a and pre-activation cotangent d;
-// its weight gradients go to acc (per thread and output group): gWp = sum_i a_i^T d_i, gb = sum_i d_i and
+// its weight gradients go to acc (per chunk and output group; sized here): gWp = sum_i a_i^T d_i, gb = sum_i d_i and
 // gWn = sum_i ring_mean(a)_i^T d_i = sum_j a_j^T sg_j with sg_j = sum_{i in N(j)} d_i / D_i (symmetric rings),
 // the adjoint ring sums the input cotangent needs anyway.
 template <typename T>
 void ConvAdjointRows(const AeGeometry& s, const T* d, const T* a, const int32_t* nbr, const int32_t* count,
                      const T* inv, const T* wp, const T* wn, T* out, std::vector<T>& acc, int64_t weight_groups) {
-  ParallelVertices(s.V, s.G * s.P * (s.K + 40) * 9, [&](int64_t t, int64_t v0, int64_t v1) {
+  const Plan plan = PlanVertices(s.V, s.G * s.P * (s.K + 40) * 9);
+  acc.assign(static_cast<size_t>(plan.chunks * weight_groups * kWeightStride), T(0));
+  RunPlan(plan, s.V, [&](int64_t t, int64_t v0, int64_t v1) {
     ConvW<T> w;
     std::vector<T> sgs(static_cast<size_t>(s.P * kVertexTile * 9));
     auto wg = std::make_unique<WeightGrads<T>>();
@@ -885,7 +937,7 @@ void EncoderBackward(const AeGeometry& s, int64_t weight_groups, int64_t c_group
                      const T* wn, const T* c, T* dx, T* gwp, T* gwn, T* gb, T* dc) {
   const int64_t Kz = s.Kz, V = s.V, P = s.P;
   auto dpre = Scratch<T>(s.G * P * V * 9);  // cotangent of the conv's pre-activation
-  ParallelVertices(V, s.G * P * (10 + 2 * Kz) * 9, [&](int64_t, int64_t v0, int64_t v1) {
+  RunPlan(PlanVertices(V, s.G * P * (10 + 2 * Kz) * 9), V, [&](int64_t, int64_t v0, int64_t v1) {
     std::vector<Soa9<T>> cs(static_cast<size_t>(Kz * 8)), dcs(static_cast<size_t>(Kz * 8));
     for (int64_t g = 0; g < s.G; ++g) {
       const T* cg = c + s.c[g] * Kz * V * 9;
@@ -919,7 +971,7 @@ void EncoderBackward(const AeGeometry& s, int64_t weight_groups, int64_t c_group
       }
     }
   });
-  std::vector<T> acc(static_cast<size_t>(MaxThreads() * weight_groups * kWeightStride), T(0));
+  std::vector<T> acc;  // sized by ConvAdjointRows
   ConvAdjointRows(s, dpre.get(), x, nbr, count, inv, wp, wn, dx, acc, weight_groups);
   ReduceWeightGrads(acc, weight_groups, int64_t{81}, int64_t{9}, gwp, gwn, gb);
 }
@@ -955,10 +1007,10 @@ template <typename T>
 void DecoderForward(const AeGeometry& s, const T* z, const int32_t* nbr, const int32_t* count, const T* inv,
                     const T* wp, const T* wn, const T* b, const T* c, T* xh, T* S) {
   const int64_t V = s.V, P = s.P;
-  ParallelVertices(V, s.G * P * (s.Kz + 10) * 9, [&](int64_t, int64_t v0, int64_t v1) {
+  RunPlan(PlanVertices(V, s.G * P * (s.Kz + 10) * 9), V, [&](int64_t, int64_t v0, int64_t v1) {
     DecoderHidden(s, z, c, S, v0, v1);
   });
-  ParallelVertices(V, s.G * P * (s.K + 10) * 9, [&](int64_t, int64_t v0, int64_t v1) {
+  RunPlan(PlanVertices(V, s.G * P * (s.K + 10) * 9), V, [&](int64_t, int64_t v0, int64_t v1) {
     ConvW<T> w;
     std::vector<T> rms(static_cast<size_t>(P * kVertexTile * 9));
     for (int64_t g = 0; g < s.G; ++g) {
@@ -984,27 +1036,19 @@ void DecoderForward(const AeGeometry& s, const T* z, const int32_t* nbr, const i
   });
 }
 
-// Given the forward's output x_hat and hidden layer S = tanh(z C) (its two outputs)
+// Given the forward's hidden layer S = tanh(z C) (its second output) and the cotangent of the conv's
+// pre-activation, dpre = dx_hat (1 - x_hat^2): the caller forms it (graph_conv.py), where XLA fuses it into the
+// operation that makes dx_hat, instead of a pass of its own here over x_hat and dx_hat.
 template <typename T>
-void DecoderBackward(const AeGeometry& s, int64_t weight_groups, int64_t c_groups, const T* z, const T* xh,
-                     const T* S, const T* dxh, const int32_t* nbr, const int32_t* count, const T* inv, const T* wp,
+void DecoderBackward(const AeGeometry& s, int64_t weight_groups, int64_t c_groups, const T* z, const T* S,
+                     const T* dpre, const int32_t* nbr, const int32_t* count, const T* inv, const T* wp,
                      const T* wn, const T* c, T* dz, T* gwp, T* gwn, T* gb, T* dc) {
   typedef typename Soa9<T>::V V8;
   const int64_t Kz = s.Kz, V = s.V, P = s.P;
-  auto Dd = Scratch<T>(s.G * P * V * 9);  // cotangent of the conv's pre-activation
-  ParallelVertices(V, s.G * P * 20, [&](int64_t, int64_t v0, int64_t v1) {
-    for (int64_t g = 0; g < s.G; ++g)
-      for (int64_t p = 0; p < P; ++p)
-        for (int64_t i = v0; i < v1; ++i) {
-          const int64_t o = ((g * P + p) * V + i) * 9;
-          TanhBack(Row9<T>::Load(dxh + ((s.cot[g] * P + p) * V + i) * 9),
-                   Row9<T>::Load(xh + ((s.aux[g] * P + p) * V + i) * 9))
-              .Store(Dd.get() + o);
-        }
-  });
-  std::vector<T> acc(static_cast<size_t>(MaxThreads() * weight_groups * kWeightStride), T(0));
-  std::vector<T> part(static_cast<size_t>(MaxThreads() * s.G * P * Kz), T(0));
-  ParallelVertices(V, P * (s.K + 40 + 2 * Kz) * 9, [&](int64_t t, int64_t v0, int64_t v1) {
+  const Plan plan = PlanVertices(V, s.G * P * (s.K + 40 + 2 * Kz) * 9);
+  std::vector<T> acc(static_cast<size_t>(plan.chunks * weight_groups * kWeightStride), T(0));
+  std::vector<T> part(static_cast<size_t>(plan.chunks * s.G * P * Kz), T(0));
+  RunPlan(plan, V, [&](int64_t t, int64_t v0, int64_t v1) {
     ConvW<T> w;
     std::vector<Soa9<T>> cs(static_cast<size_t>(Kz * 8)), dcs(static_cast<size_t>(Kz * 8));
     std::vector<V8> dza(static_cast<size_t>(Kz));
@@ -1020,10 +1064,10 @@ void DecoderBackward(const AeGeometry& s, int64_t weight_groups, int64_t c_group
         const int64_t nt = std::min(v1, i0 + kVertexTile) - i0;
         TileC(cg, Kz, V, i0, nt, cs.data());
         for (auto& a : dcs) a = Soa9<T>::Zero();
-        TileRingsPlanes(Dd.get() + g * P * V * 9, P, V * 9, nbr, count, inv, s.K, i0, nt, true, sgs.data());
+        TileRingsPlanes(dpre + s.cot[g] * P * V * 9, P, V * 9, nbr, count, inv, s.K, i0, nt, true, sgs.data());
         for (int64_t p = 0; p < P; ++p) {
           const T* sp = S + (s.aux[g] * P + p) * V * 9;
-          const T* dp = Dd.get() + (g * P + p) * V * 9;
+          const T* dp = dpre + (s.cot[g] * P + p) * V * 9;
           const T* zp = z + (s.in[g] * P + p) * Kz;
           const T* sg = sgs.data() + p * kVertexTile * 9;
           for (auto& a : dza) a = V8{};
@@ -1213,9 +1257,10 @@ ffi::Error GradOutputs(const AeGeometry& s, ffi::Result<ffi::AnyBuffer>& gwp, ff
   return ffi::Error::Success();
 }
 
-ffi::Error EncoderFwdDispatch(ffi::AnyBuffer x, ffi::AnyBuffer nbr, ffi::AnyBuffer count, ffi::AnyBuffer inv,
+ffi::Error EncoderFwdDispatch(ffi::ThreadPool pool, ffi::AnyBuffer x, ffi::AnyBuffer nbr, ffi::AnyBuffer count, ffi::AnyBuffer inv,
                               ffi::AnyBuffer wp, ffi::AnyBuffer wn, ffi::AnyBuffer b, ffi::AnyBuffer c,
                               ffi::Result<ffi::AnyBuffer> z, ffi::Result<ffi::AnyBuffer> h) {
+  PoolScope scope(&pool);
   AeGeometry s;
   const Dims out = DimsOf(*h);
   if (auto e = MakeAeGeometry(out, true, nbr, count, inv, wp, wn, b, c, &s); e.failure()) return e;
@@ -1233,11 +1278,12 @@ ffi::Error EncoderFwdDispatch(ffi::AnyBuffer x, ffi::AnyBuffer nbr, ffi::AnyBuff
   return ffi::Error::Success();
 }
 
-ffi::Error EncoderBwdDispatch(ffi::AnyBuffer x, ffi::AnyBuffer h, ffi::AnyBuffer dz, ffi::AnyBuffer nbr, ffi::AnyBuffer count,
+ffi::Error EncoderBwdDispatch(ffi::ThreadPool pool, ffi::AnyBuffer x, ffi::AnyBuffer h, ffi::AnyBuffer dz, ffi::AnyBuffer nbr, ffi::AnyBuffer count,
                               ffi::AnyBuffer inv, ffi::AnyBuffer wp, ffi::AnyBuffer wn, ffi::AnyBuffer b,
                               ffi::AnyBuffer c, ffi::Result<ffi::AnyBuffer> dx, ffi::Result<ffi::AnyBuffer> gwp,
                               ffi::Result<ffi::AnyBuffer> gwn, ffi::Result<ffi::AnyBuffer> gb,
                               ffi::Result<ffi::AnyBuffer> dc) {
+  PoolScope scope(&pool);
   AeGeometry s;
   const Dims out = DimsOf(*dx);
   if (auto e = MakeAeGeometry(out, true, nbr, count, inv, wp, wn, b, c, &s); e.failure()) return e;
@@ -1259,9 +1305,10 @@ ffi::Error EncoderBwdDispatch(ffi::AnyBuffer x, ffi::AnyBuffer h, ffi::AnyBuffer
   return ffi::Error::Success();
 }
 
-ffi::Error DecoderFwdDispatch(ffi::AnyBuffer z, ffi::AnyBuffer nbr, ffi::AnyBuffer count, ffi::AnyBuffer inv,
+ffi::Error DecoderFwdDispatch(ffi::ThreadPool pool, ffi::AnyBuffer z, ffi::AnyBuffer nbr, ffi::AnyBuffer count, ffi::AnyBuffer inv,
                               ffi::AnyBuffer wp, ffi::AnyBuffer wn, ffi::AnyBuffer b, ffi::AnyBuffer c,
                               ffi::Result<ffi::AnyBuffer> xh, ffi::Result<ffi::AnyBuffer> hidden) {
+  PoolScope scope(&pool);
   AeGeometry s;
   const Dims out = DimsOf(*xh);
   if (auto e = MakeAeGeometry(out, true, nbr, count, inv, wp, wn, b, c, &s); e.failure()) return e;
@@ -1280,32 +1327,30 @@ ffi::Error DecoderFwdDispatch(ffi::AnyBuffer z, ffi::AnyBuffer nbr, ffi::AnyBuff
   return ffi::Error::Success();
 }
 
-ffi::Error DecoderBwdDispatch(ffi::AnyBuffer z, ffi::AnyBuffer xh, ffi::AnyBuffer hidden, ffi::AnyBuffer dxh,
+ffi::Error DecoderBwdDispatch(ffi::ThreadPool pool, ffi::AnyBuffer z, ffi::AnyBuffer hidden, ffi::AnyBuffer dpre,
                               ffi::AnyBuffer nbr,
                               ffi::AnyBuffer count, ffi::AnyBuffer inv, ffi::AnyBuffer wp, ffi::AnyBuffer wn,
                               ffi::AnyBuffer b, ffi::AnyBuffer c, ffi::Result<ffi::AnyBuffer> dz,
                               ffi::Result<ffi::AnyBuffer> gwp, ffi::Result<ffi::AnyBuffer> gwn,
                               ffi::Result<ffi::AnyBuffer> gb, ffi::Result<ffi::AnyBuffer> dc) {
+  PoolScope scope(&pool);
   AeGeometry s;
   const Dims out = DimsOf(*dz);
   if (auto e = MakeAeGeometry(out, false, nbr, count, inv, wp, wn, b, c, &s); e.failure()) return e;
   if (auto e = InputMap(z, false, out, s, &s.in); e.failure()) return e;
   const Dims pout = WithCore(out, 2, {s.P, s.V, 9});
-  if (auto e = InputMap(xh, true, pout, s, &s.aux); e.failure()) return e;
-  if (auto e = InputMap(dxh, true, pout, s, &s.cot); e.failure()) return e;
-  std::vector<int64_t> hidden_map;
-  if (auto e = InputMap(hidden, true, pout, s, &hidden_map); e.failure()) return e;
-  if (hidden_map != s.aux) return ffi::Error::InvalidArgument("ae_block: x_hat and the hidden layer do not line up");
+  if (auto e = InputMap(hidden, true, pout, s, &s.aux); e.failure()) return e;
+  if (auto e = InputMap(dpre, true, pout, s, &s.cot); e.failure()) return e;
   int64_t wg, cg;
   if (auto e = GradOutputs(s, gwp, gwn, gb, dc, &wg, &cg); e.failure()) return e;
   ffi::DataType t;
-  if (!SameFloat({z.element_type(), xh.element_type(), hidden.element_type(), dxh.element_type(), inv.element_type(), wp.element_type(),
+  if (!SameFloat({z.element_type(), hidden.element_type(), dpre.element_type(), inv.element_type(), wp.element_type(),
                   wn.element_type(), b.element_type(), c.element_type(), dz->element_type(), gwp->element_type(),
                   gwn->element_type(), gb->element_type(), dc->element_type()}, &t))
     return ffi::Error::InvalidArgument("ae_block: float arrays must all be float32 or all float64");
   ByFloat(t, [&](auto zero) {
     using T = decltype(zero);
-    DecoderBackward<T>(s, wg, cg, In<T>(z), In<T>(xh), In<T>(hidden), In<T>(dxh), Ints(nbr), Ints(count), In<T>(inv), In<T>(wp),
+    DecoderBackward<T>(s, wg, cg, In<T>(z), In<T>(hidden), In<T>(dpre), Ints(nbr), Ints(count), In<T>(inv), In<T>(wp),
                        In<T>(wn), In<T>(c), Out<T>(dz), Out<T>(gwp), Out<T>(gwn), Out<T>(gb), Out<T>(dc));
   });
   return ffi::Error::Success();
@@ -1315,6 +1360,7 @@ ffi::Error DecoderBwdDispatch(ffi::AnyBuffer z, ffi::AnyBuffer xh, ffi::AnyBuffe
 
 XLA_FFI_DEFINE_HANDLER_SYMBOL(JaxdeformMeshConvFwd, ForwardDispatch,
                               ffi::Ffi::Bind()
+                                  .Ctx<ffi::ThreadPool>()
                                   .Arg<ffi::AnyBuffer>()  // x
                                   .Arg<ffi::AnyBuffer>()  // neighbors
                                   .Arg<ffi::AnyBuffer>()  // counts
@@ -1326,6 +1372,7 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(JaxdeformMeshConvFwd, ForwardDispatch,
 
 XLA_FFI_DEFINE_HANDLER_SYMBOL(JaxdeformMeshConvBwd, BackwardDispatch,
                               ffi::Ffi::Bind()
+                                  .Ctx<ffi::ThreadPool>()
                                   .Arg<ffi::AnyBuffer>()  // x
                                   .Arg<ffi::AnyBuffer>()  // cotangent of y
                                   .Arg<ffi::AnyBuffer>()  // neighbors
@@ -1339,24 +1386,23 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(JaxdeformMeshConvBwd, BackwardDispatch,
                                   .Ret<ffi::AnyBuffer>());  // gb
 
 XLA_FFI_DEFINE_HANDLER_SYMBOL(JaxdeformAeEncoderFwd, EncoderFwdDispatch,
-                              BlockArgs(ffi::Ffi::Bind().Arg<ffi::AnyBuffer>())  // x (..., P, V, 9), then BlockArgs
+                              BlockArgs(ffi::Ffi::Bind().Ctx<ffi::ThreadPool>().Arg<ffi::AnyBuffer>())  // x (..., P, V, 9), then BlockArgs
                                   .Ret<ffi::AnyBuffer>()  // z (..., P, Kz)
                                   .Ret<ffi::AnyBuffer>());  // h = tanh(conv(x)) (..., P, V, 9), for the adjoint
 
 XLA_FFI_DEFINE_HANDLER_SYMBOL(JaxdeformAeEncoderBwd, EncoderBwdDispatch,
-                              GradRets(BlockArgs(ffi::Ffi::Bind()
+                              GradRets(BlockArgs(ffi::Ffi::Bind().Ctx<ffi::ThreadPool>()
                                                      .Arg<ffi::AnyBuffer>()     // x
                                                      .Arg<ffi::AnyBuffer>()     // h (the forward's second output)
                                                      .Arg<ffi::AnyBuffer>())));  // cotangent of z; returns dx first
 
 XLA_FFI_DEFINE_HANDLER_SYMBOL(JaxdeformAeDecoderFwd, DecoderFwdDispatch,
-                              BlockArgs(ffi::Ffi::Bind().Arg<ffi::AnyBuffer>())  // z (..., P, Kz), then BlockArgs
+                              BlockArgs(ffi::Ffi::Bind().Ctx<ffi::ThreadPool>().Arg<ffi::AnyBuffer>())  // z (..., P, Kz), then BlockArgs
                                   .Ret<ffi::AnyBuffer>()                        // x_hat (..., P, V, 9)
                                   .Ret<ffi::AnyBuffer>());  // S = tanh(reshape(z C)) (..., P, V, 9), for the adjoint
 
 XLA_FFI_DEFINE_HANDLER_SYMBOL(JaxdeformAeDecoderBwd, DecoderBwdDispatch,
-                              GradRets(BlockArgs(ffi::Ffi::Bind()
+                              GradRets(BlockArgs(ffi::Ffi::Bind().Ctx<ffi::ThreadPool>()
                                                      .Arg<ffi::AnyBuffer>()      // z
-                                                     .Arg<ffi::AnyBuffer>()      // x_hat (the forward's output)
-                                                     .Arg<ffi::AnyBuffer>()      // S (its second output)
-                                                     .Arg<ffi::AnyBuffer>())));  // cotangent of x_hat; returns dz first
+                                                     .Arg<ffi::AnyBuffer>()      // S (the forward's second output)
+                                                     .Arg<ffi::AnyBuffer>())));  // dx_hat (1 - x_hat^2); returns dz first
