@@ -24,8 +24,8 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from jaxdeform.nn.graph_conv import MU, Rings, ae_decode, ae_forward, init_ae_block
-from jaxdeform.nn.losses import group_sparsity, latent_bound, reconstruction_loss
+from jaxdeform.nn.graph_conv import MU, Rings, ae_decode, ae_forward, ae_forward_error, init_ae_block
+from jaxdeform.nn.losses import group_sparsity, latent_bound
 
 
 @dataclasses.dataclass(frozen=True)
@@ -100,13 +100,18 @@ def attention_masks(c: Float[Array, "kz nine_v"]) -> Float[Array, "kz v"]:
     return am / jnp.where(total > 0, total, 1.0)
 
 
-def _levels(params: tuple[dict, ...], x: Float[Array, "b v 9"], rings: Rings, config: Config) -> list:
-    """Per level: (inputs (n_l, B, V, 9), latents (n_l, B, Kz_l), outputs (n_l, B, V, 9))."""
+def _levels(params: tuple[dict, ...], x: Float[Array, "b v 9"], rings: Rings, config: Config,
+            with_error: bool = False) -> list:
+    """Per level: (inputs (n_l, B, V, 9), latents (n_l, B, Kz_l), outputs (n_l, B, V, 9), errors (n_l, B) or
+    None): ``with_error`` gives each block's summed squared error against its input, per shape."""
     inputs = x[None]  # (n_0 = 1, B, V, 9)
     levels = []
     for level, p in enumerate(params):
-        z, x_hat = jax.vmap(lambda q, xin: ae_forward(q, xin, rings, config.latent))(p, inputs)
-        levels.append((inputs, z, x_hat))
+        if with_error:
+            z, x_hat, err = jax.vmap(lambda q, xin: ae_forward_error(q, xin, rings, config.latent))(p, inputs)
+        else:
+            (z, x_hat), err = jax.vmap(lambda q, xin: ae_forward(q, xin, rings, config.latent))(p, inputs), None
+        levels.append((inputs, z, x_hat, err))
         if level + 1 < len(params):
             res = inputs - x_hat  # (n_l, B, V, 9)
             kz = config.kz[level]
@@ -127,12 +132,12 @@ def _levels(params: tuple[dict, ...], x: Float[Array, "b v 9"], rings: Rings, co
 
 def encode(params: tuple[dict, ...], x: Float[Array, "b v 9"], rings: Rings, config: Config) -> tuple:
     """Latent codes of a batch of scaled features: per level (n_l, B, Kz_l), as in :attr:`Output.latents`."""
-    return tuple(z for _, z, _ in _levels(params, x, rings, config))
+    return tuple(z for _, z, _, _ in _levels(params, x, rings, config))
 
 
 def reconstruction(params: tuple[dict, ...], x: Float[Array, "b v 9"], rings: Rings, config: Config) -> Float[Array, "b v 9"]:
     """The model's reconstruction of a batch of scaled features (the sum of every block's output)."""
-    return sum(jnp.sum(x_hat, axis=0) for _, _, x_hat in _levels(params, x, rings, config))
+    return sum(jnp.sum(x_hat, axis=0) for _, _, x_hat, _ in _levels(params, x, rings, config))
 
 
 def level_sparsity(p: dict, dist: Float[Array, "v v"], config: Config, level: int) -> Float[Array, "k"]:
@@ -149,8 +154,8 @@ def forward(params: tuple[dict, ...], x: Float[Array, "b v 9"], rings: Rings, di
     total = jnp.zeros((), x.dtype)
     recon = jnp.zeros_like(x)
     terms, latents = [], []
-    for level, (p, (inputs, z, x_hat)) in enumerate(zip(params, _levels(params, x, rings, config))):
-        rec_l = jax.vmap(reconstruction_loss)(inputs, x_hat)
+    for level, (p, (_, z, x_hat, err)) in enumerate(zip(params, _levels(params, x, rings, config, True))):
+        rec_l = jnp.mean(err, axis=-1)  # L_recon of each block: the paper's mean over shapes of the summed squares
         sparse_l = level_sparsity(p, dist, config, level)
         latent_l = jax.vmap(lambda zz: latent_bound(zz, config.theta))(z)
         total = total + jnp.sum(config.lambda_recon * rec_l + config.lambda_sparse * sparse_l

@@ -237,6 +237,32 @@ def _decode_native_bwd(res, dx_hat):
 _decode_native.defvjp(_decode_native_fwd, _decode_native_bwd)
 
 
+@jax.custom_vjp
+def _decode_error_native(z, target, neighbors, counts, inv_deg, w_point, w_neighbor, b, c):
+    x_hat, _, err = native.ae_decoder_forward_error(z, target, neighbors, counts, inv_deg, w_point, w_neighbor, b, c)
+    return x_hat, err
+
+
+def _decode_error_native_fwd(z, target, neighbors, counts, inv_deg, w_point, w_neighbor, b, c):
+    x_hat, hidden, err = native.ae_decoder_forward_error(z, target, neighbors, counts, inv_deg, w_point,
+                                                         w_neighbor, b, c)
+    return (x_hat, err), (z, target, x_hat, hidden, neighbors, counts, inv_deg, w_point, w_neighbor, b, c)
+
+
+def _decode_error_native_bwd(res, cotangents):
+    z, target, x_hat, hidden, neighbors, counts, inv_deg, w_point, w_neighbor, b, c = res
+    dx_hat, derr = cotangents
+    flat = x_hat.shape[:-2] + (-1,)  # elementwise over rows of 9V: see _tanh
+    r2 = 2 * derr[..., None] * (x_hat - target).reshape(flat)  # d err / d x_hat, per entry
+    dx_total = (dx_hat.reshape(flat) + r2).reshape(x_hat.shape)
+    dz, gwp, gwn, gb, dc = native.ae_decoder_backward(z, x_hat, hidden, dx_total, neighbors, counts, inv_deg,
+                                                      w_point, w_neighbor, b, c)
+    return dz, (-r2).reshape(target.shape), None, None, None, gwp, gwn, gb, dc
+
+
+_decode_error_native.defvjp(_decode_error_native_fwd, _decode_error_native_bwd)
+
+
 def _fused_args(conv: dict, a: Array, c: Array, rings: Rings):
     """The native fused block's arguments (cast to one float dtype), or None where it does not apply."""
     wp, wn, b = conv["W_point"], conv["W_neighbor"], conv["b"]
@@ -286,6 +312,21 @@ def ae_decode_reference(params: dict, z: Float[Array, "b kz"], rings: Rings) -> 
     return _tanh(mesh_conv(params["conv_dec"], g, rings.neighbors, rings.mask, rings.degree))
 
 
+def ae_decode_error(params: dict, z: Float[Array, "b kz"], target: Float[Array, "b v 9"],
+                    rings: Rings) -> tuple[Float[Array, "b v 9"], Float[Array, " b"]]:
+    """(x_hat, err): :func:`ae_decode` and err_m = sum over (V, 9) of (x_hat_m - target_m)^2, the block's
+    reconstruction error per shape. On CPU the native decoder sums it while x_hat is in registers (XLA on CPU
+    writes the squared differences of a (blocks, B, V, 9) array out in full before reducing them); its adjoint
+    adds 2 derr (x_hat - target) to the cotangent of x_hat and returns the opposite for ``target``."""
+    args = _fused_args(params["conv_dec"], z, params["C"], rings)
+    if args is None or jnp.result_type(target) != args[0].dtype or target.shape != z.shape[:-1] + (
+            params["C"].shape[-1] // MU, MU):
+        x_hat = ae_decode(params, z, rings)
+        return x_hat, jnp.sum(jnp.square(x_hat - target).reshape(x_hat.shape[:-2] + (-1,)), axis=-1)
+    zz, nbr, counts, inv, wp, wn, b, c = args
+    return _decode_error_native(zz, target, nbr, counts, inv, wp, wn, b, c)
+
+
 def ae_forward(params: dict, x: Float[Array, "b v 9"], rings: Rings,
                latent: str = "linear") -> tuple[Float[Array, "b kz"], Float[Array, "b v 9"]]:
     """(z, x_hat) of one autoencoder block; ``latent="tanh"`` puts a tanh on z (see the module docstring)."""
@@ -293,3 +334,13 @@ def ae_forward(params: dict, x: Float[Array, "b v 9"], rings: Rings,
     if latent == "tanh":
         z = jnp.tanh(z)
     return z, ae_decode(params, z, rings)
+
+
+def ae_forward_error(params: dict, x: Float[Array, "b v 9"], rings: Rings, latent: str = "linear") -> tuple:
+    """(z, x_hat, err) of one block: :func:`ae_forward` and the squared error of x_hat against the block's own
+    input x per shape (:func:`ae_decode_error`)."""
+    z = ae_encode(params, x, rings)
+    if latent == "tanh":
+        z = jnp.tanh(z)
+    x_hat, err = ae_decode_error(params, z, x, rings)
+    return z, x_hat, err

@@ -740,6 +740,7 @@ struct ConvW {
 struct AeGeometry {
   int64_t G = 1, P = 1, V = 0, K = 0, Kz = 0;
   std::vector<int64_t> in, aux, cot, c, w;  // x or z | h or S | dz or the decoder's dpre | C | W_point, W_neighbor, b
+  std::vector<int64_t> tgt;                  // the decoder's target (DecoderForward with the error)
 };
 
 // Vertex ranges of whole tiles (RunPlan(plan, V, fn) runs fn(chunk, v0, v1) over them)
@@ -1003,18 +1004,25 @@ void DecoderHidden(const AeGeometry& s, const T* z, const T* c, T* S, int64_t v0
   }
 }
 
+// With a target (same layout as x_hat, groups mapped by s.tgt), also err[g,p] = sum_i ||x_hat - target||^2 per
+// plane, summed while x_hat is in registers: the reconstruction loss of the block, which XLA on CPU otherwise
+// computes by writing the squared differences out in full before a tree reduction over them.
 template <typename T>
 void DecoderForward(const AeGeometry& s, const T* z, const int32_t* nbr, const int32_t* count, const T* inv,
-                    const T* wp, const T* wn, const T* b, const T* c, T* xh, T* S) {
+                    const T* wp, const T* wn, const T* b, const T* c, const T* target, T* xh, T* S, T* err) {
+  typedef typename Soa9<T>::V V8;
   const int64_t V = s.V, P = s.P;
   RunPlan(PlanVertices(V, s.G * P * (s.Kz + 10) * 9), V, [&](int64_t, int64_t v0, int64_t v1) {
     DecoderHidden(s, z, c, S, v0, v1);
   });
-  RunPlan(PlanVertices(V, s.G * P * (s.K + 10) * 9), V, [&](int64_t, int64_t v0, int64_t v1) {
+  const Plan plan = PlanVertices(V, s.G * P * (s.K + 10) * 9);
+  std::vector<T> part(static_cast<size_t>(target != nullptr ? plan.chunks * s.G * P : 0), T(0));
+  RunPlan(plan, V, [&](int64_t chunk, int64_t v0, int64_t v1) {
     ConvW<T> w;
     std::vector<T> rms(static_cast<size_t>(P * kVertexTile * 9));
     for (int64_t g = 0; g < s.G; ++g) {
       w.Load(wp, wn, b, s.w[g], false);
+      for (int64_t p = 0; p < P && target != nullptr; ++p) part[(chunk * s.G + g) * P + p] = T(0);
       for (int64_t i0 = v0; i0 < v1; i0 += kVertexTile) {
         const int64_t nt = std::min(v1, i0 + kVertexTile) - i0;
         TileRingsPlanes(S + g * P * V * 9, P, V * 9, nbr, count, inv, s.K, i0, nt, false, rms.data());
@@ -1022,6 +1030,7 @@ void DecoderForward(const AeGeometry& s, const T* z, const int32_t* nbr, const i
           const T* plane = S + (g * P + p) * V * 9;
           T* out = xh + (g * P + p) * V * 9;
           const T* rm = rms.data() + p * kVertexTile * 9;
+          V8 sq{};
           for (int64_t j = 0; j * 8 < nt; ++j) {
             const int n = static_cast<int>(std::min<int64_t>(8, nt - 8 * j));
             Soa9<T> h = w.Bias();
@@ -1029,11 +1038,23 @@ void DecoderForward(const AeGeometry& s, const T* z, const int32_t* nbr, const i
             MixAdd(h, Soa9<T>::FromRows(rm + 8 * j * 9, n), w.n);
             TanhSoa(h);
             h.ToRows(out + (i0 + 8 * j) * 9, n);
+            if (target != nullptr) {
+              const Soa9<T> t = Soa9<T>::FromRows(target + ((s.tgt[g] * P + p) * V + i0 + 8 * j) * 9, n);
+              V8 e{};
+              for (int ch = 0; ch < 9; ++ch) {
+                const V8 d = h.c[ch] - t.c[ch];
+                e += d * d;
+              }
+              for (int lane = n; lane < 8; ++lane) e[lane] = T(0);  // rows past the end (x_hat there: tanh(b))
+              sq += e;
+            }
           }
+          if (target != nullptr) part[(chunk * s.G + g) * P + p] += HSum<T>(sq);
         }
       }
     }
   });
+  if (target != nullptr) SumThreadParts(part, s.G * P, err);
 }
 
 // Given the forward's hidden layer S = tanh(z C) (its second output) and the cotangent of the conv's
@@ -1305,9 +1326,11 @@ ffi::Error EncoderBwdDispatch(ffi::ThreadPool pool, ffi::AnyBuffer x, ffi::AnyBu
   return ffi::Error::Success();
 }
 
-ffi::Error DecoderFwdDispatch(ffi::ThreadPool pool, ffi::AnyBuffer z, ffi::AnyBuffer nbr, ffi::AnyBuffer count, ffi::AnyBuffer inv,
-                              ffi::AnyBuffer wp, ffi::AnyBuffer wn, ffi::AnyBuffer b, ffi::AnyBuffer c,
-                              ffi::Result<ffi::AnyBuffer> xh, ffi::Result<ffi::AnyBuffer> hidden) {
+// The decoder forward, with target and err (the per-plane squared error) or without (both null)
+ffi::Error DecoderFwd(ffi::ThreadPool& pool, ffi::AnyBuffer z, ffi::AnyBuffer nbr, ffi::AnyBuffer count,
+                      ffi::AnyBuffer inv, ffi::AnyBuffer wp, ffi::AnyBuffer wn, ffi::AnyBuffer b, ffi::AnyBuffer c,
+                      const ffi::AnyBuffer* target, ffi::Result<ffi::AnyBuffer>& xh,
+                      ffi::Result<ffi::AnyBuffer>& hidden, ffi::Result<ffi::AnyBuffer>* err) {
   PoolScope scope(&pool);
   AeGeometry s;
   const Dims out = DimsOf(*xh);
@@ -1316,15 +1339,40 @@ ffi::Error DecoderFwdDispatch(ffi::ThreadPool pool, ffi::AnyBuffer z, ffi::AnyBu
   ffi::DataType t;
   if (hidden->element_count() != xh->element_count())
     return ffi::Error::InvalidArgument("ae_block: the hidden layer has the wrong size");
-  if (!SameFloat({z.element_type(), inv.element_type(), wp.element_type(), wn.element_type(), b.element_type(),
-                  c.element_type(), xh->element_type(), hidden->element_type()}, &t))
+  std::vector<ffi::DataType> types = {z.element_type(), inv.element_type(), wp.element_type(), wn.element_type(),
+                                      b.element_type(), c.element_type(), xh->element_type(), hidden->element_type()};
+  if (target != nullptr) {
+    if (auto e = InputMap(*target, true, out, s, &s.tgt); e.failure()) return e;
+    if (static_cast<int64_t>((*err)->element_count()) != s.G * s.P)
+      return ffi::Error::InvalidArgument("ae_block: the error output has the wrong size");
+    types.push_back(target->element_type());
+    types.push_back((*err)->element_type());
+  }
+  t = types.front();
+  for (auto u : types)
+    if (u != t) return ffi::Error::InvalidArgument("ae_block: float arrays must all be float32 or all float64");
+  if (t != ffi::DataType::F32 && t != ffi::DataType::F64)
     return ffi::Error::InvalidArgument("ae_block: float arrays must all be float32 or all float64");
   ByFloat(t, [&](auto zero) {
     using T = decltype(zero);
     DecoderForward<T>(s, In<T>(z), Ints(nbr), Ints(count), In<T>(inv), In<T>(wp), In<T>(wn), In<T>(b), In<T>(c),
-                      Out<T>(xh), Out<T>(hidden));
+                      target != nullptr ? In<T>(*target) : nullptr, Out<T>(xh), Out<T>(hidden),
+                      err != nullptr ? Out<T>(*err) : nullptr);
   });
   return ffi::Error::Success();
+}
+
+ffi::Error DecoderFwdDispatch(ffi::ThreadPool pool, ffi::AnyBuffer z, ffi::AnyBuffer nbr, ffi::AnyBuffer count,
+                              ffi::AnyBuffer inv, ffi::AnyBuffer wp, ffi::AnyBuffer wn, ffi::AnyBuffer b,
+                              ffi::AnyBuffer c, ffi::Result<ffi::AnyBuffer> xh, ffi::Result<ffi::AnyBuffer> hidden) {
+  return DecoderFwd(pool, z, nbr, count, inv, wp, wn, b, c, nullptr, xh, hidden, nullptr);
+}
+
+ffi::Error DecoderFwdErrDispatch(ffi::ThreadPool pool, ffi::AnyBuffer z, ffi::AnyBuffer nbr, ffi::AnyBuffer count,
+                                 ffi::AnyBuffer inv, ffi::AnyBuffer wp, ffi::AnyBuffer wn, ffi::AnyBuffer b,
+                                 ffi::AnyBuffer c, ffi::AnyBuffer target, ffi::Result<ffi::AnyBuffer> xh,
+                                 ffi::Result<ffi::AnyBuffer> hidden, ffi::Result<ffi::AnyBuffer> err) {
+  return DecoderFwd(pool, z, nbr, count, inv, wp, wn, b, c, &target, xh, hidden, &err);
 }
 
 ffi::Error DecoderBwdDispatch(ffi::ThreadPool pool, ffi::AnyBuffer z, ffi::AnyBuffer hidden, ffi::AnyBuffer dpre,
@@ -1400,6 +1448,13 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(JaxdeformAeDecoderFwd, DecoderFwdDispatch,
                               BlockArgs(ffi::Ffi::Bind().Ctx<ffi::ThreadPool>().Arg<ffi::AnyBuffer>())  // z (..., P, Kz), then BlockArgs
                                   .Ret<ffi::AnyBuffer>()                        // x_hat (..., P, V, 9)
                                   .Ret<ffi::AnyBuffer>());  // S = tanh(reshape(z C)) (..., P, V, 9), for the adjoint
+
+XLA_FFI_DEFINE_HANDLER_SYMBOL(JaxdeformAeDecoderFwdErr, DecoderFwdErrDispatch,
+                              BlockArgs(ffi::Ffi::Bind().Ctx<ffi::ThreadPool>().Arg<ffi::AnyBuffer>())  // z, then BlockArgs
+                                  .Arg<ffi::AnyBuffer>()  // target (..., P, V, 9)
+                                  .Ret<ffi::AnyBuffer>()  // x_hat
+                                  .Ret<ffi::AnyBuffer>()  // S
+                                  .Ret<ffi::AnyBuffer>());  // err (..., P): sum over V and 9 of (x_hat - target)^2
 
 XLA_FFI_DEFINE_HANDLER_SYMBOL(JaxdeformAeDecoderBwd, DecoderBwdDispatch,
                               GradRets(BlockArgs(ffi::Ffi::Bind().Ctx<ffi::ThreadPool>()

@@ -49,6 +49,7 @@ _AE_TARGETS = {
     "encoder_fwd": ("jaxdeform_ae_encoder_fwd", "JaxdeformAeEncoderFwd"),
     "encoder_bwd": ("jaxdeform_ae_encoder_bwd", "JaxdeformAeEncoderBwd"),
     "decoder_fwd": ("jaxdeform_ae_decoder_fwd", "JaxdeformAeDecoderFwd"),
+    "decoder_fwd_err": ("jaxdeform_ae_decoder_fwd_err", "JaxdeformAeDecoderFwdErr"),
     "decoder_bwd": ("jaxdeform_ae_decoder_bwd", "JaxdeformAeDecoderBwd"),
 }
 MAX_CHANNELS = 16  # kLanes in the kernel source
@@ -258,6 +259,16 @@ def ae_decoder_forward(z, neighbors, counts, inv_deg, w_point, w_neighbor, b, c)
     out = (jax.ShapeDtypeStruct(z.shape[:-1] + (c.shape[-1] // 9, 9), z.dtype),) * 2
     call = jax.ffi.ffi_call(_AE_TARGETS["decoder_fwd"][0], out, vmap_method="expand_dims")
     return call(z, neighbors, counts, inv_deg, w_point, w_neighbor, b, c)
+
+
+def ae_decoder_forward_error(z, target, neighbors, counts, inv_deg, w_point, w_neighbor, b, c):
+    """(x_hat, S, err): :func:`ae_decoder_forward` and err = sum over (V, 9) of (x_hat - target)^2 per plane,
+    (..., P), for ``target`` shaped like x_hat. No autodiff rule."""
+    _require()
+    planes = z.shape[:-1]
+    out = (jax.ShapeDtypeStruct(planes + (c.shape[-1] // 9, 9), z.dtype),) * 2 + (jax.ShapeDtypeStruct(planes, z.dtype),)
+    call = jax.ffi.ffi_call(_AE_TARGETS["decoder_fwd_err"][0], out, vmap_method="expand_dims")
+    return call(z, neighbors, counts, inv_deg, w_point, w_neighbor, b, c, target)
 
 
 def ae_decoder_backward(z, x_hat, hidden, dx_hat, neighbors, counts, inv_deg, w_point, w_neighbor, b, c):
