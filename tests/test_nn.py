@@ -581,7 +581,8 @@ print(h.hexdigest())
 def test_native_results_do_not_depend_on_the_thread_count():
     """The kernels cut their work into chunks fixed by the sizes and add per-chunk partial sums in chunk order:
     the loss and every gradient of the fused block halves and of the convolution are the same bit for bit with
-    one, two or three threads (the helpers from XLA's pool, or none)."""
+    JAXDEFORM_NATIVE_THREADS 1, 2 and 3 (threads in all: at most as many as XLA's pool has, so 3 runs as 2 on a
+    two-core machine)."""
     from jaxdeform.nn import native
 
     if not native.available():

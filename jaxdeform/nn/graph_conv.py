@@ -322,7 +322,7 @@ def ae_decode_error(params: dict, z: Float[Array, "b kz"], target: Float[Array, 
     if args is None or jnp.result_type(target) != args[0].dtype or target.shape != z.shape[:-1] + (
             params["C"].shape[-1] // MU, MU):
         x_hat = ae_decode(params, z, rings)
-        return x_hat, jnp.sum(jnp.square(x_hat - target).reshape(x_hat.shape[:-2] + (-1,)), axis=-1)
+        return x_hat, jnp.sum(jnp.square(x_hat - target), axis=(-2, -1))
     zz, nbr, counts, inv, wp, wn, b, c = args
     return _decode_error_native(zz, target, nbr, counts, inv, wp, wn, b, c)
 

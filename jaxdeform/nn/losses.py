@@ -37,11 +37,6 @@ def _sqrt_or_zero(sq: Array) -> Array:
     return jnp.where(pos, jnp.sqrt(jnp.where(pos, sq, 1.0)), 0.0)
 
 
-def safe_norm(v: Array, axis: int = -1) -> Array:
-    """Euclidean norm with a zero (finite) gradient at the zero vector."""
-    return _sqrt_or_zero(jnp.sum(jnp.square(v), axis=axis))
-
-
 def vertex_squared_norms(C: Float[Array, "kz nine_v"], n_vertices: int) -> Float[Array, "kz v"]:
     """||C_k,i||_2^2 for every component k and vertex i (rows of C are (V, 9) blocks, vertex-major)."""
     return jnp.sum(jnp.square(C.reshape(C.shape[0], n_vertices, MU)), axis=-1)

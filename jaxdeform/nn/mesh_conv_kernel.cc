@@ -25,6 +25,7 @@
 #include <functional>
 #include <memory>
 #include <mutex>
+#include <stdexcept>
 #include <thread>
 #include <type_traits>
 #include <vector>
@@ -86,9 +87,11 @@ Plan MakePlan(int64_t n, int64_t unit, int64_t work) {
 }
 
 // The chunks of one parallel call; shared with the helper tasks, which may start after the call has returned
-// (they then find no chunk left and touch nothing else).
+// (they then find no chunk left and touch nothing else). A chunk that throws (an allocation) is counted as done
+// and flagged, so that the call still waits for every other chunk before it reports the failure.
 struct ChunkQueue {
   std::atomic<int64_t> next{0}, done{0};
+  std::atomic<bool> failed{false};
   int64_t total = 0;
   const std::function<void(int64_t)>* run = nullptr;  // valid while done < total
   std::mutex m;
@@ -98,7 +101,11 @@ struct ChunkQueue {
     for (;;) {
       const int64_t c = next.fetch_add(1);
       if (c >= total) return;
-      (*run)(c);
+      try {
+        (*run)(c);
+      } catch (...) {
+        failed.store(true);
+      }
       if (done.fetch_add(1) + 1 == total) {
         std::lock_guard<std::mutex> lock(m);
         cv.notify_all();
@@ -108,9 +115,10 @@ struct ChunkQueue {
 };
 
 // Runs fn(chunk, begin, end) for every chunk of `plan` over [0, n). Threads claim chunks one at a time: the
-// calling thread, and up to MaxThreads() - 1 helpers on XLA's own intra-op thread pool where the call has one
-// (std::thread otherwise). A helper the pool cannot start at once (its threads busy with other operations of
-// the program) leaves its chunks to the others, so a call never waits for a core that XLA is using.
+// calling thread, and helpers on XLA's own intra-op thread pool (as many as the pool has threads, less one, and
+// at most MaxThreads() - 1), or on std::thread where the call has no pool. A helper the pool cannot start at once
+// (its threads busy with other operations of the program) leaves its chunks to the others, so a call never waits
+// for a core that XLA is using. Throws std::runtime_error, after every chunk has ended, if one of them threw.
 template <typename Fn>
 void RunPlan(const Plan& plan, int64_t n, Fn fn) {
   if (plan.chunks <= 1) {
@@ -124,9 +132,9 @@ void RunPlan(const Plan& plan, int64_t n, Fn fn) {
   q->total = plan.chunks;
   q->run = &run;
   ffi::ThreadPool* pool = tls_pool;
-  const int64_t threads = std::min<int64_t>(plan.chunks, pool != nullptr
-                                                             ? std::min<int64_t>(MaxThreads(), pool->num_threads())
-                                                             : MaxThreads());
+  const int64_t pool_threads = pool != nullptr ? pool->num_threads() : 0;
+  if (pool_threads <= 0) pool = nullptr;  // no pool (or its size unknown): threads of our own
+  const int64_t threads = std::min<int64_t>({plan.chunks, MaxThreads(), pool != nullptr ? pool_threads : MaxThreads()});
   std::vector<std::thread> own;
   for (int64_t t = 1; t < threads; ++t) {
     if (pool != nullptr) pool->Schedule([q] { q->Work(); });
@@ -138,9 +146,10 @@ void RunPlan(const Plan& plan, int64_t n, Fn fn) {
     q->cv.wait(lock, [&] { return q->done.load() == q->total; });
   }
   for (auto& th : own) th.join();
+  if (q->failed.load()) throw std::runtime_error("a chunk of a native mesh kernel failed (out of memory?)");
 }
 
-// Runs fn(chunk, plane_begin, plane_end) over `planes` (see RunPlan); chunk < PlanPlanes(...).chunks.
+// The cut of `planes` into chunks of whole planes (RunPlan(plan, planes, fn) runs fn(chunk, p0, p1) over them)
 Plan PlanPlanes(int64_t planes, int64_t work_per_plane) { return MakePlan(planes, 1, work_per_plane); }
 
 // Any channel counts up to kLanes, read from the geometry. The 9-channel case of seed 000 runs Forward9 /
@@ -183,7 +192,7 @@ void BackwardPlanes(const Geometry& s, const T* __restrict__ x, const T* __restr
                     const int32_t* __restrict__ nbr, const int32_t* __restrict__ count, const T* __restrict__ inv,
                     const T* __restrict__ wp, const T* __restrict__ wn, T* __restrict__ gx, T* __restrict__ acc,
                     int64_t p0, int64_t p1) {
-  // acc: this thread's (G, 2 * Ci * Co + Co) partial sums of gWp, gWn, gb; each plane first sums into
+  // acc: this chunk's (G, 2 * Ci * Co + Co) partial sums of gWp, gWn, gb; each plane first sums into
   // local arrays (kept in registers / L1), added to acc once per plane
   const int64_t Ci = s.Ci, Co = s.Co, V = s.V, K = s.K;
   const int64_t stride = 2 * Ci * Co + Co;
@@ -483,7 +492,7 @@ void ReduceWeightGrads(const std::vector<T>& acc, int64_t groups, int64_t cc, in
 
 // Sums per-chunk partials (chunks x n, as many chunks as part holds) into out (n), in chunk order
 template <typename T>
-void SumThreadParts(const std::vector<T>& part, int64_t n, T* out) {
+void SumChunkParts(const std::vector<T>& part, int64_t n, T* out) {
   std::fill(out, out + n, T(0));
   for (size_t t = 0; t < part.size() / static_cast<size_t>(std::max<int64_t>(n, 1)); ++t)
     for (int64_t e = 0; e < n; ++e) out[e] += part[t * n + e];
@@ -523,6 +532,21 @@ ffi::Error Backward(ffi::AnyBuffer x, ffi::AnyBuffer gy, ffi::AnyBuffer nbr, ffi
   return ffi::Error::Success();
 }
 
+// Calls fn(T{}) with T the float type of t (float32 or float64, as SameFloat established); an exception of the
+// kernel (memory) becomes an error of the call instead of ending the process.
+template <typename Fn>
+ffi::Error ByFloat(ffi::DataType t, Fn fn) {
+  try {
+    if (t == ffi::DataType::F32)
+      fn(float{});
+    else
+      fn(double{});
+  } catch (const std::exception& e) {
+    return ffi::Error::Internal(std::string("native mesh kernel: ") + e.what());
+  }
+  return ffi::Error::Success();
+}
+
 bool SameFloat(std::initializer_list<ffi::DataType> types, ffi::DataType* t) {
   *t = *types.begin();
   for (auto u : types)
@@ -537,8 +561,11 @@ ffi::Error ForwardDispatch(ffi::ThreadPool pool, ffi::AnyBuffer x, ffi::AnyBuffe
   if (!SameFloat({x.element_type(), inv.element_type(), wp.element_type(), wn.element_type(), b.element_type(),
                   y->element_type()}, &t))
     return ffi::Error::InvalidArgument("mesh_conv: float arrays must all be float32 or all float64");
-  if (t == ffi::DataType::F32) return Forward<float>(x, nbr, count, inv, wp, wn, b, y);
-  return Forward<double>(x, nbr, count, inv, wp, wn, b, y);
+  ffi::Error result = ffi::Error::Success();
+  if (auto e = ByFloat(t, [&](auto zero) { result = Forward<decltype(zero)>(x, nbr, count, inv, wp, wn, b, y); });
+      e.failure())
+    return e;
+  return result;
 }
 
 ffi::Error BackwardDispatch(ffi::ThreadPool pool, ffi::AnyBuffer x, ffi::AnyBuffer gy, ffi::AnyBuffer nbr, ffi::AnyBuffer count,
@@ -550,8 +577,13 @@ ffi::Error BackwardDispatch(ffi::ThreadPool pool, ffi::AnyBuffer x, ffi::AnyBuff
   if (!SameFloat({x.element_type(), gy.element_type(), inv.element_type(), wp.element_type(), wn.element_type(),
                   gx->element_type(), gwp->element_type(), gwn->element_type(), gb->element_type()}, &t))
     return ffi::Error::InvalidArgument("mesh_conv: float arrays must all be float32 or all float64");
-  if (t == ffi::DataType::F32) return Backward<float>(x, gy, nbr, count, inv, wp, wn, gx, gwp, gwn, gb);
-  return Backward<double>(x, gy, nbr, count, inv, wp, wn, gx, gwp, gwn, gb);
+  ffi::Error result = ffi::Error::Success();
+  if (auto e = ByFloat(t, [&](auto zero) {
+        result = Backward<decltype(zero)>(x, gy, nbr, count, inv, wp, wn, gx, gwp, gwn, gb);
+      });
+      e.failure())
+    return e;
+  return result;
 }
 
 // ---------------------------------------------------------------------------------------------------------
@@ -570,7 +602,7 @@ ffi::Error BackwardDispatch(ffi::ThreadPool pool, ffi::AnyBuffer x, ffi::AnyBuff
 // of 8 vertices held channel by channel (Soa9: one 8-lane vector per channel), so a 9x9 channel mix is 81
 // full-width multiply-adds per 8 vertices, where the row layout of the convolution kernels above spends 18
 // vector and 18 scalar ones per vertex; the one-ring gathers stay on rows. tanh: float32, Eigen's 13/6 rational interpolant (a few ulp);
-// float64, std::tanh. Work is split over vertex ranges, so the rows of dC a thread writes are its own; the
+// float64, std::tanh. Work is split over vertex ranges, so the rows of dC a chunk writes are its own; the
 // reductions over vertices (z, dz, weight gradients) are summed per chunk (Plan), then in chunk order.
 
 constexpr int64_t kVertexTile = 64;  // a multiple of 8
@@ -788,7 +820,7 @@ void TileRingsPlanes(const T* base, int64_t P, int64_t pstride, const int32_t* n
   else TileRingsPlanesT<T, false>(base, P, pstride, nbr, count, inv, K, i0, nt, buf);
 }
 
-// Per thread weight-gradient partial sums: gWp (81) | gWn (81) | gb (9) per output group.
+// Per chunk weight-gradient partial sums: gWp (81) | gWn (81) | gb (9) per output group.
 constexpr int64_t kWeightStride = 2 * 81 + 9;  // ReduceWeightGrads' stride for 9 channels
 
 // 8-lane accumulators of a^T d, a^T sg and d (gWp, gWn, gb of one group; sg: the adjoint ring sums of d, see
@@ -887,7 +919,7 @@ void EncoderForward(const AeGeometry& s, const T* x, const int32_t* nbr, const i
       }
     }
   });
-  SumThreadParts(part, s.G * P * Kz, z);
+  SumChunkParts(part, s.G * P * Kz, z);
 }
 
 // out[g,p] = conv^T(d[g,p]): the input cotangent of a conv with input rows a and pre-activation cotangent d;
@@ -1022,7 +1054,6 @@ void DecoderForward(const AeGeometry& s, const T* z, const int32_t* nbr, const i
     std::vector<T> rms(static_cast<size_t>(P * kVertexTile * 9));
     for (int64_t g = 0; g < s.G; ++g) {
       w.Load(wp, wn, b, s.w[g], false);
-      for (int64_t p = 0; p < P && target != nullptr; ++p) part[(chunk * s.G + g) * P + p] = T(0);
       for (int64_t i0 = v0; i0 < v1; i0 += kVertexTile) {
         const int64_t nt = std::min(v1, i0 + kVertexTile) - i0;
         TileRingsPlanes(S + g * P * V * 9, P, V * 9, nbr, count, inv, s.K, i0, nt, false, rms.data());
@@ -1054,11 +1085,11 @@ void DecoderForward(const AeGeometry& s, const T* z, const int32_t* nbr, const i
       }
     }
   });
-  if (target != nullptr) SumThreadParts(part, s.G * P, err);
+  if (target != nullptr) SumChunkParts(part, s.G * P, err);
 }
 
 // Given the forward's hidden layer S = tanh(z C) (its second output) and the cotangent of the conv's
-// pre-activation, dpre = dx_hat (1 - x_hat^2): the caller forms it (graph_conv.py), where XLA fuses it into the
+// pre-activation, dpre = dx_hat (1 - x_hat^2): the caller forms it (native.ae_decoder_backward), where XLA fuses it into the
 // operation that makes dx_hat, instead of a pass of its own here over x_hat and dx_hat.
 template <typename T>
 void DecoderBackward(const AeGeometry& s, int64_t weight_groups, int64_t c_groups, const T* z, const T* S,
@@ -1122,7 +1153,7 @@ void DecoderBackward(const AeGeometry& s, int64_t weight_groups, int64_t c_group
     }
   });
   ReduceWeightGrads(acc, weight_groups, int64_t{81}, int64_t{9}, gwp, gwn, gb);
-  SumThreadParts(part, s.G * P * Kz, dz);
+  SumChunkParts(part, s.G * P * Kz, dz);
 }
 
 // ---- shapes and dispatch ----
@@ -1257,14 +1288,6 @@ auto BlockArgs(B&& bind) { return Args<7>(std::move(bind)); }
 template <typename B>
 auto GradRets(B&& bind) { return Rets<5>(std::move(bind)); }
 
-// Calls fn(T{}) with T the float type of t (float32 or float64, as SameFloat established)
-template <typename Fn>
-void ByFloat(ffi::DataType t, Fn fn) {
-  if (t == ffi::DataType::F32)
-    fn(float{});
-  else
-    fn(double{});
-}
 
 // The group counts of the adjoints' gradient outputs (gW_point, gW_neighbor, gb: wg; dC: cg), checked
 ffi::Error GradOutputs(const AeGeometry& s, ffi::Result<ffi::AnyBuffer>& gwp, ffi::Result<ffi::AnyBuffer>& gwn,
@@ -1291,12 +1314,11 @@ ffi::Error EncoderFwdDispatch(ffi::ThreadPool pool, ffi::AnyBuffer x, ffi::AnyBu
   if (!SameFloat({x.element_type(), inv.element_type(), wp.element_type(), wn.element_type(), b.element_type(),
                   c.element_type(), z->element_type(), h->element_type()}, &t))
     return ffi::Error::InvalidArgument("ae_block: float arrays must all be float32 or all float64");
-  ByFloat(t, [&](auto zero) {
+  return ByFloat(t, [&](auto zero) {
     using T = decltype(zero);
     EncoderForward<T>(s, In<T>(x), Ints(nbr), Ints(count), In<T>(inv), In<T>(wp), In<T>(wn), In<T>(b), In<T>(c),
                       Out<T>(z), Out<T>(h));
   });
-  return ffi::Error::Success();
 }
 
 ffi::Error EncoderBwdDispatch(ffi::ThreadPool pool, ffi::AnyBuffer x, ffi::AnyBuffer h, ffi::AnyBuffer dz, ffi::AnyBuffer nbr, ffi::AnyBuffer count,
@@ -1318,12 +1340,11 @@ ffi::Error EncoderBwdDispatch(ffi::ThreadPool pool, ffi::AnyBuffer x, ffi::AnyBu
                   b.element_type(), c.element_type(), dx->element_type(), gwp->element_type(),
                   gwn->element_type(), gb->element_type(), dc->element_type()}, &t))
     return ffi::Error::InvalidArgument("ae_block: float arrays must all be float32 or all float64");
-  ByFloat(t, [&](auto zero) {
+  return ByFloat(t, [&](auto zero) {
     using T = decltype(zero);
     EncoderBackward<T>(s, wg, cg, In<T>(x), In<T>(h), In<T>(dz), Ints(nbr), Ints(count), In<T>(inv), In<T>(wp),
                        In<T>(wn), In<T>(c), Out<T>(dx), Out<T>(gwp), Out<T>(gwn), Out<T>(gb), Out<T>(dc));
   });
-  return ffi::Error::Success();
 }
 
 // The decoder forward, with target and err (the per-plane squared error) or without (both null)
@@ -1353,13 +1374,12 @@ ffi::Error DecoderFwd(ffi::ThreadPool& pool, ffi::AnyBuffer z, ffi::AnyBuffer nb
     if (u != t) return ffi::Error::InvalidArgument("ae_block: float arrays must all be float32 or all float64");
   if (t != ffi::DataType::F32 && t != ffi::DataType::F64)
     return ffi::Error::InvalidArgument("ae_block: float arrays must all be float32 or all float64");
-  ByFloat(t, [&](auto zero) {
+  return ByFloat(t, [&](auto zero) {
     using T = decltype(zero);
     DecoderForward<T>(s, In<T>(z), Ints(nbr), Ints(count), In<T>(inv), In<T>(wp), In<T>(wn), In<T>(b), In<T>(c),
                       target != nullptr ? In<T>(*target) : nullptr, Out<T>(xh), Out<T>(hidden),
                       err != nullptr ? Out<T>(*err) : nullptr);
   });
-  return ffi::Error::Success();
 }
 
 ffi::Error DecoderFwdDispatch(ffi::ThreadPool pool, ffi::AnyBuffer z, ffi::AnyBuffer nbr, ffi::AnyBuffer count,
@@ -1396,12 +1416,11 @@ ffi::Error DecoderBwdDispatch(ffi::ThreadPool pool, ffi::AnyBuffer z, ffi::AnyBu
                   wn.element_type(), b.element_type(), c.element_type(), dz->element_type(), gwp->element_type(),
                   gwn->element_type(), gb->element_type(), dc->element_type()}, &t))
     return ffi::Error::InvalidArgument("ae_block: float arrays must all be float32 or all float64");
-  ByFloat(t, [&](auto zero) {
+  return ByFloat(t, [&](auto zero) {
     using T = decltype(zero);
     DecoderBackward<T>(s, wg, cg, In<T>(z), In<T>(hidden), In<T>(dpre), Ints(nbr), Ints(count), In<T>(inv), In<T>(wp),
                        In<T>(wn), In<T>(c), Out<T>(dz), Out<T>(gwp), Out<T>(gwn), Out<T>(gb), Out<T>(dc));
   });
-  return ffi::Error::Success();
 }
 
 }  // namespace
