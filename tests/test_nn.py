@@ -1,5 +1,6 @@
 """Tests of jaxdeform.nn: mesh convolution (seed 000 eq. 1), AE block, group sparsity and latent bound."""
 
+import inspect
 import os
 import platform
 import subprocess
@@ -559,9 +560,7 @@ from jaxdeform.mesh.topology import build_topology
 from jaxdeform.nn import native
 from jaxdeform.nn.graph_conv import ae_decode, ae_encode, init_ae_block, mesh_conv, rings_from_topology
 n = 48  # 2304 vertices: 36 tiles of 64, cut into several chunks by every kernel
-faces = np.array([[i * n + j, i * n + j + 1, (i + 1) * n + j] for i in range(n - 1) for j in range(n - 1)]
-                 + [[i * n + j + 1, (i + 1) * n + j + 1, (i + 1) * n + j] for i in range(n - 1) for j in range(n - 1)])
-rings = rings_from_topology(build_topology(faces, n * n))
+rings = rings_from_topology(build_topology(grid_faces(n), n * n))  # grid_faces: this test module's, prepended
 assert native.available()
 p = jax.vmap(lambda k: init_ae_block(k, n * n, 4, jnp.float32))(jax.random.split(jax.random.PRNGKey(0), 3))
 x = jax.random.uniform(jax.random.PRNGKey(1), (3, 5, n * n, 9), jnp.float32, -0.9, 0.9)
@@ -587,9 +586,10 @@ def test_native_results_do_not_depend_on_the_thread_count():
 
     if not native.available():
         pytest.skip("native kernels unavailable here (no C++ compiler or not on CPU)")
+    probe = "import numpy as np\n" + inspect.getsource(grid_faces) + _THREADS_PROBE
     digests = {}
     for threads in ("1", "2", "3"):
-        proc = subprocess.run([sys.executable, "-c", _THREADS_PROBE], capture_output=True, text=True, check=True,
+        proc = subprocess.run([sys.executable, "-c", probe], capture_output=True, text=True, check=True,
                               env={**os.environ, "JAXDEFORM_NATIVE_THREADS": threads})
         digests[threads] = proc.stdout.strip()
     assert len(digests["1"]) == 64 and len(set(digests.values())) == 1, digests

@@ -327,20 +327,21 @@ def ae_decode_error(params: dict, z: Float[Array, "b kz"], target: Float[Array, 
     return _decode_error_native(zz, target, nbr, counts, inv, wp, wn, b, c)
 
 
+def _latent_code(params: dict, x: Float[Array, "b v 9"], rings: Rings, latent: str) -> Float[Array, "b kz"]:
+    z = ae_encode(params, x, rings)
+    return jnp.tanh(z) if latent == "tanh" else z
+
+
 def ae_forward(params: dict, x: Float[Array, "b v 9"], rings: Rings,
                latent: str = "linear") -> tuple[Float[Array, "b kz"], Float[Array, "b v 9"]]:
     """(z, x_hat) of one autoencoder block; ``latent="tanh"`` puts a tanh on z (see the module docstring)."""
-    z = ae_encode(params, x, rings)
-    if latent == "tanh":
-        z = jnp.tanh(z)
+    z = _latent_code(params, x, rings, latent)
     return z, ae_decode(params, z, rings)
 
 
 def ae_forward_error(params: dict, x: Float[Array, "b v 9"], rings: Rings, latent: str = "linear") -> tuple:
     """(z, x_hat, err) of one block: :func:`ae_forward` and the squared error of x_hat against the block's own
     input x per shape (:func:`ae_decode_error`)."""
-    z = ae_encode(params, x, rings)
-    if latent == "tanh":
-        z = jnp.tanh(z)
+    z = _latent_code(params, x, rings, latent)
     x_hat, err = ae_decode_error(params, z, x, rings)
     return z, x_hat, err

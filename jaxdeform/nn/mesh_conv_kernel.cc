@@ -18,11 +18,11 @@
 #include <cmath>
 #include <cstdint>
 #include <cstdlib>
-#include <cstring>
-#include <initializer_list>
 #include <atomic>
 #include <condition_variable>
+#include <cstring>
 #include <functional>
+#include <initializer_list>
 #include <memory>
 #include <mutex>
 #include <stdexcept>
@@ -547,7 +547,7 @@ ffi::Error ByFloat(ffi::DataType t, Fn fn) {
   return ffi::Error::Success();
 }
 
-bool SameFloat(std::initializer_list<ffi::DataType> types, ffi::DataType* t) {
+bool SameFloat(const std::vector<ffi::DataType>& types, ffi::DataType* t) {
   *t = *types.begin();
   for (auto u : types)
     if (u != *t) return false;
@@ -1288,7 +1288,6 @@ auto BlockArgs(B&& bind) { return Args<7>(std::move(bind)); }
 template <typename B>
 auto GradRets(B&& bind) { return Rets<5>(std::move(bind)); }
 
-
 // The group counts of the adjoints' gradient outputs (gW_point, gW_neighbor, gb: wg; dC: cg), checked
 ffi::Error GradOutputs(const AeGeometry& s, ffi::Result<ffi::AnyBuffer>& gwp, ffi::Result<ffi::AnyBuffer>& gwn,
                        ffi::Result<ffi::AnyBuffer>& gb, ffi::Result<ffi::AnyBuffer>& dc, int64_t* wg, int64_t* cg) {
@@ -1369,10 +1368,7 @@ ffi::Error DecoderFwd(ffi::ThreadPool& pool, ffi::AnyBuffer z, ffi::AnyBuffer nb
     types.push_back(target->element_type());
     types.push_back((*err)->element_type());
   }
-  t = types.front();
-  for (auto u : types)
-    if (u != t) return ffi::Error::InvalidArgument("ae_block: float arrays must all be float32 or all float64");
-  if (t != ffi::DataType::F32 && t != ffi::DataType::F64)
+  if (!SameFloat(types, &t))
     return ffi::Error::InvalidArgument("ae_block: float arrays must all be float32 or all float64");
   return ByFloat(t, [&](auto zero) {
     using T = decltype(zero);

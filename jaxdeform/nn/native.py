@@ -19,10 +19,10 @@ Threads: a call cuts its vertices (or planes) into at most 16 chunks, a cut fixe
 one partial sum per chunk, added in chunk order, so results do not depend on the thread count. The calling thread
 and helpers on XLA's own intra-op thread pool (handed to the call through the FFI context) claim chunks one at a
 time: as many threads in all as the pool has, and at most ``JAXDEFORM_NATIVE_THREADS`` (default: the hardware's,
-at most 16). A kernel's exception (memory) comes back as an error of the call. Before, each call split its range in equal parts over threads of its own: where XLA ran another
-operation of the step at the same time, or its pool's idle workers held the cores, a part waited for a core. On
-the horse training step (2-core VM, 10-step blocks, the two code trees alternated) that took 68-71 ms per step
-against 59-60 ms this way.
+at most 16). A kernel's exception (memory) comes back as an error of the call. Before, each call split its range
+in equal parts over threads of its own: where XLA ran another operation of the step at the same time, or its
+pool's idle workers held the cores, a part waited for a core. On the horse training step (2-core VM, 10-step
+blocks, the two code trees alternated) that took 68-71 ms per step against 59-60 ms this way.
 """
 
 from __future__ import annotations
