@@ -174,6 +174,38 @@ def test_separate_training_freezes_earlier_levels(setup):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
 
+@pytest.mark.parametrize("stage", [None, 0, 1])
+@pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32])
+def test_fused_adam_step_is_the_optax_step(setup, monkeypatch, stage, dtype):
+    """The training step with the native one-pass Adam (the gradient of each C in parts: encoders', decoders',
+    the group sparsity's in closed form) and the plain step (autodiff's gradient, optax.adam) give the same loss,
+    parameters and optimizer state after 4 steps, joint and for each stage of separate training."""
+    from jaxdeform.nn import native
+
+    if not native.available():
+        pytest.skip("native kernels unavailable here (no C++ compiler or not on CPU)")
+    _, rings, dist, x = setup
+    x, dist = x.astype(dtype), dist.astype(dtype)
+    config = model.Config(kz=(3, 2), d=(0.5, 0.3))
+    tc = train.TrainConfig(epochs=4, batch=16, seed=2, joint=stage is None)
+    start = model.init(jax.random.PRNGKey(5), x.shape[1], config, dtype)
+    start = start if stage is None else start[: stage + 1]
+    runs = []
+    for fused in (True, False):
+        monkeypatch.setattr(train, "fuses_adam", lambda tc, fused=fused: fused)
+        step = train.make_step(config, tc, rings, dist, stage)
+        params, key = jax.tree_util.tree_map(jnp.copy, start), jax.random.PRNGKey(6)
+        state = train._opt_init(tc, params, stage)
+        for _ in range(4):
+            params, state, key, loss, _ = step(params, state, key, x)
+        runs.append((loss, params, state))
+    assert jax.tree_util.tree_structure(runs[0]) == jax.tree_util.tree_structure(runs[1])
+    tol = 1e-4 if dtype == jnp.float32 else 1e-12  # float32: Adam's first steps are near sign(g), a few ulp move them
+    for a, b in zip(jax.tree_util.tree_leaves(runs[0]), jax.tree_util.tree_leaves(runs[1])):
+        a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+        assert np.max(np.abs(a - b)) <= tol * max(np.max(np.abs(b)), 1e-30)
+
+
 def test_attention_gradient_switch(setup):
     """With ``attention_gradient`` off, the children's losses reach the parent's C only through the residual;
     on, also through the masks: the gradients of the level-1 loss with respect to C0 are finite and differ."""

@@ -29,6 +29,7 @@ from jaxdeform.nn.losses import (
     geodesic_linear_mask,
     geodesic_step_mask,
     group_sparsity,
+    group_sparsity_gradient,
     latent_bound,
     reconstruction_loss,
 )
@@ -624,3 +625,63 @@ def test_decoder_error_matches_the_squared_difference(dtype):
     assert abs(float(v1 - v2)) <= tol * abs(float(v2))
     for a, b in zip(jax.tree_util.tree_leaves(g1), jax.tree_util.tree_leaves(g2)):
         assert float(jnp.max(jnp.abs(a - b))) <= tol * float(jnp.max(jnp.abs(b)))
+
+
+@pytest.mark.parametrize("mask, d", [("step", 0.4), ("linear", (0.2, 0.4))])
+def test_group_sparsity_gradient_in_closed_form(mask, d):
+    """group_sparsity_gradient's value is Omega(C) and w C (w per vertex row) is autodiff's gradient of Omega,
+    zero rows (zero gradient) included."""
+    dist = jnp.asarray(grid_dist(4))
+    C = np.random.default_rng(3).normal(size=(3, 16, 9))
+    C[1, 4:9] = 0.0
+    C[2, 0] = 0.0
+    Cf = jnp.asarray(C.reshape(3, -1))
+    value, w = jax.jit(lambda c: group_sparsity_gradient(c, dist, d, mask))(Cf)
+    want = jax.jit(jax.value_and_grad(lambda c: raw_group_sparsity(c, dist, d, mask)))(Cf)
+    assert w.shape == (3, 16) and float(value) == pytest.approx(float(want[0]), rel=1e-13)
+    got = (np.asarray(w)[..., None] * C).reshape(3, -1)
+    np.testing.assert_allclose(got, np.asarray(want[1]), rtol=1e-12, atol=1e-15)
+    assert np.all(np.asarray(w)[1, 4:9] == 0.0) and np.asarray(w)[1].max() > 0
+    # no gradient flows through the value (the optimizer adds w C itself)
+    assert float(jnp.max(jnp.abs(jax.grad(lambda c: group_sparsity_gradient(c, dist, d, mask)[0])(Cf)))) == 0.0
+
+
+@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
+@pytest.mark.parametrize("rows", [True, False])
+def test_native_adam_is_optax_adam(dtype, rows):
+    """native.adam_update (in place, one pass) gives optax.adam's new parameters and moments over several steps
+    of a decaying rate, for a gradient given as two parts plus the row term w C (rows of 9), or as one array."""
+    import optax
+
+    from jaxdeform.nn import native
+
+    if not native.available():
+        pytest.skip("native kernels unavailable here (no C++ compiler or not on CPU)")
+    shape = (3, 2, 9 * 13)
+    keys = jax.random.split(jax.random.PRNGKey(4), 8)
+    p0 = jax.random.normal(keys[0], shape, dtype)
+    rate = optax.exponential_decay(1e-2, 3, 0.5)
+    opt = optax.adam(rate)
+    ref_p, ref_state = p0, opt.init(p0)
+    p, mu, nu = jnp.copy(p0), jnp.zeros(shape, dtype), jnp.zeros(shape, dtype)
+
+    @jax.jit
+    def fused(p, mu, nu, parts, w, t):
+        scalars = jnp.stack([0.9, 0.999, 1 - 0.9 ** t, 1 - 0.999 ** t, 1e-8, -rate(t - 1)]).astype(dtype)
+        return native.adam_update(p, mu, nu, parts, scalars, w)
+
+    for t in range(1, 6):
+        parts = (jax.random.normal(keys[t], shape, dtype), jax.random.normal(keys[t + 1], shape, dtype))
+        w = jnp.abs(jax.random.normal(keys[7 - t], shape[:-1] + (13,), dtype)) if rows else None
+        grad = parts[0] + parts[1] if rows else parts[0]
+        if rows:
+            grad = grad + (w[..., None] * ref_p.reshape(shape[:-1] + (13, 9))).reshape(shape)
+        updates, ref_state = opt.update(grad, ref_state, ref_p)
+        ref_p = optax.apply_updates(ref_p, updates)
+        p, mu, nu = fused(p, mu, nu, parts if rows else parts[:1], w, jnp.int32(t))  # int32: optax's count
+    tol = 5e-5 if dtype == jnp.float32 else 1e-14  # float32: the parts are added in another order than XLA
+    for got, want in ((p, ref_p), (mu, ref_state[0].mu), (nu, ref_state[0].nu)):
+        assert got.dtype == dtype
+        assert float(jnp.max(jnp.abs(got - want))) <= tol * float(jnp.max(jnp.abs(want)))
+    with pytest.raises(Exception, match="not shaped like the parameter"):
+        native.adam_update(p, mu, nu, (p[..., :9],), jnp.ones(6, dtype))

@@ -25,7 +25,7 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from jaxdeform.nn.graph_conv import MU, Rings, ae_decode, ae_forward, ae_forward_error, init_ae_block
-from jaxdeform.nn.losses import group_sparsity, latent_bound
+from jaxdeform.nn.losses import group_sparsity, group_sparsity_gradient, latent_bound
 
 
 @dataclasses.dataclass(frozen=True)
@@ -81,6 +81,9 @@ class Output(NamedTuple):
     loss: Array  # scalar: sum of the blocks' losses
     terms: dict  # per level: recon, sparsity, latent (summed over the level's blocks)
     latents: tuple  # per level: (n_l, B, Kz_l)
+    # per level (n_l, Kz_l, V): lambda2 w of eq. (3)'s closed-form gradient w C, where forward() was asked for
+    # it (sparsity_gradient=False: the loss then carries Omega's value without gradient); else None
+    sparsity_coefficients: tuple | None = None
 
 
 def init(key: Array, n_vertices: int, config: Config, dtype=jnp.float32) -> tuple[dict, ...]:
@@ -101,13 +104,18 @@ def attention_masks(c: Float[Array, "kz nine_v"]) -> Float[Array, "kz v"]:
 
 
 def _levels(params: tuple[dict, ...], x: Float[Array, "b v 9"], rings: Rings, config: Config,
-            with_error: bool = False) -> list:
+            with_error: bool = False, decoder_c: tuple | None = None) -> list:
     """Per level: (inputs (n_l, B, V, 9), latents (n_l, B, Kz_l), outputs (n_l, B, V, 9), errors (n_l, B) or
-    None): ``with_error`` gives each block's summed squared error against its input, per shape."""
+    None): ``with_error`` gives each block's summed squared error against its input, per shape.
+    ``decoder_c[l]`` (with ``with_error``; None entries allowed): level l's decoders read C from it instead."""
     inputs = x[None]  # (n_0 = 1, B, V, 9)
     levels = []
     for level, p in enumerate(params):
-        if with_error:
+        dec_c = None if decoder_c is None else decoder_c[level]
+        if with_error and dec_c is not None:
+            z, x_hat, err = jax.vmap(lambda q, c, xin: ae_forward_error(q, xin, rings, config.latent, c))(
+                p, dec_c, inputs)
+        elif with_error:
             z, x_hat, err = jax.vmap(lambda q, xin: ae_forward_error(q, xin, rings, config.latent))(p, inputs)
         else:
             (z, x_hat), err = jax.vmap(lambda q, xin: ae_forward(q, xin, rings, config.latent))(p, inputs), None
@@ -146,24 +154,33 @@ def level_sparsity(p: dict, dist: Float[Array, "v v"], config: Config, level: in
 
 
 def forward(params: tuple[dict, ...], x: Float[Array, "b v 9"], rings: Rings, dist: Float[Array, "v v"],
-            config: Config) -> Output:
+            config: Config, *, decoder_c: tuple | None = None, sparsity_gradient: bool = True) -> Output:
     """Run every level on a batch of scaled features and return the reconstruction and the total loss.
 
     ``params`` may hold fewer levels than ``config`` (a prefix: used by separate, level-by-level training).
+    For an optimizer that sums the gradient of C from its parts in one pass (``components.train`` on CPU):
+    ``decoder_c`` gives the decoders their C apart (see :func:`_levels`), and ``sparsity_gradient=False`` keeps
+    Omega(C) out of autodiff, returning its gradient's coefficients in :attr:`Output.sparsity_coefficients`.
     """
     total = jnp.zeros((), x.dtype)
     recon = jnp.zeros_like(x)
-    terms, latents = [], []
-    for level, (p, (_, z, x_hat, err)) in enumerate(zip(params, _levels(params, x, rings, config, True))):
+    terms, latents, coefficients = [], [], []
+    levels = _levels(params, x, rings, config, True, decoder_c)
+    for level, (p, (_, z, x_hat, err)) in enumerate(zip(params, levels)):
         rec_l = jnp.mean(err, axis=-1)  # L_recon of each block: the paper's mean over shapes of the summed squares
-        sparse_l = level_sparsity(p, dist, config, level)
+        if sparsity_gradient:
+            sparse_l = level_sparsity(p, dist, config, level)
+        else:
+            sparse_l, w = jax.vmap(lambda c: group_sparsity_gradient(c, dist, config.sparsity_cutoff(level),
+                                                                     config.mask))(p["C"])
+            coefficients.append(config.lambda_sparse * w)
         latent_l = jax.vmap(lambda zz: latent_bound(zz, config.theta))(z)
         total = total + jnp.sum(config.lambda_recon * rec_l + config.lambda_sparse * sparse_l
                                 + config.lambda_latent * latent_l)
         recon = recon + jnp.sum(x_hat, axis=0)
         terms.append({"recon": jnp.sum(rec_l), "sparsity": jnp.sum(sparse_l), "latent": jnp.sum(latent_l)})
         latents.append(z)
-    return Output(recon, total, terms, tuple(latents))
+    return Output(recon, total, terms, tuple(latents), None if sparsity_gradient else tuple(coefficients))
 
 
 def decode_latents(params: tuple[dict, ...], latents: tuple, rings: Rings) -> Float[Array, "b v 9"]:

@@ -339,9 +339,13 @@ def ae_forward(params: dict, x: Float[Array, "b v 9"], rings: Rings,
     return z, ae_decode(params, z, rings)
 
 
-def ae_forward_error(params: dict, x: Float[Array, "b v 9"], rings: Rings, latent: str = "linear") -> tuple:
+def ae_forward_error(params: dict, x: Float[Array, "b v 9"], rings: Rings, latent: str = "linear",
+                     decoder_c: Array | None = None) -> tuple:
     """(z, x_hat, err) of one block: :func:`ae_forward` and the squared error of x_hat against the block's own
-    input x per shape (:func:`ae_decode_error`)."""
+    input x per shape (:func:`ae_decode_error`). ``decoder_c``: the decoder's C passed apart (the values of
+    ``params["C"]``), so that the gradient comes back in two parts, the encoder's and the decoder's (an optimizer
+    that adds them in its own pass, see ``components.train``)."""
     z = _latent_code(params, x, rings, latent)
-    x_hat, err = ae_decode_error(params, z, x, rings)
+    dec = params if decoder_c is None else {**params, "C": decoder_c}
+    x_hat, err = ae_decode_error(dec, z, x, rings)
     return z, x_hat, err

@@ -1419,6 +1419,120 @@ ffi::Error DecoderBwdDispatch(ffi::ThreadPool pool, ffi::AnyBuffer z, ffi::AnyBu
   });
 }
 
+// ---- Adam ----
+//
+// One step of Adam, optax.adam's arithmetic, over a parameter array p and its moments mu, nu in one pass (the
+// results alias them): g = the sum of the gradient parts + coef[row] p (coef: one entry per row of r entries,
+// or none), mu' = (1 - b1) g + b1 mu, nu' = (1 - b2) g^2 + b2 nu, p' = p + step (mu' / bc1) / (sqrt(nu' / bc2)
+// + eps), scalars = (b1, b2, bc1, bc2, eps, step). Why: XLA on CPU updates mu, nu and p in three passes, each
+// reading the gradient's terms again (on the horse model's level 1, 15 MB arrays: 6.8 ms of a 58 ms step).
+// coef p is the gradient of a weighted sum of row norms (seed 000's group sparsity), taken here instead of an
+// array of its own.
+constexpr int64_t kAdamRows = 8;
+
+// sqrt of a scalar or, lane by lane, of a vector
+template <typename X>
+X Sqrt(X x) {
+  if constexpr (std::is_arithmetic_v<X>) {
+    return std::sqrt(x);
+#if defined(__AVX2__)
+  } else if constexpr (sizeof(X) == 32 && std::is_same_v<std::remove_cv_t<std::remove_reference_t<decltype(x[0])>>, float>) {
+    return reinterpret_cast<X>(_mm256_sqrt_ps(reinterpret_cast<__m256>(x)));
+#endif
+  } else {
+    for (int t = 0; t < static_cast<int>(sizeof(X) / sizeof(x[0])); ++t) x[t] = std::sqrt(x[t]);
+    return x;
+  }
+}
+
+template <typename T>
+void AdamUpdate(int64_t rows, int64_t r, const T* p, const T* mu, const T* nu, const T* coef,
+                const std::vector<const T*>& parts, const T* sc, T* po, T* muo, T* nuo) {
+  typedef T V8 __attribute__((vector_size(8 * sizeof(T))));
+  const T b1 = sc[0], b2 = sc[1], bc1 = sc[2], bc2 = sc[3], eps = sc[4], step = sc[5];
+  const T a1 = T(1) - b1, a2 = T(1) - b2;
+  const int64_t np = static_cast<int64_t>(parts.size());
+  auto load = [](const T* a) {
+    V8 v;
+    std::memcpy(&v, a, sizeof(V8));
+    return v;
+  };
+  RunPlan(MakePlan(rows, kAdamRows, r * (8 + np)), rows, [&](int64_t, int64_t r0, int64_t r1) {
+    alignas(64) T cb[kAdamRows * 64];  // the block's row coefficients, one per entry (r <= 64), else unused
+    const bool per_entry = coef != nullptr && r <= 64;
+    for (int64_t q0 = r0; q0 < r1; q0 += kAdamRows) {
+      const int64_t e0 = q0 * r, ne = (std::min(r1, q0 + kAdamRows) - q0) * r;
+      if (per_entry)
+        for (int64_t q = 0; q * r < ne; ++q)
+          for (int64_t c = 0; c < r; ++c) cb[q * r + c] = coef[q0 + q];
+      auto entry = [&](int64_t e, auto g, auto m, auto v, auto x, auto c) {  // scalar or vector entries
+        g += c * x;
+        m = a1 * g + b1 * m;
+        v = a2 * (g * g) + b2 * v;
+        return std::make_tuple(m, v, x + step * ((m / bc1) / (Sqrt(v / bc2) + eps)));
+      };
+      int64_t e = 0;
+      for (; e + 8 <= ne; e += 8) {
+        const int64_t at = e0 + e;
+        V8 g = load(parts[0] + at);
+        for (int64_t k = 1; k < np; ++k) g += load(parts[static_cast<size_t>(k)] + at);
+        const V8 c = per_entry ? load(cb + e) : V8{};
+        auto [m, v, x] = entry(e, g, load(mu + at), load(nu + at), load(p + at), c);
+        std::memcpy(muo + at, &m, sizeof(V8));
+        std::memcpy(nuo + at, &v, sizeof(V8));
+        std::memcpy(po + at, &x, sizeof(V8));
+      }
+      for (; e < ne; ++e) {
+        const int64_t at = e0 + e;
+        T g = parts[0][at];
+        for (int64_t k = 1; k < np; ++k) g += parts[static_cast<size_t>(k)][at];
+        const T c = coef == nullptr ? T(0) : per_entry ? cb[e] : coef[at / r];
+        auto [m, v, x] = entry(e, g, mu[at], nu[at], p[at], c);
+        muo[at] = m;
+        nuo[at] = v;
+        po[at] = x;
+      }
+    }
+  });
+}
+
+ffi::Error AdamDispatch(ffi::ThreadPool pool, ffi::AnyBuffer p, ffi::AnyBuffer mu, ffi::AnyBuffer nu,
+                        ffi::AnyBuffer scalars, ffi::AnyBuffer coef, ffi::Result<ffi::AnyBuffer> po,
+                        ffi::Result<ffi::AnyBuffer> muo, ffi::Result<ffi::AnyBuffer> nuo, ffi::RemainingArgs grads) {
+  PoolScope scope(&pool);
+  const int64_t n = static_cast<int64_t>(p.element_count());
+  const int64_t nc = static_cast<int64_t>(coef.element_count());
+  if (grads.size() < 1) return ffi::Error::InvalidArgument("adam: no gradient given");
+  if (static_cast<int64_t>(mu.element_count()) != n || static_cast<int64_t>(nu.element_count()) != n ||
+      static_cast<int64_t>(po->element_count()) != n || static_cast<int64_t>(muo->element_count()) != n ||
+      static_cast<int64_t>(nuo->element_count()) != n || scalars.element_count() != 6)
+    return ffi::Error::InvalidArgument("adam: the moments and results must be shaped like the parameter");
+  if (nc != 0 && (n % nc != 0))
+    return ffi::Error::InvalidArgument("adam: the row coefficients do not divide the parameter into rows");
+  std::vector<ffi::AnyBuffer> gs;
+  std::vector<ffi::DataType> types = {p.element_type(), mu.element_type(), nu.element_type(), scalars.element_type(),
+                                      po->element_type(), muo->element_type(), nuo->element_type()};
+  if (nc != 0) types.push_back(coef.element_type());
+  for (size_t k = 0; k < grads.size(); ++k) {
+    auto g = grads.get<ffi::AnyBuffer>(k);
+    if (!g.has_value()) return g.error();
+    if (static_cast<int64_t>(g->element_count()) != n)
+      return ffi::Error::InvalidArgument("adam: a gradient part is not shaped like the parameter");
+    gs.push_back(*g);
+    types.push_back(g->element_type());
+  }
+  ffi::DataType t;
+  if (!SameFloat(types, &t)) return ffi::Error::InvalidArgument("adam: float arrays must all be float32 or all float64");
+  const int64_t r = nc != 0 ? n / nc : 1;
+  return ByFloat(t, [&](auto zero) {
+    using T = decltype(zero);
+    std::vector<const T*> parts;
+    for (auto& g : gs) parts.push_back(In<T>(g));
+    AdamUpdate<T>(n / r, r, In<T>(p), In<T>(mu), In<T>(nu), nc != 0 ? In<T>(coef) : nullptr, parts, In<T>(scalars),
+                  Out<T>(po), Out<T>(muo), Out<T>(nuo));
+  });
+}
+
 }  // namespace
 
 XLA_FFI_DEFINE_HANDLER_SYMBOL(JaxdeformMeshConvFwd, ForwardDispatch,
@@ -1476,3 +1590,16 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(JaxdeformAeDecoderBwd, DecoderBwdDispatch,
                                                      .Arg<ffi::AnyBuffer>()      // z
                                                      .Arg<ffi::AnyBuffer>()      // S (the forward's second output)
                                                      .Arg<ffi::AnyBuffer>())));  // dx_hat (1 - x_hat^2); returns dz first
+
+XLA_FFI_DEFINE_HANDLER_SYMBOL(JaxdeformAdam, AdamDispatch,
+                              ffi::Ffi::Bind()
+                                  .Ctx<ffi::ThreadPool>()
+                                  .Arg<ffi::AnyBuffer>()  // p
+                                  .Arg<ffi::AnyBuffer>()  // mu
+                                  .Arg<ffi::AnyBuffer>()  // nu
+                                  .Arg<ffi::AnyBuffer>()  // (b1, b2, bc1, bc2, eps, step)
+                                  .Arg<ffi::AnyBuffer>()  // coefficient per row of p, or empty
+                                  .Ret<ffi::AnyBuffer>()  // p' (aliases p)
+                                  .Ret<ffi::AnyBuffer>()  // mu' (aliases mu)
+                                  .Ret<ffi::AnyBuffer>()  // nu' (aliases nu)
+                                  .RemainingArgs());      // the gradient parts (at least one), summed

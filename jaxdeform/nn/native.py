@@ -51,6 +51,7 @@ _AE_TARGETS = {
     "decoder_fwd": ("jaxdeform_ae_decoder_fwd", "JaxdeformAeDecoderFwd"),
     "decoder_fwd_err": ("jaxdeform_ae_decoder_fwd_err", "JaxdeformAeDecoderFwdErr"),
     "decoder_bwd": ("jaxdeform_ae_decoder_bwd", "JaxdeformAeDecoderBwd"),
+    "adam": ("jaxdeform_adam", "JaxdeformAdam"),
 }
 MAX_CHANNELS = 16  # kLanes in the kernel source
 _lock = threading.Lock()
@@ -281,6 +282,17 @@ def ae_decoder_backward(z, x_hat, hidden, dx_hat, neighbors, counts, inv_deg, w_
     d, t = jnp.broadcast_to(dx_hat, shape).reshape(flat), jnp.broadcast_to(x_hat, shape).reshape(flat)
     dpre = (d - d * t * t).reshape(shape)
     return _block_adjoint("decoder_bwd", z, (hidden,), dpre, neighbors, counts, inv_deg, w_point, w_neighbor, b, c)
+
+
+def adam_update(p, mu, nu, parts, scalars, coef=None):
+    """(p', mu', nu'): one Adam step in one pass, in place (the results alias ``p``, ``mu``, ``nu``; donate them
+    in a jitted caller). The gradient is ``sum(parts) + coef[row] * p`` with rows of ``p.size // coef.size``
+    entries (``coef`` None: no such term); ``scalars`` = (b1, b2, bias corrections 1 - b1^t and 1 - b2^t, eps,
+    step = -learning rate), in p's dtype. The arithmetic of optax.adam (no eps_root) and apply_updates."""
+    _require()
+    coef = jnp.zeros((0,), p.dtype) if coef is None else coef
+    call = jax.ffi.ffi_call(_AE_TARGETS["adam"][0], _like(p, mu, nu), input_output_aliases={0: 0, 1: 1, 2: 2})
+    return call(p, mu, nu, jnp.asarray(scalars, p.dtype), coef, *parts)
 
 
 def ring_tables(neighbors, degree, dtype):
