@@ -559,7 +559,8 @@ import hashlib, sys
 import jax, jax.numpy as jnp, numpy as np
 from jaxdeform.mesh.topology import build_topology
 from jaxdeform.nn import native
-from jaxdeform.nn.graph_conv import ae_decode, ae_encode, init_ae_block, mesh_conv, rings_from_topology
+from jaxdeform.nn.graph_conv import (ae_decode, ae_encode, init_ae_block, masked_blocks_error, mesh_conv,
+                                     rings_from_topology)
 n = 48  # 2304 vertices: 36 tiles of 64, cut into several chunks by every kernel
 rings = rings_from_topology(build_topology(grid_faces(n), n * n))  # grid_faces: this test module's, prepended
 assert native.available()
@@ -569,7 +570,10 @@ def loss(p, x):
     z = jax.vmap(lambda q, xx: ae_encode(q, xx, rings))(p, x)
     xh = jax.vmap(lambda q, zz: ae_decode(q, zz, rings))(p, z)
     y = jax.vmap(lambda q, xx: mesh_conv(q["conv_enc"], xx, *rings))(p, x)
-    return jnp.sum(jnp.sin(3 * xh) * x) + jnp.sum(jnp.cos(z)) + jnp.sum(y * y)
+    q = jax.tree_util.tree_map(lambda a: a[None], p)  # one parent, 3 children on masked inputs
+    zm, xm, em = masked_blocks_error(q, x[:1], jnp.abs(x[None, :, 0, :, 0]), rings)
+    return (jnp.sum(jnp.sin(3 * xh) * x) + jnp.sum(jnp.cos(z)) + jnp.sum(y * y) + jnp.sum(em)
+            + jnp.sum(jnp.cos(zm)) + jnp.sum(jnp.sin(xm)))
 val, grads = jax.jit(jax.value_and_grad(loss, argnums=(0, 1)))(p, x)
 h = hashlib.sha256(np.asarray(val).tobytes())
 for leaf in jax.tree_util.tree_leaves(grads):
@@ -685,3 +689,36 @@ def test_native_adam_is_optax_adam(dtype, rows):
         assert float(jnp.max(jnp.abs(got - want))) <= tol * float(jnp.max(jnp.abs(want)))
     with pytest.raises(Exception, match="not shaped like the parameter"):
         native.adam_update(p, mu, nu, (p[..., :9],), jnp.ones(6, dtype))
+
+
+@pytest.mark.parametrize("dtype", [jnp.float32, jnp.float64])
+def test_masked_blocks_match_the_blocks_on_their_inputs(dtype):
+    """masked_blocks_error (on CPU: the native kernels on x and the masks, never the children's inputs) gives the
+    values and gradients of the vmapped blocks (ae_forward_error) run on the formed inputs am[j, m] x[j], with
+    their own decoder C: 2 parents x 3 children, 4 shapes, 361 vertices (a partial last group of vertices)."""
+    from jaxdeform.nn.graph_conv import masked_blocks_error
+
+    n = 19
+    rings = rings_from_topology(build_topology(grid_faces(n), n * n))
+    keys = jax.random.split(jax.random.PRNGKey(0), 6).reshape(2, 3, -1)
+    p = jax.vmap(jax.vmap(lambda k: init_ae_block(k, n * n, 5, dtype)))(keys)
+    c_dec = p["C"] * 1.0
+    x = jax.random.uniform(jax.random.PRNGKey(1), (2, 4, n * n, 9), dtype, -0.9, 0.9)
+    am = jax.random.uniform(jax.random.PRNGKey(2), (2, 3, n * n), dtype)
+
+    def formed(p, c_dec, x):
+        inputs = am[..., None, :, None] * x[:, None]
+        return jax.vmap(jax.vmap(lambda q, c, xin: ae_forward_error(q, xin, rings, "linear", c)))(p, c_dec, inputs)
+
+    def make(blocks):
+        def loss(p, c_dec, x):
+            z, xh, err = blocks(p, c_dec, x)
+            return jnp.sum(err * jnp.arange(1, 5)) + 0.3 * jnp.sum(jnp.sin(xh)) + jnp.sum(jnp.cos(z))
+        return jax.jit(jax.value_and_grad(loss, argnums=(0, 1, 2)))
+
+    (v1, g1) = make(lambda p, c, x: masked_blocks_error(p, x, am, rings, c))(p, c_dec, x)
+    (v2, g2) = make(formed)(p, c_dec, x)
+    tol = 2e-6 if dtype == jnp.float32 else 1e-13
+    assert abs(float(v1 - v2)) <= tol * abs(float(v2))
+    for a, b in zip(jax.tree_util.tree_leaves(g1), jax.tree_util.tree_leaves(g2)):
+        assert float(jnp.max(jnp.abs(a - b))) <= tol * float(jnp.max(jnp.abs(b)))

@@ -24,7 +24,7 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from jaxdeform.nn.graph_conv import MU, Rings, ae_decode, ae_forward, ae_forward_error, init_ae_block
+from jaxdeform.nn.graph_conv import MU, Rings, ae_decode, ae_forward, ae_forward_error, init_ae_block, masked_blocks_error
 from jaxdeform.nn.losses import group_sparsity, group_sparsity_gradient, latent_bound
 
 
@@ -107,11 +107,25 @@ def _levels(params: tuple[dict, ...], x: Float[Array, "b v 9"], rings: Rings, co
             with_error: bool = False, decoder_c: tuple | None = None) -> list:
     """Per level: (inputs (n_l, B, V, 9), latents (n_l, B, Kz_l), outputs (n_l, B, V, 9), errors (n_l, B) or
     None): ``with_error`` gives each block's summed squared error against its input, per shape.
-    ``decoder_c[l]`` (with ``with_error``; None entries allowed): level l's decoders read C from it instead."""
+    ``decoder_c[l]`` (with ``with_error``; None entries allowed): level l's decoders read C from it instead.
+
+    With ``with_error``, the last level's blocks run on their masked inputs (:func:`masked_blocks_error`: the
+    parents' residuals and attention masks, the inputs not formed) where the masks take no gradient and the
+    latent is linear; that level's inputs are then None."""
     inputs = x[None]  # (n_0 = 1, B, V, 9)
+    parent = None  # (residuals (n_l, B, V, 9), masks (n_l, Kz_l, V)) of the level before, where attention applies
     levels = []
     for level, p in enumerate(params):
         dec_c = None if decoder_c is None else decoder_c[level]
+        if (with_error and parent is not None and level + 1 == len(params) and not config.attention_gradient
+                and config.latent == "linear"):
+            res, am = parent
+            split = lambda a: a.reshape(am.shape[:2] + a.shape[1:])  # noqa: E731  (n_l, ...) -> (parents, Kz, ...)
+            outs = masked_blocks_error(jax.tree_util.tree_map(split, p), res, am, rings,
+                                       None if dec_c is None else split(dec_c))
+            z, x_hat, err = (a.reshape((-1,) + a.shape[2:]) for a in outs)
+            levels.append((None, z, x_hat, err))
+            break
         if with_error and dec_c is not None:
             z, x_hat, err = jax.vmap(lambda q, c, xin: ae_forward_error(q, xin, rings, config.latent, c))(
                 p, dec_c, inputs)
@@ -127,6 +141,7 @@ def _levels(params: tuple[dict, ...], x: Float[Array, "b v 9"], rings: Rings, co
                 am = jax.vmap(attention_masks)(p["C"])  # (n_l, Kz_l, V)
                 if not config.attention_gradient:
                     am = jax.lax.stop_gradient(am)
+                parent = (res, am)
                 # over flat (V * 9) rows: XLA on CPU runs this product and its adjoint (a sum over the Kz
                 # children) along the minor axis, which is 9 long in the (..., V, 9) layout (10x slower)
                 n_l, b = res.shape[:2]

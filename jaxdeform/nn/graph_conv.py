@@ -349,3 +349,57 @@ def ae_forward_error(params: dict, x: Float[Array, "b v 9"], rings: Rings, laten
     dec = params if decoder_c is None else {**params, "C": decoder_c}
     x_hat, err = ae_decode_error(dec, z, x, rings)
     return z, x_hat, err
+
+
+@jax.custom_vjp
+def _masked_blocks_native(x, am, nbr, counts, inv, ewp, ewn, eb, dwp, dwn, db, c, c_dec):
+    return _masked_blocks_native_fwd(x, am, nbr, counts, inv, ewp, ewn, eb, dwp, dwn, db, c, c_dec)[0]
+
+
+def _masked_blocks_native_fwd(x, am, nbr, counts, inv, ewp, ewn, eb, dwp, dwn, db, c, c_dec):
+    xb = jnp.expand_dims(x, -4)  # (..., 1, P, V, 9): broadcast over the blocks of each x
+    z, h = native.ae_encoder_forward_masked(xb, am, nbr, counts, inv, ewp, ewn, eb, c)
+    x_hat, S, err = native.ae_decoder_forward_error_masked(z, xb, am, nbr, counts, inv, dwp, dwn, db, c_dec)
+    return (z, x_hat, err), (x, am, nbr, counts, inv, ewp, ewn, eb, dwp, dwn, db, c, c_dec, z, h, x_hat, S)
+
+
+def _masked_blocks_native_bwd(res, cotangents):
+    x, am, nbr, counts, inv, ewp, ewn, eb, dwp, dwn, db, c, c_dec, z, h, x_hat, S = res
+    dz, dx_hat, derr = cotangents
+    # the decoders' pre-activation cotangent, over rows of 9V (see _tanh): (dx_hat + 2 derr (x_hat - am x))
+    # (1 - x_hat^2)
+    flat = x_hat.shape[:-2] + (-1,)
+    rows = jnp.broadcast_to(am[..., None], am.shape + (MU,)).reshape(am.shape[:-1] + (1, -1))
+    xh = x_hat.reshape(flat)
+    d = dx_hat.reshape(flat) + 2 * derr[..., None] * (xh - rows * jnp.expand_dims(x, -4).reshape(x.shape[:-3] + (1,) + flat[-2:]))
+    dpre = (d - d * xh * xh).reshape(x_hat.shape)
+    dz_dec, gdwp, gdwn, gdb, dc_dec = native.decoder_adjoint(z, S, dpre, nbr, counts, inv, dwp, dwn, db, c_dec)
+    dxb, gewp, gewn, geb, dc = native.ae_encoder_backward_masked(
+        jnp.expand_dims(x, -4), am, h, dz + dz_dec, x_hat, derr, nbr, counts, inv, ewp, ewn, eb, c)
+    return (dxb.reshape(x.shape), jnp.zeros_like(am), None, None, None, gewp, gewn, geb, gdwp, gdwn, gdb, dc, dc_dec)
+
+
+_masked_blocks_native.defvjp(_masked_blocks_native_fwd, _masked_blocks_native_bwd)
+
+
+def masked_blocks_error(params: dict, x: Float[Array, "n b v 9"], am: Float[Array, "n k v"], rings: Rings,
+                        decoder_c: Array | None = None) -> tuple:
+    """(z, x_hat, err) of blocks (n, k) on their masked inputs: block (j, m) (parameters stacked (n, k, ...))
+    runs :func:`ae_forward_error` (linear latent) on am[j, m, :, None] x[j], its error against that same input.
+    Seed 000's children of a level's last blocks: n parents, k children each, am the parents' attention masks.
+
+    The same values as the vmapped blocks on the materialized inputs; the masks get no gradient. On CPU the native
+    kernels read x and am instead of the (n, k, B, V, 9) inputs, and the adjoint returns x's cotangent summed over
+    the children without that array either (the encoder's adjoint adds the target term of each decoder's error).
+    ``decoder_c``: the decoders' C apart (see :func:`ae_forward_error`)."""
+    c_dec = params["C"] if decoder_c is None else decoder_c
+    args = _fused_args(params["conv_enc"], x, params["C"], rings)
+    dec = _fused_args(params["conv_dec"], x, c_dec, rings)
+    if args is None or dec is None or jnp.result_type(am) != args[0].dtype:
+        am = jax.lax.stop_gradient(am)
+        inputs = am[..., None, :, None] * x[:, None]
+        blocks = lambda q, cd, xin: ae_forward_error(q, xin, rings, "linear", cd)  # noqa: E731
+        return jax.vmap(jax.vmap(blocks))(params, c_dec, inputs)
+    xx, nbr, counts, inv, ewp, ewn, eb, c = args
+    _, _, _, _, dwp, dwn, db, cd = dec
+    return _masked_blocks_native(xx, jax.lax.stop_gradient(am), nbr, counts, inv, ewp, ewn, eb, dwp, dwn, db, c, cd)

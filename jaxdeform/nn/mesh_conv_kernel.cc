@@ -773,6 +773,15 @@ struct AeGeometry {
   int64_t G = 1, P = 1, V = 0, K = 0, Kz = 0;
   std::vector<int64_t> in, aux, cot, c, w;  // x or z | h or S | dz or the decoder's dpre | C | W_point, W_neighbor, b
   std::vector<int64_t> tgt;                  // the decoder's target (DecoderForward with the error)
+  std::vector<int64_t> am;                   // per-vertex weights of the masked input (..., V), see Masked
+};
+
+// A masked input: the block of output group g reads rows am[g, i] x[i] (x broadcast over the blocks, one row
+// weight per vertex and block) instead of a materialized array of them: seed 000's children, diag(AM_k) X_res.
+template <typename T>
+struct Masked {
+  const T* am = nullptr;  // (..., V) by AeGeometry::am, or null: the input is read as it is
+  const T* Of(const AeGeometry& s, int64_t g) const { return am == nullptr ? nullptr : am + s.am[g] * s.V; }
 };
 
 // Vertex ranges of whole tiles (RunPlan(plan, V, fn) runs fn(chunk, v0, v1) over them)
@@ -782,19 +791,22 @@ Plan PlanVertices(int64_t V, int64_t work_per_vertex) { return MakePlan(V, kVert
 // buf + p * kVertexTile * 9, in runs of up to 4 planes (RingSums: each ring's indices read once per run, 4
 // independent chains of additions in registers). On the horse rings in runs of 5 planes (the training split's
 // shapes), one plane at a time took 11.7-12.3 ns per vertex and plane on a 2-core EPYC, this way 8.4 ns.
-template <typename T, bool kAdjoint, int kRun>
-void RingRun(const T* base, int64_t pstride, const int32_t* ring, int32_t n, const T* inv, T scale, T* out) {
+// kWeighted: the sums weighted by weights[n_k] (RingSums' kAdjoint), else plain; kScaled: times scale (the
+// vertex's 1 / D_i), else not. Ring mean: plain, scaled. Its adjoint: weighted by inv, not scaled. Ring mean of
+// rows times a per-vertex weight (the masked inputs of EncoderForward): weighted by it, scaled.
+template <typename T, bool kWeighted, bool kScaled, int kRun>
+void RingRun(const T* base, int64_t pstride, const int32_t* ring, int32_t n, const T* weights, T scale, T* out) {
   Row9<T> r[kRun];
-  RingSums<T, kAdjoint, kRun>(base, pstride, ring, n, inv, r);
+  RingSums<T, kWeighted, kRun>(base, pstride, ring, n, weights, r);
   for (int q = 0; q < kRun; ++q) {
-    if constexpr (!kAdjoint) r[q].Scale(scale);
+    if constexpr (kScaled) r[q].Scale(scale);
     r[q].Store(out + q * kVertexTile * 9);
   }
 }
 
-template <typename T, bool kAdjoint>
+template <typename T, bool kWeighted, bool kScaled>
 void TileRingsPlanesT(const T* base, int64_t P, int64_t pstride, const int32_t* nbr, const int32_t* count,
-                      const T* inv, int64_t K, int64_t i0, int64_t nt, T* buf) {
+                      const T* weights, const T* inv, int64_t K, int64_t i0, int64_t nt, T* buf) {
   for (int64_t t = 0; t < nt; ++t) {
     const int64_t i = i0 + t;
     const int32_t* ring = nbr + i * K;
@@ -802,12 +814,13 @@ void TileRingsPlanesT(const T* base, int64_t P, int64_t pstride, const int32_t* 
     const T scale = inv[i];
     int64_t p = 0;
     for (; p + 4 <= P; p += 4)
-      RingRun<T, kAdjoint, 4>(base + p * pstride, pstride, ring, n, inv, scale, buf + (p * kVertexTile + t) * 9);
+      RingRun<T, kWeighted, kScaled, 4>(base + p * pstride, pstride, ring, n, weights, scale,
+                                        buf + (p * kVertexTile + t) * 9);
     T* out = buf + (p * kVertexTile + t) * 9;
     switch (P - p) {
-      case 3: RingRun<T, kAdjoint, 3>(base + p * pstride, pstride, ring, n, inv, scale, out); break;
-      case 2: RingRun<T, kAdjoint, 2>(base + p * pstride, pstride, ring, n, inv, scale, out); break;
-      case 1: RingRun<T, kAdjoint, 1>(base + p * pstride, pstride, ring, n, inv, scale, out); break;
+      case 3: RingRun<T, kWeighted, kScaled, 3>(base + p * pstride, pstride, ring, n, weights, scale, out); break;
+      case 2: RingRun<T, kWeighted, kScaled, 2>(base + p * pstride, pstride, ring, n, weights, scale, out); break;
+      case 1: RingRun<T, kWeighted, kScaled, 1>(base + p * pstride, pstride, ring, n, weights, scale, out); break;
       default: break;
     }
   }
@@ -816,8 +829,23 @@ void TileRingsPlanesT(const T* base, int64_t P, int64_t pstride, const int32_t* 
 template <typename T>
 void TileRingsPlanes(const T* base, int64_t P, int64_t pstride, const int32_t* nbr, const int32_t* count,
                      const T* inv, int64_t K, int64_t i0, int64_t nt, bool adjoint, T* buf) {
-  if (adjoint) TileRingsPlanesT<T, true>(base, P, pstride, nbr, count, inv, K, i0, nt, buf);
-  else TileRingsPlanesT<T, false>(base, P, pstride, nbr, count, inv, K, i0, nt, buf);
+  if (adjoint) TileRingsPlanesT<T, true, false>(base, P, pstride, nbr, count, inv, inv, K, i0, nt, buf);
+  else TileRingsPlanesT<T, false, true>(base, P, pstride, nbr, count, nullptr, inv, K, i0, nt, buf);
+}
+
+// Ring means of rows times a per-vertex weight w: inv[i] sum_k w[n_ik] a[n_ik]
+template <typename T>
+void TileWeightedRingMeans(const T* base, int64_t P, int64_t pstride, const int32_t* nbr, const int32_t* count,
+                           const T* w, const T* inv, int64_t K, int64_t i0, int64_t nt, T* buf) {
+  TileRingsPlanesT<T, true, true>(base, P, pstride, nbr, count, w, inv, K, i0, nt, buf);
+}
+
+// a[row t] *= w[t] for the n rows of a group of 8 (w: n entries; lanes past n are zero in a)
+template <typename T>
+void ScaleRows(Soa9<T>& a, const T* w, int n) {
+  typename Soa9<T>::V s{};
+  for (int t = 0; t < n; ++t) s[t] = w[t];
+  for (auto& v : a.c) v *= s;
 }
 
 // Per chunk weight-gradient partial sums: gWp (81) | gWn (81) | gb (9) per output group.
@@ -877,8 +905,8 @@ void FlushTileC(const Soa9<T>* d, int64_t Kz, int64_t V, int64_t i0, int64_t nt,
 // ---- encoder ----
 
 template <typename T>
-void EncoderForward(const AeGeometry& s, const T* x, const int32_t* nbr, const int32_t* count, const T* inv,
-                    const T* wp, const T* wn, const T* b, const T* c, T* z, T* hidden) {
+void EncoderForward(const AeGeometry& s, const T* x, Masked<T> mask, const int32_t* nbr, const int32_t* count,
+                    const T* inv, const T* wp, const T* wn, const T* b, const T* c, T* z, T* hidden) {
   typedef typename Soa9<T>::V V8;
   const int64_t Kz = s.Kz, V = s.V, P = s.P;
   const Plan plan = PlanVertices(V, s.G * P * (s.K + 10 + Kz) * 9);
@@ -892,10 +920,14 @@ void EncoderForward(const AeGeometry& s, const T* x, const int32_t* nbr, const i
     for (int64_t g = 0; g < s.G; ++g) {
       w.Load(wp, wn, b, s.w[g], false);
       const T* cg = c + s.c[g] * Kz * V * 9;
+      const T* amg = mask.Of(s, g);
       for (int64_t i0 = v0; i0 < v1; i0 += kVertexTile) {
         const int64_t nt = std::min(v1, i0 + kVertexTile) - i0;
         TileC(cg, Kz, V, i0, nt, cs.data());
-        TileRingsPlanes(x + s.in[g] * P * V * 9, P, V * 9, nbr, count, inv, s.K, i0, nt, false, rms.data());
+        if (amg != nullptr)
+          TileWeightedRingMeans(x + s.in[g] * P * V * 9, P, V * 9, nbr, count, amg, inv, s.K, i0, nt, rms.data());
+        else
+          TileRingsPlanes(x + s.in[g] * P * V * 9, P, V * 9, nbr, count, inv, s.K, i0, nt, false, rms.data());
         for (int64_t p = 0; p < P; ++p) {
           const T* plane = x + (s.in[g] * P + p) * V * 9;
           const T* rm = rms.data() + p * kVertexTile * 9;
@@ -903,7 +935,9 @@ void EncoderForward(const AeGeometry& s, const T* x, const int32_t* nbr, const i
           for (int64_t j = 0; j * 8 < nt; ++j) {
             const int n = static_cast<int>(std::min<int64_t>(8, nt - 8 * j));
             Soa9<T> h = w.Bias();
-            MixAdd(h, Soa9<T>::FromRows(plane + (i0 + 8 * j) * 9, n), w.p);
+            Soa9<T> xr = Soa9<T>::FromRows(plane + (i0 + 8 * j) * 9, n);
+            if (amg != nullptr) ScaleRows(xr, amg + i0 + 8 * j, n);
+            MixAdd(h, xr, w.p);
             MixAdd(h, Soa9<T>::FromRows(rm + 8 * j * 9, n), w.n);
             TanhSoa(h);
             if (hidden != nullptr) h.ToRows(hidden + ((g * P + p) * V + i0 + 8 * j) * 9, n);
@@ -922,51 +956,76 @@ void EncoderForward(const AeGeometry& s, const T* x, const int32_t* nbr, const i
   SumChunkParts(part, s.G * P * Kz, z);
 }
 
+// With a masked input (mask.am: the rows a are am[g] x, see Masked), out takes the cotangent of x instead: the
+// sum over the blocks g reading each x of am[g] (conv^T(d[g]) + the cotangent of the block's target), the target
+// being its input too (the decoder's error err[g,p] = ||x_hat[g,p] - am[g] x||^2, cotangent derr): -2 derr[g,p]
+// (x_hat[g,p] - am[g] x); xh and derr null: no target term.
 // out[g,p] = conv^T(d[g,p]): the input cotangent of a conv with input rows a and pre-activation cotangent d;
 // its weight gradients go to acc (per chunk and output group; sized here): gWp = sum_i a_i^T d_i, gb = sum_i d_i and
 // gWn = sum_i ring_mean(a)_i^T d_i = sum_j a_j^T sg_j with sg_j = sum_{i in N(j)} d_i / D_i (symmetric rings),
 // the adjoint ring sums the input cotangent needs anyway.
 template <typename T>
-void ConvAdjointRows(const AeGeometry& s, const T* d, const T* a, const int32_t* nbr, const int32_t* count,
-                     const T* inv, const T* wp, const T* wn, T* out, std::vector<T>& acc, int64_t weight_groups) {
+void ConvAdjointRows(const AeGeometry& s, const T* d, const T* a, Masked<T> mask, const T* xh, const T* derr,
+                     const int32_t* nbr, const int32_t* count, const T* inv, const T* wp, const T* wn, T* out,
+                     std::vector<T>& acc, int64_t weight_groups) {
   const Plan plan = PlanVertices(s.V, s.G * s.P * (s.K + 40) * 9);
   acc.assign(static_cast<size_t>(plan.chunks * weight_groups * kWeightStride), T(0));
+  const int64_t in_groups = *std::max_element(s.in.begin(), s.in.end()) + 1;
   RunPlan(plan, s.V, [&](int64_t t, int64_t v0, int64_t v1) {
     ConvW<T> w;
     std::vector<T> sgs(static_cast<size_t>(s.P * kVertexTile * 9));
+    std::vector<char> written(static_cast<size_t>(in_groups), 0);  // masked: the x groups this chunk has begun
     auto wg = std::make_unique<WeightGrads<T>>();
     for (int64_t g = 0; g < s.G; ++g) {
       w.Load(wp, wn, nullptr, s.w[g], true);
       wg->Zero();
+      const T* amg = mask.Of(s, g);
+      const bool first = amg == nullptr || !written[static_cast<size_t>(s.in[g])];
       for (int64_t i0 = v0; i0 < v1; i0 += kVertexTile) {
         const int64_t nt = std::min(v1, i0 + kVertexTile) - i0;
         TileRingsPlanes(d + g * s.P * s.V * 9, s.P, s.V * 9, nbr, count, inv, s.K, i0, nt, true, sgs.data());
         for (int64_t p = 0; p < s.P; ++p) {
           const T* dp = d + (g * s.P + p) * s.V * 9;
           const T* ap = a + (s.in[g] * s.P + p) * s.V * 9;
-          T* o = out + (g * s.P + p) * s.V * 9;
+          T* o = out + ((amg != nullptr ? s.in[g] : g) * s.P + p) * s.V * 9;
           const T* sg = sgs.data() + p * kVertexTile * 9;
+          const T* xhp = xh != nullptr ? xh + (g * s.P + p) * s.V * 9 : nullptr;
+          const T m2d = derr != nullptr ? T(-2) * derr[g * s.P + p] : T(0);
           for (int64_t j = 0; j * 8 < nt; ++j) {
             const int n = static_cast<int>(std::min<int64_t>(8, nt - 8 * j));
             const Soa9<T> ds = Soa9<T>::FromRows(dp + (i0 + 8 * j) * 9, n);
             const Soa9<T> ss = Soa9<T>::FromRows(sg + 8 * j * 9, n);
+            Soa9<T> ar = Soa9<T>::FromRows(ap + (i0 + 8 * j) * 9, n);
+            if (amg != nullptr) ScaleRows(ar, amg + i0 + 8 * j, n);
             Soa9<T> r = Soa9<T>::Zero();
             MixAdd(r, ds, w.p);
             MixAdd(r, ss, w.n);
+            if (amg != nullptr) {
+              if (xhp != nullptr) {
+                const Soa9<T> xr = Soa9<T>::FromRows(xhp + (i0 + 8 * j) * 9, n);
+                for (int ch = 0; ch < 9; ++ch) r.c[ch] += m2d * (xr.c[ch] - ar.c[ch]);
+              }
+              ScaleRows(r, amg + i0 + 8 * j, n);
+              if (!first) {
+                const Soa9<T> prev = Soa9<T>::FromRows(o + (i0 + 8 * j) * 9, n);
+                for (int ch = 0; ch < 9; ++ch) r.c[ch] += prev.c[ch];
+              }
+            }
             r.ToRows(o + (i0 + 8 * j) * 9, n);
-            wg->Add(Soa9<T>::FromRows(ap + (i0 + 8 * j) * 9, n), ss, ds);
+            wg->Add(ar, ss, ds);
           }
         }
       }
       wg->FlushInto(acc.data() + (t * weight_groups + (weight_groups == 1 ? 0 : g)) * kWeightStride);
+      if (amg != nullptr) written[static_cast<size_t>(s.in[g])] = 1;
     }
   });
 }
 
 // Given the forward's hidden layer h = tanh(conv(x)) (its second output)
 template <typename T>
-void EncoderBackward(const AeGeometry& s, int64_t weight_groups, int64_t c_groups, const T* x, const T* hidden,
-                     const T* dz, const int32_t* nbr, const int32_t* count, const T* inv, const T* wp,
+void EncoderBackward(const AeGeometry& s, int64_t weight_groups, int64_t c_groups, const T* x, Masked<T> mask,
+                     const T* xh, const T* derr, const T* hidden, const T* dz, const int32_t* nbr, const int32_t* count, const T* inv, const T* wp,
                      const T* wn, const T* c, T* dx, T* gwp, T* gwn, T* gb, T* dc) {
   const int64_t Kz = s.Kz, V = s.V, P = s.P;
   auto dpre = Scratch<T>(s.G * P * V * 9);  // cotangent of the conv's pre-activation
@@ -1005,7 +1064,7 @@ void EncoderBackward(const AeGeometry& s, int64_t weight_groups, int64_t c_group
     }
   });
   std::vector<T> acc;  // sized by ConvAdjointRows
-  ConvAdjointRows(s, dpre.get(), x, nbr, count, inv, wp, wn, dx, acc, weight_groups);
+  ConvAdjointRows(s, dpre.get(), x, mask, xh, derr, nbr, count, inv, wp, wn, dx, acc, weight_groups);
   ReduceWeightGrads(acc, weight_groups, int64_t{81}, int64_t{9}, gwp, gwn, gb);
 }
 
@@ -1036,12 +1095,13 @@ void DecoderHidden(const AeGeometry& s, const T* z, const T* c, T* S, int64_t v0
   }
 }
 
-// With a target (same layout as x_hat, groups mapped by s.tgt), also err[g,p] = sum_i ||x_hat - target||^2 per
-// plane, summed while x_hat is in registers: the reconstruction loss of the block, which XLA on CPU otherwise
+// With a target (same layout as x_hat, groups mapped by s.tgt; masked: am[g] target, see Masked), also
+// err[g,p] = sum_i ||x_hat - target||^2 per plane, summed while x_hat is in registers: the reconstruction loss of the block, which XLA on CPU otherwise
 // computes by writing the squared differences out in full before a tree reduction over them.
 template <typename T>
 void DecoderForward(const AeGeometry& s, const T* z, const int32_t* nbr, const int32_t* count, const T* inv,
-                    const T* wp, const T* wn, const T* b, const T* c, const T* target, T* xh, T* S, T* err) {
+                    const T* wp, const T* wn, const T* b, const T* c, const T* target, Masked<T> mask, T* xh,
+                    T* S, T* err) {
   typedef typename Soa9<T>::V V8;
   const int64_t V = s.V, P = s.P;
   RunPlan(PlanVertices(V, s.G * P * (s.Kz + 10) * 9), V, [&](int64_t, int64_t v0, int64_t v1) {
@@ -1054,6 +1114,7 @@ void DecoderForward(const AeGeometry& s, const T* z, const int32_t* nbr, const i
     std::vector<T> rms(static_cast<size_t>(P * kVertexTile * 9));
     for (int64_t g = 0; g < s.G; ++g) {
       w.Load(wp, wn, b, s.w[g], false);
+      const T* amg = mask.Of(s, g);
       for (int64_t i0 = v0; i0 < v1; i0 += kVertexTile) {
         const int64_t nt = std::min(v1, i0 + kVertexTile) - i0;
         TileRingsPlanes(S + g * P * V * 9, P, V * 9, nbr, count, inv, s.K, i0, nt, false, rms.data());
@@ -1070,7 +1131,8 @@ void DecoderForward(const AeGeometry& s, const T* z, const int32_t* nbr, const i
             TanhSoa(h);
             h.ToRows(out + (i0 + 8 * j) * 9, n);
             if (target != nullptr) {
-              const Soa9<T> t = Soa9<T>::FromRows(target + ((s.tgt[g] * P + p) * V + i0 + 8 * j) * 9, n);
+              Soa9<T> t = Soa9<T>::FromRows(target + ((s.tgt[g] * P + p) * V + i0 + 8 * j) * 9, n);
+              if (amg != nullptr) ScaleRows(t, amg + i0 + 8 * j, n);
               V8 e{};
               for (int ch = 0; ch < 9; ++ch) {
                 const V8 d = h.c[ch] - t.c[ch];
@@ -1300,24 +1362,51 @@ ffi::Error GradOutputs(const AeGeometry& s, ffi::Result<ffi::AnyBuffer>& gwp, ff
   return ffi::Error::Success();
 }
 
-ffi::Error EncoderFwdDispatch(ffi::ThreadPool pool, ffi::AnyBuffer x, ffi::AnyBuffer nbr, ffi::AnyBuffer count, ffi::AnyBuffer inv,
-                              ffi::AnyBuffer wp, ffi::AnyBuffer wn, ffi::AnyBuffer b, ffi::AnyBuffer c,
-                              ffi::Result<ffi::AnyBuffer> z, ffi::Result<ffi::AnyBuffer> h) {
+// The group map of a masked input's row weights (..., V) against the output batch shape
+ffi::Error MaskMap(ffi::AnyBuffer am, const Dims& out, size_t core, AeGeometry* s) {
+  const Dims d = DimsOf(am);
+  if (Core(d, 1) != Dims{s->V} || !BroadcastMap(d, 1, WithCore(out, core, {}), &s->am))
+    return ffi::Error::InvalidArgument("ae_block: the mask's shape does not match the output's");
+  return ffi::Error::Success();
+}
+
+// The encoder forward, of x or (am not null) of the masked input am x
+ffi::Error EncoderFwd(ffi::ThreadPool& pool, ffi::AnyBuffer x, const ffi::AnyBuffer* am, ffi::AnyBuffer nbr,
+                      ffi::AnyBuffer count, ffi::AnyBuffer inv, ffi::AnyBuffer wp, ffi::AnyBuffer wn, ffi::AnyBuffer b,
+                      ffi::AnyBuffer c, ffi::Result<ffi::AnyBuffer>& z, ffi::Result<ffi::AnyBuffer>& h) {
   PoolScope scope(&pool);
   AeGeometry s;
   const Dims out = DimsOf(*h);
   if (auto e = MakeAeGeometry(out, true, nbr, count, inv, wp, wn, b, c, &s); e.failure()) return e;
   if (auto e = InputMap(x, true, out, s, &s.in); e.failure()) return e;
   if (Groups(*z, s.P * s.Kz) != s.G) return ffi::Error::InvalidArgument("ae_block: z has the wrong size");
+  std::vector<ffi::DataType> types = {x.element_type(), inv.element_type(), wp.element_type(), wn.element_type(),
+                                      b.element_type(), c.element_type(), z->element_type(), h->element_type()};
+  if (am != nullptr) {
+    if (auto e = MaskMap(*am, out, 3, &s); e.failure()) return e;
+    types.push_back(am->element_type());
+  }
   ffi::DataType t;
-  if (!SameFloat({x.element_type(), inv.element_type(), wp.element_type(), wn.element_type(), b.element_type(),
-                  c.element_type(), z->element_type(), h->element_type()}, &t))
+  if (!SameFloat(types, &t))
     return ffi::Error::InvalidArgument("ae_block: float arrays must all be float32 or all float64");
   return ByFloat(t, [&](auto zero) {
     using T = decltype(zero);
-    EncoderForward<T>(s, In<T>(x), Ints(nbr), Ints(count), In<T>(inv), In<T>(wp), In<T>(wn), In<T>(b), In<T>(c),
-                      Out<T>(z), Out<T>(h));
+    EncoderForward<T>(s, In<T>(x), Masked<T>{am != nullptr ? In<T>(*am) : nullptr}, Ints(nbr), Ints(count), In<T>(inv),
+                      In<T>(wp), In<T>(wn), In<T>(b), In<T>(c), Out<T>(z), Out<T>(h));
   });
+}
+
+ffi::Error EncoderFwdDispatch(ffi::ThreadPool pool, ffi::AnyBuffer x, ffi::AnyBuffer nbr, ffi::AnyBuffer count,
+                              ffi::AnyBuffer inv, ffi::AnyBuffer wp, ffi::AnyBuffer wn, ffi::AnyBuffer b,
+                              ffi::AnyBuffer c, ffi::Result<ffi::AnyBuffer> z, ffi::Result<ffi::AnyBuffer> h) {
+  return EncoderFwd(pool, x, nullptr, nbr, count, inv, wp, wn, b, c, z, h);
+}
+
+ffi::Error EncoderFwdMaskedDispatch(ffi::ThreadPool pool, ffi::AnyBuffer x, ffi::AnyBuffer am, ffi::AnyBuffer nbr,
+                                    ffi::AnyBuffer count, ffi::AnyBuffer inv, ffi::AnyBuffer wp, ffi::AnyBuffer wn,
+                                    ffi::AnyBuffer b, ffi::AnyBuffer c, ffi::Result<ffi::AnyBuffer> z,
+                                    ffi::Result<ffi::AnyBuffer> h) {
+  return EncoderFwd(pool, x, &am, nbr, count, inv, wp, wn, b, c, z, h);
 }
 
 ffi::Error EncoderBwdDispatch(ffi::ThreadPool pool, ffi::AnyBuffer x, ffi::AnyBuffer h, ffi::AnyBuffer dz, ffi::AnyBuffer nbr, ffi::AnyBuffer count,
@@ -1341,15 +1430,55 @@ ffi::Error EncoderBwdDispatch(ffi::ThreadPool pool, ffi::AnyBuffer x, ffi::AnyBu
     return ffi::Error::InvalidArgument("ae_block: float arrays must all be float32 or all float64");
   return ByFloat(t, [&](auto zero) {
     using T = decltype(zero);
-    EncoderBackward<T>(s, wg, cg, In<T>(x), In<T>(h), In<T>(dz), Ints(nbr), Ints(count), In<T>(inv), In<T>(wp),
+    EncoderBackward<T>(s, wg, cg, In<T>(x), Masked<T>{}, nullptr, nullptr, In<T>(h), In<T>(dz), Ints(nbr), Ints(count),
+                       In<T>(inv), In<T>(wp),
                        In<T>(wn), In<T>(c), Out<T>(dx), Out<T>(gwp), Out<T>(gwn), Out<T>(gb), Out<T>(dc));
+  });
+}
+
+// The encoder adjoint of a masked input (EncoderFwdMasked) whose blocks' decoders had it as their target too:
+// returns the cotangent of x (shaped like x: summed over the blocks reading it), given the decoders' x_hat and
+// the cotangent of their errors (..., P) (ConvAdjointRows).
+ffi::Error EncoderBwdMaskedDispatch(ffi::ThreadPool pool, ffi::AnyBuffer x, ffi::AnyBuffer am, ffi::AnyBuffer h,
+                                    ffi::AnyBuffer dz, ffi::AnyBuffer xh, ffi::AnyBuffer derr, ffi::AnyBuffer nbr,
+                                    ffi::AnyBuffer count, ffi::AnyBuffer inv, ffi::AnyBuffer wp, ffi::AnyBuffer wn,
+                                    ffi::AnyBuffer b, ffi::AnyBuffer c, ffi::Result<ffi::AnyBuffer> dx,
+                                    ffi::Result<ffi::AnyBuffer> gwp, ffi::Result<ffi::AnyBuffer> gwn,
+                                    ffi::Result<ffi::AnyBuffer> gb, ffi::Result<ffi::AnyBuffer> dc) {
+  PoolScope scope(&pool);
+  AeGeometry s;
+  const Dims out = DimsOf(h);  // the blocks' planes
+  if (auto e = MakeAeGeometry(out, true, nbr, count, inv, wp, wn, b, c, &s); e.failure()) return e;
+  if (auto e = InputMap(x, true, out, s, &s.in); e.failure()) return e;
+  if (auto e = MaskMap(am, out, 3, &s); e.failure()) return e;
+  std::vector<int64_t> own;
+  if (auto e = InputMap(xh, true, out, s, &own); e.failure()) return e;
+  if (Groups(xh, s.P * s.V * 9) != s.G || static_cast<int64_t>(derr.element_count()) != s.G * s.P ||
+      Groups(h, s.P * s.V * 9) != s.G)
+    return ffi::Error::InvalidArgument("ae_block: x_hat, h and the error cotangent need one group per block");
+  if (auto e = InputMap(dz, false, WithCore(out, 3, {s.P, s.Kz}), s, &s.cot); e.failure()) return e;
+  s.aux = own;  // h: one group per block
+  if (DimsOf(*dx) != DimsOf(x)) return ffi::Error::InvalidArgument("ae_block: dx must be shaped like x");
+  int64_t wg, cg;
+  if (auto e = GradOutputs(s, gwp, gwn, gb, dc, &wg, &cg); e.failure()) return e;
+  ffi::DataType t;
+  if (!SameFloat({x.element_type(), am.element_type(), h.element_type(), dz.element_type(), xh.element_type(),
+                  derr.element_type(), inv.element_type(), wp.element_type(), wn.element_type(), b.element_type(),
+                  c.element_type(), dx->element_type(), gwp->element_type(), gwn->element_type(),
+                  gb->element_type(), dc->element_type()}, &t))
+    return ffi::Error::InvalidArgument("ae_block: float arrays must all be float32 or all float64");
+  return ByFloat(t, [&](auto zero) {
+    using T = decltype(zero);
+    EncoderBackward<T>(s, wg, cg, In<T>(x), Masked<T>{In<T>(am)}, In<T>(xh), In<T>(derr), In<T>(h), In<T>(dz),
+                       Ints(nbr), Ints(count), In<T>(inv), In<T>(wp), In<T>(wn), In<T>(c), Out<T>(dx), Out<T>(gwp),
+                       Out<T>(gwn), Out<T>(gb), Out<T>(dc));
   });
 }
 
 // The decoder forward, with target and err (the per-plane squared error) or without (both null)
 ffi::Error DecoderFwd(ffi::ThreadPool& pool, ffi::AnyBuffer z, ffi::AnyBuffer nbr, ffi::AnyBuffer count,
                       ffi::AnyBuffer inv, ffi::AnyBuffer wp, ffi::AnyBuffer wn, ffi::AnyBuffer b, ffi::AnyBuffer c,
-                      const ffi::AnyBuffer* target, ffi::Result<ffi::AnyBuffer>& xh,
+                      const ffi::AnyBuffer* target, const ffi::AnyBuffer* am, ffi::Result<ffi::AnyBuffer>& xh,
                       ffi::Result<ffi::AnyBuffer>& hidden, ffi::Result<ffi::AnyBuffer>* err) {
   PoolScope scope(&pool);
   AeGeometry s;
@@ -1368,12 +1497,17 @@ ffi::Error DecoderFwd(ffi::ThreadPool& pool, ffi::AnyBuffer z, ffi::AnyBuffer nb
     types.push_back(target->element_type());
     types.push_back((*err)->element_type());
   }
+  if (am != nullptr) {
+    if (auto e = MaskMap(*am, out, 3, &s); e.failure()) return e;
+    types.push_back(am->element_type());
+  }
   if (!SameFloat(types, &t))
     return ffi::Error::InvalidArgument("ae_block: float arrays must all be float32 or all float64");
   return ByFloat(t, [&](auto zero) {
     using T = decltype(zero);
     DecoderForward<T>(s, In<T>(z), Ints(nbr), Ints(count), In<T>(inv), In<T>(wp), In<T>(wn), In<T>(b), In<T>(c),
-                      target != nullptr ? In<T>(*target) : nullptr, Out<T>(xh), Out<T>(hidden),
+                      target != nullptr ? In<T>(*target) : nullptr, Masked<T>{am != nullptr ? In<T>(*am) : nullptr},
+                      Out<T>(xh), Out<T>(hidden),
                       err != nullptr ? Out<T>(*err) : nullptr);
   });
 }
@@ -1381,14 +1515,22 @@ ffi::Error DecoderFwd(ffi::ThreadPool& pool, ffi::AnyBuffer z, ffi::AnyBuffer nb
 ffi::Error DecoderFwdDispatch(ffi::ThreadPool pool, ffi::AnyBuffer z, ffi::AnyBuffer nbr, ffi::AnyBuffer count,
                               ffi::AnyBuffer inv, ffi::AnyBuffer wp, ffi::AnyBuffer wn, ffi::AnyBuffer b,
                               ffi::AnyBuffer c, ffi::Result<ffi::AnyBuffer> xh, ffi::Result<ffi::AnyBuffer> hidden) {
-  return DecoderFwd(pool, z, nbr, count, inv, wp, wn, b, c, nullptr, xh, hidden, nullptr);
+  return DecoderFwd(pool, z, nbr, count, inv, wp, wn, b, c, nullptr, nullptr, xh, hidden, nullptr);
 }
 
 ffi::Error DecoderFwdErrDispatch(ffi::ThreadPool pool, ffi::AnyBuffer z, ffi::AnyBuffer nbr, ffi::AnyBuffer count,
                                  ffi::AnyBuffer inv, ffi::AnyBuffer wp, ffi::AnyBuffer wn, ffi::AnyBuffer b,
                                  ffi::AnyBuffer c, ffi::AnyBuffer target, ffi::Result<ffi::AnyBuffer> xh,
                                  ffi::Result<ffi::AnyBuffer> hidden, ffi::Result<ffi::AnyBuffer> err) {
-  return DecoderFwd(pool, z, nbr, count, inv, wp, wn, b, c, &target, xh, hidden, &err);
+  return DecoderFwd(pool, z, nbr, count, inv, wp, wn, b, c, &target, nullptr, xh, hidden, &err);
+}
+
+ffi::Error DecoderFwdErrMaskedDispatch(ffi::ThreadPool pool, ffi::AnyBuffer z, ffi::AnyBuffer nbr, ffi::AnyBuffer count,
+                                       ffi::AnyBuffer inv, ffi::AnyBuffer wp, ffi::AnyBuffer wn, ffi::AnyBuffer b,
+                                       ffi::AnyBuffer c, ffi::AnyBuffer target, ffi::AnyBuffer am,
+                                       ffi::Result<ffi::AnyBuffer> xh, ffi::Result<ffi::AnyBuffer> hidden,
+                                       ffi::Result<ffi::AnyBuffer> err) {
+  return DecoderFwd(pool, z, nbr, count, inv, wp, wn, b, c, &target, &am, xh, hidden, &err);
 }
 
 ffi::Error DecoderBwdDispatch(ffi::ThreadPool pool, ffi::AnyBuffer z, ffi::AnyBuffer hidden, ffi::AnyBuffer dpre,
@@ -1584,6 +1726,30 @@ XLA_FFI_DEFINE_HANDLER_SYMBOL(JaxdeformAeDecoderFwdErr, DecoderFwdErrDispatch,
                                   .Ret<ffi::AnyBuffer>()  // x_hat
                                   .Ret<ffi::AnyBuffer>()  // S
                                   .Ret<ffi::AnyBuffer>());  // err (..., P): sum over V and 9 of (x_hat - target)^2
+
+XLA_FFI_DEFINE_HANDLER_SYMBOL(JaxdeformAeEncoderFwdMasked, EncoderFwdMaskedDispatch,
+                              BlockArgs(ffi::Ffi::Bind().Ctx<ffi::ThreadPool>()
+                                            .Arg<ffi::AnyBuffer>()    // x (..., P, V, 9), broadcast over the blocks
+                                            .Arg<ffi::AnyBuffer>())  // am (..., V): block g reads am[g] x
+                                  .Ret<ffi::AnyBuffer>()  // z
+                                  .Ret<ffi::AnyBuffer>());  // h
+
+XLA_FFI_DEFINE_HANDLER_SYMBOL(JaxdeformAeEncoderBwdMasked, EncoderBwdMaskedDispatch,
+                              GradRets(BlockArgs(ffi::Ffi::Bind().Ctx<ffi::ThreadPool>()
+                                                     .Arg<ffi::AnyBuffer>()      // x
+                                                     .Arg<ffi::AnyBuffer>()      // am
+                                                     .Arg<ffi::AnyBuffer>()      // h
+                                                     .Arg<ffi::AnyBuffer>()      // cotangent of z
+                                                     .Arg<ffi::AnyBuffer>()      // the decoders' x_hat
+                                                     .Arg<ffi::AnyBuffer>())));  // cotangent of their errors; returns dx (like x) first
+
+XLA_FFI_DEFINE_HANDLER_SYMBOL(JaxdeformAeDecoderFwdErrMasked, DecoderFwdErrMaskedDispatch,
+                              BlockArgs(ffi::Ffi::Bind().Ctx<ffi::ThreadPool>().Arg<ffi::AnyBuffer>())  // z, then BlockArgs
+                                  .Arg<ffi::AnyBuffer>()  // target x, broadcast over the blocks
+                                  .Arg<ffi::AnyBuffer>()  // am: block g's target is am[g] x
+                                  .Ret<ffi::AnyBuffer>()  // x_hat
+                                  .Ret<ffi::AnyBuffer>()  // S
+                                  .Ret<ffi::AnyBuffer>());  // err
 
 XLA_FFI_DEFINE_HANDLER_SYMBOL(JaxdeformAeDecoderBwd, DecoderBwdDispatch,
                               GradRets(BlockArgs(ffi::Ffi::Bind().Ctx<ffi::ThreadPool>()

@@ -52,6 +52,9 @@ _AE_TARGETS = {
     "decoder_fwd_err": ("jaxdeform_ae_decoder_fwd_err", "JaxdeformAeDecoderFwdErr"),
     "decoder_bwd": ("jaxdeform_ae_decoder_bwd", "JaxdeformAeDecoderBwd"),
     "adam": ("jaxdeform_adam", "JaxdeformAdam"),
+    "encoder_fwd_masked": ("jaxdeform_ae_encoder_fwd_masked", "JaxdeformAeEncoderFwdMasked"),
+    "encoder_bwd_masked": ("jaxdeform_ae_encoder_bwd_masked", "JaxdeformAeEncoderBwdMasked"),
+    "decoder_fwd_err_masked": ("jaxdeform_ae_decoder_fwd_err_masked", "JaxdeformAeDecoderFwdErrMasked"),
 }
 MAX_CHANNELS = 16  # kLanes in the kernel source
 _lock = threading.Lock()
@@ -281,6 +284,46 @@ def ae_decoder_backward(z, x_hat, hidden, dx_hat, neighbors, counts, inv_deg, w_
     flat = shape[:-2] + (-1,)  # elementwise over rows of 9V: see graph_conv._tanh
     d, t = jnp.broadcast_to(dx_hat, shape).reshape(flat), jnp.broadcast_to(x_hat, shape).reshape(flat)
     dpre = (d - d * t * t).reshape(shape)
+    return _block_adjoint("decoder_bwd", z, (hidden,), dpre, neighbors, counts, inv_deg, w_point, w_neighbor, b, c)
+
+
+# Masked inputs: blocks g (the leading dimensions of ``am`` (..., V) and of their parameters) read am[g, i] x[i],
+# x (..., P, V, 9) broadcast against them (a leading 1 per block dimension), never a materialized array of them:
+# seed 000's children, diag(AM_k) X_res.
+
+
+def ae_encoder_forward_masked(x, am, neighbors, counts, inv_deg, w_point, w_neighbor, b, c):
+    """(z, h) of :func:`ae_encoder_forward` for the masked inputs am[g] x; z (blocks..., P, Kz), h (blocks...,
+    P, V, 9)."""
+    _require()
+    planes = am.shape[:-1] + x.shape[-3:-2]
+    out = (jax.ShapeDtypeStruct(planes + (c.shape[-2],), x.dtype),
+           jax.ShapeDtypeStruct(planes + x.shape[-2:], x.dtype))
+    call = jax.ffi.ffi_call(_AE_TARGETS["encoder_fwd_masked"][0], out, vmap_method="expand_dims")
+    return call(x, am, neighbors, counts, inv_deg, w_point, w_neighbor, b, c)
+
+
+def ae_encoder_backward_masked(x, am, h, dz, x_hat, derr, neighbors, counts, inv_deg, w_point, w_neighbor, b, c):
+    """(dx, gW_point, gW_neighbor, gb, dC) of :func:`ae_encoder_forward_masked` where each block's decoder had
+    its masked input as target too (err[g, p] = ||x_hat[g, p] - am[g] x_p||^2, cotangent ``derr``): dx is
+    shaped like x, the sum over the blocks reading it of am[g] (their input cotangent - 2 derr (x_hat - am[g] x))."""
+    _require()
+    call = jax.ffi.ffi_call(_AE_TARGETS["encoder_bwd_masked"][0], _like(x, w_point, w_neighbor, b, c),
+                            vmap_method="expand_dims")
+    return call(x, am, h, dz, x_hat, derr, neighbors, counts, inv_deg, w_point, w_neighbor, b, c)
+
+
+def ae_decoder_forward_error_masked(z, x, am, neighbors, counts, inv_deg, w_point, w_neighbor, b, c):
+    """(x_hat, S, err) of :func:`ae_decoder_forward_error` with the masked inputs am[g] x as targets."""
+    _require()
+    planes = z.shape[:-1]
+    out = (jax.ShapeDtypeStruct(planes + (c.shape[-1] // 9, 9), z.dtype),) * 2 + (jax.ShapeDtypeStruct(planes, z.dtype),)
+    call = jax.ffi.ffi_call(_AE_TARGETS["decoder_fwd_err_masked"][0], out, vmap_method="expand_dims")
+    return call(z, neighbors, counts, inv_deg, w_point, w_neighbor, b, c, x, am)
+
+
+def decoder_adjoint(z, hidden, dpre, neighbors, counts, inv_deg, w_point, w_neighbor, b, c):
+    """:func:`ae_decoder_backward` given the pre-activation cotangent dpre = dx_hat (1 - x_hat^2) itself."""
     return _block_adjoint("decoder_bwd", z, (hidden,), dpre, neighbors, counts, inv_deg, w_point, w_neighbor, b, c)
 
 
