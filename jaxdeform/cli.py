@@ -437,10 +437,11 @@ def cmd_components_train(args: argparse.Namespace) -> int:
         raise ValueError(f"--split-seed must be a non-negative integer, got {args.split_seed}.")
     q = run.SCALE_QUANTILE if args.scale_quantile is None else args.scale_quantile
     check_quantile(q, "--scale-quantile")  # before any work (Scaler.fit checks it too, after encoding)
-    run.load_data(data)  # fewer than 2 shapes or mixed connectivity: one sentence, nothing written
+    loaded = run.load_data(data)  # fewer than 2 shapes or mixed connectivity: one sentence, nothing written
     with _staged_folder(out) as tmp:
         record = run.fit(tmp, data, args.method, args.config, epochs=args.epochs, seed=args.seed,
-                         split=args.split, split_seed=args.split_seed, progress=not args.quiet, scale_quantile=q)
+                         split=args.split, split_seed=args.split_seed, progress=not args.quiet, scale_quantile=q,
+                         loaded=loaded)
     t = record["timing"]
     extra = ""
     if "run_s" in t:

@@ -252,14 +252,16 @@ def _model_config(d: dict) -> model.Config:
 
 def fit(out: Path, data, method: str = "multiscale", config: str = "default", *, epochs: int | None = None,
         seed: int | None = None, split: str = "every10", split_seed: int = 0, progress: bool = True,
-        scale_quantile: float = SCALE_QUANTILE, dtype=np.float32, log: Callable[[str], None] = print) -> dict:
+        scale_quantile: float = SCALE_QUANTILE, dtype=np.float32, log: Callable[[str], None] = print,
+        loaded: tuple[np.ndarray, np.ndarray] | None = None) -> dict:
     """Train ``method`` on the training split of ``data`` and write the run into ``out`` (an empty folder).
 
+    ``loaded``: ``load_data(data)``'s result where the caller has it already (the CLI checks the data first).
     Returns the run record (also written as run.json).
     """
     out = Path(out)
     cfg, tc = resolve_config(method, config, epochs, seed)
-    vertices, faces = load_data(data)
+    vertices, faces = load_data(data) if loaded is None else loaded
     train_idx, test_idx = split_indices(vertices.shape[0], split, split_seed)
     rest = vertices[0]
     record = {"method": method, "config_name": config, "config": _json_config(cfg), "train_config": _json_config(tc),
