@@ -1,6 +1,7 @@
 """Training of the multiscale model: one jitted Adam step, checkpoints with orbax, resume, progress.
 
-Adam (optax) with learning rate 1e-3 and exponential decay; batches of up to ``batch`` shapes sampled with an
+Adam (optax's; on CPU with the native kernels, the same update and state in one native pass per array, see
+:func:`make_step`) with learning rate 1e-3 and exponential decay; batches of up to ``batch`` shapes sampled with an
 explicit PRNG key (when the training set is not larger than the batch, every step sees the whole set, as the
 paper's horse split of 5 shapes does). Everything of a step runs in one jitted call (parameters, optimizer
 state and key in, the same out).
@@ -163,7 +164,7 @@ def make_step(config: model.Config, tc: TrainConfig, rings: Rings, dist, stage: 
             trainable, frozen = params, ()
         else:
             trainable, frozen = params[stage], jax.lax.stop_gradient(params[:stage])
-        if fused:
+        if fused and all(leaf.dtype in (jnp.float32, jnp.float64) for leaf in jax.tree_util.tree_leaves(trainable)):
             trainable, opt_state, loss, terms = fused_update(trainable, frozen, x, opt_state)
         else:
             (loss, terms), grads = jax.value_and_grad(loss_fn, has_aux=True)(trainable, frozen, x)

@@ -390,7 +390,8 @@ def masked_blocks_error(params: dict, x: Float[Array, "n b v 9"], am: Float[Arra
 
     The same values as the vmapped blocks on the materialized inputs; the masks get no gradient. On CPU the native
     kernels read x and am instead of the (n, k, B, V, 9) inputs, and the adjoint returns x's cotangent summed over
-    the children without that array either (the encoder's adjoint adds the target term of each decoder's error).
+    the children (the encoder's adjoint adds the target term of each decoder's error); only the decoders'
+    pre-activation cotangent is formed in XLA, in one fusion with am x.
     ``decoder_c``: the decoders' C apart (see :func:`ae_forward_error`)."""
     c_dec = params["C"] if decoder_c is None else decoder_c
     args = _fused_args(params["conv_enc"], x, params["C"], rings)

@@ -960,7 +960,7 @@ void EncoderForward(const AeGeometry& s, const T* x, Masked<T> mask, const int32
 // sum over the blocks g reading each x of am[g] (conv^T(d[g]) + the cotangent of the block's target), the target
 // being its input too (the decoder's error err[g,p] = ||x_hat[g,p] - am[g] x||^2, cotangent derr): -2 derr[g,p]
 // (x_hat[g,p] - am[g] x); xh and derr null: no target term.
-// out[g,p] = conv^T(d[g,p]): the input cotangent of a conv with input rows a and pre-activation cotangent d;
+// Without a mask, out[g,p] = conv^T(d[g,p]): the input cotangent of a conv with input rows a and pre-activation cotangent d;
 // its weight gradients go to acc (per chunk and output group; sized here): gWp = sum_i a_i^T d_i, gb = sum_i d_i and
 // gWn = sum_i ring_mean(a)_i^T d_i = sum_j a_j^T sg_j with sg_j = sum_{i in N(j)} d_i / D_i (symmetric rings),
 // the adjoint ring sums the input cotangent needs anyway.
@@ -970,7 +970,7 @@ void ConvAdjointRows(const AeGeometry& s, const T* d, const T* a, Masked<T> mask
                      std::vector<T>& acc, int64_t weight_groups) {
   const Plan plan = PlanVertices(s.V, s.G * s.P * (s.K + 40) * 9);
   acc.assign(static_cast<size_t>(plan.chunks * weight_groups * kWeightStride), T(0));
-  const int64_t in_groups = *std::max_element(s.in.begin(), s.in.end()) + 1;
+  const int64_t in_groups = s.in.empty() ? 0 : *std::max_element(s.in.begin(), s.in.end()) + 1;
   RunPlan(plan, s.V, [&](int64_t t, int64_t v0, int64_t v1) {
     ConvW<T> w;
     std::vector<T> sgs(static_cast<size_t>(s.P * kVertexTile * 9));
@@ -1457,7 +1457,7 @@ ffi::Error EncoderBwdMaskedDispatch(ffi::ThreadPool pool, ffi::AnyBuffer x, ffi:
       Groups(h, s.P * s.V * 9) != s.G)
     return ffi::Error::InvalidArgument("ae_block: x_hat, h and the error cotangent need one group per block");
   if (auto e = InputMap(dz, false, WithCore(out, 3, {s.P, s.Kz}), s, &s.cot); e.failure()) return e;
-  s.aux = own;  // h: one group per block
+  s.aux = own;  // h, like x_hat: one group per block (the identity map)
   if (DimsOf(*dx) != DimsOf(x)) return ffi::Error::InvalidArgument("ae_block: dx must be shaped like x");
   int64_t wg, cg;
   if (auto e = GradOutputs(s, gwp, gwn, gb, dc, &wg, &cg); e.failure()) return e;
@@ -1570,7 +1570,7 @@ ffi::Error DecoderBwdDispatch(ffi::ThreadPool pool, ffi::AnyBuffer z, ffi::AnyBu
 // reading the gradient's terms again (on the horse model's level 1, 15 MB arrays: 6.8 ms of a 58 ms step).
 // coef p is the gradient of a weighted sum of row norms (seed 000's group sparsity), taken here instead of an
 // array of its own.
-constexpr int64_t kAdamRows = 8;
+constexpr int64_t kAdamRows = 8, kAdamMaxRow = 64;  // rows of the coefficient term: at most 64 entries
 
 // sqrt of a scalar or, lane by lane, of a vector
 template <typename X>
@@ -1600,15 +1600,14 @@ void AdamUpdate(int64_t rows, int64_t r, const T* p, const T* mu, const T* nu, c
     return v;
   };
   RunPlan(MakePlan(rows, kAdamRows, r * (8 + np)), rows, [&](int64_t, int64_t r0, int64_t r1) {
-    alignas(64) T cb[kAdamRows * 64];  // the block's row coefficients, one per entry (r <= 64), else unused
-    const bool per_entry = coef != nullptr && r <= 64;
+    alignas(64) T cb[kAdamRows * kAdamMaxRow];  // the block's row coefficients, one per entry
+    const bool per_entry = coef != nullptr;
     for (int64_t q0 = r0; q0 < r1; q0 += kAdamRows) {
       const int64_t e0 = q0 * r, ne = (std::min(r1, q0 + kAdamRows) - q0) * r;
       if (per_entry)
         for (int64_t q = 0; q * r < ne; ++q)
           for (int64_t c = 0; c < r; ++c) cb[q * r + c] = coef[q0 + q];
-      auto entry = [&](int64_t e, auto g, auto m, auto v, auto x, auto c) {  // scalar or vector entries
-        g += c * x;
+      auto entry = [&](auto g, auto m, auto v, auto x) {  // scalar or vector entries
         m = a1 * g + b1 * m;
         v = a2 * (g * g) + b2 * v;
         return std::make_tuple(m, v, x + step * ((m / bc1) / (Sqrt(v / bc2) + eps)));
@@ -1618,8 +1617,9 @@ void AdamUpdate(int64_t rows, int64_t r, const T* p, const T* mu, const T* nu, c
         const int64_t at = e0 + e;
         V8 g = load(parts[0] + at);
         for (int64_t k = 1; k < np; ++k) g += load(parts[static_cast<size_t>(k)] + at);
-        const V8 c = per_entry ? load(cb + e) : V8{};
-        auto [m, v, x] = entry(e, g, load(mu + at), load(nu + at), load(p + at), c);
+        const V8 x0 = load(p + at);
+        if (per_entry) g += load(cb + e) * x0;
+        auto [m, v, x] = entry(g, load(mu + at), load(nu + at), x0);
         std::memcpy(muo + at, &m, sizeof(V8));
         std::memcpy(nuo + at, &v, sizeof(V8));
         std::memcpy(po + at, &x, sizeof(V8));
@@ -1628,8 +1628,8 @@ void AdamUpdate(int64_t rows, int64_t r, const T* p, const T* mu, const T* nu, c
         const int64_t at = e0 + e;
         T g = parts[0][at];
         for (int64_t k = 1; k < np; ++k) g += parts[static_cast<size_t>(k)][at];
-        const T c = coef == nullptr ? T(0) : per_entry ? cb[e] : coef[at / r];
-        auto [m, v, x] = entry(e, g, mu[at], nu[at], p[at], c);
+        if (per_entry) g += cb[e] * p[at];
+        auto [m, v, x] = entry(g, mu[at], nu[at], p[at]);
         muo[at] = m;
         nuo[at] = v;
         po[at] = x;
@@ -1649,8 +1649,8 @@ ffi::Error AdamDispatch(ffi::ThreadPool pool, ffi::AnyBuffer p, ffi::AnyBuffer m
       static_cast<int64_t>(po->element_count()) != n || static_cast<int64_t>(muo->element_count()) != n ||
       static_cast<int64_t>(nuo->element_count()) != n || scalars.element_count() != 6)
     return ffi::Error::InvalidArgument("adam: the moments and results must be shaped like the parameter");
-  if (nc != 0 && (n % nc != 0))
-    return ffi::Error::InvalidArgument("adam: the row coefficients do not divide the parameter into rows");
+  if (nc != 0 && (n % nc != 0 || n / nc > kAdamMaxRow))
+    return ffi::Error::InvalidArgument("adam: the row coefficients do not divide the parameter into rows of at most 64");
   std::vector<ffi::AnyBuffer> gs;
   std::vector<ffi::DataType> types = {p.element_type(), mu.element_type(), nu.element_type(), scalars.element_type(),
                                       po->element_type(), muo->element_type(), nuo->element_type()};

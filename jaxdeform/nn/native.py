@@ -289,7 +289,9 @@ def ae_decoder_backward(z, x_hat, hidden, dx_hat, neighbors, counts, inv_deg, w_
 
 # Masked inputs: blocks g (the leading dimensions of ``am`` (..., V) and of their parameters) read am[g, i] x[i],
 # x (..., P, V, 9) broadcast against them (a leading 1 per block dimension), never a materialized array of them:
-# seed 000's children, diag(AM_k) X_res.
+# seed 000's children, diag(AM_k) X_res. Under jax.vmap these calls run once per element ("sequential"): the
+# adjoint's x cotangent sums over the blocks reading each x, which the broadcasting of a vmapped call would not
+# line up with.
 
 
 def ae_encoder_forward_masked(x, am, neighbors, counts, inv_deg, w_point, w_neighbor, b, c):
@@ -299,7 +301,7 @@ def ae_encoder_forward_masked(x, am, neighbors, counts, inv_deg, w_point, w_neig
     planes = am.shape[:-1] + x.shape[-3:-2]
     out = (jax.ShapeDtypeStruct(planes + (c.shape[-2],), x.dtype),
            jax.ShapeDtypeStruct(planes + x.shape[-2:], x.dtype))
-    call = jax.ffi.ffi_call(_AE_TARGETS["encoder_fwd_masked"][0], out, vmap_method="expand_dims")
+    call = jax.ffi.ffi_call(_AE_TARGETS["encoder_fwd_masked"][0], out, vmap_method="sequential")
     return call(x, am, neighbors, counts, inv_deg, w_point, w_neighbor, b, c)
 
 
@@ -309,7 +311,7 @@ def ae_encoder_backward_masked(x, am, h, dz, x_hat, derr, neighbors, counts, inv
     shaped like x, the sum over the blocks reading it of am[g] (their input cotangent - 2 derr (x_hat - am[g] x))."""
     _require()
     call = jax.ffi.ffi_call(_AE_TARGETS["encoder_bwd_masked"][0], _like(x, w_point, w_neighbor, b, c),
-                            vmap_method="expand_dims")
+                            vmap_method="sequential")
     return call(x, am, h, dz, x_hat, derr, neighbors, counts, inv_deg, w_point, w_neighbor, b, c)
 
 
@@ -318,7 +320,7 @@ def ae_decoder_forward_error_masked(z, x, am, neighbors, counts, inv_deg, w_poin
     _require()
     planes = z.shape[:-1]
     out = (jax.ShapeDtypeStruct(planes + (c.shape[-1] // 9, 9), z.dtype),) * 2 + (jax.ShapeDtypeStruct(planes, z.dtype),)
-    call = jax.ffi.ffi_call(_AE_TARGETS["decoder_fwd_err_masked"][0], out, vmap_method="expand_dims")
+    call = jax.ffi.ffi_call(_AE_TARGETS["decoder_fwd_err_masked"][0], out, vmap_method="sequential")
     return call(z, neighbors, counts, inv_deg, w_point, w_neighbor, b, c, x, am)
 
 
