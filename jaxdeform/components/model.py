@@ -126,11 +126,9 @@ def _levels(params: tuple[dict, ...], x: Float[Array, "b v 9"], rings: Rings, co
             z, x_hat, err = (a.reshape((-1,) + a.shape[2:]) for a in outs)
             levels.append((None, z, x_hat, err))
             break
-        if with_error and dec_c is not None:
+        if with_error:  # dec_c None: an empty tree under vmap, the decoders read p["C"]
             z, x_hat, err = jax.vmap(lambda q, c, xin: ae_forward_error(q, xin, rings, config.latent, c))(
                 p, dec_c, inputs)
-        elif with_error:
-            z, x_hat, err = jax.vmap(lambda q, xin: ae_forward_error(q, xin, rings, config.latent))(p, inputs)
         else:
             (z, x_hat), err = jax.vmap(lambda q, xin: ae_forward(q, xin, rings, config.latent))(p, inputs), None
         levels.append((inputs, z, x_hat, err))

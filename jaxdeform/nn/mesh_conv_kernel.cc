@@ -1409,70 +1409,65 @@ ffi::Error EncoderFwdMaskedDispatch(ffi::ThreadPool pool, ffi::AnyBuffer x, ffi:
   return EncoderFwd(pool, x, &am, nbr, count, inv, wp, wn, b, c, z, h);
 }
 
-ffi::Error EncoderBwdDispatch(ffi::ThreadPool pool, ffi::AnyBuffer x, ffi::AnyBuffer h, ffi::AnyBuffer dz, ffi::AnyBuffer nbr, ffi::AnyBuffer count,
-                              ffi::AnyBuffer inv, ffi::AnyBuffer wp, ffi::AnyBuffer wn, ffi::AnyBuffer b,
-                              ffi::AnyBuffer c, ffi::Result<ffi::AnyBuffer> dx, ffi::Result<ffi::AnyBuffer> gwp,
-                              ffi::Result<ffi::AnyBuffer> gwn, ffi::Result<ffi::AnyBuffer> gb,
-                              ffi::Result<ffi::AnyBuffer> dc) {
+// The encoder adjoint, of x or (am not null) of the masked input am x (EncoderFwd). Masked, the blocks' decoders
+// had that input as their target too: given their x_hat and the cotangent of their errors (..., P), it returns the
+// cotangent of x shaped like x, summed over the blocks reading it (ConvAdjointRows), and the blocks' planes are
+// those of h.
+ffi::Error EncoderBwd(ffi::ThreadPool& pool, ffi::AnyBuffer x, const ffi::AnyBuffer* am, ffi::AnyBuffer h,
+                      ffi::AnyBuffer dz, const ffi::AnyBuffer* xh, const ffi::AnyBuffer* derr, ffi::AnyBuffer nbr,
+                      ffi::AnyBuffer count, ffi::AnyBuffer inv, ffi::AnyBuffer wp, ffi::AnyBuffer wn, ffi::AnyBuffer b,
+                      ffi::AnyBuffer c, ffi::Result<ffi::AnyBuffer>& dx, ffi::Result<ffi::AnyBuffer>& gwp,
+                      ffi::Result<ffi::AnyBuffer>& gwn, ffi::Result<ffi::AnyBuffer>& gb,
+                      ffi::Result<ffi::AnyBuffer>& dc) {
   PoolScope scope(&pool);
   AeGeometry s;
-  const Dims out = DimsOf(*dx);
+  const Dims out = am != nullptr ? DimsOf(h) : DimsOf(*dx);
   if (auto e = MakeAeGeometry(out, true, nbr, count, inv, wp, wn, b, c, &s); e.failure()) return e;
   if (auto e = InputMap(x, true, out, s, &s.in); e.failure()) return e;
   if (auto e = InputMap(h, true, out, s, &s.aux); e.failure()) return e;
   if (auto e = InputMap(dz, false, WithCore(out, 3, {s.P, s.Kz}), s, &s.cot); e.failure()) return e;
   int64_t wg, cg;
   if (auto e = GradOutputs(s, gwp, gwn, gb, dc, &wg, &cg); e.failure()) return e;
+  std::vector<ffi::DataType> types = {x.element_type(), h.element_type(), dz.element_type(), inv.element_type(),
+                                      wp.element_type(), wn.element_type(), b.element_type(), c.element_type(),
+                                      dx->element_type(), gwp->element_type(), gwn->element_type(),
+                                      gb->element_type(), dc->element_type()};
+  if (am != nullptr) {
+    if (auto e = MaskMap(*am, out, 3, &s); e.failure()) return e;
+    std::vector<int64_t> xh_map;
+    if (auto e = InputMap(*xh, true, out, s, &xh_map); e.failure()) return e;
+    if (Groups(*xh, s.P * s.V * 9) != s.G || static_cast<int64_t>(derr->element_count()) != s.G * s.P)
+      return ffi::Error::InvalidArgument("ae_block: x_hat and the error cotangent need one group per block");
+    if (DimsOf(*dx) != DimsOf(x)) return ffi::Error::InvalidArgument("ae_block: dx must be shaped like x");
+    types.insert(types.end(), {am->element_type(), xh->element_type(), derr->element_type()});
+  }
   ffi::DataType t;
-  if (!SameFloat({x.element_type(), h.element_type(), dz.element_type(), inv.element_type(), wp.element_type(), wn.element_type(),
-                  b.element_type(), c.element_type(), dx->element_type(), gwp->element_type(),
-                  gwn->element_type(), gb->element_type(), dc->element_type()}, &t))
+  if (!SameFloat(types, &t))
     return ffi::Error::InvalidArgument("ae_block: float arrays must all be float32 or all float64");
   return ByFloat(t, [&](auto zero) {
     using T = decltype(zero);
-    EncoderBackward<T>(s, wg, cg, In<T>(x), Masked<T>{}, nullptr, nullptr, In<T>(h), In<T>(dz), Ints(nbr), Ints(count),
-                       In<T>(inv), In<T>(wp),
-                       In<T>(wn), In<T>(c), Out<T>(dx), Out<T>(gwp), Out<T>(gwn), Out<T>(gb), Out<T>(dc));
+    auto opt = [](const ffi::AnyBuffer* a) -> const T* { return a != nullptr ? In<T>(*a) : nullptr; };
+    EncoderBackward<T>(s, wg, cg, In<T>(x), Masked<T>{opt(am)}, opt(xh), opt(derr), In<T>(h), In<T>(dz), Ints(nbr),
+                       Ints(count), In<T>(inv), In<T>(wp), In<T>(wn), In<T>(c), Out<T>(dx), Out<T>(gwp),
+                       Out<T>(gwn), Out<T>(gb), Out<T>(dc));
   });
 }
 
-// The encoder adjoint of a masked input (EncoderFwdMasked) whose blocks' decoders had it as their target too:
-// returns the cotangent of x (shaped like x: summed over the blocks reading it), given the decoders' x_hat and
-// the cotangent of their errors (..., P) (ConvAdjointRows).
+ffi::Error EncoderBwdDispatch(ffi::ThreadPool pool, ffi::AnyBuffer x, ffi::AnyBuffer h, ffi::AnyBuffer dz,
+                              ffi::AnyBuffer nbr, ffi::AnyBuffer count, ffi::AnyBuffer inv, ffi::AnyBuffer wp,
+                              ffi::AnyBuffer wn, ffi::AnyBuffer b, ffi::AnyBuffer c, ffi::Result<ffi::AnyBuffer> dx,
+                              ffi::Result<ffi::AnyBuffer> gwp, ffi::Result<ffi::AnyBuffer> gwn,
+                              ffi::Result<ffi::AnyBuffer> gb, ffi::Result<ffi::AnyBuffer> dc) {
+  return EncoderBwd(pool, x, nullptr, h, dz, nullptr, nullptr, nbr, count, inv, wp, wn, b, c, dx, gwp, gwn, gb, dc);
+}
+
 ffi::Error EncoderBwdMaskedDispatch(ffi::ThreadPool pool, ffi::AnyBuffer x, ffi::AnyBuffer am, ffi::AnyBuffer h,
                                     ffi::AnyBuffer dz, ffi::AnyBuffer xh, ffi::AnyBuffer derr, ffi::AnyBuffer nbr,
                                     ffi::AnyBuffer count, ffi::AnyBuffer inv, ffi::AnyBuffer wp, ffi::AnyBuffer wn,
                                     ffi::AnyBuffer b, ffi::AnyBuffer c, ffi::Result<ffi::AnyBuffer> dx,
                                     ffi::Result<ffi::AnyBuffer> gwp, ffi::Result<ffi::AnyBuffer> gwn,
                                     ffi::Result<ffi::AnyBuffer> gb, ffi::Result<ffi::AnyBuffer> dc) {
-  PoolScope scope(&pool);
-  AeGeometry s;
-  const Dims out = DimsOf(h);  // the blocks' planes
-  if (auto e = MakeAeGeometry(out, true, nbr, count, inv, wp, wn, b, c, &s); e.failure()) return e;
-  if (auto e = InputMap(x, true, out, s, &s.in); e.failure()) return e;
-  if (auto e = MaskMap(am, out, 3, &s); e.failure()) return e;
-  std::vector<int64_t> own;
-  if (auto e = InputMap(xh, true, out, s, &own); e.failure()) return e;
-  if (Groups(xh, s.P * s.V * 9) != s.G || static_cast<int64_t>(derr.element_count()) != s.G * s.P ||
-      Groups(h, s.P * s.V * 9) != s.G)
-    return ffi::Error::InvalidArgument("ae_block: x_hat, h and the error cotangent need one group per block");
-  if (auto e = InputMap(dz, false, WithCore(out, 3, {s.P, s.Kz}), s, &s.cot); e.failure()) return e;
-  s.aux = own;  // h, like x_hat: one group per block (the identity map)
-  if (DimsOf(*dx) != DimsOf(x)) return ffi::Error::InvalidArgument("ae_block: dx must be shaped like x");
-  int64_t wg, cg;
-  if (auto e = GradOutputs(s, gwp, gwn, gb, dc, &wg, &cg); e.failure()) return e;
-  ffi::DataType t;
-  if (!SameFloat({x.element_type(), am.element_type(), h.element_type(), dz.element_type(), xh.element_type(),
-                  derr.element_type(), inv.element_type(), wp.element_type(), wn.element_type(), b.element_type(),
-                  c.element_type(), dx->element_type(), gwp->element_type(), gwn->element_type(),
-                  gb->element_type(), dc->element_type()}, &t))
-    return ffi::Error::InvalidArgument("ae_block: float arrays must all be float32 or all float64");
-  return ByFloat(t, [&](auto zero) {
-    using T = decltype(zero);
-    EncoderBackward<T>(s, wg, cg, In<T>(x), Masked<T>{In<T>(am)}, In<T>(xh), In<T>(derr), In<T>(h), In<T>(dz),
-                       Ints(nbr), Ints(count), In<T>(inv), In<T>(wp), In<T>(wn), In<T>(c), Out<T>(dx), Out<T>(gwp),
-                       Out<T>(gwn), Out<T>(gb), Out<T>(dc));
-  });
+  return EncoderBwd(pool, x, &am, h, dz, &xh, &derr, nbr, count, inv, wp, wn, b, c, dx, gwp, gwn, gb, dc);
 }
 
 // The decoder forward, with target and err (the per-plane squared error) or without (both null)

@@ -284,7 +284,7 @@ def ae_decoder_backward(z, x_hat, hidden, dx_hat, neighbors, counts, inv_deg, w_
     flat = shape[:-2] + (-1,)  # elementwise over rows of 9V: see graph_conv._tanh
     d, t = jnp.broadcast_to(dx_hat, shape).reshape(flat), jnp.broadcast_to(x_hat, shape).reshape(flat)
     dpre = (d - d * t * t).reshape(shape)
-    return _block_adjoint("decoder_bwd", z, (hidden,), dpre, neighbors, counts, inv_deg, w_point, w_neighbor, b, c)
+    return decoder_adjoint(z, hidden, dpre, neighbors, counts, inv_deg, w_point, w_neighbor, b, c)
 
 
 # Masked inputs: blocks g (the leading dimensions of ``am`` (..., V) and of their parameters) read am[g, i] x[i],
