@@ -212,6 +212,19 @@ def test_experiment_test_config_writes_summary(tmp_path):
     assert len(fl["sequences"]) == 1 and 0 < fl["perturbed_fine_rmse"] < 10 * fl["perturbation_m"]
     assert (tmp_path / "results.md").is_file() and r["figures"] and (tmp_path / r["figures"][0]).is_file()
 
+    # the seed spread reuses the stored seed-0 run (same figure as the experiment's) and trains another draw
+    from experiments.cloth import seeds
+
+    assert seeds.main(["--config", "test", "--out", str(tmp_path), "--dataset", "sheet", "--methods", "ours",
+                       "--seeds", "0", "1"]) == 0
+    rec = json.loads((tmp_path / "seeds_sheet.json").read_text())
+    assert rec["upsampled_coarse"]["rmse"] == pytest.approx(r["rmse"]["upsampled_coarse"], rel=1e-9)
+    assert rec["methods"]["ours"]["0"]["rmse"] == pytest.approx(r["rmse"]["ours"], rel=1e-6)
+    assert rec["methods"]["ours"]["1"]["rmse"] != rec["methods"]["ours"]["0"]["rmse"]
+    for per in rec["methods"]["ours"].values():  # equal-length test sequences: pooled RMSE = RMS of theirs
+        assert per["rmse"] == pytest.approx(np.sqrt(np.mean(np.square(per["rmse_per_sequence"]))), rel=1e-9)
+    assert "| ours, 1 |" in (tmp_path / "seeds_sheet.md").read_text()
+
 
 def test_generate_keeps_matching_sequences_and_grows(tmp_path):
     """A second generation keeps the files whose stored scenario matches and simulates only the rest."""
