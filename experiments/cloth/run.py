@@ -124,21 +124,37 @@ def _features(ds, kind, residual, cache):
     return cache[kind, residual]
 
 
-def stage_train(out: Path, ds, s: Settings, force: bool, cache: dict) -> dict:
+def train_method(ds, name: str, s: Settings, cache: dict, seed: int = 0, progress: bool = True):
+    """The run of method ``name`` on ``ds``'s training split; ``seed`` sets the parameter initialisation and the batch
+    order (``ModelConfig.seed``, ``TrainConfig.seed``; 0 = their defaults, the experiment's runs)."""
     from jaxdeform.cloth.model import ModelConfig
     from jaxdeform.cloth.train import TrainConfig
 
+    model_kind, rep_kind, residual, *extra = METHODS[name]
+    skip, weight = extra or (False, 0.0)
+    return crun.train_run(ds, representation=rep_kind, model_cfg=ModelConfig(kind=model_kind, skip=skip, seed=seed),
+                          train_cfg=TrainConfig(steps=s.steps, batch_size=s.batch, position_weight=weight, seed=seed),
+                          features=_features(ds, rep_kind, residual, cache), progress=progress)
+
+
+def method_errors(run, test, faces) -> list[dict]:
+    """:func:`jaxdeform.cloth.evaluate.sequence_errors` of ``run``'s synthesis of every test sequence."""
+    per = []
+    for x in test:
+        fine, _ = crun.synthesize_timed(run, x.coarse, x.obstacles, pins=x.pins)
+        per.append(ceval.sequence_errors(x.fine, fine, faces))
+    return per
+
+
+def stage_train(out: Path, ds, s: Settings, force: bool, cache: dict) -> dict:
     res = {}
-    for name, (model_kind, rep_kind, residual, *extra) in METHODS.items():
-        skip, weight = extra or (False, 0.0)
+    for name, (model_kind, rep_kind, *_) in METHODS.items():
         root = out / "runs" / ds.scenario / name
         if (root / "run.json").is_file() and not force:
             res[name] = json.loads((root / "run.json").read_text())
             continue
         print(f"training {name} ({model_kind}, {rep_kind}) on {ds.scenario}", flush=True)
-        run = crun.train_run(ds, representation=rep_kind, model_cfg=ModelConfig(kind=model_kind, skip=skip),
-                             train_cfg=TrainConfig(steps=s.steps, batch_size=s.batch, position_weight=weight),
-                             features=_features(ds, rep_kind, residual, cache))
+        run = train_method(ds, name, s, cache)
         crun.save_run(run, root)
         res[name] = run.record
     return {n: {k: r[k] for k in ("final_loss", "train_seconds", "compile_seconds")} for n, r in res.items()}
@@ -150,12 +166,7 @@ def stage_evaluate(out: Path, ds, cache: dict) -> dict:
     methods = {"upsampled_coarse": ceval.pool([ceval.sequence_errors(x.fine, ups(x.coarse), ds.fine_faces)
                                                for x in test])}
     for name in METHODS:
-        run = crun.load_run(out / "runs" / ds.scenario / name)
-        per = []
-        for x in test:
-            fine, _ = crun.synthesize_timed(run, x.coarse, x.obstacles, pins=x.pins)
-            per.append(ceval.sequence_errors(x.fine, fine, ds.fine_faces))
-        methods[name] = ceval.pool(per)
+        methods[name] = ceval.pool(method_errors(crun.load_run(out / "runs" / ds.scenario / name), test, ds.fine_faces))
         print(f"{ds.scenario} {name}: rmse {methods[name]['rmse']:.5f} sted {methods[name]['sted']:.4f}", flush=True)
     return {"methods": methods, "test_sequences": [x.name for x in test]}
 

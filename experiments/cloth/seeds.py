@@ -35,25 +35,15 @@ from jaxdeform.nn import native
 
 def train_seed(out: Path, ds, name: str, seed: int, s: xrun.Settings, cache: dict):
     """The run of ``name`` with ``seed`` (seed 0: the experiment's stored run when present)."""
-    from jaxdeform.cloth.model import ModelConfig
-    from jaxdeform.cloth.train import TrainConfig
-
     stored = out / "runs" / ds.scenario / name
     if seed == 0 and (stored / "run.json").is_file():
         return crun.load_run(stored)
-    model_kind, rep_kind, residual, *extra = xrun.METHODS[name]
-    skip, weight = extra or (False, 0.0)
     print(f"training {name} seed {seed} on {ds.scenario}", flush=True)
-    return crun.train_run(ds, representation=rep_kind, model_cfg=ModelConfig(kind=model_kind, skip=skip, seed=seed),
-                          train_cfg=TrainConfig(steps=s.steps, batch_size=s.batch, position_weight=weight, seed=seed),
-                          features=xrun._features(ds, rep_kind, residual, cache), progress=False)
+    return xrun.train_method(ds, name, s, cache, seed=seed, progress=False)
 
 
 def evaluate(run, test, faces) -> dict:
-    per = []
-    for x in test:
-        fine, _ = crun.synthesize_timed(run, x.coarse, x.obstacles, pins=x.pins)
-        per.append(ceval.sequence_errors(x.fine, fine, faces))
+    per = xrun.method_errors(run, test, faces)
     pooled = ceval.pool(per)
     return {"rmse": pooled["rmse"], "sted": pooled["sted"], "rmse_per_sequence": [r["rmse"] for r in per]}
 
@@ -100,8 +90,9 @@ def main(argv=None) -> int:
     test = ds.subset("test")
     ups = xrun._upsampler(ds)
     base = [ceval.sequence_errors(x.fine, ups(x.coarse), ds.fine_faces) for x in test]
+    pooled = ceval.pool(base)
     record = {"dataset": args.dataset, "seeds": args.seeds, "test_sequences": [x.name for x in test],
-              "upsampled_coarse": {**{k: ceval.pool(base)[k] for k in ("rmse", "sted")},
+              "upsampled_coarse": {"rmse": pooled["rmse"], "sted": pooled["sted"],
                                    "rmse_per_sequence": [r["rmse"] for r in base]},
               "methods": {}}
     cache: dict = {}
