@@ -722,7 +722,10 @@ def _cloth_configs(args: argparse.Namespace):
         raise ValueError(f"--seed must be a whole number >= 0, got {args.seed}.")
     if args.seed is not None:
         mcfg = replace(mcfg, seed=args.seed)
-    tcfg = TrainConfig() if args.position_weight is None else TrainConfig(position_weight=args.position_weight)
+    if not 0.0 <= args.self_feed <= 1.0:
+        raise ValueError(f"--self-feed is a probability and must lie in [0, 1], got {args.self_feed}.")
+    tcfg = TrainConfig(position_weight=0.0 if args.position_weight is None else args.position_weight,
+                       self_feed=args.self_feed)
     return mcfg, _steps_seed(tcfg, args)
 
 
@@ -1014,6 +1017,10 @@ def build_parser() -> argparse.ArgumentParser:
     ctr.add_argument("--position-weight", type=float, metavar="W",
                      help="add W x the decoded positions' squared error (in fine edge lengths) to the loss "
                           "(needs the scenario's pins; default 0: feature MSE only, as the paper)")
+    ctr.add_argument("--self-feed", type=float, default=0.0, metavar="P",
+                     help="train a window on the model's own predictions of its earlier frames with probability "
+                          "P (ramped up over the first half of training), as synthesis feeds them (default 0: "
+                          "teacher forcing only, as the paper)")
     ctr.add_argument("--steps", type=int, metavar="N", help="training steps (default: the TrainConfig's)")
     ctr.add_argument("--seed", type=int, metavar="S")
     ctr.add_argument("--force", action="store_true", help="replace a non-empty --out")

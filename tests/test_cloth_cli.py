@@ -70,6 +70,20 @@ def test_train_synthesize_evaluate_round_trip(tmp_path, capsys):
     assert arr["vertices"].shape == (6, 81, 3) and np.all(np.isfinite(arr["vertices"]))
 
 
+def test_train_self_feed_option(tmp_path, capsys):
+    data = tmp_path / "data"
+    write(data, [pair(k) for k in range(3)])
+    code, _, err = run_cli(["cloth", "train", str(data), "--out", str(tmp_path / "bad"), "--self-feed", "1.5",
+                            "--quiet"], capsys)
+    assert code == 2 and err.count("\n") == 1 and "--self-feed is a probability" in err
+    assert not (tmp_path / "bad").exists()
+    run = tmp_path / "run"
+    code, _, err = run_cli(["cloth", "train", str(data), "--out", str(run), "--self-feed", "0.5", "--steps", "2",
+                            "--quiet"], capsys)
+    assert code == 0, err
+    assert json.loads((run / "run.json").read_text())["train"]["self_feed"] == 0.5
+
+
 def test_train_refuses_unequal_lengths(tmp_path, capsys):
     data = tmp_path / "data"
     p = pair(1)

@@ -18,6 +18,8 @@ from jaxdeform.cloth.train import (
     load_model,
     predict_windows,
     save_model,
+    self_fed_inputs,
+    self_feed_probability,
     synthesize,
     train,
     windows,
@@ -208,6 +210,50 @@ def test_sequence_shorter_than_window(meshes):
     model = new_model(tc, tf, ModelConfig(kind="lstm", **SMALL))
     coarse = jax.random.uniform(jax.random.PRNGKey(4), (2, tc.n_vertices, 9), minval=-0.9, maxval=0.9)
     _check_teacher_forcing(model, coarse)
+
+
+# ------------------------------------------------------------------------------------------ self-feeding
+
+
+@pytest.mark.parametrize("kind", ["transformer", "lstm"])
+def test_self_fed_inputs_are_the_sequential_unroll(meshes, kind):
+    """W - 1 parallel passes of a causal model give each window position the input a frame-by-frame unroll from
+    the window's first input would give it (what synthesis feeds), and leave position 0 alone."""
+    tc, tf = meshes
+    model = new_model(tc, tf, ModelConfig(kind=kind, window=4, **SMALL))
+    cw, fp = _random_windows(jax.random.PRNGKey(7), 2, 4, tc.n_vertices, tf.n_vertices, 9)
+    fed = np.asarray(self_fed_inputs(model, cw, fp))
+    seq = np.asarray(fp).copy()  # seq[:, k] = input of position k, filled one frame at a time
+    for k in range(1, 4):
+        seq[:, k] = np.asarray(model(cw, jnp.asarray(seq)))[:, k - 1]
+    np.testing.assert_array_equal(fed[:, 0], np.asarray(fp)[:, 0])
+    np.testing.assert_allclose(fed, seq, atol=2e-5)
+    assert not np.allclose(fed[:, 1:], np.asarray(fp)[:, 1:], atol=1e-2)  # the inputs did change
+    # no gradient reaches the parameters through the fed inputs
+    graphdef, params, rest = nnx.split(model, nnx.Param, ...)
+    g = jax.grad(lambda p: jnp.sum(self_fed_inputs(nnx.merge(graphdef, p, rest), cw, fp)))(params)
+    assert all(float(jnp.max(jnp.abs(x))) == 0.0 for x in jax.tree_util.tree_leaves(g))
+
+
+def test_self_feed_probability_ramp():
+    p = [float(self_feed_probability(0.5, jnp.int32(t), 100)) for t in (0, 25, 50, 99)]
+    assert p == pytest.approx([0.0, 0.25, 0.5, 0.5])
+    with pytest.raises(ValueError, match="probability"):
+        TrainConfig(self_feed=1.5)
+
+
+def test_self_feeding_changes_training_only_where_the_model_reads_fine_frames(meshes):
+    tc, tf = meshes
+    cs, fs = _paired_data(tc, tf, n_seq=2, t_len=12)
+    out = {}
+    for kind in ("transformer", "none"):
+        for feed in (0.0, 1.0):
+            _, h = train(ModelConfig(kind=kind, **SMALL), TrainConfig(steps=6, batch_size=4, self_feed=feed), tc, tf,
+                         cs, fs, progress=False)
+            out[kind, feed] = h.loss
+    assert out["transformer", 0.0][0] == out["transformer", 1.0][0]  # p_0 = 0: the first step is teacher-forced
+    assert not np.allclose(out["transformer", 0.0][2:], out["transformer", 1.0][2:])
+    np.testing.assert_array_equal(out["none", 0.0], out["none", 1.0])  # the per-frame model reads no fine input
 
 
 # ------------------------------------------------------------------------------------------ training

@@ -54,13 +54,17 @@ from jaxdeform.cloth import run as crun
 from jaxdeform.mesh.io import atomic_path
 from jaxdeform.nn import native
 
-METHODS = {  # name -> (model kind, representation, residual over the upsampled coarse features[, skip, position weight])
+METHODS = {  # name -> (model kind, representation, residual over the upsampled coarse features[, skip, position weight,
+    #                 self-feeding probability])
     "ours": ("transformer", "ts-acap", True),
     "ours_direct": ("transformer", "ts-acap", False),
     "no_temporal": ("none", "ts-acap", True),
     "lstm": ("lstm", "ts-acap", True),
     "acap": ("transformer", "acap", True),
     "coords": ("transformer", "coords", True),
+    "ours_self_fed": ("transformer", "ts-acap", True, False, 0.0, 0.5),
+    "acap_self_fed": ("transformer", "acap", True, False, 0.0, 0.5),
+    "coords_self_fed": ("transformer", "coords", True, False, 0.0, 0.5),
 }
 
 
@@ -131,9 +135,10 @@ def train_method(ds, name: str, s: Settings, cache: dict, seed: int = 0, progres
     from jaxdeform.cloth.train import TrainConfig
 
     model_kind, rep_kind, residual, *extra = METHODS[name]
-    skip, weight = extra or (False, 0.0)
+    skip, weight, feed = tuple(extra) + (False, 0.0, 0.0)[len(extra):]
     return crun.train_run(ds, representation=rep_kind, model_cfg=ModelConfig(kind=model_kind, skip=skip, seed=seed),
-                          train_cfg=TrainConfig(steps=s.steps, batch_size=s.batch, position_weight=weight, seed=seed),
+                          train_cfg=TrainConfig(steps=s.steps, batch_size=s.batch, position_weight=weight,
+                                                self_feed=feed, seed=seed),
                           features=_features(ds, rep_kind, residual, cache), progress=progress)
 
 

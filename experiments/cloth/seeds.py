@@ -13,6 +13,9 @@ OUT/runs/KIND/NAME when it is there), synthesizes every test sequence and writes
 - OUT/seeds_KIND.json: per method and seed, the pooled RMSE / STED and the RMSE of each test sequence;
 - OUT/seeds_KIND.md: the table of pooled RMSE and STED per seed, their mean, and the per-sequence RMSE.
 
+Methods of an earlier OUT/seeds_KIND.json with the same seeds and test sequences are kept (the ones named again
+are replaced), so methods can be added one invocation at a time.
+
 The dataset and the training settings are those of ``experiments.cloth.run`` (OUT/data/KIND must exist: run its
 ``data`` stage first).
 """
@@ -95,6 +98,11 @@ def main(argv=None) -> int:
               "upsampled_coarse": {"rmse": pooled["rmse"], "sted": pooled["sted"],
                                    "rmse_per_sequence": [r["rmse"] for r in base]},
               "methods": {}}
+    old_path = out / f"seeds_{args.dataset}.json"
+    if old_path.is_file():
+        old = json.loads(old_path.read_text())
+        if old.get("seeds") == record["seeds"] and old.get("test_sequences") == record["test_sequences"]:
+            record["methods"] = {k: v for k, v in old.get("methods", {}).items() if k not in args.methods}
     cache: dict = {}
     for name in args.methods:
         record["methods"][name] = {}

@@ -16,7 +16,20 @@ Reconstructor`; identity for coordinates) and compared with the fine simulation:
 ``position_weight * mean_v |p_v - g_v|^2 / ell^2`` with ell the mean fine rest edge length. Feature MSE
 weighs every vertex's rotation alike, while the evaluation's RMSE is dominated by how small rotation errors
 integrate along the cloth (a hanging sheet's hem moves with every rotation above it); the position term
-trains for what is measured. It costs one solve forward and one backward per window. Optimiser: Adam, learning rate 1e-3,
+trains for what is measured. It costs one solve forward and one backward per window.
+
+Self-feeding (``TrainConfig.self_feed`` = p > 0; off by default, the paper trains with teacher forcing only).
+At test time the decoder reads the model's own earlier frames, whose errors it never saw in training, and one
+training draw can drift away on a sequence unlike the training ones while another does not (DISK's gust sequence).
+Parallel scheduled sampling (Duckworth et al. 2019, "Parallel scheduled sampling") trains on inputs like the test
+time's without a sequential unroll: W - 1 gradient-free passes over the window, each feeding the previous pass's
+predictions of target frames s..s+W-2 in as the fine inputs of positions 1..W-1 (position 0, the frame before the
+window, stays the simulation's), so that after them position k reads frames that were themselves predicted from
+predictions, as in synthesis. Each window of the batch takes these inputs with probability p_t, else the
+simulation's; p_t rises linearly from 0 to p over the first half of the training (early predictions are noise),
+then stays. The loss and its gradient are those of the last pass only. A step costs W - 1 extra forward passes.
+
+Optimiser: Adam, learning rate 1e-3,
 optionally decayed exponentially, lr(t) = lr0 * decay_rate^(t / decay_steps) (off by default: decay_rate 1).
 The whole step (batch gather, forward, backward, Adam) is one ``jax.jit`` program, compiled once per run
 (its first call is reported apart as compile time).
@@ -83,6 +96,7 @@ class TrainConfig:
     seed: int = 0  # batch sampling (parameters come from ModelConfig.seed)
     log_every: int = 50  # progress-bar refresh interval (steps)
     position_weight: float = 0.0  # weight of the position term (module docstring); 0 = the paper's loss
+    self_feed: float = 0.0  # final probability that a window reads the model's own predictions (module docstring)
 
     def __post_init__(self):
         for name in ("steps", "batch_size", "decay_steps", "log_every"):
@@ -94,6 +108,8 @@ class TrainConfig:
             raise ValueError(f"decay_rate must lie in (0, 1], got {self.decay_rate}.")
         if not (self.position_weight >= 0 and np.isfinite(self.position_weight)):
             raise ValueError(f"position_weight must be a non-negative number, got {self.position_weight}.")
+        if not 0.0 <= self.self_feed <= 1.0:
+            raise ValueError(f"self_feed is a probability and must lie in [0, 1], got {self.self_feed}.")
 
     def to_dict(self) -> dict:
         return dataclasses.asdict(self)
@@ -183,6 +199,26 @@ def gather_windows(
     return coarse[idx], fine[idx - 1], fine[idx]
 
 
+def self_fed_inputs(predict, coarse_win: Float[Array, "b w vc c"], fine_prev: Float[Array, "b w vf c"]
+                    ) -> Float[Array, "b w vf c"]:
+    """The fine inputs of a window as synthesis would feed them (module docstring, "Self-feeding").
+
+    ``predict(coarse_win, fine_prev_win)`` is the model; W - 1 passes without gradient, each moving the
+    previous pass's predictions of the target frames 0..W-2 into the input positions 1..W-1; position 0 keeps
+    ``fine_prev[:, 0]``. With W = 1 the inputs are returned unchanged.
+    """
+    fed = fine_prev
+    for _ in range(fine_prev.shape[1] - 1):  # W - 1 <= a few passes, unrolled once at trace time
+        pred = jax.lax.stop_gradient(predict(coarse_win, fed))
+        fed = jnp.concatenate([fine_prev[:, :1], pred[:, :-1]], axis=1)
+    return fed
+
+
+def self_feed_probability(p: float, step: Array, steps: int) -> Array:
+    """p_t of the module docstring: 0 at step 0, p from half the training on."""
+    return p * jnp.minimum(1.0, step.astype(jnp.float32) / max(steps / 2.0, 1.0))
+
+
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class PositionTarget:
@@ -239,7 +275,7 @@ def _tx(lr: float, decay_rate: float, decay_steps: int) -> optax.GradientTransfo
 
 @functools.cache
 def _train_step(graphdef, window: int, batch: int, lr: float, decay_rate: float, decay_steps: int,
-                position_weight: float = 0.0):
+                position_weight: float = 0.0, self_feed: float = 0.0, steps: int = 1):
     """The jitted training step for one model structure and optimiser (cached: no retrace across runs)."""
     tx = _tx(lr, decay_rate, decay_steps)
 
@@ -251,7 +287,12 @@ def _train_step(graphdef, window: int, batch: int, lr: float, decay_rate: float,
         def loss_fn(p):
             model = nnx.merge(graphdef, p, rest)
             model.train()
-            pred = model(cw, fp)
+            inputs = fp
+            if self_feed > 0 and model.config.kind != "none":  # the per-frame model reads no fine input
+                own = jax.random.bernoulli(jax.random.fold_in(jax.random.fold_in(key, t), 1),
+                                           self_feed_probability(self_feed, t, steps), (batch,))
+                inputs = jnp.where(own[:, None, None, None], self_fed_inputs(model, cw, fp), fp)
+            pred = model(cw, inputs)
             loss = jnp.mean(jnp.square(pred - ft))
             if pos is not None and position_weight > 0:
                 loss = loss + position_weight * position_error(pos, pred[:, -1], starts[sel] + window - 1)
@@ -308,7 +349,8 @@ def train(
     else:
         positions = None
     step_fn = _train_step(graphdef, win.window, int(tc.batch_size), float(tc.learning_rate), float(tc.decay_rate),
-                          int(tc.decay_steps), float(tc.position_weight))
+                          int(tc.decay_steps), float(tc.position_weight), float(tc.self_feed),
+                          int(tc.steps) if tc.self_feed > 0 else 1)
     key = jax.random.PRNGKey(tc.seed)
 
     from tqdm.auto import tqdm
