@@ -224,6 +224,10 @@ def test_experiment_test_config_writes_summary(tmp_path):
     assert set(r["jumps"]) == {"ts-acap", "acap"} and r["jumps"]["acap"]["count"] > 0
     fl = r["floor"]  # one test scenario re-simulated from a perturbed start: it moved, and only a little
     assert len(fl["sequences"]) == 1 and 0 < fl["perturbed_fine_rmse"] < 10 * fl["perturbation_m"]
+    # it covers the whole test split here (one sequence), so its upsampled-coarse errors are the evaluation's
+    assert fl["upsampled_coarse_rmse"] == pytest.approx(r["rmse"]["upsampled_coarse"], rel=1e-9)
+    assert fl["upsampled_coarse_sted"] == pytest.approx(r["sted"]["upsampled_coarse"], rel=1e-9)
+    assert 0 < fl["perturbed_fine_sted"] < fl["upsampled_coarse_sted"]
     assert (tmp_path / "results.md").is_file() and r["figures"] and (tmp_path / r["figures"][0]).is_file()
 
     # the seed spread reuses the stored seed-0 run (same figure as the experiment's) and trains another draw
@@ -238,6 +242,11 @@ def test_experiment_test_config_writes_summary(tmp_path):
     for per in rec["methods"]["ours"].values():  # equal-length test sequences: pooled RMSE = RMS of theirs
         assert per["rmse"] == pytest.approx(np.sqrt(np.mean(np.square(per["rmse_per_sequence"]))), rel=1e-9)
     assert "| ours, 1 |" in (tmp_path / "seeds_sheet.md").read_text()
+    # a second invocation adds its methods to the record of the same seeds and test sequences
+    assert seeds.main(["--config", "test", "--out", str(tmp_path), "--dataset", "sheet", "--methods", "no_temporal",
+                       "--seeds", "0", "1"]) == 0
+    again = json.loads((tmp_path / "seeds_sheet.json").read_text())
+    assert set(again["methods"]) == {"ours", "no_temporal"} and again["methods"]["ours"] == rec["methods"]["ours"]
 
 
 def test_generate_keeps_matching_sequences_and_grows(tmp_path):

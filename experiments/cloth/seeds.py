@@ -7,8 +7,8 @@ One training of a detail model is one draw: its parameter initialisation and its
 seed (``ModelConfig.seed``, ``TrainConfig.seed``). On a few test sequences, one of which may be chaotic (a
 tablecloth flipping up in a gust), the autoregressive synthesis of one draw can drift where another does not,
 and a single training then decides the order of the methods. This script trains each method with each seed
-(both seeds set to it; seed 0 is the run that ``experiments.cloth.run`` trained, reused from
-OUT/runs/KIND/NAME when it is there), synthesizes every test sequence and writes
+(both seeds set to it; seed 0 is the run that ``experiments.cloth.run`` trains, reused from
+OUT/runs/KIND/NAME when it is there and stored there when not), synthesizes every test sequence and writes
 
 - OUT/seeds_KIND.json: per method and seed, the pooled RMSE / STED and the RMSE of each test sequence;
 - OUT/seeds_KIND.md: the table of pooled RMSE and STED per seed, their mean, and the per-sequence RMSE.
@@ -37,12 +37,16 @@ from jaxdeform.nn import native
 
 
 def train_seed(out: Path, ds, name: str, seed: int, s: xrun.Settings, cache: dict):
-    """The run of ``name`` with ``seed`` (seed 0: the experiment's stored run when present)."""
+    """The run of ``name`` with ``seed`` (seed 0: the experiment's stored run when present; else it is trained
+    and stored there, as the experiment's ``train`` stage would have trained it)."""
     stored = out / "runs" / ds.scenario / name
     if seed == 0 and (stored / "run.json").is_file():
         return crun.load_run(stored)
     print(f"training {name} seed {seed} on {ds.scenario}", flush=True)
-    return xrun.train_method(ds, name, s, cache, seed=seed, progress=False)
+    run = xrun.train_method(ds, name, s, cache, seed=seed, progress=False)
+    if seed == 0:
+        crun.save_run(run, stored)
+    return run
 
 
 def evaluate(run, test, faces) -> dict:
