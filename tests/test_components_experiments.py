@@ -257,6 +257,33 @@ def test_projection_encoder_row_is_the_protocol(tmp_path):
     assert json.loads((tmp_path / "p.json").read_text())["fitted"]["shapes"] == expected["shapes"]
 
 
+def test_projection_in_positions_finds_a_decodable_shape_again(tmp_path):
+    """Position-space fitting through the ACAP reconstruction recovers a mesh the run can produce (moved by a
+    translation, which the fit leaves free) from perturbed codes; the experiment records the space it fitted in."""
+    from experiments.components import projection
+    from jaxdeform import acap
+    from jaxdeform.components import model
+    from jaxdeform.components import run as crun
+    from jaxdeform.mesh.topology import build_topology
+    from jaxdeform.nn.graph_conv import rings_from_topology
+
+    data = exp.synthetic_tube(tmp_path)
+    (tmp_path / "run").mkdir()
+    crun.fit(tmp_path / "run", data, "multiscale", "test", epochs=3, progress=False, log=lambda s: None)
+    run = crun.load(tmp_path / "run")
+    vertices, faces = crun.run_data(run, data)
+    rings = rings_from_topology(build_topology(faces, run.rest.shape[0]))
+    codes = model.encode(run.params, crun.scaled_features(run, vertices[run.test_idx][:2]), rings, run.config)
+    features = run.scaler.inverse(model.decode_latents(run.params, codes, rings)).astype(jnp.float64)
+    target = np.asarray(acap.cached(run.rest, run.faces).decode(features, refine=0)) + np.array([0.3, -0.2, 0.1])
+    keys = jax.random.split(jax.random.PRNGKey(2), len(codes))
+    start = tuple(c + 0.3 * jax.random.normal(k, c.shape, c.dtype) for c, k in zip(codes, keys))
+    _, losses = projection.fit_positions(run.params, rings, run, target, start, iterations=200)
+    assert losses[-1] < 1e-3 * losses[0], (losses[0], losses[-1])
+    result = projection.main([str(tmp_path / "run"), "--space", "positions", "--steps", "2"])
+    assert result["space"] == "positions" and result["fitted"]["erms"] <= result["encoder"]["erms"] * 1.0001
+
+
 def test_feature_transform_aligns_then_scales():
     """components.run.fit_feature_transform / apply_feature_transform, shared by runs, the sweep and the ceiling:
     a shape whose rotation vectors sit one turn off is scaled as the shape itself once aligned, not otherwise;
