@@ -34,6 +34,7 @@ import jaxdeform  # noqa: F401  (x64)
 import jax
 import jax.numpy as jnp
 import optax
+from jax.flatten_util import ravel_pytree
 
 from jaxdeform.components import model
 from jaxdeform.components import run as crun
@@ -82,18 +83,9 @@ def fit_positions(params, rings: Rings, run, ref, codes0, *, iterations: int = 1
 
     machinery = acap.cached(run.rest, run.faces)
     machinery.reconstructor(None)  # factorized on the host now, not inside the trace below
-    shapes = [c.shape for c in codes0]
-    sizes = [int(np.prod(sh)) for sh in shapes]
-    dtype = codes0[0].dtype
+    w0, unflatten = ravel_pytree(tuple(codes0))  # unflatten casts back to the codes' dtype
     target = jnp.asarray(ref, jnp.float64)
     scale = 1.0 / float(np.mean(np.sum((ref - ref.mean(axis=1, keepdims=True)) ** 2, -1)))  # loss ~ 1 at the start
-
-    def unflatten(w):
-        parts, start = [], 0
-        for sh, n in zip(shapes, sizes):
-            parts.append(w[start:start + n].reshape(sh).astype(dtype))
-            start += n
-        return tuple(parts)
 
     def loss(w):
         features = run.scaler.inverse(model.decode_latents(params, unflatten(w), rings)).astype(jnp.float64)
@@ -102,18 +94,21 @@ def fit_positions(params, rings: Rings, run, ref, codes0, *, iterations: int = 1
         return jnp.mean(jnp.sum(d * d, -1)) * scale
 
     value_and_grad = jax.jit(jax.value_and_grad(loss))
-    losses = []
+    last = {}  # the latest evaluation: the callback reads the accepted point's loss from it instead of recomputing
 
     def fun(w):
         value, grad = value_and_grad(jnp.asarray(w))
-        return float(value), np.asarray(grad, np.float64)
+        last.update(w=np.array(w), value=float(value))
+        return last["value"], np.asarray(grad, np.float64)
+
+    losses = []
 
     def callback(w):
-        losses.append(fun(w)[0] / scale)
+        losses.append((last["value"] if np.array_equal(w, last["w"]) else fun(w)[0]) / scale)
         if log is not None and len(losses) % 25 == 0:
             log(len(losses) - 1, losses[-1])
 
-    w0 = np.concatenate([np.asarray(c, np.float64).ravel() for c in codes0])
+    w0 = np.asarray(w0, np.float64)
     losses.append(fun(w0)[0] / scale)  # the start, then one entry per iteration
     res = scipy.optimize.minimize(fun, w0, jac=True, method="L-BFGS-B", callback=callback,
                                   options=dict(maxiter=iterations, ftol=0.0, gtol=0.0))
