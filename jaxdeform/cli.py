@@ -1017,10 +1017,11 @@ def build_parser() -> argparse.ArgumentParser:
     ctr.add_argument("--position-weight", type=float, metavar="W",
                      help="add W x the decoded positions' squared error (in fine edge lengths) to the loss "
                           "(needs the scenario's pins; default 0: feature MSE only, as the paper)")
-    ctr.add_argument("--self-feed", type=float, default=0.0, metavar="P",
+    ctr.add_argument("--self-feed", type=float, default=0.5, metavar="P",
                      help="train a window on the model's own predictions of its earlier frames with probability "
-                          "P (ramped up over the first half of training), as synthesis feeds them (default 0: "
-                          "teacher forcing only, as the paper)")
+                          "P (ramped up over the first half of training), as synthesis feeds them (default 0.5: "
+                          "it keeps the transformer from drifting on unseen sequences; 0: teacher forcing only, "
+                          "as the paper; the per-frame model ignores it)")
     ctr.add_argument("--steps", type=int, metavar="N", help="training steps (default: the TrainConfig's)")
     ctr.add_argument("--seed", type=int, metavar="S")
     ctr.add_argument("--force", action="store_true", help="replace a non-empty --out")

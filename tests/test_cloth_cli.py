@@ -78,10 +78,13 @@ def test_train_self_feed_option(tmp_path, capsys):
     assert code == 2 and err.count("\n") == 1 and "--self-feed is a probability" in err
     assert not (tmp_path / "bad").exists()
     run = tmp_path / "run"
-    code, _, err = run_cli(["cloth", "train", str(data), "--out", str(run), "--self-feed", "0.5", "--steps", "2",
-                            "--quiet"], capsys)
+    code, _, err = run_cli(["cloth", "train", str(data), "--out", str(run), "--steps", "2", "--quiet"], capsys)
     assert code == 0, err
-    assert json.loads((run / "run.json").read_text())["train"]["self_feed"] == 0.5
+    assert json.loads((run / "run.json").read_text())["train"]["self_feed"] == 0.5  # the CLI's default
+    code, _, err = run_cli(["cloth", "train", str(data), "--out", str(tmp_path / "paper"), "--self-feed", "0",
+                            "--steps", "2", "--quiet"], capsys)
+    assert code == 0, err
+    assert json.loads((tmp_path / "paper" / "run.json").read_text())["train"]["self_feed"] == 0.0
 
 
 def test_train_refuses_unequal_lengths(tmp_path, capsys):

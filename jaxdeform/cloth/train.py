@@ -18,7 +18,8 @@ weighs every vertex's rotation alike, while the evaluation's RMSE is dominated b
 integrate along the cloth (a hanging sheet's hem moves with every rotation above it); the position term
 trains for what is measured. It costs one solve forward and one backward per window.
 
-Self-feeding (``TrainConfig.self_feed`` = p > 0; off by default, the paper trains with teacher forcing only).
+Self-feeding (``TrainConfig.self_feed`` = p > 0; off in this config, the paper trains with teacher forcing only;
+``jaxdeform cloth train`` defaults to p = 0.5).
 At test time the decoder reads the model's own earlier frames, whose errors it never saw in training, and one
 training draw can drift away on a sequence unlike the training ones while another does not (DISK's gust sequence).
 Parallel scheduled sampling (Duckworth et al. 2019, "Parallel scheduled sampling") trains on inputs like the test
