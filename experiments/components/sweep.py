@@ -4,7 +4,7 @@
         [--lambda-recon 10] [--lambda-sparse 1] [--mask step|linear] [--latent linear|tanh] [--no-attention] [--attention-gradient] \\
         [--separate] [--turns aligned|per-shape] [--scale-quantile 1e-3] [--epochs 2000] [--eval-every N] \\
         [--curve erms|features] [--split every10|half|all] [--lr 1e-3] [--decay-rate 0.794] [--clip-norm C] \\
-        [--seed 0] [--jsonl OUT.jsonl]
+        [--augment N [--batch 8] [--mix-regions 3,12] [--mix-sigma 0.15] [--mix-alpha 0.5]] [--seed 0] [--jsonl OUT.jsonl]
 
 Unlike ``experiments.components.run`` (named configurations, run folders, STED), this trains any configuration
 in memory on one split (every 10th shape by default) and prints one JSON line (appended to ``--jsonl``):
@@ -16,6 +16,12 @@ in memory on one split (every 10th shape by default) and prints one JSON line (a
   features per shape, its largest and mean value (Table 5);
 - ``inside_fraction``: per level, the median over components of the share of sum_i ||C_k,i|| that lies within
   the level's cut-off d of the component centre (1 = perfectly localized).
+
+``--augment N`` adds N regional mixes of the training shapes' scaled features to the training set
+(:func:`regional_mixes`: each vertex a convex combination of the training shapes, the weights varying smoothly over
+a few random geodesic regions), and the batch then samples ``--batch`` shapes from the enlarged set; Erms and eq. 8
+are still of the real shapes only. It tests whether an encoder that has seen shapes between the training ones
+generalizes better to the unseen ones.
 
 With ``--split all`` every shape trains and "test" is the whole set again (Table 5 read as the representation
 error); the test keys then repeat the train ones and are not evaluated twice. ``--curve features`` keeps the
@@ -58,6 +64,23 @@ def inside_fraction(c: np.ndarray, dist: np.ndarray, d: float) -> float:
     return float(np.median((norms * inside).sum(axis=1) / total))
 
 
+def regional_mixes(x: np.ndarray, dist: np.ndarray, n: int, rng: np.random.Generator,
+                   regions: tuple[int, int] = (3, 12), sigma: float = 0.15, alpha: float = 0.5) -> np.ndarray:
+    """(n, V, C) mixes of the S shapes ``x`` (S, V, C): a mix picks R ~ U{regions} random centre vertices, gives
+    each a Dirichlet(alpha) combination of the S shapes, and blends the centres' combinations over the mesh by the
+    normalized Gaussian weights exp(-(dist / sigma)^2) of the geodesic distances ``dist`` (V, V): every vertex is a
+    convex combination of the shapes, varying smoothly over the surface."""
+    s, v, _ = x.shape
+    out = np.empty((n,) + x.shape[1:], x.dtype)
+    for i in range(n):
+        centres = rng.choice(v, rng.integers(regions[0], regions[1] + 1), replace=False)
+        w = np.exp(-(np.asarray(dist[centres], np.float64) / sigma) ** 2)  # (R, V)
+        w /= np.maximum(w.sum(axis=0, keepdims=True), 1e-300)
+        per_vertex = w.T @ rng.dirichlet(np.full(s, alpha), size=len(centres))  # (V, S), rows sum to 1
+        out[i] = np.einsum("vs,svc->vc", per_vertex, x)
+    return out
+
+
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--data", default=str(Path(__file__).resolve().parents[2].parent / "shared" / "data" / "horse-gallop"))
@@ -87,6 +110,12 @@ def main(argv=None) -> dict:
     ap.add_argument("--decay-rate", type=float, default=train.TrainConfig.decay_rate,
                     help="learning rate multiplied by this every 1,000 steps")
     ap.add_argument("--clip-norm", type=float, help="clip each step's gradient to this global norm before Adam")
+    ap.add_argument("--augment", type=int, default=0, metavar="N",
+                    help="train on the real shapes and N regional mixes of them (regional_mixes)")
+    ap.add_argument("--batch", type=int, default=train.TrainConfig.batch, help="shapes per step")
+    ap.add_argument("--mix-regions", default="3,12", help="least and most regions of a mix")
+    ap.add_argument("--mix-sigma", type=float, default=0.15, help="width of a region's weight (normalized geodesics)")
+    ap.add_argument("--mix-alpha", type=float, default=0.5, help="Dirichlet concentration of a region's combination")
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--jsonl", help="append the result line to this file")
     a = ap.parse_args(argv)
@@ -95,7 +124,7 @@ def main(argv=None) -> dict:
                        lambda_sparse=a.lambda_sparse, mask=a.mask, latent=a.latent, attention=not a.no_attention,
                        attention_gradient=a.attention_gradient)
     tc = train.TrainConfig(epochs=a.epochs, learning_rate=a.lr, seed=a.seed, joint=not a.separate,
-                          decay_rate=a.decay_rate, clip_norm=a.clip_norm)
+                          decay_rate=a.decay_rate, clip_norm=a.clip_norm, batch=a.batch)
     vertices, faces = crun.load_data(a.data)
     tr, te = crun.split_indices(vertices.shape[0], a.split)
     same = a.split == "all"  # test is the training set again: evaluated once
@@ -134,12 +163,19 @@ def main(argv=None) -> dict:
         curve.append(point)
         print(json.dumps(curve[-1]), flush=True)
 
+    data = x[tr]
+    if a.augment:
+        lo, hi = (int(t) for t in a.mix_regions.split(","))
+        data = np.concatenate([data, regional_mixes(data, dist, a.augment, np.random.default_rng(a.seed), (lo, hi),
+                                                    a.mix_sigma, a.mix_alpha)])
     t0 = time.perf_counter()
-    params, history = train.train(x[tr], rings, dist, cfg, tc, progress=True, snapshot=snapshot if a.eval_every else None,
+    params, history = train.train(data, rings, dist, cfg, tc, progress=True, snapshot=snapshot if a.eval_every else None,
                                   snapshot_every=a.eval_every or 1000)
     seconds = time.perf_counter() - t0
 
-    result = {"config": {**dataclasses.asdict(cfg), **dataclasses.asdict(tc), "turns": a.turns, "scale_quantile": a.scale_quantile}, "data": str(a.data),
+    result = {"config": {**dataclasses.asdict(cfg), **dataclasses.asdict(tc), "turns": a.turns, "scale_quantile": a.scale_quantile,
+                         "augment": a.augment, **({"mix_regions": a.mix_regions, "mix_sigma": a.mix_sigma,
+                                                   "mix_alpha": a.mix_alpha} if a.augment else {})}, "data": str(a.data),
               "train_shapes": len(tr), "test_shapes": len(te), "train_seconds": round(seconds, 1),
               "final_loss": float(history[-1]),
               # the loss per 100 epochs: last value and largest (spikes of Adam's instability show here)
