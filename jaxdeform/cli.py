@@ -479,6 +479,27 @@ def cmd_components_evaluate(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_components_finetune(args: argparse.Namespace) -> int:
+    from jaxdeform.components import finetune, run
+
+    _check_exists([args.run] + list(args.data or []))
+    out = Path(args.out)
+    _check_out_folder(out, args.force, [args.run] + list(args.data or []))
+    finetune.check_options(args.steps, args.batch, args.mixes, args.position_weight, args.lr, args.seed)
+    loaded = run.load(args.run)
+    if loaded.method not in run.AUTOENCODERS:
+        raise run.RunError(f"{args.run} is a {loaded.method} run: only multiscale and tan runs can be fine-tuned.")
+    data = None if not args.data else (args.data if len(args.data) > 1 else args.data[0])
+    with _staged_folder(out) as tmp:
+        rec = finetune.fit(loaded, tmp, data, mixes=args.mixes, steps=args.steps, batch=args.batch,
+                           position_weight=args.position_weight, lr=args.lr, seed=args.seed,
+                           progress=not args.quiet)
+    first, last = rec["first_terms"], rec["last_terms"]
+    print(f"fine-tuned {args.run} for {args.steps} steps on {args.mixes} mixes in {rec['seconds']:.0f} s (model loss "
+          f"{first[0]:.4g} -> {last[0]:.4g}, position term {first[1]:.3g} -> {last[1]:.3g}); wrote {out}")
+    return 0
+
+
 def cmd_components_show(args: argparse.Namespace) -> int:
     from jaxdeform.components import run
 
@@ -876,7 +897,7 @@ def build_parser() -> argparse.ArgumentParser:
     pshow.set_defaults(func=cmd_parts_show)
 
     comp = sub.add_parser("components", help="Multiscale deformation components (seed 000) and baselines.",
-                          description="Deformation components of a shape set: train, evaluate, show, edit.")
+                          description="Deformation components of a shape set: train, evaluate, finetune, show, edit.")
     comp_sub = comp.add_subparsers(dest="components_command", metavar="ACTION", required=True)
     ctrain = comp_sub.add_parser("train", help="Train a method on the training split of a mesh folder.",
                                  description="Train on every 10th shape (or a random half) and write a run folder.")
@@ -906,6 +927,24 @@ def build_parser() -> argparse.ArgumentParser:
     ceval.add_argument("--data", nargs="+", required=True, metavar="DATA", help="the data the run was trained on")
     ceval.add_argument("--json", metavar="OUT.json", help="write the metrics here")
     ceval.set_defaults(func=cmd_components_evaluate)
+    cfine = comp_sub.add_parser(
+        "finetune", help="Train a run further for its vertices, on regional mixes of its training shapes.",
+        description="Adds w x the squared vertex error of the ACAP reconstruction to the model's loss and trains "
+                    "on the training shapes and regional mixes of them (jaxdeform.components.finetune); writes a "
+                    "new run folder.")
+    cfine.add_argument("run", metavar="RUN", help="a multiscale or tan run written by 'jaxdeform components train'")
+    cfine.add_argument("--out", "-o", required=True, metavar="RUN2", help="run folder to create")
+    cfine.add_argument("--data", nargs="+", metavar="DATA", help="the data the run was trained on (default: its folder)")
+    cfine.add_argument("--mixes", type=int, default=400, metavar="N", help="regional mixes (default 400; 0: none)")
+    cfine.add_argument("--steps", type=int, default=1000, metavar="N", help="Adam steps (default 1000)")
+    cfine.add_argument("--batch", type=int, default=8, metavar="B", help="shapes per step (default 8)")
+    cfine.add_argument("--position-weight", type=float, default=1e5, metavar="W",
+                       help="weight w of the position term (default 1e5)")
+    cfine.add_argument("--lr", type=float, default=2e-4, help="Adam's learning rate (default 2e-4)")
+    cfine.add_argument("--seed", type=int, default=0, metavar="S", help="mixes and batch order (default 0)")
+    cfine.add_argument("--quiet", action="store_true", help="no progress bar")
+    cfine.add_argument("--force", action="store_true", help="replace RUN2 if it exists and is not empty")
+    cfine.set_defaults(func=cmd_components_finetune)
     cshow = comp_sub.add_parser("show", help="Render the kept components and their similarity matrix.",
                                 description="Write components.png (AE0 row and AEk rows), similarity.png and "
                                             "components.json (strengths, kept and removed components).")

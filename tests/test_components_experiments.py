@@ -148,30 +148,6 @@ def test_sweep_inside_fraction_analytic():
     assert per[1] == pytest.approx(norms1[:2].sum() / norms1.sum())
 
 
-def test_regional_mixes_are_convex_and_smooth():
-    from experiments.components.sweep import regional_mixes
-
-    rng = np.random.default_rng(3)
-    pos = np.linspace(0.0, 1.0, 40)
-    dist = np.abs(pos[:, None] - pos[None, :])  # a path of 40 vertices, geodesics on [0, 1]
-    x = rng.normal(size=(4, 40, 9))
-    mixes = regional_mixes(x, dist, 6, np.random.default_rng(0), (2, 5), 0.2, 0.5)
-    assert mixes.shape == (6, 40, 9)
-    # every vertex is a convex combination of the shapes: within their range, channel by channel
-    assert np.all(mixes >= x.min(axis=0) - 1e-12) and np.all(mixes <= x.max(axis=0) + 1e-12)
-    # and the combination is recoverable and convex: solve per vertex for the 4 weights (9 channels, 4 unknowns)
-    for m in mixes[:2]:
-        w = np.stack([np.linalg.lstsq(x[:, v].T, m[v], rcond=None)[0] for v in range(40)])
-        assert np.allclose(w.sum(axis=1), 1.0) and np.all(w > -1e-9)
-        assert np.abs(np.diff(w, axis=0)).max() < 0.5  # smooth along the path (sigma 0.2, spacing 0.026)
-    # identical shapes mix to themselves; two draws from one seed are equal, other seeds differ
-    same = np.broadcast_to(x[:1], x.shape)
-    assert np.allclose(regional_mixes(same, dist, 3, np.random.default_rng(1)), x[0])
-    again = regional_mixes(x, dist, 6, np.random.default_rng(0), (2, 5), 0.2, 0.5)
-    assert np.array_equal(again, mixes)
-    assert not np.allclose(regional_mixes(x, dist, 6, np.random.default_rng(1), (2, 5), 0.2, 0.5), mixes)
-
-
 def test_sweep_runs_on_a_tube(tmp_path):
     from experiments.components import sweep
     from jaxdeform.components import run as crun
@@ -338,3 +314,4 @@ def test_feature_transform_aligns_then_scales():
     x_own = crun.apply_feature_transform(off, None, plain)
     assert np.abs(x_own[3, :8, :3] - x[3, :8, :3]).max() > 0.1  # per-shape branches: shape 3 scaled elsewhere
     assert crun.apply_feature_transform(off.astype(np.float32), turns, scaler).dtype == np.float32
+

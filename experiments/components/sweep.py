@@ -18,7 +18,7 @@ in memory on one split (every 10th shape by default) and prints one JSON line (a
   the level's cut-off d of the component centre (1 = perfectly localized).
 
 ``--augment N`` adds N regional mixes of the training shapes' scaled features to the training set
-(:func:`regional_mixes`: each vertex a convex combination of the training shapes, the weights varying smoothly over
+(:func:`jaxdeform.components.finetune.regional_mixes`: each vertex a convex combination of the training shapes, the weights varying smoothly over
 a few random geodesic regions), and the batch then samples ``--batch`` shapes from the enlarged set; Erms and eq. 8
 are still of the real shapes only. It tests whether an encoder that has seen shapes between the training ones
 generalizes better to the unseen ones.
@@ -44,6 +44,7 @@ import jaxdeform  # noqa: F401  (x64)
 import jax.numpy as jnp
 from jaxdeform import acap, metrics
 from jaxdeform.components import model, train
+from jaxdeform.components.finetune import regional_mixes
 from jaxdeform.components import run as crun
 from jaxdeform.mesh.topology import build_topology
 from jaxdeform.nn.graph_conv import rings_from_topology
@@ -62,23 +63,6 @@ def inside_fraction(c: np.ndarray, dist: np.ndarray, d: float) -> float:
     inside = dist[norms.argmax(axis=1)] < d
     total = np.maximum(norms.sum(axis=1), 1e-30)
     return float(np.median((norms * inside).sum(axis=1) / total))
-
-
-def regional_mixes(x: np.ndarray, dist: np.ndarray, n: int, rng: np.random.Generator,
-                   regions: tuple[int, int] = (3, 12), sigma: float = 0.15, alpha: float = 0.5) -> np.ndarray:
-    """(n, V, C) mixes of the S shapes ``x`` (S, V, C): a mix picks R ~ U{regions} random centre vertices, gives
-    each a Dirichlet(alpha) combination of the S shapes, and blends the centres' combinations over the mesh by the
-    normalized Gaussian weights exp(-(dist / sigma)^2) of the geodesic distances ``dist`` (V, V): every vertex is a
-    convex combination of the shapes, varying smoothly over the surface."""
-    s, v, _ = x.shape
-    out = np.empty((n,) + x.shape[1:], x.dtype)
-    for i in range(n):
-        centres = rng.choice(v, rng.integers(regions[0], regions[1] + 1), replace=False)
-        w = np.exp(-(np.asarray(dist[centres], np.float64) / sigma) ** 2)  # (R, V)
-        w /= np.maximum(w.sum(axis=0, keepdims=True), 1e-300)
-        per_vertex = w.T @ rng.dirichlet(np.full(s, alpha), size=len(centres))  # (V, S), rows sum to 1
-        out[i] = np.einsum("vs,svc->vc", per_vertex, x)
-    return out
 
 
 def main(argv=None) -> dict:

@@ -350,6 +350,12 @@ def reconstruct(params, data, rings: Rings, config: model.Config):
     return _reconstruct_jit()(params, data, rings, config=config)
 
 
+def save_params(checkpoint_dir, params: tuple, step: int) -> None:
+    """Write ``params`` as the checkpoint of ``step`` in ``checkpoint_dir`` (parameters only: :func:`load_params`
+    reads them; a training cannot resume from it)."""
+    _Checkpoints(checkpoint_dir, 1).save(int(step), {"params": tuple(params)})
+
+
 def load_params(checkpoint_dir, like: tuple):
     """The parameters of the newest checkpoint in ``checkpoint_dir`` (structure and dtypes of ``like``)."""
     ckpt = _Checkpoints(checkpoint_dir, 1)

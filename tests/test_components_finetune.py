@@ -1,0 +1,103 @@
+"""jaxdeform.components.finetune and `jaxdeform components finetune`: regional mixes, the position term, the
+written run, and the CLI's refusals."""
+
+import json
+
+import jax
+import numpy as np
+import pytest
+
+from experiments.components import run as exp
+from jaxdeform.cli import main as cli_main
+
+
+def run_cli(argv, capsys):
+    code = cli_main(argv)
+    captured = capsys.readouterr()
+    return code, captured.out, captured.err
+
+
+def test_regional_mixes_are_convex_and_smooth():
+    from jaxdeform.components.finetune import regional_mixes
+
+    rng = np.random.default_rng(3)
+    pos = np.linspace(0.0, 1.0, 40)
+    dist = np.abs(pos[:, None] - pos[None, :])  # a path of 40 vertices, geodesics on [0, 1]
+    x = rng.normal(size=(4, 40, 9))
+    mixes = regional_mixes(x, dist, 6, np.random.default_rng(0), (2, 5), 0.2, 0.5)
+    assert mixes.shape == (6, 40, 9)
+    # every vertex is a convex combination of the shapes: within their range, channel by channel
+    assert np.all(mixes >= x.min(axis=0) - 1e-12) and np.all(mixes <= x.max(axis=0) + 1e-12)
+    # and the combination is recoverable and convex: solve per vertex for the 4 weights (9 channels, 4 unknowns)
+    for m in mixes[:2]:
+        w = np.stack([np.linalg.lstsq(x[:, v].T, m[v], rcond=None)[0] for v in range(40)])
+        assert np.allclose(w.sum(axis=1), 1.0) and np.all(w > -1e-9)
+        assert np.abs(np.diff(w, axis=0)).max() < 0.5  # smooth along the path (sigma 0.2, spacing 0.026)
+    # identical shapes mix to themselves; two draws from one seed are equal, other seeds differ
+    same = np.broadcast_to(x[:1], x.shape)
+    assert np.allclose(regional_mixes(same, dist, 3, np.random.default_rng(1)), x[0])
+    again = regional_mixes(x, dist, 6, np.random.default_rng(0), (2, 5), 0.2, 0.5)
+    assert np.array_equal(again, mixes)
+    assert not np.allclose(regional_mixes(x, dist, 6, np.random.default_rng(1), (2, 5), 0.2, 0.5), mixes)
+
+
+def test_finetune_lowers_the_position_term_and_writes_a_run(tmp_path, capsys):
+    """On the training shapes alone (a full, fixed batch) the position term falls; the output is a run that
+    `components evaluate` scores, and the source run is untouched."""
+    from jaxdeform.components import run as crun
+
+    data = exp.synthetic_tube(tmp_path)
+    src = tmp_path / "run"
+    src.mkdir()
+    crun.fit(src, data, "multiscale", "test", epochs=30, progress=False, log=lambda s: None)
+    before = (src / "run.json").read_text()
+    out = tmp_path / "tuned"
+    code, text, err = run_cli(["components", "finetune", str(src), "--out", str(out), "--mixes", "0", "--steps", "25",
+                               "--batch", "8", "--lr", "1e-3", "--position-weight", "1e3", "--quiet"], capsys)
+    assert code == 0, err
+    assert "fine-tuned" in text and str(out) in text
+    tuned = crun.load(out)
+    rec = tuned.record["finetune"]
+    assert rec["steps"] == 25 and rec["mixes"] == 0 and rec["source"] == str(src)
+    assert rec["last_terms"][1] < 0.5 * rec["first_terms"][1]
+    assert (src / "run.json").read_text() == before
+    original = crun.load(src)
+    assert any(not np.array_equal(np.asarray(a), np.asarray(b))
+               for a, b in zip(jax.tree_util.tree_leaves(tuned.params), jax.tree_util.tree_leaves(original.params)))
+    result = crun.evaluate(tuned, data)
+    assert np.isfinite(result["test"]["erms"]) and np.isfinite(result["train"]["erms"])
+    codes = np.load(out / "codes.npz")
+    assert sorted(codes.files) == ["level0", "level1"]
+    # with mixes (and the data named): a short run still writes a loadable run
+    code, _, err = run_cli(["components", "finetune", str(src), "--out", str(tmp_path / "mixed"), "--data", str(data),
+                            "--mixes", "6", "--steps", "2", "--batch", "3", "--quiet"], capsys)
+    assert code == 0, err
+    assert json.loads((tmp_path / "mixed" / "run.json").read_text())["finetune"]["mixes"] == 6
+
+
+@pytest.mark.parametrize("extra, message", [
+    (["--steps", "0"], "--steps and --batch must be positive"),
+    (["--mixes", "-1"], "--mixes must be a non-negative"),
+    (["--position-weight", "nan"], "--position-weight must be a non-negative"),
+    (["--lr", "0"], "--lr must be a positive"),
+    (["--seed", "-2"], "--seed must be a non-negative"),
+])
+def test_finetune_refuses_bad_options(tmp_path, capsys, extra, message):
+    code, _, err = run_cli(["components", "finetune", str(tmp_path), "--out", str(tmp_path / "o")] + extra, capsys)
+    assert code == 2 and err.count("\n") == 1 and message in err
+    assert not (tmp_path / "o").exists()
+
+
+def test_finetune_refuses_a_linear_run_and_a_busy_out(tmp_path, capsys):
+    from jaxdeform.components import run as crun
+
+    data = exp.synthetic_tube(tmp_path)
+    (tmp_path / "pca").mkdir()
+    crun.fit(tmp_path / "pca", data, "pca", "test", progress=False, log=lambda s: None)
+    code, _, err = run_cli(["components", "finetune", str(tmp_path / "pca"), "--out", str(tmp_path / "p2")], capsys)
+    assert code == 2 and err.count("\n") == 1 and "only multiscale and tan runs" in err
+    assert not (tmp_path / "p2").exists()
+    (tmp_path / "busy").mkdir()
+    (tmp_path / "busy" / "keep.txt").write_text("x")
+    code, _, err = run_cli(["components", "finetune", str(tmp_path / "pca"), "--out", str(tmp_path / "busy")], capsys)
+    assert code == 2 and err.count("\n") == 1 and (tmp_path / "busy" / "keep.txt").read_text() == "x"
