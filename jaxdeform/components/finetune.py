@@ -127,7 +127,7 @@ def finetune(run: crun.Run, x_train, *, mixes: int = 400, steps: int = 1000, bat
             bar.update(i + 1 - bar.n)
     if bar is not None:
         bar.close()
-    return params, np.asarray(jnp.stack(history))
+    return params, np.asarray(jax.device_get(history), np.float64).reshape(steps, 2)  # one transfer, no XLA op
 
 
 def fit(run: crun.Run, out: Path, data=None, *, mixes: int = 400, steps: int = 1000, batch: int = 8,
