@@ -487,8 +487,7 @@ def cmd_components_finetune(args: argparse.Namespace) -> int:
     _check_out_folder(out, args.force, [args.run] + list(args.data or []))
     finetune.check_options(args.steps, args.batch, args.mixes, args.position_weight, args.lr, args.seed)
     loaded = run.load(args.run)
-    if loaded.method not in run.AUTOENCODERS:
-        raise run.RunError(f"{args.run} is a {loaded.method} run: only multiscale and tan runs can be fine-tuned.")
+    finetune.check_run(loaded)
     data = None if not args.data else (args.data if len(args.data) > 1 else args.data[0])
     with _staged_folder(out) as tmp:
         rec = finetune.fit(loaded, tmp, data, mixes=args.mixes, steps=args.steps, batch=args.batch,

@@ -55,20 +55,30 @@ def regional_mixes(x: np.ndarray, dist: np.ndarray, n: int, rng: np.random.Gener
 
 
 def position_loss_fn(run: crun.Run, rings, dist, weight: float):
-    """(loss, machinery): loss(params, x (B, V, 9) scaled features, g (B, V, 3) their positions) ->
-    (total, (model loss, position term)), the module docstring's loss."""
+    """(loss, positions): loss(params, x (B, V, 9) scaled features, g (B, V, 3) their positions) ->
+    (total, (model loss, position term)), the module docstring's loss; positions(x) the plain ACAP
+    reconstruction of scaled features that the position term compares (the targets g come from it too)."""
     machinery = acap.cached(run.rest, run.faces)
     machinery.reconstructor(None)  # factorized on the host now, not inside a trace
     inv_r2 = 1.0 / float(np.mean(np.sum((run.rest - run.rest.mean(axis=0)) ** 2, axis=-1)))
 
+    def positions(x):
+        return machinery.decode(run.scaler.inverse(x).astype(jnp.float64), refine=0)
+
     def loss(params, x, g):
         out = model.forward(params, x, rings, dist, run.config)
-        d = machinery.decode(run.scaler.inverse(out.reconstruction).astype(jnp.float64), refine=0) - g
+        d = positions(out.reconstruction) - g
         d = d - jnp.mean(d, axis=1, keepdims=True)
         pos = (jnp.mean(jnp.sum(d * d, axis=-1)) * inv_r2).astype(out.loss.dtype)
         return out.loss + weight * pos, (out.loss, pos)
 
-    return loss, machinery
+    return loss, positions
+
+
+def check_run(run: crun.Run) -> None:
+    """One sentence (RunError) for a run without an autoencoder."""
+    if run.method not in crun.AUTOENCODERS:
+        raise crun.RunError(f"{run.path} is a {run.method} run: only multiscale and tan runs can be fine-tuned.")
 
 
 def check_options(steps: int, batch: int, mixes: int, position_weight: float, lr: float, seed: int = 0) -> None:
@@ -89,8 +99,7 @@ def finetune(run: crun.Run, x_train, *, mixes: int = 400, steps: int = 1000, bat
              position_weight: float = 1e5, lr: float = 2e-4, seed: int = 0, progress: bool = True):
     """(params, history (steps, 2): model loss and position term of each step's batch before its update)."""
     check_options(steps, batch, mixes, position_weight, lr, seed)
-    if run.method not in crun.AUTOENCODERS:
-        raise crun.RunError(f"{run.path}: a {run.method} run has no autoencoder to fine-tune.")
+    check_run(run)
     faces, rest = run.faces, run.rest
     dtype = np.dtype(run.record.get("dtype", "float32"))
     dist = crun.normalized_geodesics(rest, faces, dtype)
@@ -98,9 +107,9 @@ def finetune(run: crun.Run, x_train, *, mixes: int = 400, steps: int = 1000, bat
     x_train = np.asarray(x_train, dtype)
     pool = np.concatenate([x_train, regional_mixes(x_train, dist, mixes, rng)]) if mixes else x_train
     rings = rings_from_topology(build_topology(faces, rest.shape[0]))
-    loss, machinery = position_loss_fn(run, rings, jnp.asarray(dist), position_weight)
-    decode = jax.jit(lambda s: machinery.decode(run.scaler.inverse(s).astype(jnp.float64), refine=0))
-    targets = np.concatenate([np.asarray(decode(jnp.asarray(pool[i:i + 8]))) for i in range(0, len(pool), 8)])
+    loss, positions = position_loss_fn(run, rings, jnp.asarray(dist), position_weight)
+    positions = jax.jit(positions)
+    targets = np.concatenate([np.asarray(positions(jnp.asarray(pool[i:i + 8]))) for i in range(0, len(pool), 8)])
     opt = optax.adam(lr)
 
     @jax.jit
@@ -134,10 +143,9 @@ def fit(run: crun.Run, out: Path, data=None, *, mixes: int = 400, steps: int = 1
         position_weight: float = 1e5, lr: float = 2e-4, seed: int = 0, progress: bool = True) -> dict:
     """Fine-tune ``run`` on its training shapes (read from ``data``, default the run's data folder) and write the
     result into the empty folder ``out``: a copy of the run with the new parameters and training codes, run.json
-    with ``finetune`` (options, seconds, first and last loss terms, source run). Returns that record."""
-    check_options(steps, batch, mixes, position_weight, lr, seed)
-    if run.method not in crun.AUTOENCODERS:
-        raise crun.RunError(f"{run.path}: a {run.method} run has no autoencoder to fine-tune.")
+    with ``finetune`` (options, seconds, first and last loss terms, source run). Returns that record. The options
+    and the run are checked by :func:`finetune`; a caller that wants them refused before the features are read calls
+    :func:`check_options` and :func:`check_run` first, as the CLI does."""
     vertices, _ = crun.run_data(run, data)
     x_train = crun.scaled_features(run, vertices[run.train_idx])
     t0 = time.perf_counter()
