@@ -2,6 +2,8 @@
 tube, a few epochs): the code paths of Tables 2, 4, 5 and the JSON/markdown they write. They measure nothing."""
 
 import json
+import os
+from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -184,7 +186,7 @@ def test_sweep_runs_on_a_tube(tmp_path):
     assert np.isfinite(res_aug["test_erms"])
     assert res_all["test_max_rse"] == res_all["train_max_rse"] and res_all["test_erms"] == res_all["train_erms"]
     assert [p["epoch"] for p in res_all["curve"]] == [50, 100]
-    assert set(res_all["curve"][0]) == {"epoch", "train_feature_mse", "train_max_rse", "train_mean_rse"}
+    assert set(res_all["curve"][0]) == {"epoch", "seconds", "train_feature_mse", "train_max_rse", "train_mean_rse"}
     assert res_all["curve"][-1]["train_max_rse"] == pytest.approx(res_all["train_max_rse"], rel=1e-5)
     # the learning-curve table and figure of Table 5 from that line
     from experiments.components import curves
@@ -200,6 +202,41 @@ def test_sweep_runs_on_a_tube(tmp_path):
         curves.main([str(tmp_path / "all.jsonl"), "--out", str(tmp_path / "c2")])
     with pytest.raises(SystemExit, match="no learning curve"):
         curves.main([f"plain={out}", "--out", str(tmp_path / "c3")])
+    # a result line without Erms (a run whose final reconstruction did not happen) is tabled as "not measured"
+    line = json.loads((tmp_path / "all.jsonl").read_text().splitlines()[-1])
+    del line["test_erms"], line["train_erms"]
+    (tmp_path / "no_erms.jsonl").write_text(json.dumps(line) + "\n")
+    rows = curves.main([f"two={tmp_path / 'no_erms.jsonl'}", "--out", str(tmp_path / "c4")])
+    assert rows["two"]["erms"] is None
+    assert "| not measured |" in (tmp_path / "c4" / "results.md").read_text()
+
+
+def test_table5_script_on_a_tube(tmp_path):
+    """experiments/components/table5_all.sh: the two- and three-level sweeps side by side, their logs and result
+    lines, and the curves over both."""
+    import subprocess
+    import sys
+
+    data = exp.synthetic_tube(tmp_path)
+    bindir = tmp_path / "bin"
+    bindir.mkdir()
+    shim = bindir / "python3"  # the script calls python3: make it this interpreter
+    shim.write_text(f'#!/bin/sh\nexec "{sys.executable}" "$@"\n')
+    shim.chmod(0o755)
+    env = {**os.environ, "PATH": f"{bindir}{os.pathsep}{os.environ['PATH']}",
+           "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    out = tmp_path / "t5"
+    proc = subprocess.run(["bash", "experiments/components/table5_all.sh", str(data), str(out), "250", "0", "test host"],
+                          cwd=Path(__file__).resolve().parents[1], env=env, capture_output=True, text=True, timeout=600)
+    assert proc.returncode == 0, proc.stderr
+    assert "two: exit 0" in proc.stdout and "three: exit 0" in proc.stdout
+    res = json.loads((out / "results.json").read_text())
+    assert res["hardware"] == "test host"
+    assert {lab: r["levels"] for lab, r in res["rows"].items()} == {"two": 2, "three": 3}
+    assert all(r["split"] == "all" and r["epochs"] == 250 for r in res["rows"].values())
+    # the log keeps the curve point that the result line repeats
+    three = json.loads((out / "three.jsonl").read_text().splitlines()[-1])
+    assert f'"epoch": 250, "seconds": {three["curve"][0]["seconds"]}' in (out / "three.log").read_text()
 
 
 def test_ceiling_on_the_tube(tmp_path):

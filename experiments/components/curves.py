@@ -6,7 +6,7 @@
 Each ``LABEL=FILE`` names the last line of a ``experiments.components.sweep --eval-every N --curve features
 --jsonl FILE`` run. Writes ``DIR/results.json`` (per label: config, epochs, final metrics and the curve),
 ``DIR/results.md`` (the largest relative squared error per evaluated epoch, one column per label, and the final
-Erms) and ``DIR/curves.png`` (the largest relative squared error against the epoch, log scale, with the paper's
+Erms, "not measured" where a result line has none) and ``DIR/curves.png`` (the largest relative squared error against the epoch, log scale, with the paper's
 two- and three-level figures as dashed lines).
 """
 
@@ -51,7 +51,7 @@ def summary(runs: dict) -> dict:
                       "epochs": r["config"]["epochs"], "train_shapes": r["train_shapes"],
                       "train_seconds": r["train_seconds"],
                       "max_relative_squared_error": r["test_max_rse"], "mean_relative_squared_error": r["test_mean_rse"],
-                      "erms": r["test_erms"], "paper_max_relative_squared_error": PAPER.get(len(kz)),
+                      "erms": r.get("test_erms"), "paper_max_relative_squared_error": PAPER.get(len(kz)),
                       "curve": [{"epoch": p["epoch"], "max_rse": p.get("test_max_rse", p["train_max_rse"]),
                                  "mean_rse": p.get("test_mean_rse", p["train_mean_rse"])} for p in r["curve"]]}
     return out
@@ -74,9 +74,10 @@ def markdown(rows: dict, title: str, hardware: str) -> str:
               "|---|---|---|---|---|---|---|---|"]
     for lab in labels:
         r = rows[lab]
+        erms = "not measured" if r["erms"] is None else f"{r['erms']:.2f}"
         lines.append(f"| {lab} | {r['levels']} ({', '.join(map(str, r['kz']))}) | {r['train_shapes']} | {r['epochs']:,} | "
                      f"{r['max_relative_squared_error']:.4g} | {r['mean_relative_squared_error']:.4g} | "
-                     f"{r['erms']:.2f} | {r['train_seconds']:.0f} s |")
+                     f"{erms} | {r['train_seconds']:.0f} s |")
     return "\n".join(lines + [""])
 
 

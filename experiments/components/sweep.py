@@ -14,6 +14,7 @@ in memory on one split (every 10th shape by default) and prints one JSON line (a
 - ``train_feature_mse`` / ``test_feature_mse``: mean squared error of the scaled features;
 - ``train_max_rse`` / ``test_max_rse`` (and ``_mean_rse``): eq. (8), the relative squared error of the scaled
   features per shape, its largest and mean value (Table 5);
+- ``curve`` (with ``--eval-every``): per evaluated epoch, the seconds since training began and the metrics above;
 - ``inside_fraction``: per level, the median over components of the share of sum_i ||C_k,i|| that lies within
   the level's cut-off d of the component centre (1 = perfectly localized).
 
@@ -137,7 +138,7 @@ def main(argv=None) -> dict:
     curve = []
 
     def snapshot(epoch, p):
-        point = {"epoch": epoch}
+        point = {"epoch": epoch, "seconds": round(time.perf_counter() - t0, 1)}
         for name, idx in sets:
             if a.curve == "erms":
                 point[f"{name}_erms"], fm = evaluate(idx, p, cfg)
