@@ -485,14 +485,14 @@ def cmd_components_finetune(args: argparse.Namespace) -> int:
     _check_exists([args.run] + list(args.data or []))
     out = Path(args.out)
     _check_out_folder(out, args.force, [args.run] + list(args.data or []))
-    finetune.check_options(args.steps, args.batch, args.mixes, args.position_weight, args.lr, args.seed)
+    finetune.check_options(args.steps, args.batch, args.mixes, args.position_weight, args.lr, args.seed, args.lr_final)
     loaded = run.load(args.run)
     finetune.check_run(loaded)
     data = None if not args.data else (args.data if len(args.data) > 1 else args.data[0])
     with _staged_folder(out) as tmp:
         rec = finetune.fit(loaded, tmp, data, mixes=args.mixes, steps=args.steps, batch=args.batch,
                            position_weight=args.position_weight, lr=args.lr, seed=args.seed,
-                           progress=not args.quiet)
+                           progress=not args.quiet, lr_final=args.lr_final)
     first, last = rec["first_terms"], rec["last_terms"]
     print(f"fine-tuned {args.run} for {args.steps} steps on {args.mixes} mixes in {rec['seconds']:.0f} s (model loss "
           f"{first[0]:.4g} -> {last[0]:.4g}, position term {first[1]:.3g} -> {last[1]:.3g}); wrote {out}")
@@ -940,6 +940,9 @@ def build_parser() -> argparse.ArgumentParser:
     cfine.add_argument("--position-weight", type=float, default=1e5, metavar="W",
                        help="weight w of the position term (default 1e5)")
     cfine.add_argument("--lr", type=float, default=2e-4, help="Adam's learning rate (default 2e-4)")
+    cfine.add_argument("--lr-final", type=float, metavar="LR",
+                       help="learning rate at the last step, reached from --lr along a half cosine (default: --lr "
+                            "throughout)")
     cfine.add_argument("--seed", type=int, default=0, metavar="S", help="mixes and batch order (default 0)")
     cfine.add_argument("--quiet", action="store_true", help="no progress bar")
     cfine.add_argument("--force", action="store_true", help="replace RUN2 if it exists and is not empty")

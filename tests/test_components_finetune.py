@@ -41,6 +41,36 @@ def test_regional_mixes_are_convex_and_smooth():
     assert not np.allclose(regional_mixes(x, dist, 6, np.random.default_rng(1), (2, 5), 0.2, 0.5), mixes)
 
 
+def test_staged_step_has_the_gradient_of_the_loss(tmp_path):
+    """make_step's three stages (forward with VJP, position term, pullback and update) give the gradient of the one
+    differentiable loss: with plain SGD of rate 1 the update is minus that gradient, and the terms are its terms."""
+    import jax.numpy as jnp
+    import optax
+
+    from jaxdeform.components import finetune as ft
+    from jaxdeform.components import run as crun
+    from jaxdeform.mesh.topology import build_topology
+    from jaxdeform.nn.graph_conv import rings_from_topology
+
+    data = exp.synthetic_tube(tmp_path)
+    crun.fit(tmp_path / "run", data, "multiscale", "test", epochs=20, progress=False, log=lambda s: None)
+    run = crun.load(tmp_path / "run")
+    vertices, _ = crun.run_data(run, None)
+    x = jnp.asarray(crun.scaled_features(run, vertices[:6]), jnp.float32)
+    dist = jnp.asarray(crun.normalized_geodesics(run.rest, run.faces, np.float32))
+    rings = rings_from_topology(build_topology(run.faces, run.rest.shape[0]))
+    loss, positions, _ = ft.position_loss_fn(run, rings, dist, 50.0)
+    g = positions(x[::-1])  # other shapes' positions: a position term far from zero
+    params = tuple(run.params)
+    (total, terms), grad = jax.value_and_grad(loss, has_aux=True)(params, x, g)
+    opt = optax.sgd(1.0)
+    new, _, staged_terms = ft.make_step(run, rings, dist, 50.0, opt)(params, opt.init(params), x, g)
+    np.testing.assert_allclose(np.asarray(staged_terms), np.asarray(terms), rtol=1e-5)
+    assert float(terms[1]) > 1e-3
+    for p0, p1, gr in zip(jax.tree.leaves(params), jax.tree.leaves(new), jax.tree.leaves(grad)):
+        np.testing.assert_allclose(np.asarray(p0 - p1), np.asarray(gr), rtol=2e-3, atol=1e-6 * float(np.abs(gr).max()))
+
+
 def test_finetune_lowers_the_position_term_and_writes_a_run(tmp_path, capsys):
     """On the training shapes alone (a full, fixed batch) the position term falls; the output is a run that
     `components evaluate` scores, and the source run is untouched."""
@@ -73,6 +103,18 @@ def test_finetune_lowers_the_position_term_and_writes_a_run(tmp_path, capsys):
                             "--mixes", "6", "--steps", "2", "--batch", "3", "--quiet"], capsys)
     assert code == 0, err
     assert json.loads((tmp_path / "mixed" / "run.json").read_text())["finetune"]["mixes"] == 6
+    assert rec["lr_final"] == rec["lr"] == 1e-3  # constant unless --lr-final
+
+
+def test_finetune_schedule():
+    """Constant without lr_final; with it, lr at step 0, lr_final at the last step, the half-cosine midpoint between."""
+    from jaxdeform.components.finetune import schedule
+
+    assert schedule(2e-4, 100) == 2e-4 and schedule(2e-4, 100, 2e-4) == 2e-4
+    s = schedule(2e-4, 101, 2e-5)
+    assert float(s(0)) == pytest.approx(2e-4) and float(s(100)) == pytest.approx(2e-5)
+    assert float(s(50)) == pytest.approx(0.5 * (2e-4 + 2e-5))
+    assert all(float(s(k + 1)) < float(s(k)) for k in range(100))
 
 
 @pytest.mark.parametrize("extra, message", [
@@ -80,6 +122,8 @@ def test_finetune_lowers_the_position_term_and_writes_a_run(tmp_path, capsys):
     (["--mixes", "-1"], "--mixes must be a non-negative"),
     (["--position-weight", "nan"], "--position-weight must be a non-negative"),
     (["--lr", "0"], "--lr must be a positive"),
+    (["--lr-final", "1e-3"], "--lr-final must be a positive number no larger than --lr"),
+    (["--lr-final", "0"], "--lr-final must be a positive number"),
     (["--seed", "-2"], "--seed must be a non-negative"),
 ])
 def test_finetune_refuses_bad_options(tmp_path, capsys, extra, message):
