@@ -492,7 +492,7 @@ def cmd_components_finetune(args: argparse.Namespace) -> int:
     with _staged_folder(out) as tmp:
         rec = finetune.fit(loaded, tmp, data, mixes=args.mixes, steps=args.steps, batch=args.batch,
                            position_weight=args.position_weight, lr=args.lr, seed=args.seed,
-                           progress=not args.quiet, lr_final=args.lr_final)
+                           progress=not args.quiet, lr_final=args.lr_final, rigid=args.rigid)
     first, last = rec["first_terms"], rec["last_terms"]
     print(f"fine-tuned {args.run} for {args.steps} steps on {args.mixes} mixes in {rec['seconds']:.0f} s (model loss "
           f"{first[0]:.4g} -> {last[0]:.4g}, position term {first[1]:.3g} -> {last[1]:.3g}); wrote {out}")
@@ -943,6 +943,9 @@ def build_parser() -> argparse.ArgumentParser:
     cfine.add_argument("--lr-final", type=float, metavar="LR",
                        help="learning rate at the last step, reached from --lr along a half cosine (default: --lr "
                             "throughout)")
+    cfine.add_argument("--rigid", action="store_true",
+                       help="compare the vertices after rotating each reconstruction onto its target, as Erms does "
+                            "(default: translation only)")
     cfine.add_argument("--seed", type=int, default=0, metavar="S", help="mixes and batch order (default 0)")
     cfine.add_argument("--quiet", action="store_true", help="no progress bar")
     cfine.add_argument("--force", action="store_true", help="replace RUN2 if it exists and is not empty")

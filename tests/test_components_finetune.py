@@ -41,9 +41,44 @@ def test_regional_mixes_are_convex_and_smooth():
     assert not np.allclose(regional_mixes(x, dist, 6, np.random.default_rng(1), (2, 5), 0.2, 0.5), mixes)
 
 
-def test_staged_step_has_the_gradient_of_the_loss(tmp_path):
+def test_rigid_residual_is_the_erms_alignment_and_its_gradient_is_the_minimum_s():
+    """rigid_residual: zero for a rotated and moved copy; the same alignment as metrics.normalize_pair (whose Erms
+    it reproduces); its squared sum's gradient (rotation held, the envelope theorem) matches central differences of
+    the minimum over rotations computed afresh for each perturbed input."""
+    import jax.numpy as jnp
+    from scipy.spatial.transform import Rotation
+
+    from jaxdeform import metrics
+    from jaxdeform.components.finetune import rigid_residual
+
+    rng = np.random.default_rng(7)
+    g = rng.normal(size=(3, 30, 3))
+    rot = Rotation.random(3, random_state=1).as_matrix()
+    moved = np.einsum("bxy,bvy->bvx", rot, g) + rng.normal(size=(3, 1, 3))
+    assert np.abs(np.asarray(rigid_residual(jnp.asarray(moved), jnp.asarray(g)))).max() < 1e-10
+    p = moved + 0.2 * rng.normal(size=g.shape)
+    res = np.asarray(rigid_residual(jnp.asarray(p), jnp.asarray(g)))
+    ref, rec = metrics.normalize_pair(g, p)
+    radius = float(np.sqrt(((g - g.mean(axis=1, keepdims=True)) ** 2).sum(axis=-1)).max())
+    np.testing.assert_allclose(res / radius, rec - ref, atol=1e-12)
+
+    def minimum(q):
+        return float(np.sum(np.asarray(rigid_residual(jnp.asarray(q), jnp.asarray(g))) ** 2))
+
+    grad = np.asarray(jax.grad(lambda q: jnp.sum(rigid_residual(q, jnp.asarray(g)) ** 2))(jnp.asarray(p)))
+    h = 1e-6
+    for b, v, c in [(0, 0, 0), (1, 17, 2), (2, 29, 1), (2, 3, 0)]:
+        e = np.zeros_like(p)
+        e[b, v, c] = h
+        fd = (minimum(p + e) - minimum(p - e)) / (2 * h)
+        assert abs(fd - grad[b, v, c]) < 1e-6 * max(1.0, abs(fd))
+
+
+@pytest.mark.parametrize("rigid", [False, True])
+def test_staged_step_has_the_gradient_of_the_loss(tmp_path, rigid):
     """make_step's three stages (forward with VJP, position term, pullback and update) give the gradient of the one
-    differentiable loss: with plain SGD of rate 1 the update is minus that gradient, and the terms are its terms."""
+    differentiable loss: with plain SGD of rate 1 the update is minus that gradient, and the terms are its terms;
+    the rotation-free term (rigid) is no larger than the translation-free one."""
     import jax.numpy as jnp
     import optax
 
@@ -59,14 +94,16 @@ def test_staged_step_has_the_gradient_of_the_loss(tmp_path):
     x = jnp.asarray(crun.scaled_features(run, vertices[:6]), jnp.float32)
     dist = jnp.asarray(crun.normalized_geodesics(run.rest, run.faces, np.float32))
     rings = rings_from_topology(build_topology(run.faces, run.rest.shape[0]))
-    loss, positions, _ = ft.position_loss_fn(run, rings, dist, 50.0)
+    loss, positions, _ = ft.position_loss_fn(run, rings, dist, 50.0, rigid)
     g = positions(x[::-1])  # other shapes' positions: a position term far from zero
     params = tuple(run.params)
     (total, terms), grad = jax.value_and_grad(loss, has_aux=True)(params, x, g)
     opt = optax.sgd(1.0)
-    new, _, staged_terms = ft.make_step(run, rings, dist, 50.0, opt)(params, opt.init(params), x, g)
+    new, _, staged_terms = ft.make_step(run, rings, dist, 50.0, opt, rigid)(params, opt.init(params), x, g)
     np.testing.assert_allclose(np.asarray(staged_terms), np.asarray(terms), rtol=1e-5)
     assert float(terms[1]) > 1e-3
+    other = ft.position_loss_fn(run, rings, dist, 50.0, not rigid)[0](params, x, g)[1][1]
+    assert (float(terms[1]) <= float(other) * (1 + 1e-6)) if rigid else (float(other) <= float(terms[1]) * (1 + 1e-6))
     for p0, p1, gr in zip(jax.tree.leaves(params), jax.tree.leaves(new), jax.tree.leaves(grad)):
         np.testing.assert_allclose(np.asarray(p0 - p1), np.asarray(gr), rtol=2e-3, atol=1e-6 * float(np.abs(gr).max()))
 

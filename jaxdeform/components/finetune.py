@@ -55,11 +55,28 @@ def regional_mixes(x: np.ndarray, dist: np.ndarray, n: int, rng: np.random.Gener
     return out
 
 
-def position_loss_fn(run: crun.Run, rings, dist, weight: float):
+def rigid_residual(p, g):
+    """(B, V, 3) residual of positions p against targets g after centring both and rotating each p onto its g by
+    the proper rotation that minimizes the squared residual (Kabsch), as Erms aligns a reconstruction. The rotation
+    enters without a gradient: at the minimizing rotation the squared residual's derivative in it vanishes
+    (envelope theorem), so the gradient in p is that of the full minimum."""
+    p = p - jnp.mean(p, axis=1, keepdims=True)
+    g = g - jnp.mean(g, axis=1, keepdims=True)
+    a = jax.lax.stop_gradient(jnp.einsum("bvx,bvy->bxy", g, p))  # R maximizing tr(R^T a) maps p onto g
+    u, _, vt = jnp.linalg.svd(a)
+    flip = jnp.where(jnp.linalg.det(u @ vt) < 0, -1.0, 1.0).astype(u.dtype)
+    u = u.at[..., :, 2].multiply(flip[..., None])
+    r = u @ vt
+    return jnp.einsum("bxy,bvy->bvx", r, p) - g
+
+
+def position_loss_fn(run: crun.Run, rings, dist, weight: float, rigid: bool = False):
     """(loss, positions, term): loss(params, x (B, V, 9) scaled features, g (B, V, 3) their positions) ->
     (total, (model loss, position term)), the module docstring's loss, one differentiable function;
     positions(x) the plain ACAP reconstruction of scaled features that the position term compares (the targets g
-    come from it too); term(x_hat, g) the position term of the model's output x_hat."""
+    come from it too); term(x_hat, g) the position term of the model's output x_hat. With ``rigid`` the term is
+    taken after rotating each reconstruction onto its target (:func:`rigid_residual`), so a global rotation,
+    which Erms does not count, costs nothing."""
     machinery = acap.cached(run.rest, run.faces)
     machinery.reconstructor(None)  # factorized on the host now, not inside a trace
     inv_r2 = 1.0 / float(np.mean(np.sum((run.rest - run.rest.mean(axis=0)) ** 2, axis=-1)))
@@ -68,8 +85,11 @@ def position_loss_fn(run: crun.Run, rings, dist, weight: float):
         return machinery.decode(run.scaler.inverse(x).astype(jnp.float64), refine=0)
 
     def term(x_hat, g):
-        d = positions(x_hat) - g
-        d = d - jnp.mean(d, axis=1, keepdims=True)
+        if rigid:
+            d = rigid_residual(positions(x_hat), g)
+        else:
+            d = positions(x_hat) - g
+            d = d - jnp.mean(d, axis=1, keepdims=True)
         return (jnp.mean(jnp.sum(d * d, axis=-1)) * inv_r2).astype(x_hat.dtype)
 
     def loss(params, x, g):
@@ -80,13 +100,13 @@ def position_loss_fn(run: crun.Run, rings, dist, weight: float):
     return loss, positions, term
 
 
-def make_step(run: crun.Run, rings, dist, weight: float, opt: optax.GradientTransformation):
+def make_step(run: crun.Run, rings, dist, weight: float, opt: optax.GradientTransformation, rigid: bool = False):
     """step(params, state, x, g) -> (params, state, (model loss, position term)): one Adam step on
     :func:`position_loss_fn`'s loss, as three jitted stages: the model's forward with its VJP, the position term
     with its gradient in the model's output, then the model's pullback and the update. The same gradient as one
     jitted ``value_and_grad`` of the loss; the ACAP decode inside a larger XLA program loses the stage boundaries
     that keep it fast on the CPU (horse, 8 shapes, 2-core CPU: 206 ms a step staged against 405 ms fused)."""
-    _, _, term = position_loss_fn(run, rings, dist, weight)
+    _, _, term = position_loss_fn(run, rings, dist, weight, rigid)
 
     @jax.jit
     def forward(params, x):
@@ -146,7 +166,7 @@ def schedule(lr: float, steps: int, lr_final: float | None = None):
 
 def finetune(run: crun.Run, x_train, *, mixes: int = 400, steps: int = 1000, batch: int = 8,
              position_weight: float = 1e5, lr: float = 2e-4, seed: int = 0, progress: bool = True,
-             lr_final: float | None = None):
+             lr_final: float | None = None, rigid: bool = False):
     """(params, history (steps, 2): model loss and position term of each step's batch before its update)."""
     check_options(steps, batch, mixes, position_weight, lr, seed, lr_final)
     check_run(run)
@@ -161,7 +181,7 @@ def finetune(run: crun.Run, x_train, *, mixes: int = 400, steps: int = 1000, bat
     positions = jax.jit(positions)
     targets = np.concatenate([np.asarray(positions(jnp.asarray(pool[i:i + 8]))) for i in range(0, len(pool), 8)])
     opt = optax.adam(schedule(lr, steps, lr_final))
-    step = make_step(run, rings, jnp.asarray(dist), position_weight, opt)
+    step = make_step(run, rings, jnp.asarray(dist), position_weight, opt, rigid)
 
     params = tuple(run.params)
     state = opt.init(params)
@@ -186,7 +206,7 @@ def finetune(run: crun.Run, x_train, *, mixes: int = 400, steps: int = 1000, bat
 
 def fit(run: crun.Run, out: Path, data=None, *, mixes: int = 400, steps: int = 1000, batch: int = 8,
         position_weight: float = 1e5, lr: float = 2e-4, seed: int = 0, progress: bool = True,
-        lr_final: float | None = None) -> dict:
+        lr_final: float | None = None, rigid: bool = False) -> dict:
     """Fine-tune ``run`` on its training shapes (read from ``data``, default the run's data folder) and write the
     result into the empty folder ``out``: a copy of the run with the new parameters and training codes, run.json
     with ``finetune`` (options, seconds, first and last loss terms, source run). Returns that record. The options
@@ -196,10 +216,10 @@ def fit(run: crun.Run, out: Path, data=None, *, mixes: int = 400, steps: int = 1
     x_train = crun.scaled_features(run, vertices[run.train_idx])
     t0 = time.perf_counter()
     params, history = finetune(run, x_train, mixes=mixes, steps=steps, batch=batch, position_weight=position_weight,
-                               lr=lr, seed=seed, progress=progress, lr_final=lr_final)
+                               lr=lr, seed=seed, progress=progress, lr_final=lr_final, rigid=rigid)
     record = {"mixes": mixes, "steps": steps, "batch": batch, "position_weight": position_weight, "lr": lr,
               "lr_final": lr if lr_final is None else lr_final,
-              "seed": seed, "seconds": round(time.perf_counter() - t0, 1), "first_terms": history[0].tolist(),
+              "seed": seed, "rigid": rigid, "seconds": round(time.perf_counter() - t0, 1), "first_terms": history[0].tolist(),
               "last_terms": history[-1].tolist(), "source": str(run.path)}
     out = Path(out)
     for name in ("mesh.npz", "history.npy"):
