@@ -485,16 +485,19 @@ def cmd_components_finetune(args: argparse.Namespace) -> int:
     _check_exists([args.run] + list(args.data or []))
     out = Path(args.out)
     _check_out_folder(out, args.force, [args.run] + list(args.data or []))
-    finetune.check_options(args.steps, args.batch, args.mixes, args.position_weight, args.lr, args.seed, args.lr_final)
+    finetune.check_options(args.steps, args.batch, args.mixes, args.position_weight, args.lr, args.seed, args.lr_final,
+                           args.generated, args.code_noise)
     loaded = run.load(args.run)
     finetune.check_run(loaded)
     data = None if not args.data else (args.data if len(args.data) > 1 else args.data[0])
     with _staged_folder(out) as tmp:
         rec = finetune.fit(loaded, tmp, data, mixes=args.mixes, steps=args.steps, batch=args.batch,
                            position_weight=args.position_weight, lr=args.lr, seed=args.seed,
-                           progress=not args.quiet, lr_final=args.lr_final, rigid=args.rigid)
+                           progress=not args.quiet, lr_final=args.lr_final, rigid=args.rigid,
+                           generated=args.generated, code_noise=args.code_noise)
     first, last = rec["first_terms"], rec["last_terms"]
-    print(f"fine-tuned {args.run} for {args.steps} steps on {args.mixes} mixes in {rec['seconds']:.0f} s (model loss "
+    extra = f" and {args.generated} generated meshes" if args.generated else ""
+    print(f"fine-tuned {args.run} for {args.steps} steps on {args.mixes} mixes{extra} in {rec['seconds']:.0f} s (model loss "
           f"{first[0]:.4g} -> {last[0]:.4g}, position term {first[1]:.3g} -> {last[1]:.3g}); wrote {out}")
     return 0
 
@@ -943,6 +946,11 @@ def build_parser() -> argparse.ArgumentParser:
     cfine.add_argument("--lr-final", type=float, metavar="LR",
                        help="learning rate at the last step, reached from --lr along a half cosine (default: --lr "
                             "throughout)")
+    cfine.add_argument("--generated", type=int, default=0, metavar="N",
+                       help="also train on N meshes that RUN's model decodes from its codes of further mixes, moved by "
+                            "--code-noise (default 0: none)")
+    cfine.add_argument("--code-noise", type=float, default=1.0, metavar="S",
+                       help="Gaussian move of each code entry, in standard deviations of the mixes' codes (default 1)")
     cfine.add_argument("--rigid", action="store_true",
                        help="compare the vertices after rotating each reconstruction onto its target, as Erms does "
                             "(default: translation only)")

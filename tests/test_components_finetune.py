@@ -108,6 +108,37 @@ def test_staged_step_has_the_gradient_of_the_loss(tmp_path, rigid):
         np.testing.assert_allclose(np.asarray(p0 - p1), np.asarray(gr), rtol=2e-3, atol=1e-6 * float(np.abs(gr).max()))
 
 
+def test_generated_meshes_are_the_decoded_codes_own_features(tmp_path):
+    """generated_meshes: without noise a generated mesh is the model's reconstruction of a mix (encoder codes through
+    decode_latents, chunk by chunk, equal the model's one-pass reconstruction), decoded to vertices and entering as
+    those vertices' own features; with noise the meshes move; one seed gives one result."""
+    import jax.numpy as jnp
+
+    from jaxdeform.components import finetune as ft
+    from jaxdeform.components import model
+    from jaxdeform.components import run as crun
+    from jaxdeform.mesh.topology import build_topology
+    from jaxdeform.nn.graph_conv import rings_from_topology
+
+    data = exp.synthetic_tube(tmp_path)
+    crun.fit(tmp_path / "run", data, "multiscale", "test", epochs=30, progress=False, log=lambda s: None)
+    run = crun.load(tmp_path / "run")
+    vertices, _ = crun.run_data(run, None)
+    x = np.asarray(crun.scaled_features(run, vertices[run.train_idx]))
+    dist = crun.normalized_geodesics(run.rest, run.faces, np.float32)
+    rings = rings_from_topology(build_topology(run.faces, run.rest.shape[0]))
+    still = ft.generated_meshes(run, x, dist, 5, 0.0, np.random.default_rng(4), rings, chunk=2)
+    assert still.shape == (5,) + x.shape[1:] and still.dtype == x.dtype
+    mixes = ft.regional_mixes(x, dist, 5, np.random.default_rng(4))
+    decoded = crun.positions_from_scaled(run, model.reconstruction(run.params, jnp.asarray(mixes), rings, run.config))
+    own = np.asarray(crun.scaled_features(run, decoded))
+    assert np.abs(own - mixes).max() > 0.05  # the decoded meshes are not the mixes
+    np.testing.assert_allclose(still, own, atol=2e-4)
+    moved = ft.generated_meshes(run, x, dist, 5, 1.0, np.random.default_rng(4), rings)
+    assert np.abs(moved - still).max() > 1e-2
+    np.testing.assert_array_equal(moved, ft.generated_meshes(run, x, dist, 5, 1.0, np.random.default_rng(4), rings))
+
+
 def test_finetune_lowers_the_position_term_and_writes_a_run(tmp_path, capsys):
     """On the training shapes alone (a full, fixed batch) the position term falls; the output is a run that
     `components evaluate` scores, and the source run is untouched."""
@@ -137,9 +168,11 @@ def test_finetune_lowers_the_position_term_and_writes_a_run(tmp_path, capsys):
     assert sorted(codes.files) == ["level0", "level1"]
     # with mixes (and the data named): a short run still writes a loadable run
     code, _, err = run_cli(["components", "finetune", str(src), "--out", str(tmp_path / "mixed"), "--data", str(data),
-                            "--mixes", "6", "--steps", "2", "--batch", "3", "--quiet"], capsys)
+                            "--mixes", "6", "--generated", "3", "--rigid", "--steps", "2", "--batch", "3", "--quiet"],
+                           capsys)
     assert code == 0, err
-    assert json.loads((tmp_path / "mixed" / "run.json").read_text())["finetune"]["mixes"] == 6
+    mixed = json.loads((tmp_path / "mixed" / "run.json").read_text())["finetune"]
+    assert mixed["mixes"] == 6 and mixed["generated"] == 3 and mixed["rigid"] is True
     assert rec["lr_final"] == rec["lr"] == 1e-3  # constant unless --lr-final
 
 
@@ -156,7 +189,9 @@ def test_finetune_schedule():
 
 @pytest.mark.parametrize("extra, message", [
     (["--steps", "0"], "--steps and --batch must be positive"),
-    (["--mixes", "-1"], "--mixes must be a non-negative"),
+    (["--mixes", "-1"], "--mixes and --generated must be non-negative"),
+    (["--generated", "-3"], "--mixes and --generated must be non-negative"),
+    (["--code-noise", "inf"], "--code-noise must be a non-negative"),
     (["--position-weight", "nan"], "--position-weight must be a non-negative"),
     (["--lr", "0"], "--lr must be a positive"),
     (["--lr-final", "1e-3"], "--lr-final must be a positive number no larger than --lr"),

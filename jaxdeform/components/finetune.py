@@ -55,6 +55,23 @@ def regional_mixes(x: np.ndarray, dist: np.ndarray, n: int, rng: np.random.Gener
     return out
 
 
+def generated_meshes(run: crun.Run, x: np.ndarray, dist: np.ndarray, n: int, noise: float, rng: np.random.Generator,
+                     rings, chunk: int = 16) -> np.ndarray:
+    """(n, V, 9) scaled ACAP features of meshes the run's model generates beyond the mixes: the codes that its
+    encoder gives ``n`` regional mixes of the shapes ``x`` (S, V, 9), each code entry moved by ``noise`` times its
+    standard deviation over those codes (Gaussian), decoded, reconstructed to vertices, and those meshes' own
+    features extracted again (rotation branches aligned, scaled: what an unseen shape gives the encoder)."""
+    base = regional_mixes(x, dist, n, rng)
+    enc = jax.jit(lambda xb: model.encode(run.params, xb, rings, run.config))
+    dec = jax.jit(lambda zb: model.decode_latents(run.params, zb, rings))
+    codes = [np.concatenate(z, axis=1) for z in zip(*[enc(jnp.asarray(base[i:i + chunk]))
+                                                        for i in range(0, n, chunk)])]  # per level (n_l, n, Kz)
+    moved = [c + noise * c.std(axis=1, keepdims=True) * rng.standard_normal(c.shape).astype(c.dtype) for c in codes]
+    feats = np.concatenate([np.asarray(dec(tuple(jnp.asarray(c[:, i:i + chunk]) for c in moved)))
+                            for i in range(0, n, chunk)])
+    return np.asarray(crun.scaled_features(run, crun.positions_from_scaled(run, feats)), x.dtype)
+
+
 def rigid_residual(p, g):
     """(B, V, 3) residual of positions p against targets g after centring both and rotating each p onto its g by
     the proper rotation that minimizes the squared residual (Kabsch), as Erms aligns a reconstruction. The rotation
@@ -140,14 +157,16 @@ def check_run(run: crun.Run) -> None:
 
 
 def check_options(steps: int, batch: int, mixes: int, position_weight: float, lr: float, seed: int = 0,
-                  lr_final: float | None = None) -> None:
+                  lr_final: float | None = None, generated: int = 0, code_noise: float = 1.0) -> None:
     """One sentence (ValueError) for an option out of range."""
     if seed < 0:
         raise ValueError(f"--seed must be a non-negative integer, got {seed}.")
     if steps < 1 or batch < 1:
         raise ValueError(f"--steps and --batch must be positive integers, got {steps} and {batch}.")
-    if mixes < 0:
-        raise ValueError(f"--mixes must be a non-negative integer, got {mixes}.")
+    if mixes < 0 or generated < 0:
+        raise ValueError(f"--mixes and --generated must be non-negative integers, got {mixes} and {generated}.")
+    if not (np.isfinite(code_noise) and code_noise >= 0):
+        raise ValueError(f"--code-noise must be a non-negative number, got {code_noise}.")
     if not (np.isfinite(position_weight) and position_weight >= 0):
         raise ValueError(f"--position-weight must be a non-negative number, got {position_weight}.")
     if not (np.isfinite(lr) and lr > 0):
@@ -166,9 +185,9 @@ def schedule(lr: float, steps: int, lr_final: float | None = None):
 
 def finetune(run: crun.Run, x_train, *, mixes: int = 400, steps: int = 1000, batch: int = 8,
              position_weight: float = 1e5, lr: float = 2e-4, seed: int = 0, progress: bool = True,
-             lr_final: float | None = None, rigid: bool = False):
+             lr_final: float | None = None, rigid: bool = False, generated: int = 0, code_noise: float = 1.0):
     """(params, history (steps, 2): model loss and position term of each step's batch before its update)."""
-    check_options(steps, batch, mixes, position_weight, lr, seed, lr_final)
+    check_options(steps, batch, mixes, position_weight, lr, seed, lr_final, generated, code_noise)
     check_run(run)
     faces, rest = run.faces, run.rest
     dtype = np.dtype(run.record.get("dtype", "float32"))
@@ -177,6 +196,8 @@ def finetune(run: crun.Run, x_train, *, mixes: int = 400, steps: int = 1000, bat
     x_train = np.asarray(x_train, dtype)
     pool = np.concatenate([x_train, regional_mixes(x_train, dist, mixes, rng)]) if mixes else x_train
     rings = rings_from_topology(build_topology(faces, rest.shape[0]))
+    if generated:
+        pool = np.concatenate([pool, generated_meshes(run, x_train, dist, generated, code_noise, rng, rings)])
     _, positions, _ = position_loss_fn(run, rings, jnp.asarray(dist), position_weight)
     positions = jax.jit(positions)
     targets = np.concatenate([np.asarray(positions(jnp.asarray(pool[i:i + 8]))) for i in range(0, len(pool), 8)])
@@ -206,7 +227,7 @@ def finetune(run: crun.Run, x_train, *, mixes: int = 400, steps: int = 1000, bat
 
 def fit(run: crun.Run, out: Path, data=None, *, mixes: int = 400, steps: int = 1000, batch: int = 8,
         position_weight: float = 1e5, lr: float = 2e-4, seed: int = 0, progress: bool = True,
-        lr_final: float | None = None, rigid: bool = False) -> dict:
+        lr_final: float | None = None, rigid: bool = False, generated: int = 0, code_noise: float = 1.0) -> dict:
     """Fine-tune ``run`` on its training shapes (read from ``data``, default the run's data folder) and write the
     result into the empty folder ``out``: a copy of the run with the new parameters and training codes, run.json
     with ``finetune`` (options, seconds, first and last loss terms, source run). Returns that record. The options
@@ -216,10 +237,11 @@ def fit(run: crun.Run, out: Path, data=None, *, mixes: int = 400, steps: int = 1
     x_train = crun.scaled_features(run, vertices[run.train_idx])
     t0 = time.perf_counter()
     params, history = finetune(run, x_train, mixes=mixes, steps=steps, batch=batch, position_weight=position_weight,
-                               lr=lr, seed=seed, progress=progress, lr_final=lr_final, rigid=rigid)
+                               lr=lr, seed=seed, progress=progress, lr_final=lr_final, rigid=rigid,
+                               generated=generated, code_noise=code_noise)
     record = {"mixes": mixes, "steps": steps, "batch": batch, "position_weight": position_weight, "lr": lr,
               "lr_final": lr if lr_final is None else lr_final,
-              "seed": seed, "rigid": rigid, "seconds": round(time.perf_counter() - t0, 1), "first_terms": history[0].tolist(),
+              "seed": seed, "rigid": rigid, "generated": generated, "code_noise": code_noise, "seconds": round(time.perf_counter() - t0, 1), "first_terms": history[0].tolist(),
               "last_terms": history[-1].tolist(), "source": str(run.path)}
     out = Path(out)
     for name in ("mesh.npz", "history.npy"):
