@@ -352,3 +352,48 @@ def test_feature_transform_aligns_then_scales():
     assert np.abs(x_own[3, :8, :3] - x[3, :8, :3]).max() > 0.1  # per-shape branches: shape 3 scaled elsewhere
     assert crun.apply_feature_transform(off.astype(np.float32), turns, scaler).dtype == np.float32
 
+
+
+def test_chain_scores_each_stage_and_resumes(tmp_path, capsys):
+    """The fine-tuning chain on the synthetic tube: base, rigid and a generated round, each a run the CLI wrote
+    from the previous one with the stated options and each scored by the protocol; a rerun trains nothing; another
+    option, or a stage folder without scores, is refused with one sentence and exit 2."""
+    from experiments.components import chain
+    from experiments.components.run import synthetic_tube
+    from jaxdeform.components import run as crun
+
+    data = synthetic_tube(tmp_path)
+    out = tmp_path / "chain"
+    argv = [str(data), "--out", str(out), "--config", "test", "--epochs", "3", "--first-steps", "2", "--rounds", "1",
+            "--round-steps", "1", "--generated", "2", "--mixes", "3", "--quiet"]
+    results = chain.main(argv)
+    assert list(results["stages"]) == ["base", "rigid", "round1"]
+    prev = out / "base"
+    for name in ("rigid", "round1"):
+        rec = json.loads((out / name / "run.json").read_text())["finetune"]
+        assert rec["source"] == str(prev) and rec["rigid"] is True and rec["mixes"] == 3
+        assert rec["generated"] == (0 if name == "rigid" else 2) and rec["steps"] == (2 if name == "rigid" else 1)
+        prev = out / name
+    again = crun.evaluate(crun.load(out / "round1"), data)  # the protocol's own scores
+    for part in ("train", "test"):
+        got = results["stages"]["round1"]["evaluate"][part]
+        assert {k: v for k, v in got.items() if k != "seconds"} == {k: v for k, v in again[part].items() if k != "seconds"}
+    md = (out / "results.md").read_text()
+    assert md.count("\n| ") == 1 + 3 and "| round1 |" in md
+    assert json.loads((out / "results.json").read_text()) == results
+    stamp = (out / "round1" / "run.json").stat().st_mtime_ns
+    capsys.readouterr()
+    assert chain.main(argv) == results
+    assert "round1: done" in capsys.readouterr().out
+    assert (out / "round1" / "run.json").stat().st_mtime_ns == stamp
+    other = list(argv)
+    other[other.index("--first-steps") + 1] = "4"
+    with pytest.raises(SystemExit) as err:
+        chain.main(other)
+    assert err.value.code == 2 and "other options" in capsys.readouterr().err
+    assert json.loads((out / "results.json").read_text()) == results
+    (tmp_path / "fresh" / "rigid").mkdir(parents=True)
+    with pytest.raises(SystemExit) as err:
+        chain.main([str(data), "--out", str(tmp_path / "fresh"), "--from", str(out / "base"), "--quiet"])
+    assert err.value.code == 2 and "has no scores" in capsys.readouterr().err
+    assert sorted(p.name for p in (tmp_path / "fresh").iterdir()) == ["rigid"]
