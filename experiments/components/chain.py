@@ -1,9 +1,9 @@
-"""The fine-tuning chain of the README, one command: train the multiscale model, fine-tune it for its vertices with
-the rotation-free position term, then rounds that add meshes its own model generates; every stage scored by the
-unchanged generalization protocol.
+"""The fine-tuning chain of the README, one command: train the multiscale model, fine-tune it for its vertices (the
+position term after the Kabsch rotation, ``--rigid``), then rounds that add meshes its own model generates; every
+stage scored by the unchanged generalization protocol.
 
     python -m experiments.components.chain DATA --out DIR [--from RUN] [--config default|test] [--epochs N]
-        [--first-steps 3000] [--rounds 3] [--round-steps 1000] [--generated 400] [--mixes 400] [--quiet]
+        [--first-steps 3000] [--rounds 4] [--round-steps 1000] [--generated 400] [--mixes 400] [--seed 0] [--quiet]
 
 Stages, each a run folder under DIR made by the CLI (so each is what a user gets from the same commands):
 
@@ -39,15 +39,16 @@ def stage_plan(args) -> list[tuple[str, list[str], dict]]:
             argv += ["--epochs", str(args.epochs)]
         plan.append(("base", argv, {"config": args.config, "epochs": args.epochs}))
     prev = str(out / "base") if args.from_run is None else str(args.from_run)
-    common = ["--data", str(args.data), "--mixes", str(args.mixes), "--rigid"]
-    plan.append(("rigid", ["components", "finetune", prev, "--out", str(out / "rigid"), "--steps",
-                           str(args.first_steps)] + common, {"steps": args.first_steps, "mixes": args.mixes}))
+    common = ["--data", str(args.data), "--mixes", str(args.mixes), "--rigid", "--seed", str(args.seed)]
+    plan.append(("rigid", ["components", "finetune", prev, "--out", str(out / "rigid"), "--steps", str(args.first_steps)]
+                 + common, {"steps": args.first_steps, "mixes": args.mixes, "seed": args.seed}))
     prev = str(out / "rigid")
     for r in range(1, args.rounds + 1):
         name = f"round{r}"
         plan.append((name, ["components", "finetune", prev, "--out", str(out / name), "--steps", str(args.round_steps),
                             "--generated", str(args.generated)] + common,
-                     {"steps": args.round_steps, "mixes": args.mixes, "generated": args.generated}))
+                     {"steps": args.round_steps, "mixes": args.mixes, "generated": args.generated,
+                      "seed": args.seed}))
         prev = str(out / name)
     return plan
 
@@ -73,15 +74,16 @@ def main(argv=None) -> dict:
     parser.add_argument("--config", default="default", help="training configuration of the base run")
     parser.add_argument("--epochs", type=int, default=None, help="override the base run's epochs")
     parser.add_argument("--first-steps", type=int, default=3000, help="--rigid steps before the rounds (3000)")
-    parser.add_argument("--rounds", type=int, default=3, help="rounds with generated meshes (3)")
+    parser.add_argument("--rounds", type=int, default=4, help="rounds with generated meshes (4)")
     parser.add_argument("--round-steps", type=int, default=1000, help="steps per round (1000)")
     parser.add_argument("--generated", type=int, default=400, help="generated meshes per round (400)")
     parser.add_argument("--mixes", type=int, default=400, help="regional mixes of the training shapes (400)")
+    parser.add_argument("--seed", type=int, default=0, help="fine-tuning seed: mixes, generated codes, batches (0)")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
     args = parser.parse_args(argv)
     for flag, value, least in (("--first-steps", args.first_steps, 1), ("--rounds", args.rounds, 0),
                                ("--round-steps", args.round_steps, 1), ("--generated", args.generated, 1),
-                               ("--mixes", args.mixes, 0)):
+                               ("--mixes", args.mixes, 0), ("--seed", args.seed, 0)):
         if value < least:
             parser.exit(2, f"chain: {flag} must be at least {least}, got {value}.\n")
     if not args.data.exists():
