@@ -353,7 +353,6 @@ def test_feature_transform_aligns_then_scales():
     assert crun.apply_feature_transform(off.astype(np.float32), turns, scaler).dtype == np.float32
 
 
-
 def test_chain_scores_each_stage_and_resumes(tmp_path, capsys):
     """The fine-tuning chain on the synthetic tube: base, rigid and a generated round, each a run the CLI wrote
     from the previous one with the stated options and each scored by the protocol; a rerun trains nothing; another

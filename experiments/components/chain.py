@@ -29,26 +29,25 @@ from pathlib import Path
 from experiments.components.run import _write as write_text
 from experiments.components.run import hardware
 
-def stage_plan(args) -> list[tuple[str, list[str], dict]]:
-    """(name, CLI argv, options that must match on resume) for each stage, in order."""
+
+def stage_plan(args) -> list[tuple[str, list[str]]]:
+    """(name, CLI argv) for each stage, in order; a resumed stage must have been made by the same argv."""
     out = Path(args.out)
     plan = []
     if args.from_run is None:
         argv = ["components", "train", str(args.data), "--out", str(out / "base"), "--config", args.config]
         if args.epochs is not None:
             argv += ["--epochs", str(args.epochs)]
-        plan.append(("base", argv, {"config": args.config, "epochs": args.epochs}))
+        plan.append(("base", argv))
     prev = str(out / "base") if args.from_run is None else str(args.from_run)
     common = ["--data", str(args.data), "--mixes", str(args.mixes), "--rigid", "--seed", str(args.seed)]
     plan.append(("rigid", ["components", "finetune", prev, "--out", str(out / "rigid"), "--steps", str(args.first_steps)]
-                 + common, {"steps": args.first_steps, "mixes": args.mixes, "seed": args.seed}))
+                 + common))
     prev = str(out / "rigid")
     for r in range(1, args.rounds + 1):
         name = f"round{r}"
         plan.append((name, ["components", "finetune", prev, "--out", str(out / name), "--steps", str(args.round_steps),
-                            "--generated", str(args.generated)] + common,
-                     {"steps": args.round_steps, "mixes": args.mixes, "generated": args.generated,
-                      "seed": args.seed}))
+                            "--generated", str(args.generated)] + common))
         prev = str(out / name)
     return plan
 
@@ -99,11 +98,11 @@ def main(argv=None) -> dict:
         parser.exit(2, f"chain: {path} holds a chain on {results.get('data')}, not on {args.data}.\n")
     results.setdefault("data", str(args.data))
     results.setdefault("stages", {})
-    for name, cli_argv, options in stage_plan(args):
+    for name, cli_argv in stage_plan(args):
         done = results["stages"].get(name)
         folder = out / name
         if done is not None:
-            if done["options"] != options or done["command"] != cli_argv:
+            if done["command"] != cli_argv:
                 parser.exit(2, f"chain: stage {name} in {path} was made with other options; choose another --out.\n")
             print(f"{name}: done (test Erms {done['evaluate']['test']['erms']:.2f})")
             continue
@@ -117,8 +116,8 @@ def main(argv=None) -> dict:
             parser.exit(code, f"chain: stage {name} failed (exit {code}).\n")
         run = crun.load(folder)
         evaluated = crun.evaluate(run, args.data)
-        results["stages"][name] = {"folder": str(folder), "command": cli_argv,
-                                   "options": options, "seconds": round(seconds, 1), "evaluate": evaluated}
+        results["stages"][name] = {"folder": str(folder), "command": cli_argv, "seconds": round(seconds, 1),
+                                   "evaluate": evaluated}
         results["hardware"] = hardware()
         results["date"] = time.strftime("%Y-%m-%d")
         write_text(path, json.dumps(results, indent=1))
