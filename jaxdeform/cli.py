@@ -814,12 +814,13 @@ def cmd_cloth_evaluate(args: argparse.Namespace) -> int:
         cdata.check_split(run.record["split"], f"{Path(args.run) / 'run.json'} (read against {args.data})",
                           {x.name for x in ds.sequences})
         ds.split = run.record["split"]
-    res = evaluate_run(run, ds, progress=not args.quiet)
+    part = args.split
+    res = evaluate_run(run, ds, part=part, progress=not args.quiet)
     with _writing(out), atomic_path(out) as tmp:
         tmp.write_text(json.dumps(res, indent=1) + "\n")
-    t = res["test"]
-    print(f"test: rmse {t['rmse']:.5f} m, hausdorff {t['hausdorff']:.5f} m, sted {t['sted']:.4f} "
-          f"(upsampled coarse rmse {res['upsampled_coarse']['test']['rmse']:.5f}); wrote {out}")
+    t = res[part]
+    print(f"{part}: rmse {t['rmse']:.5f} m, hausdorff {t['hausdorff']:.5f} m, sted {t['sted']:.4f} "
+          f"(upsampled coarse rmse {res['upsampled_coarse'][part]['rmse']:.5f}); wrote {out}")
     return 0
 
 
@@ -1088,11 +1089,13 @@ def build_parser() -> argparse.ArgumentParser:
     csyn.add_argument("--no-refine", action="store_true", help="skip the collision refinement")
     csyn.add_argument("--force", action="store_true", help="replace a non-empty --out")
     csyn.set_defaults(func=cmd_cloth_synthesize)
-    cev = cloth_sub.add_parser("evaluate", help="RMSE, Hausdorff and STED on the test split against the fine simulation.",
+    cev = cloth_sub.add_parser("evaluate", help="RMSE, Hausdorff and STED on the test (or training) split against the fine simulation.",
                                description="Also reports the upsampled-coarse baseline.")
     cev.add_argument("run", metavar="RUN")
     cev.add_argument("--data", required=True, metavar="DATA")
     cev.add_argument("--json", required=True, metavar="OUT.json")
+    cev.add_argument("--split", choices=("test", "train"), default="test",
+                     help="the run's split to evaluate (default test; train tells fitting from generalising)")
     cev.add_argument("--quiet", action="store_true", help="no progress bars")
     cev.set_defaults(func=cmd_cloth_evaluate)
     ren = sub.add_parser("render", help="Render a mesh to PNG, optionally coloured by a per-vertex scalar.",

@@ -9,6 +9,7 @@ import pytest
 
 from jaxdeform.cli import main
 from jaxdeform.cloth import data as cdata
+from jaxdeform.cloth import evaluate as ceval
 from jaxdeform.cloth import obstacles as obst
 from test_cloth_data import grid  # noqa: E402  (tests/ is on sys.path under pytest)
 
@@ -62,6 +63,18 @@ def test_train_synthesize_evaluate_round_trip(tmp_path, capsys):
     for part in (res["test"], res["upsampled_coarse"]["test"]):
         assert {"rmse", "hausdorff", "sted"} <= set(part) and np.isfinite(part["rmse"])
     assert res["upsampled_coarse"]["test"]["rmse"] < 0.01  # Loop of the coarse wave is close to the fine wave
+    jt = tmp_path / "ev_train.json"
+    code, out, err = run_cli(["cloth", "evaluate", str(run), "--data", str(data), "--json", str(jt), "--split", "train",
+                              "--quiet"], capsys)
+    assert code == 0, err
+    tr = json.loads(jt.read_text())
+    assert set(tr) == {"train", "upsampled_coarse"} and out.startswith("train: rmse")
+    ds = cdata.load_dataset(data)
+    ups = ceval.Upsampler(ds.coarse_faces, ds.coarse_rest.shape[0], ds.fine_faces)
+    direct = ceval.pool([ceval.sequence_errors(x.fine, ups(x.coarse), ds.fine_faces)
+                         for x in ds.sequences if x.name in rec["split"]["train"]])
+    assert tr["upsampled_coarse"]["train"]["frames"] == 12  # the two training sequences, not the test one
+    assert tr["upsampled_coarse"]["train"]["rmse"] == pytest.approx(direct["rmse"], rel=1e-6)
     syn = tmp_path / "syn"
     code, out, err = run_cli(["cloth", "synthesize", str(run), "--coarse", str(data), "--split", "test",
                               "--out", str(syn)], capsys)
@@ -225,6 +238,10 @@ def test_experiment_test_config_writes_summary(tmp_path):
     assert r["speedup"] == pytest.approx(t["fine_simulation"] / t["ours_total"])
     assert r["data"]["penetration"]["fine_max_over_edge"] <= 0.01
     assert set(r["jumps"]) == {"ts-acap", "acap"} and r["jumps"]["acap"]["count"] > 0
+    sc = r["scale"]["test"]  # the test split's upsampled-coarse error, split into two orthogonal parts
+    assert sc["rmse"] == pytest.approx(r["rmse"]["upsampled_coarse"], rel=1e-5)
+    assert sc["coarse_scale_rmse"] ** 2 + sc["finer_rmse"] ** 2 == pytest.approx(sc["rmse"] ** 2, rel=1e-9)
+    assert np.isfinite(r["evaluate"]["methods"]["linear_residual"]["train_rmse"])
     fl = r["floor"]  # one test scenario re-simulated from a perturbed start: it moved, and only a little
     assert len(fl["sequences"]) == 1 and 0 < fl["perturbed_fine_rmse"] < 10 * fl["perturbation_m"]
     # it covers the whole test split here (one sequence), so its upsampled-coarse errors are the evaluation's

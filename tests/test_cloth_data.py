@@ -143,6 +143,27 @@ def test_linear_residual_recovers_a_linear_detail_and_falls_back_to_the_mean():
     np.testing.assert_allclose(ref(c), f, atol=1e-4)
 
 
+def test_coarse_level_split_is_the_orthogonal_projection_onto_upsampled_offsets():
+    cv, cf = grid(5)
+    fv, ff = igl.loop(cv, cf)
+    up = ceval.Upsampler(cf, len(cv), ff)
+    u = up.matrix.toarray()
+    rng = np.random.default_rng(4)
+    coarse_offsets = rng.standard_normal((4, len(cv), 3))
+    low, high = ceval.coarse_level_split(up, up(coarse_offsets))  # already at the coarse scale: all of it is "low"
+    np.testing.assert_allclose(low, up(coarse_offsets), atol=1e-5)
+    np.testing.assert_allclose(high, 0.0, atol=1e-5)
+    d = rng.standard_normal((4, len(fv), 3))
+    low, high = ceval.coarse_level_split(up, d)
+    np.testing.assert_allclose(low + high, d, atol=1e-12)
+    np.testing.assert_allclose(np.einsum("vc,tvk->tck", u, high), 0.0, atol=1e-9)  # orthogonal to every column of U
+    again, rest = ceval.coarse_level_split(up, low)  # a projection: applying it twice changes nothing
+    np.testing.assert_allclose(again, low, atol=1e-9)
+    np.testing.assert_allclose(rest, 0.0, atol=1e-9)
+    with pytest.raises(ValueError, match="offsets must be"):
+        ceval.coarse_level_split(up, d[:, :-1])
+
+
 def test_errors_analytic():
     cv, cf = grid(5)
     rng = np.random.default_rng(2)

@@ -1,7 +1,8 @@
 """Seed 002 experiments: Tables 1, 2, 4 and 5 on generated SHEET and DISK data, and PNG strips.
 
     python -m experiments.cloth.run [--config default|test] [--out DIR] [--datasets sheet disk]
-                                    [--stages data train evaluate linear jumps timing floor figures] [--force]
+                                    [--stages data train evaluate linear scale jumps timing floor figures]
+                                    [--force]
 
 Stages (each dataset in turn; results merge into OUT/summary.json, markdown into OUT/results.md):
 - ``data``: simulate the paired dataset (``jaxdeform.cloth.run.generate``; cached in OUT/data/KIND unless
@@ -17,7 +18,11 @@ Stages (each dataset in turn; results merge into OUT/summary.json, markdown into
   test sequences (never seen in training).
 - ``linear``: a closed-form reference beside them (``jaxdeform.cloth.evaluate.LinearResidual``: the upsampled
   coarse frame plus a ridge-regressed linear map of it onto the leading principal directions of the training
-  residuals), added to the evaluation's table as ``linear_residual``.
+  residuals), added to the evaluation's table as ``linear_residual``, with its error on the training sequences
+  (``train_rmse``: how much better it fits them than the unseen ones).
+- ``scale``: where the upsampled coarse cloth's error lies: the part that upsampled coarse offsets can express (the
+  coarse and the fine simulation moving the cloth differently at the coarse mesh's scale) and the finer rest
+  (wrinkles), over the test and the training sequences (``jaxdeform.cloth.evaluate.coarse_level_split``).
 - ``jumps``: frame-to-frame changes of the fine TS-ACAP and ACAP features over all sequences (largest,
   percentiles, fraction above pi).
 - ``timing``: Table 1: per frame, the coarse simulation, TS-ACAP extraction, synthesis, reconstruction and
@@ -184,10 +189,30 @@ def stage_linear(ds, r: dict) -> None:
     ref = ceval.LinearResidual(ups, [x.coarse for x in train], [x.fine for x in train])
     m = ceval.pool([ceval.sequence_errors(x.fine, ref(x.coarse), ds.fine_faces) for x in ds.subset("test")])
     m["ridge_lambda"] = ref.lam
-    print(f"{ds.scenario} linear_residual: rmse {m['rmse']:.5f} sted {m['sted']:.4f}", flush=True)
+    m["train_rmse"] = ceval.pool([ceval.sequence_errors(x.fine, ref(x.coarse), ds.fine_faces) for x in train])["rmse"]
+    print(f"{ds.scenario} linear_residual: rmse {m['rmse']:.5f} sted {m['sted']:.4f} "
+          f"(training sequences: {m['train_rmse']:.5f})", flush=True)
     r.setdefault("evaluate", {}).setdefault("methods", {})["linear_residual"] = m
     for key in ("rmse", "hausdorff", "sted"):
         r.setdefault(key, {})["linear_residual"] = m[key]
+
+
+def stage_scale(ds) -> dict:
+    """The ``scale`` stage: the upsampled coarse cloth's error split into its coarse-mesh-scale part and the finer
+    rest (``evaluate.coarse_level_split``), pooled over the test and over the training sequences."""
+    ups = _upsampler(ds)
+    out = {}
+    for part in ("test", "train"):
+        low = high = count = 0.0
+        for x in ds.subset(part):
+            lo, hi = ceval.coarse_level_split(ups, x.fine.astype(np.float64) - ups(x.coarse))
+            low, high, count = low + np.sum(lo ** 2), high + np.sum(hi ** 2), count + x.fine.shape[0] * x.fine.shape[1]
+        out[part] = {"rmse": float(np.sqrt((low + high) / count)), "coarse_scale_rmse": float(np.sqrt(low / count)),
+                     "finer_rmse": float(np.sqrt(high / count)), "coarse_scale_share": float(low / (low + high))}
+        print(f"{ds.scenario} {part}: upsampled coarse error {out[part]['rmse']:.5f} m = coarse scale "
+              f"{out[part]['coarse_scale_rmse']:.5f} + finer {out[part]['finer_rmse']:.5f} "
+              f"({100 * out[part]['coarse_scale_share']:.1f}% of the squared error at the coarse scale)", flush=True)
+    return out
 
 
 def stage_jumps(ds) -> dict:
@@ -267,6 +292,12 @@ def stage_figures(out: Path, ds, s: Settings) -> list[str]:
     return paths
 
 
+def _table(head: list[str], rows: list[list[str]]) -> list[str]:
+    """Markdown table lines (header, rule, rows) and a blank line."""
+    return (["| " + " | ".join(head) + " |", "|" + "---|" * len(head)] + ["| " + " | ".join(r) + " |" for r in rows]
+            + [""])
+
+
 def markdown(summary: dict) -> str:
     lines = [f"# Seed 002 results ({summary.get('machine', '')})", ""]
     for kind, r in summary.get("datasets", {}).items():
@@ -281,18 +312,21 @@ def markdown(summary: dict) -> str:
                       f"{100 * pen.get('fine_max_over_edge', float('nan')):.3f}% (fine) of the mean edge length.", ""]
         ev = r.get("evaluate")
         if ev:
-            lines += ["| method | RMSE (m) | Hausdorff (m) | STED |", "|---|---|---|---|"]
-            for name, m in ev["methods"].items():
-                lines.append(f"| {name} | {m['rmse']:.5f} | {m['hausdorff']:.5f} | {m['sted']:.4f} |")
-            lines.append("")
+            lines += _table(["method", "RMSE (m)", "Hausdorff (m)", "STED"],
+                            [[name, f"{m['rmse']:.5f}", f"{m['hausdorff']:.5f}", f"{m['sted']:.4f}"]
+                             for name, m in ev["methods"].items()])
         j = r.get("jumps")
         if j:
-            lines += ["| fine features | largest frame-to-frame change | 99.9th pct | 99th pct | changes above pi |",
-                      "|---|---|---|---|---|"]
-            for kind, st in j.items():
-                lines.append(f"| {kind} | {st['max']:.2f} | {st['p99_9']:.3f} | {st['p99']:.3f} | "
-                             f"{100 * st['fraction_above_pi']:.3f}% of {st['count']:,} |")
-            lines.append("")
+            lines += _table(["fine features", "largest frame-to-frame change", "99.9th pct", "99th pct",
+                             "changes above pi"],
+                            [[kind, f"{st['max']:.2f}", f"{st['p99_9']:.3f}", f"{st['p99']:.3f}",
+                              f"{100 * st['fraction_above_pi']:.3f}% of {st['count']:,}"] for kind, st in j.items()])
+        sc = r.get("scale")
+        if sc:
+            lines += _table(["upsampled coarse error", "RMSE (m)", "at the coarse mesh's scale", "finer",
+                             "share at the coarse scale"],
+                            [[f"{part} sequences", f"{e['rmse']:.5f}", f"{e['coarse_scale_rmse']:.5f}",
+                              f"{e['finer_rmse']:.5f}", f"{100 * e['coarse_scale_share']:.1f}%"] for part, e in sc.items()])
         fl = r.get("floor")
         if fl:
             lines += [f"Fine simulation against itself from a start perturbed by {fl['perturbation_m'] * 1e3:.1f} mm: "
@@ -327,8 +361,10 @@ def main(argv=None) -> int:
     ap.add_argument("--config", choices=("default", "test"), default="default")
     ap.add_argument("--out")
     ap.add_argument("--datasets", nargs="+", default=["sheet", "disk"], choices=["sheet", "disk"])
-    ap.add_argument("--stages", nargs="+", default=["data", "train", "evaluate", "linear", "jumps", "timing", "floor", "figures"],
-                    choices=["data", "train", "evaluate", "linear", "jumps", "timing", "floor", "figures"])
+    ap.add_argument("--stages", nargs="+", default=["data", "train", "evaluate", "linear", "scale", "jumps", "timing", "floor",
+                                                   "figures"],
+                    choices=["data", "train", "evaluate", "linear", "scale", "jumps", "timing", "floor",
+                             "figures"])
     ap.add_argument("--force", action="store_true", help="redo cached data and runs")
     args = ap.parse_args(argv)
     native.tune_host_allocator()
@@ -357,6 +393,8 @@ def main(argv=None) -> int:
             r["sted"] = {k: v["sted"] for k, v in m.items()}
         if "linear" in args.stages:
             stage_linear(ds, r)
+        if "scale" in args.stages:
+            r["scale"] = stage_scale(ds)
         if "jumps" in args.stages:
             r["jumps"] = stage_jumps(ds)
             r.get("evaluate", {}).pop("largest_frame_change_fine", None)

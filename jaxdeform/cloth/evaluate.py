@@ -53,6 +53,26 @@ class Upsampler:
         return (self.matrix @ flat).reshape(-1, t, 3).transpose(1, 0, 2).astype(np.float32)
 
 
+def coarse_level_split(upsampler: Upsampler, offsets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Split fine-mesh offsets (T, Vf, 3) into the part Loop-upsampled coarse offsets can express and the rest.
+
+    The first part is ``U d`` with ``d`` (T, Vc, 3) the least-squares fit (``U^T U d = U^T offsets``, U the
+    (Vf, Vc) subdivision matrix), the second is orthogonal to every column of U; the two add up to ``offsets``.
+    Applied to fine - upsampled coarse, it tells how much of that gap lies at the coarse mesh's own scale (the
+    two simulations moving the cloth differently) and how much is finer detail (wrinkles the coarse mesh cannot
+    hold).
+    """
+    u = upsampler.matrix
+    d = np.asarray(offsets, np.float64)
+    if d.ndim != 3 or d.shape[1] != u.shape[0] or d.shape[2] != 3:
+        raise ValueError(f"offsets must be (T, {u.shape[0]}, 3), got {d.shape}.")
+    t, v, _ = d.shape
+    flat = d.transpose(1, 0, 2).reshape(v, -1)
+    coef = np.linalg.solve((u.T @ u).toarray(), u.T @ flat)
+    low = np.asarray(u @ coef).reshape(v, t, 3).transpose(1, 0, 2)
+    return low, d - low
+
+
 def sequence_errors(ref: np.ndarray, rec: np.ndarray, faces: np.ndarray, fps: float = 30.0) -> dict:
     """rmse, hausdorff (frame mean) and sted (with its spatial/temporal parts) of one sequence."""
     ref = np.asarray(ref, np.float64)
