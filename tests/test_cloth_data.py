@@ -178,6 +178,10 @@ def test_errors_analytic():
     b = ceval.sequence_errors(ref[2:], ref[2:] + 2 * off, cf)
     pooled = ceval.pool([a, b])
     assert pooled["rmse"] == pytest.approx(np.sqrt((2 * 0.05**2 + 4 * 0.1**2) / 6), rel=1e-9)
+    pairs = [(ref[:2], ref[:2] + off), (ref[2:], ref[2:] + 2 * off)]
+    assert ceval.pooled_rmse(pairs) == pytest.approx(pooled["rmse"], rel=1e-12)
+    with pytest.raises(ValueError):
+        ceval.pooled_rmse([])
 
 
 def rotating_grid(frames=24):

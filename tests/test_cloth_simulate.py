@@ -162,6 +162,57 @@ def test_moving_sphere_pushes_hanging_sheet_without_penetration():
     assert frames[-1, :, 2].max() > 0.3  # the sheet was pushed along
 
 
+def test_face_barycentrics_grid():
+    for n in (2, 4, 8):
+        b = sim.face_barycentrics(n)
+        assert b.shape == ((n + 1) * (n + 2) // 2 - 3, 3)
+        np.testing.assert_allclose(b.sum(1), 1.0, atol=1e-6)
+        assert b.min() >= 0 and b.max() < 1  # no corner: the vertices are tested already
+        assert len(np.unique(np.round(b * n).astype(int), axis=0)) == len(b)
+    assert sim.face_barycentrics(1).shape == (0, 3)
+
+
+def test_face_samples_rule():
+    """n = ceil(longest edge / sqrt(4 thickness r)); 0 when one interval suffices."""
+    x, f = _sheet(3, 1.0)  # legs 0.5, diagonal 0.707
+    assert sim.face_samples_for(x, f, 0.005, 0.14) == int(np.ceil(np.sqrt(0.5) / np.sqrt(4 * 0.005 * 0.14)))
+    assert sim.face_samples_for(x * 0.01, f, 0.005, 0.14) == 0
+
+
+def test_max_penetration_inside_a_triangle_analytic():
+    """All three corners lie outside the unit sphere, but the triangle's plane passes 0.9 from its centre and its
+    centroid (a point of the order-12 grid) is the foot of the perpendicular: 0 at the vertices, 0.1 inside."""
+    foot = np.array([0.0, 0.9, 0.0])
+    v0, v1 = np.array([2.0, 0.9, 0.0]), np.array([-1.0, 0.9, 2.0])
+    frames = np.stack([v0, v1, 3 * foot - v0 - v1])[None].astype(np.float32)
+    assert min(np.linalg.norm(frames[0], axis=1)) > 1.0
+    track = O.static_track(O.make(spheres=[((0, 0, 0), 1.0)]), 1)
+    assert S.PENETRATION_SAMPLES % 3 == 0
+    assert S.max_penetration(frames, track) == 0.0
+    assert S.max_penetration(frames, track, np.array([[0, 1, 2]])) == pytest.approx(0.1, abs=1e-6)
+
+
+def test_face_contacts_keep_a_coarse_sheet_out_of_a_sphere():
+    """A sheet of 8 cm edges dropped on a 10 cm sphere under a triangle: with vertex contacts alone the sphere
+    sinks into the triangles between their corners (by ~1.4 cm, the sag minus the thickness); with the contact
+    points of ``face_samples_for`` nothing inside any triangle penetrates, and the vertices stay out too."""
+    x, f = _sheet(N, 0.5, 0.4)
+    m = sim.build_model(x, f)
+    c = x[f[len(f) // 2]].mean(0)  # a triangle's centroid near the middle
+    obs = _obs(sphere=((float(c[0]), 0.2, float(c[2])), 0.1), ground=0.0)
+    track = O.static_track(obs, 20)
+    n = sim.face_samples_for(x, f, STD.thickness, 0.1)
+    assert n >= 2
+    depth = {}
+    for k in (0, n):
+        frames = sim.simulate(m, STD.replace(face_samples=k), x, None, track, progress=False)
+        assert S.max_penetration(frames, track) <= 1e-6  # vertices: out either way
+        assert frames[-1, :, 1].max() < 0.3  # it fell past the top of the sphere
+        depth[k] = S.max_penetration(frames, track, f)
+    assert depth[0] > 0.1 * float(m.mean_edge)
+    assert depth[n] <= 0.01 * float(m.mean_edge)
+
+
 def test_determinism_turbulence_and_no_retrace():
     x, f = _sheet()
     m = sim.build_model(x, f)

@@ -189,7 +189,7 @@ def stage_linear(ds, r: dict) -> None:
     ref = ceval.LinearResidual(ups, [x.coarse for x in train], [x.fine for x in train])
     m = ceval.pool([ceval.sequence_errors(x.fine, ref(x.coarse), ds.fine_faces) for x in ds.subset("test")])
     m["ridge_lambda"] = ref.lam
-    m["train_rmse"] = ceval.pool([ceval.sequence_errors(x.fine, ref(x.coarse), ds.fine_faces) for x in train])["rmse"]
+    m["train_rmse"] = ceval.pooled_rmse((x.fine, ref(x.coarse)) for x in train)
     print(f"{ds.scenario} linear_residual: rmse {m['rmse']:.5f} sted {m['sted']:.4f} "
           f"(training sequences: {m['train_rmse']:.5f})", flush=True)
     r.setdefault("evaluate", {}).setdefault("methods", {})["linear_residual"] = m
@@ -298,6 +298,12 @@ def _table(head: list[str], rows: list[list[str]]) -> list[str]:
             + [""])
 
 
+def _tested_at(samples_per_edge: int) -> str:
+    if samples_per_edge:
+        return f"tested at the vertices and a {samples_per_edge}-per-edge grid inside every triangle"
+    return "tested at the vertices only"
+
+
 def markdown(summary: dict) -> str:
     lines = [f"# Seed 002 results ({summary.get('machine', '')})", ""]
     for kind, r in summary.get("datasets", {}).items():
@@ -309,7 +315,8 @@ def markdown(summary: dict) -> str:
             lines += [f"{len(d.get('sequences', []))} sequences x {d.get('frames_per_sequence')} frames; coarse "
                       f"{v.get('coarse')} / fine {v.get('fine')} vertices; max obstacle penetration "
                       f"{100 * pen.get('coarse_max_over_edge', float('nan')):.3f}% (coarse) / "
-                      f"{100 * pen.get('fine_max_over_edge', float('nan')):.3f}% (fine) of the mean edge length.", ""]
+                      f"{100 * pen.get('fine_max_over_edge', float('nan')):.3f}% (fine) of the mean edge length, "
+                      f"{_tested_at(pen.get('samples_per_edge', 0))}.", ""]
         ev = r.get("evaluate")
         if ev:
             lines += _table(["method", "RMSE (m)", "Hausdorff (m)", "STED"],
@@ -356,15 +363,15 @@ def _merge(path: Path, summary: dict, kind: str, r: dict) -> dict:
     return current
 
 
+STAGES = ("data", "train", "evaluate", "linear", "scale", "jumps", "timing", "floor", "figures")
+
+
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--config", choices=("default", "test"), default="default")
     ap.add_argument("--out")
     ap.add_argument("--datasets", nargs="+", default=["sheet", "disk"], choices=["sheet", "disk"])
-    ap.add_argument("--stages", nargs="+", default=["data", "train", "evaluate", "linear", "scale", "jumps", "timing", "floor",
-                                                   "figures"],
-                    choices=["data", "train", "evaluate", "linear", "scale", "jumps", "timing", "floor",
-                             "figures"])
+    ap.add_argument("--stages", nargs="+", default=list(STAGES), choices=STAGES)
     ap.add_argument("--force", action="store_true", help="redo cached data and runs")
     args = ap.parse_args(argv)
     native.tune_host_allocator()

@@ -99,6 +99,20 @@ def pool(per_sequence: list[dict]) -> dict:
     return out
 
 
+def pooled_rmse(pairs) -> float:
+    """RMSE over every vertex and frame of (reference, reconstruction) sequence pairs: :func:`pool`'s ``rmse``
+    without the Hausdorff and STED work."""
+    sq = count = 0.0
+    for ref, rec in pairs:
+        d = np.asarray(ref, np.float64) - np.asarray(rec, np.float64)
+        if d.ndim != 3 or d.shape[-1] != 3:
+            raise ValueError(f"expected (T, V, 3) sequences, got {d.shape}.")
+        sq, count = sq + float(np.sum(d * d)), count + d.shape[0] * d.shape[1]
+    if not count:
+        raise ValueError("no sequences to pool.")
+    return float(np.sqrt(sq / count))
+
+
 class LinearResidual:
     """A closed-form reference: the fine cloth as the Loop-upsampled coarse frame plus a linear map of that coarse
     frame, ``U x + mu + ((x - m) / s) A B`` (per frame, no history).

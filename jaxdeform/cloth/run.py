@@ -51,7 +51,7 @@ def generate(kind: str, out: str | Path, n_sequences: int = 10, n_frames: int | 
     if n_sequences < 2:
         raise JaxDeformError("a dataset needs at least 2 sequences (one to train on, one to test).")
     out = Path(out)
-    names, pen_c, pen_f, t_c, t_f, edge_c, edge_f = [], [], [], [], [], [], []
+    names, pen_c, pen_f, t_c, t_f, edge_c, edge_f, pen_n = [], [], [], [], [], [], [], []
     frames = n_frames or scenarios.N_FRAMES
     for i in tqdm(range(n_sequences), desc=f"simulate {kind}", unit="seq", disable=not progress):
         sc = scenarios.scenario(kind, i, seed=seed, n_frames=frames, n_sequences=n_sequences, levels=levels)
@@ -64,6 +64,7 @@ def generate(kind: str, out: str | Path, n_sequences: int = 10, n_frames: int | 
         m = pair["meta"]
         pen_c.append(m["coarse_max_penetration"])
         pen_f.append(m["fine_max_penetration"])
+        pen_n.append(int(m.get("penetration_samples", 0)))  # 0: measured at the vertices only (older data)
         t_c.append(m["coarse_seconds_per_frame"])
         t_f.append(m["fine_seconds_per_frame"])
         edge_c.append(_mean_edge(pair["coarse_rest"], pair["coarse_faces"]))
@@ -74,7 +75,8 @@ def generate(kind: str, out: str | Path, n_sequences: int = 10, n_frames: int | 
         "vertices": {"coarse": int(pair["coarse"].shape[1]), "fine": int(pair["fine"].shape[1])},
         "penetration": {"coarse_max_m": float(max(pen_c)), "fine_max_m": float(max(pen_f)),
                         "coarse_mean_edge_m": ec, "fine_mean_edge_m": ef,
-                        "coarse_max_over_edge": float(max(pen_c)) / ec, "fine_max_over_edge": float(max(pen_f)) / ef},
+                        "coarse_max_over_edge": float(max(pen_c)) / ec, "fine_max_over_edge": float(max(pen_f)) / ef,
+                        "samples_per_edge": min(pen_n)},
         "timing": {"coarse_seconds_per_frame": float(np.median(t_c)), "fine_seconds_per_frame": float(np.median(t_f))},
     }
     cdata.write_index(out, kind, names, **info)

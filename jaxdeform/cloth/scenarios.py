@@ -33,11 +33,16 @@ Scenes (every sequence is determined by (kind, index, seed) through ``np.random.
 
 Both resolutions use the same :class:`ClothParams` physics and the same obstacle / wind / pin tracks; only the
 iteration budget differs (:data:`COARSE_STEPS` = 10 x 2, :data:`FINE_STEPS` = 40 x 4 (substeps, iterations)
-per frame). Measured edge strain |l / L - 1| (2 CPU cores shared with other jobs, load ~6):
+per frame), and so does the number of obstacle contact points inside each triangle (see
+:data:`MIN_OBSTACLE_RADIUS`). Measured edge strain |l / L - 1| (2 CPU cores shared with other jobs, load ~6):
 SHEET index 0 fine, 30 frames through the impact: mean 0.13 %, p99 1.5 %, max 6.0 % (20 x 4: max 13 %);
 coarse mean 0.2 %, max 3.3 %. DISK index 5 fine, 60 frames: mean 0.17 %, max 5.7 %; coarse mean 0.24 %,
-max 4.9 %. Max obstacle penetration of every stored frame: 0. Time per frame (compilation apart, ~3-6 s per
-mesh): SHEET coarse 1.7 ms, fine ~0.28 s; DISK coarse 2.4 ms, fine ~0.88 s.
+max 4.9 %. Max obstacle penetration of every stored SHEET frame, at the vertices and inside the triangles
+(:func:`max_penetration` with faces): 0 at both resolutions. Time per frame (compilation apart, ~3-6 s per
+mesh): SHEET coarse 4.8 ms (1.7 ms with vertex contacts alone), fine ~0.28-0.41 s; DISK coarse 2.4 ms (vertex
+contacts; ~14 ms with the triangle contacts), fine ~0.88 s. DISK's table has a sharp rim, which the curvature rule
+of :data:`MIN_OBSTACLE_RADIUS` does not cover: re-simulated, its coarse triangles still sink 2.6-6.3 mm into it
+(4.0-4.3 cm with vertex contacts alone) and the fine ones ~1 mm (6 % of their edge) -- see the README.
 Initial state: the flat rest cloth (the fine one = Loop-subdivided coarse one), settled for ``settle_frames``
 frames with the obstacles at their t = 0 position and no wind, then the recorded sequence starts from the
 settled positions and velocities.
@@ -90,6 +95,13 @@ TABLE_TOP = 0.75
 SPHERE_RADII = (0.14, 0.20, 0.26)
 POLE_RADIUS = 0.14
 POLE_HALF_LENGTH = 0.3
+#: Smallest curvature radius of the obstacles (m): it sets the contact points per triangle of each mesh
+#: (:func:`simulate.face_samples_for`). With vertex contacts alone a coarse triangle (legs 12.5 cm) sags up to
+#: r - sqrt(r^2 - R^2) into a sphere of radius r between its corners (R its circumradius): the SHEET coarse
+#: frames stored before 2026-11-29 sank 1.0-3.0 cm (8-24 % of the edge) into the obstacles, the fine ones 0. The
+#: rule gives the coarse meshes 4 points per edge (sag 1.7 mm at r = 0.14 m, inside the 5 mm thickness) and the
+#: 3-level fine meshes none (sag 0.4 mm between vertices).
+MIN_OBSTACLE_RADIUS = min(SPHERE_RADII + (POLE_RADIUS,))
 #: Range of the distance (m) the obstacle's centre travels past the sheet's rest plane before it turns back.
 SHEET_REACH = (0.05, 0.25)
 PIN_RADIUS_DISK = 0.06
@@ -281,6 +293,7 @@ def scenario(kind: str, index: int, seed: int = 0, n_frames: int = N_FRAMES, n_s
     cv, cf, fv, ff = _meshes(kind, levels)
     pc, pf = _pins(kind, levels)
     params = PARAMS.replace(substeps=COARSE_STEPS[0], iterations=COARSE_STEPS[1], **KIND_PARAMS[kind])
+    params = params.replace(face_samples=sim.face_samples_for(cv, cf, params.thickness, MIN_OBSTACLE_RADIUS))
     if kind == "sheet":
         track, wind, meta = _sheet_track(rng, index, n_frames, dt)
         x0 = cv.copy()
@@ -318,7 +331,9 @@ def fine_start(sc: Scenario) -> np.ndarray:
 def _run_fine(sc: Scenario, x0: np.ndarray, progress: bool):
     """Settle and simulate the fine mesh from ``x0`` with the fine iteration budget: (result, compile seconds)."""
     _, mf = models(sc.kind, sc.levels)
-    pf = sc.params.replace(substeps=FINE_STEPS[0], iterations=FINE_STEPS[1])
+    _, _, fv, ff = _meshes(sc.kind, sc.levels)
+    pf = sc.params.replace(substeps=FINE_STEPS[0], iterations=FINE_STEPS[1],
+                           face_samples=sim.face_samples_for(fv, ff, sc.params.thickness, MIN_OBSTACLE_RADIUS))
     return _run_one(mf, pf, x0, sc, sc.pinned_fine, progress, f"{sc.kind} {sc.index} fine")
 
 
@@ -354,8 +369,8 @@ def simulate_pair(sc: Scenario, *, progress: bool = True) -> dict:
     meta.update(coarse_seconds_per_frame=rc.seconds_per_frame, fine_seconds_per_frame=rf.seconds_per_frame,
                 coarse_compile_seconds=cc, fine_compile_seconds=cfine, coarse_wall_seconds=tc, fine_wall_seconds=tf,
                 coarse_strain_mean=sc_mean, coarse_strain_max=sc_max, fine_strain_mean=sf_mean,
-                fine_strain_max=sf_max, coarse_max_penetration=max_penetration(rc.frames, sc.track),
-                fine_max_penetration=max_penetration(rf.frames, sc.track))
+                fine_strain_max=sf_max, coarse_max_penetration=max_penetration(rc.frames, sc.track, cf),
+                fine_max_penetration=max_penetration(rf.frames, sc.track, ff), penetration_samples=PENETRATION_SAMPLES)
     return {
         **pins(sc),
         "coarse": rc.frames, "fine": rf.frames,
@@ -384,19 +399,30 @@ def simulate_fine(sc: Scenario, *, perturbation: float = 0.0, seed: int = 1) -> 
     return np.asarray(res.frames, np.float32)
 
 
+#: Points per triangle edge at which :func:`max_penetration` tests the triangles' interiors: a grid finer than
+#: the contact points of the simulation (:func:`simulate.face_samples_for`), so it also tests between them.
+PENETRATION_SAMPLES = 12
+
+
 @jax.jit
-def _penetration(frames, track):
+def _penetration(frames, track, faces, bary):
     def one(x, obs):
-        d, _ = obst.signed_distance(obs, x)
+        pts = x if faces is None else jax.numpy.concatenate(
+            [x, jax.numpy.einsum("sk,fkd->fsd", bary, x[faces]).reshape(-1, 3)])
+        d, _ = obst.signed_distance(obs, pts)
         return jax.numpy.max(jax.numpy.maximum(-d, 0.0))
 
-    return jax.numpy.max(jax.vmap(one)(frames, track))
+    return jax.numpy.max(jax.lax.map(lambda a: one(*a), (frames, track)))
 
 
-def max_penetration(frames, obstacle_track: Obstacles) -> float:
-    """Max over frames and vertices of -min(sdf, 0) (metres); frame t is tested against track frame t."""
+def max_penetration(frames, obstacle_track: Obstacles, faces=None) -> float:
+    """Max over frames of -min(sdf, 0) (metres) at the vertices and, given ``faces``, at the points of an order-
+    :data:`PENETRATION_SAMPLES` grid inside every triangle; frame t is tested against track frame t."""
     frames = np.asarray(frames, np.float32)
     track = jax.tree_util.tree_map(lambda a: np.asarray(a, np.float32), obstacle_track)
     if frames.shape[0] != obst.n_frames(track):
         raise ScenarioError(f"{frames.shape[0]} frames but the obstacle track has {obst.n_frames(track)}.")
-    return float(_penetration(frames, track))
+    if faces is None:
+        return float(_penetration(frames, track, None, None))
+    bary = sim.face_barycentrics(PENETRATION_SAMPLES)
+    return float(_penetration(frames, track, np.asarray(faces, np.int32), bary))

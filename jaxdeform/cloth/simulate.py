@@ -9,7 +9,8 @@ simulation": many substeps with few iterations). One substep:
 2. ``iterations`` times: bending (Jacobi), stretch (Gauss-Seidel over an edge colouring), tethers, and a
    frictionless push out of the obstacles (so the solver sees the contacts)
 3. self-collision: vertex-vertex separation to ``self_radius`` (see below)
-4. obstacle collision with friction -- always the LAST projection, so stored frames have vertex penetration ~0
+4. obstacle collision with friction -- the last vertex projection, so stored frames have vertex penetration ~0;
+   with ``face_samples`` > 0 a frictionless push of the triangles' interiors follows (and joins step 2)
 5. v = (p - x) / h;  x = p
 
 Masses: lumped, m_i = density * (sum of the areas of the triangles at i) / 3.
@@ -42,7 +43,11 @@ cloth in still air feels the same drag, which is the main damping of a falling s
 Obstacles (``obstacles.py``): a vertex with d(x) < thickness is pushed out along the shape's normal to
 d = thickness; friction in position form (Coulomb): the tangential motion relative to the obstacle's surface
 during the substep, dx_t, is removed if |dx_t| <= mu * depth, else shortened by mu * depth. Obstacles move
-linearly between stored frames (the track is interpolated per substep).
+linearly between stored frames (the track is interpolated per substep). Vertex contacts alone let an obstacle
+sink into a large triangle between its corners (by r - sqrt(r^2 - R^2) for a sphere of radius r and a triangle
+of circumradius R); ``face_samples`` = n > 0 adds contact points on an order-n grid inside every triangle, each a
+zero-compliance point constraint whose correction goes to the corners by their barycentric weights
+(:func:`_push_out_faces`).
 
 Tethers (long-range attachments, Kim et al. 2012; ``tethers``, on by default): every free vertex stays within
 its rest distance of its nearest pinned vertex (unilateral, projected after each stretch sweep). They remove the
@@ -127,6 +132,7 @@ class ClothParams:
     iterations: int = dataclasses.field(default=2, metadata=dict(static=True))
     self_collision: bool = dataclasses.field(default=True, metadata=dict(static=True))
     tethers: bool = dataclasses.field(default=True, metadata=dict(static=True))
+    face_samples: int = dataclasses.field(default=0, metadata=dict(static=True))  # 0: obstacles meet vertices only
 
     def replace(self, **kw) -> "ClothParams":
         return dataclasses.replace(self, **kw)
@@ -406,6 +412,51 @@ def _push_out(params: ClothParams, w, obs: Obstacles, p):
     return p + depth[:, None] * n, depth
 
 
+def face_barycentrics(n: int) -> np.ndarray:
+    """Barycentric coordinates (S, 3) of the order-``n`` grid on a triangle without its corners (the vertices
+    are tested already): S = (n + 1)(n + 2) / 2 - 3 points, spacing edge / n."""
+    pts = [(i, j, n - i - j) for i in range(n + 1) for j in range(n + 1 - i) if max(i, j, n - i - j) < n]
+    return np.asarray(pts, np.float32).reshape(-1, 3) / max(n, 1)
+
+
+def face_samples_for(rest_vertices, faces, thickness: float, min_radius: float) -> int:
+    """The ``face_samples`` a mesh needs so that no obstacle of curvature radius >= ``min_radius`` sinks into a
+    triangle by more than half the ``thickness`` between contact points: a sphere of radius r sags
+    ~ R^2 / (2 r) into a triangle of circumradius R <= e / 2 (e its longest edge; exact for right triangles),
+    so spacing e / n needs (e / n)^2 / (8 r) <= thickness / 2, n = ceil(e / sqrt(4 thickness r)); 0 (vertices
+    only) when n <= 1."""
+    X = np.asarray(rest_vertices, np.float64)
+    F = np.asarray(faces, np.int64)
+    e = np.linalg.norm(X[F] - X[np.roll(F, 1, axis=1)], axis=-1).max()
+    n = int(math.ceil(e / math.sqrt(4.0 * thickness * min_radius) - 1e-9))
+    return n if n > 1 else 0
+
+
+def _push_out_faces(model: ClothModel, params: ClothParams, w, obs: Obstacles, p):
+    """Push the triangles' interiors out of the obstacles to d = thickness (no friction).
+
+    Each sample point q = sum_k b_k x_k of :func:`face_barycentrics` (``params.face_samples``) with depth
+    delta = thickness - d(q) > 0 is one point constraint, projected with zero compliance: x_k += w_k b_k delta n
+    / sum_j w_j b_j^2 (n the closest shape's normal at q). The corrections of all active samples at a vertex are
+    averaged (Jacobi), as in the self-collision. Returns the positions and each vertex's push length."""
+    bary = jnp.asarray(face_barycentrics(params.face_samples), p.dtype)
+    F = model.faces
+    pts = jnp.einsum("sk,fkd->fsd", bary, p[F])
+    d, n = obst.signed_distance(obs, pts.reshape(-1, 3))
+    depth = jnp.maximum(params.thickness - d, 0.0).reshape(pts.shape[:2])
+    wb = w[F][:, None, :] * bary[None]  # (F, S, 3): w_k b_k
+    denom = jnp.sum(wb * bary[None], -1)
+    lam = jnp.where(denom > 0, depth / jnp.where(denom > 0, denom, 1.0), 0.0)
+    corr = (wb * lam[..., None])[..., None] * n.reshape(pts.shape[:2] + (1, 3))  # (F, S, 3, 3)
+    active = ((lam > 0)[..., None] & (wb > 0)).astype(p.dtype)
+    idx = jnp.broadcast_to(F[:, None, :], wb.shape).reshape(-1)
+    V = p.shape[0]
+    acc = jax.ops.segment_sum(corr.reshape(-1, 3), idx, V)
+    cnt = jax.ops.segment_sum(active.reshape(-1), idx, V)
+    dp = acc / jnp.maximum(cnt, 1.0)[:, None]
+    return p + dp, jnp.sqrt(jnp.sum(dp * dp, -1))
+
+
 def _collide(params: ClothParams, w, obs_now: Obstacles, obs_prev: Obstacles, x_old, p, prior_push):
     """Push vertices out of the obstacles to d = thickness; Coulomb friction against the surface's motion with
     the normal correction of this substep (``prior_push`` from the solver iterations plus this push) as bound."""
@@ -463,6 +514,9 @@ def _frame(model: ClothModel, params: ClothParams, modes: dict, inv_mass, pinned
             if params.tethers:
                 p = _tether_project(*tether, p)
             p, dpush = _push_out(params, inv_mass, obs_now, p)  # contacts seen by the solver
+            if params.face_samples:
+                p, dface = _push_out_faces(model, params, inv_mass, obs_now, p)
+                dpush = dpush + dface
             return p, ls, lb, push + dpush
 
         carry0 = (p, jnp.zeros((n_col, m), x.dtype), jnp.zeros(model.hinge_k.shape[:1] + (3,), x.dtype),
@@ -471,6 +525,8 @@ def _frame(model: ClothModel, params: ClothParams, modes: dict, inv_mass, pinned
         if params.self_collision:
             p = _self_project(inv_mass, radius, p, nbr, nmask)
         p = _collide(params, inv_mass, obs_now, obst.lerp(obs0, obs1, s0), x, p, push)
+        if params.face_samples:
+            p, _ = _push_out_faces(model, params, inv_mass, obs_now, p)
         return p, (p - x) / h
 
     x, v = jax.lax.fori_loop(0, n_sub, substep, (x, v))
