@@ -730,7 +730,7 @@ def cmd_cloth_simulate(args: argparse.Namespace) -> int:
     print(f"simulated {args.sequences} {args.scenario} sequences of {record['frames_per_sequence']} frames "
           f"(coarse {record['vertices']['coarse']} / fine {record['vertices']['fine']} vertices); max obstacle "
           f"penetration {100 * pen['coarse_max_over_edge']:.2f}% / {100 * pen['fine_max_over_edge']:.2f}% of the mean "
-          f"edge (vertices and a {pen['samples_per_edge']}-per-edge grid inside every triangle); wrote {out}")
+          f"edge (at the vertices and on the order-{pen['samples_per_edge']} grid of every triangle); wrote {out}")
     return 0
 
 

@@ -182,6 +182,8 @@ def test_errors_analytic():
     assert ceval.pooled_rmse(pairs) == pytest.approx(pooled["rmse"], rel=1e-12)
     with pytest.raises(ValueError):
         ceval.pooled_rmse([])
+    with pytest.raises(ValueError):
+        ceval.pooled_rmse([(ref, ref[:, :1])])  # no silent broadcasting
 
 
 def rotating_grid(frames=24):

@@ -118,6 +118,9 @@ def stage_data(out: Path, kind: str, s: Settings, force: bool) -> dict:
     if (root / "dataset.json").is_file() and not force:
         record = json.loads((root / "dataset.json").read_text())
         if len(record.get("sequences", [])) == s.sequences[kind]:
+            if not record.get("penetration", {}).get("samples_per_edge"):
+                print(f"note: {root} was simulated before the triangle contacts (its penetration was tested at the "
+                      f"vertices only); --force simulates it again", flush=True)
             return record  # else generate() keeps the sequences that match and simulates the rest
     elif force and root.is_dir():
         shutil.rmtree(root)
@@ -300,7 +303,7 @@ def _table(head: list[str], rows: list[list[str]]) -> list[str]:
 
 def _tested_at(samples_per_edge: int) -> str:
     if samples_per_edge:
-        return f"tested at the vertices and a {samples_per_edge}-per-edge grid inside every triangle"
+        return f"tested at the vertices and on the order-{samples_per_edge} grid of every triangle"
     return "tested at the vertices only"
 
 

@@ -104,9 +104,10 @@ def pooled_rmse(pairs) -> float:
     without the Hausdorff and STED work."""
     sq = count = 0.0
     for ref, rec in pairs:
-        d = np.asarray(ref, np.float64) - np.asarray(rec, np.float64)
-        if d.ndim != 3 or d.shape[-1] != 3:
-            raise ValueError(f"expected (T, V, 3) sequences, got {d.shape}.")
+        ref, rec = np.asarray(ref, np.float64), np.asarray(rec, np.float64)
+        if ref.shape != rec.shape or ref.ndim != 3 or ref.shape[-1] != 3:
+            raise ValueError(f"expected two (T, V, 3) sequences of one shape, got {ref.shape} and {rec.shape}.")
+        d = ref - rec
         sq, count = sq + float(np.sum(d * d)), count + d.shape[0] * d.shape[1]
     if not count:
         raise ValueError("no sequences to pool.")

@@ -40,7 +40,8 @@ coarse mean 0.2 %, max 3.3 %. DISK index 5 fine, 60 frames: mean 0.17 %, max 5.7
 max 4.9 %. Max obstacle penetration of every stored SHEET frame, at the vertices and inside the triangles
 (:func:`max_penetration` with faces): 0 at both resolutions. Time per frame (compilation apart, ~3-6 s per
 mesh): SHEET coarse 4.8 ms (1.7 ms with vertex contacts alone), fine ~0.28-0.41 s; DISK coarse 2.4 ms (vertex
-contacts; ~14 ms with the triangle contacts), fine ~0.88 s. DISK's table has a sharp rim, which the curvature rule
+contacts, as the stored DISK data of 2026-11-27 was simulated; ~14 ms with the triangle contacts), fine
+~0.88 s. DISK's table has a sharp rim, which the curvature rule
 of :data:`MIN_OBSTACLE_RADIUS` does not cover: re-simulated, its coarse triangles still sink 2.6-6.3 mm into it
 (4.0-4.3 cm with vertex contacts alone) and the fine ones ~1 mm (6 % of their edge) -- see the README.
 Initial state: the flat rest cloth (the fine one = Loop-subdivided coarse one), settled for ``settle_frames``
@@ -99,8 +100,9 @@ POLE_HALF_LENGTH = 0.3
 #: (:func:`simulate.face_samples_for`). With vertex contacts alone a coarse triangle (legs 12.5 cm) sags up to
 #: r - sqrt(r^2 - R^2) into a sphere of radius r between its corners (R its circumradius): the SHEET coarse
 #: frames stored before 2026-11-29 sank 1.0-3.0 cm (8-24 % of the edge) into the obstacles, the fine ones 0. The
-#: rule gives the coarse meshes 4 points per edge (sag 1.7 mm at r = 0.14 m, inside the 5 mm thickness) and the
-#: 3-level fine meshes none (sag 0.4 mm between vertices).
+#: rule gives the coarse meshes the order-4 grid (4 intervals per edge, 12 points per triangle; sag 1.7 mm at
+#: r = 0.14 m, inside the 5 mm thickness) and the 3-level fine meshes none (sag 0.4 mm between vertices). The
+#: rule assumes smooth obstacles: DISK's table has a sharp rim (see the module docstring).
 MIN_OBSTACLE_RADIUS = min(SPHERE_RADII + (POLE_RADIUS,))
 #: Range of the distance (m) the obstacle's centre travels past the sheet's rest plane before it turns back.
 SHEET_REACH = (0.05, 0.25)
@@ -304,6 +306,7 @@ def scenario(kind: str, index: int, seed: int = 0, n_frames: int = N_FRAMES, n_s
     meta = dict(kind=kind, index=index, seed=seed, n_frames=n_frames, frame_dt=dt,
                 settle_frames=SETTLE_FRAMES[kind], coarse_vertices=len(cv), fine_vertices=len(fv),
                 coarse_steps=list(COARSE_STEPS), fine_steps=list(FINE_STEPS), params=params.as_dict(),
+                fine_face_samples=sim.face_samples_for(fv, ff, params.thickness, MIN_OBSTACLE_RADIUS),
                 pinned_coarse=int(pc.sum()), pinned_fine=int(pf.sum()), levels=levels, **meta)
     return Scenario(kind, index, seed, n_frames, SETTLE_FRAMES[kind], track, wind.astype(np.float32), params,
                     pc, pf, x0.astype(np.float32), meta, levels)
@@ -331,9 +334,7 @@ def fine_start(sc: Scenario) -> np.ndarray:
 def _run_fine(sc: Scenario, x0: np.ndarray, progress: bool):
     """Settle and simulate the fine mesh from ``x0`` with the fine iteration budget: (result, compile seconds)."""
     _, mf = models(sc.kind, sc.levels)
-    _, _, fv, ff = _meshes(sc.kind, sc.levels)
-    pf = sc.params.replace(substeps=FINE_STEPS[0], iterations=FINE_STEPS[1],
-                           face_samples=sim.face_samples_for(fv, ff, sc.params.thickness, MIN_OBSTACLE_RADIUS))
+    pf = sc.params.replace(substeps=FINE_STEPS[0], iterations=FINE_STEPS[1], face_samples=sc.meta["fine_face_samples"])
     return _run_one(mf, pf, x0, sc, sc.pinned_fine, progress, f"{sc.kind} {sc.index} fine")
 
 
@@ -399,8 +400,9 @@ def simulate_fine(sc: Scenario, *, perturbation: float = 0.0, seed: int = 1) -> 
     return np.asarray(res.frames, np.float32)
 
 
-#: Points per triangle edge at which :func:`max_penetration` tests the triangles' interiors: a grid finer than
-#: the contact points of the simulation (:func:`simulate.face_samples_for`), so it also tests between them.
+#: Order of the barycentric grid (intervals per edge) at which :func:`max_penetration` tests the triangles'
+#: interiors: finer than the contact points of the simulation (:func:`simulate.face_samples_for`), so it also
+#: tests between them.
 PENETRATION_SAMPLES = 12
 
 

@@ -10,7 +10,8 @@ simulation": many substeps with few iterations). One substep:
    frictionless push out of the obstacles (so the solver sees the contacts)
 3. self-collision: vertex-vertex separation to ``self_radius`` (see below)
 4. obstacle collision with friction -- the last vertex projection, so stored frames have vertex penetration ~0;
-   with ``face_samples`` > 0 a frictionless push of the triangles' interiors follows (and joins step 2)
+   with ``face_samples`` > 1 a frictionless push of the triangles' interiors follows (and joins step 2); it only
+   moves points outward along the obstacles' normals, so the vertices stay out (what ``max_penetration`` checks)
 5. v = (p - x) / h;  x = p
 
 Masses: lumped, m_i = density * (sum of the areas of the triangles at i) / 3.
@@ -45,9 +46,10 @@ d = thickness; friction in position form (Coulomb): the tangential motion relati
 during the substep, dx_t, is removed if |dx_t| <= mu * depth, else shortened by mu * depth. Obstacles move
 linearly between stored frames (the track is interpolated per substep). Vertex contacts alone let an obstacle
 sink into a large triangle between its corners (by r - sqrt(r^2 - R^2) for a sphere of radius r and a triangle
-of circumradius R); ``face_samples`` = n > 0 adds contact points on an order-n grid inside every triangle, each a
-zero-compliance point constraint whose correction goes to the corners by their barycentric weights
-(:func:`_push_out_faces`).
+of circumradius R); ``face_samples`` = n > 1 adds contact points on the order-n barycentric grid of every
+triangle (n intervals per edge), each a zero-compliance point constraint whose correction goes to the corners by
+their barycentric weights (:func:`_push_out_faces`). These contacts have no friction: a triangle held up by its
+interior points alone slides freely, friction acts only where a vertex touches.
 
 Tethers (long-range attachments, Kim et al. 2012; ``tethers``, on by default): every free vertex stays within
 its rest distance of its nearest pinned vertex (unilateral, projected after each stretch sweep). They remove the
@@ -132,7 +134,7 @@ class ClothParams:
     iterations: int = dataclasses.field(default=2, metadata=dict(static=True))
     self_collision: bool = dataclasses.field(default=True, metadata=dict(static=True))
     tethers: bool = dataclasses.field(default=True, metadata=dict(static=True))
-    face_samples: int = dataclasses.field(default=0, metadata=dict(static=True))  # 0: obstacles meet vertices only
+    face_samples: int = dataclasses.field(default=0, metadata=dict(static=True))  # 0 or 1: vertex contacts only
 
     def replace(self, **kw) -> "ClothParams":
         return dataclasses.replace(self, **kw)
@@ -414,21 +416,29 @@ def _push_out(params: ClothParams, w, obs: Obstacles, p):
 
 def face_barycentrics(n: int) -> np.ndarray:
     """Barycentric coordinates (S, 3) of the order-``n`` grid on a triangle without its corners (the vertices
-    are tested already): S = (n + 1)(n + 2) / 2 - 3 points, spacing edge / n."""
+    are tested already): S = (n + 1)(n + 2) / 2 - 3 points, n intervals per edge (none for n <= 1)."""
+    if n < 0:
+        raise SimulationError(f"face_samples must be >= 0, got {n}.")
     pts = [(i, j, n - i - j) for i in range(n + 1) for j in range(n + 1 - i) if max(i, j, n - i - j) < n]
     return np.asarray(pts, np.float32).reshape(-1, 3) / max(n, 1)
 
 
 def face_samples_for(rest_vertices, faces, thickness: float, min_radius: float) -> int:
     """The ``face_samples`` a mesh needs so that no obstacle of curvature radius >= ``min_radius`` sinks into a
-    triangle by more than half the ``thickness`` between contact points: a sphere of radius r sags
-    ~ R^2 / (2 r) into a triangle of circumradius R <= e / 2 (e its longest edge; exact for right triangles),
-    so spacing e / n needs (e / n)^2 / (8 r) <= thickness / 2, n = ceil(e / sqrt(4 thickness r)); 0 (vertices
-    only) when n <= 1."""
+    triangle by more than half the ``thickness`` between contact points.
+
+    A sphere of radius r sinks ~ R^2 / (2 r) into a triangle whose corners are on it, R the radius of the
+    triangle's smallest enclosing circle (its circumradius, or half its longest edge if it is obtuse). The order-n
+    grid splits a triangle into copies scaled by 1 / n, so (R / n)^2 / (2 r) <= thickness / 2 needs
+    n = ceil(R_max / sqrt(thickness r)) over the rest triangles; 0 (vertex contacts only) when n <= 1."""
     X = np.asarray(rest_vertices, np.float64)
     F = np.asarray(faces, np.int64)
-    e = np.linalg.norm(X[F] - X[np.roll(F, 1, axis=1)], axis=-1).max()
-    n = int(math.ceil(e / math.sqrt(4.0 * thickness * min_radius) - 1e-9))
+    a, b, c = (np.linalg.norm(X[F[:, (k + 1) % 3]] - X[F[:, (k + 2) % 3]], axis=1) for k in range(3))
+    s = np.sort(np.stack([a, b, c], 1), 1)
+    area = 0.25 * np.sqrt(np.maximum((a + b + c) * (-a + b + c) * (a - b + c) * (a + b - c), 1e-300))
+    obtuse = s[:, 2] ** 2 >= s[:, 0] ** 2 + s[:, 1] ** 2
+    radius = np.where(obtuse, 0.5 * s[:, 2], a * b * c / (4.0 * area))
+    n = int(math.ceil(radius.max() / math.sqrt(thickness * min_radius) - 1e-9))
     return n if n > 1 else 0
 
 
@@ -514,7 +524,7 @@ def _frame(model: ClothModel, params: ClothParams, modes: dict, inv_mass, pinned
             if params.tethers:
                 p = _tether_project(*tether, p)
             p, dpush = _push_out(params, inv_mass, obs_now, p)  # contacts seen by the solver
-            if params.face_samples:
+            if params.face_samples > 1:
                 p, dface = _push_out_faces(model, params, inv_mass, obs_now, p)
                 dpush = dpush + dface
             return p, ls, lb, push + dpush
@@ -525,7 +535,7 @@ def _frame(model: ClothModel, params: ClothParams, modes: dict, inv_mass, pinned
         if params.self_collision:
             p = _self_project(inv_mass, radius, p, nbr, nmask)
         p = _collide(params, inv_mass, obs_now, obst.lerp(obs0, obs1, s0), x, p, push)
-        if params.face_samples:
+        if params.face_samples > 1:
             p, _ = _push_out_faces(model, params, inv_mass, obs_now, p)
         return p, (p - x) / h
 
