@@ -17,6 +17,18 @@ def run_cli(argv, capsys):
     return code, captured.out, captured.err
 
 
+@pytest.fixture(scope="module")
+def tube_run(tmp_path_factory):
+    """(data folder, run folder): one multiscale run of the synthetic tube (test config, 30 epochs), trained once for
+    the module; tests read it and write elsewhere (the fine-tuning test checks that its source stays untouched)."""
+    from jaxdeform.components import run as crun
+
+    root = tmp_path_factory.mktemp("tube")
+    data = exp.synthetic_tube(root)
+    crun.fit(root / "run", data, "multiscale", "test", epochs=30, progress=False, log=lambda s: None)
+    return data, root / "run"
+
+
 def test_regional_mixes_are_convex_and_smooth():
     from jaxdeform.components.finetune import regional_mixes
 
@@ -75,7 +87,7 @@ def test_rigid_residual_is_the_erms_alignment_and_its_gradient_is_the_minimum_s(
 
 
 @pytest.mark.parametrize("rigid", [False, True])
-def test_staged_step_has_the_gradient_of_the_loss(tmp_path, rigid):
+def test_staged_step_has_the_gradient_of_the_loss(tube_run, rigid):
     """make_step's three stages (forward with VJP, position term, pullback and update) give the gradient of the one
     differentiable loss: with plain SGD of rate 1 the update is minus that gradient, and the terms are its terms;
     the rotation-free term (rigid) is no larger than the translation-free one."""
@@ -87,9 +99,7 @@ def test_staged_step_has_the_gradient_of_the_loss(tmp_path, rigid):
     from jaxdeform.mesh.topology import build_topology
     from jaxdeform.nn.graph_conv import rings_from_topology
 
-    data = exp.synthetic_tube(tmp_path)
-    crun.fit(tmp_path / "run", data, "multiscale", "test", epochs=20, progress=False, log=lambda s: None)
-    run = crun.load(tmp_path / "run")
+    run = crun.load(tube_run[1])
     vertices, _ = crun.run_data(run, None)
     x = jnp.asarray(crun.scaled_features(run, vertices[:6]), jnp.float32)
     dist = jnp.asarray(crun.normalized_geodesics(run.rest, run.faces, np.float32))
@@ -108,7 +118,7 @@ def test_staged_step_has_the_gradient_of_the_loss(tmp_path, rigid):
         np.testing.assert_allclose(np.asarray(p0 - p1), np.asarray(gr), rtol=2e-3, atol=1e-6 * float(np.abs(gr).max()))
 
 
-def test_generated_meshes_are_the_decoded_codes_own_features(tmp_path):
+def test_generated_meshes_are_the_decoded_codes_own_features(tube_run):
     """generated_meshes: without noise a generated mesh is the model's reconstruction of a mix (encoder codes through
     decode_latents, chunk by chunk, equal the model's one-pass reconstruction), decoded to vertices and entering as
     those vertices' own features; with noise the meshes move; one seed gives one result."""
@@ -120,9 +130,7 @@ def test_generated_meshes_are_the_decoded_codes_own_features(tmp_path):
     from jaxdeform.mesh.topology import build_topology
     from jaxdeform.nn.graph_conv import rings_from_topology
 
-    data = exp.synthetic_tube(tmp_path)
-    crun.fit(tmp_path / "run", data, "multiscale", "test", epochs=30, progress=False, log=lambda s: None)
-    run = crun.load(tmp_path / "run")
+    run = crun.load(tube_run[1])
     vertices, _ = crun.run_data(run, None)
     x = np.asarray(crun.scaled_features(run, vertices[run.train_idx]))
     dist = crun.normalized_geodesics(run.rest, run.faces, np.float32)
@@ -139,15 +147,12 @@ def test_generated_meshes_are_the_decoded_codes_own_features(tmp_path):
     np.testing.assert_array_equal(moved, ft.generated_meshes(run, x, dist, 5, 1.0, np.random.default_rng(4), rings))
 
 
-def test_finetune_lowers_the_position_term_and_writes_a_run(tmp_path, capsys):
+def test_finetune_lowers_the_position_term_and_writes_a_run(tube_run, tmp_path, capsys):
     """On the training shapes alone (a full, fixed batch) the position term falls; the output is a run that
     `components evaluate` scores, and the source run is untouched."""
     from jaxdeform.components import run as crun
 
-    data = exp.synthetic_tube(tmp_path)
-    src = tmp_path / "run"
-    src.mkdir()
-    crun.fit(src, data, "multiscale", "test", epochs=30, progress=False, log=lambda s: None)
+    data, src = tube_run
     before = (src / "run.json").read_text()
     out = tmp_path / "tuned"
     code, text, err = run_cli(["components", "finetune", str(src), "--out", str(out), "--mixes", "0", "--steps", "25",

@@ -93,7 +93,7 @@ class Settings:
 
 def settings(config: str) -> Settings:
     if config == "test":
-        return Settings(sequences={"sheet": 3, "disk": 3}, frames=8, steps=5, batch=4, figure_frames=1, size=96, timing_frames=4,
+        return Settings(sequences={"sheet": 3, "disk": 3}, frames=8, steps=5, batch=4, figure_frames=1, size=96, timing_frames=8,
                         levels=1, floor_sequences=1)
     # SHEET: 40 x 100 frames, the paper's 4,000; DISK: 20 x 100, the paper's 2,000 (16 / 4 sequences: its 1,600 / 400)
     return Settings(sequences={"sheet": 40, "disk": 20}, frames=100, steps=1000, batch=8, figure_frames=3, size=320, timing_frames=30)

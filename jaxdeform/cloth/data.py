@@ -170,11 +170,12 @@ def read_sequence(path: Path) -> tuple[Sequence, dict]:
 def _obstacle_track(path: Path, arrays: dict, frames: int) -> dict:
     """The obstacle track (name -> (T, ...) array) of a sequence file: none, or every field of
     :class:`jaxdeform.cloth.obstacles.Obstacles`, numeric and finite, one entry per frame."""
-    from jaxdeform.cloth.obstacles import Obstacles
+    from jaxdeform.cloth.obstacles import Obstacles, complete
 
     track = {k[4:]: v for k, v in arrays.items() if k.startswith("obs_")}
     if not track:
         return track
+    track = complete(track)  # tracks written before the rounded rims: sharp ones
     missing = [f"obs_{k}" for k in Obstacles._fields if k not in track]
     if missing:
         raise MeshFormatError(f"{path}: its obstacle track lacks {', '.join(missing)}.")

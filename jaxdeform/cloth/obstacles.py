@@ -11,7 +11,12 @@ Signed distances (metres, negative inside), with the unit outward normal n = gra
 - capped vertical cylinder (centre of the top cap c, radius r, height h, axis along y, bottom cap at c_y - h):
   with rho = |(x - c)_xz| (distance to the axis) and z = |x_y - (c_y - h/2)| (distance to the mid plane),
   q = (rho - r, z - h/2):   d = min(max(q_0, q_1), 0) + |max(q, 0)|   (exact, rims included: outside a rim the
-  distance is to the rim circle, inside it is the distance to the nearest of side and caps)
+  distance is to the rim circle, inside it is the distance to the nearest of side and caps). With rims rounded
+  to radius e (``cylinder_rounding``, 0 <= e < min(r, h / 2)) the shape is the set of points within e of the
+  sharp cylinder of radius r - e and height h - 2 e (top cap at c_y - e), so d = d_inner - e, exactly, with the
+  inner cylinder's normal: the rims become quarter tori, and the smallest curvature radius of the surface is e
+  instead of 0 (the contact points inside the cloth's triangles need one, :func:`jaxdeform.cloth.simulate.
+  face_samples_for`).
 - ground:                            d = x_y - ground, n = (0, 1, 0)
 
 The combined field is the minimum over all shapes; its normal is the normal of the minimising shape.
@@ -46,14 +51,24 @@ class Obstacles(NamedTuple):
     cylinder_c: Float[Array, "y 3"]  # centre of the top cap of a vertical (y-axis) capped cylinder
     cylinder_r: Float[Array, " y"]
     cylinder_h: Float[Array, " y"]  # extends down from the top cap by h
+    cylinder_rounding: Float[Array, " y"]  # radius of the rounded rims (0: sharp)
     ground: Float[Array, ""]  # height of the ground plane y = ground
 
 
+#: Fields a stored track may lack (tracks written before they existed), with the value they then take.
+OPTIONAL_FIELDS = {"cylinder_rounding": "cylinder_r"}  # name -> field whose shape its zeros take
+
+
 def make(spheres=(), capsules=(), cylinders=(), ground: float = NO_GROUND, dtype=np.float32) -> Obstacles:
-    """Obstacles from lists: spheres [(c, r)], capsules [(a, b, r)], cylinders [(top_centre, r, h)] (host numpy)."""
+    """Obstacles from lists: spheres [(c, r)], capsules [(a, b, r)], cylinders [(top_centre, r, h)] or
+    [(top_centre, r, h, rim_radius)] (host numpy)."""
     s = list(spheres)
     c = list(capsules)
-    y = list(cylinders)
+    y = [tuple(p) + (0.0,) * (4 - len(p)) for p in cylinders]
+    for _, r, h, e in y:
+        if not 0.0 <= e < min(r, 0.5 * h):
+            raise ValueError(f"a cylinder's rim radius must lie in [0, min(radius, height / 2)), got {e} for radius "
+                             f"{r} and height {h}.")
 
     def vecs(rows):
         return np.asarray(rows, dtype).reshape(-1, 3)
@@ -65,7 +80,7 @@ def make(spheres=(), capsules=(), cylinders=(), ground: float = NO_GROUND, dtype
         sphere_c=vecs([p[0] for p in s]), sphere_r=scal([p[1] for p in s]),
         capsule_a=vecs([p[0] for p in c]), capsule_b=vecs([p[1] for p in c]), capsule_r=scal([p[2] for p in c]),
         cylinder_c=vecs([p[0] for p in y]), cylinder_r=scal([p[1] for p in y]), cylinder_h=scal([p[2] for p in y]),
-        ground=np.asarray(ground, dtype),
+        cylinder_rounding=scal([p[3] for p in y]), ground=np.asarray(ground, dtype),
     )
 
 
@@ -104,8 +119,18 @@ def to_dict(track: Obstacles) -> dict[str, np.ndarray]:
     return {k: np.asarray(v) for k, v in track._asdict().items()}
 
 
+def complete(d: dict) -> dict:
+    """A stored track's fields with the :data:`OPTIONAL_FIELDS` it lacks filled in (zeros: sharp rims)."""
+    out = dict(d)
+    for name, like in OPTIONAL_FIELDS.items():
+        if name not in out and like in out:
+            out[name] = np.zeros_like(np.asarray(out[like]))
+    return out
+
+
 def from_dict(d: dict) -> Obstacles:
-    """Inverse of :func:`to_dict`."""
+    """Inverse of :func:`to_dict` (tracks stored before an optional field existed get its default)."""
+    d = complete(d)
     return Obstacles(**{k: np.asarray(d[k]) for k in Obstacles._fields})
 
 
@@ -137,12 +162,13 @@ def _capsules(obs, x):
 
 
 def _cylinders(obs, x):
-    rel = x[:, None, :] - obs.cylinder_c[None]  # (p, y, 3)
+    e = obs.cylinder_rounding  # the sharp inner cylinder, offset by e
+    rel = x[:, None, :] - (obs.cylinder_c - e[:, None] * jnp.asarray(_UP, x.dtype))[None]  # (p, y, 3)
     radial = rel * jnp.asarray([1.0, 0.0, 1.0], x.dtype)
     rdir, rho = _safe_unit(radial, jnp.asarray([1.0, 0.0, 0.0], x.dtype))
-    half = 0.5 * obs.cylinder_h[None]
+    half = 0.5 * obs.cylinder_h[None] - e[None]
     ym = rel[..., 1] + half  # height above the mid plane
-    q0 = rho - obs.cylinder_r[None]
+    q0 = rho - (obs.cylinder_r - e)[None]
     q1 = jnp.abs(ym) - half
     sgn = jnp.where(ym >= 0, 1.0, -1.0).astype(x.dtype)
     up = jnp.asarray(_UP, x.dtype)
@@ -156,7 +182,7 @@ def _cylinders(obs, x):
     # inside (both q <= 0): the nearer of side and caps
     in_n = jnp.where((q0 >= q1)[..., None], rdir, axial)
     outside = (q0 > 0) | (q1 > 0)
-    d = jnp.where(outside, out_len, jnp.maximum(q0, q1))
+    d = jnp.where(outside, out_len, jnp.maximum(q0, q1)) - e[None]
     n = jnp.where(outside[..., None], out_n, in_n)
     return d, n
 

@@ -251,7 +251,7 @@ def obstacle_sdf(obstacles: dict, t: int):
 
     if not obstacles:
         return None
-    frame = obst.Obstacles(**{k: np.asarray(obstacles[k])[t] for k in obst.Obstacles._fields})
+    frame = obst.obstacles_at(obst.from_dict(obstacles), t)
 
     def sdf(x):
         d, n = obst.signed_distance(frame, np.asarray(x, np.float32))  # jitted in obstacles

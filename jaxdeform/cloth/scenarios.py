@@ -25,25 +25,25 @@ Scenes (every sequence is determined by (kind, index, seed) through ``np.random.
   (~2.4 s) later. An earlier version swung the obstacle A past the plane: it then swept under the sheet's
   hem, a bifurcation that the coarse and the fine sheet took differently in most sequences (the Loop-
   upsampled coarse sheet was 7-30 cm RMS from the fine one; with the turn-back, 1.6-3.3 cm on indices 0-3).
-- DISK: the cloth lies centred on a table (capped cylinder, radius 0.45 m, top at y = 0.75 m, height 0.75 m;
-  ground at y = 0) with a weight in the middle (the vertices within 6 cm of the centre are pinned: 1 coarse
-  vertex, the corresponding patch of fine ones). Wind blows horizontally from a random direction; its mean speed
+- DISK: the cloth lies centred on a table (capped cylinder, radius 0.45 m, top at y = 0.75 m, height 0.75 m,
+  rims rounded to :data:`TABLE_RIM_RADIUS` = 5 cm; ground at y = 0) with a weight in the middle (the vertices
+  within 6 cm of the centre are pinned: 1 coarse vertex, the corresponding patch of fine ones). Wind blows horizontally from a random direction; its mean speed
   index-dependent across [1, 5] m/s (jittered), ramps up over the first second, gusts +-30 % (periods 1.5-4 s),
   its direction drifts by up to +-25 degrees over the sequence, and the turbulence RMS is 15-35 % of the speed.
 
 Both resolutions use the same :class:`ClothParams` physics and the same obstacle / wind / pin tracks; only the
 iteration budget differs (:data:`COARSE_STEPS` = 10 x 2, :data:`FINE_STEPS` = 40 x 4 (substeps, iterations)
 per frame), and so does the number of obstacle contact points inside each triangle (see
-:data:`MIN_OBSTACLE_RADIUS`). Measured edge strain |l / L - 1| (2 CPU cores shared with other jobs, load ~6):
+:data:`MIN_OBSTACLE_RADIUS`: SHEET coarse 12 per triangle, DISK coarse 25, the fine meshes none). Measured
+edge strain |l / L - 1| (2 CPU cores shared with other jobs, load ~6):
 SHEET index 0 fine, 30 frames through the impact: mean 0.13 %, p99 1.5 %, max 6.0 % (20 x 4: max 13 %);
 coarse mean 0.2 %, max 3.3 %. DISK index 5 fine, 60 frames: mean 0.17 %, max 5.7 %; coarse mean 0.24 %,
 max 4.9 %. Max obstacle penetration of every stored SHEET frame, at the vertices and inside the triangles
 (:func:`max_penetration` with faces): 0 at both resolutions. Time per frame (compilation apart, ~3-6 s per
-mesh): SHEET coarse 4.8 ms (1.7 ms with vertex contacts alone), fine ~0.28-0.41 s; DISK coarse 2.4 ms (vertex
-contacts, as the stored DISK data of 2026-11-27 was simulated; ~14 ms with the triangle contacts), fine
-~0.88 s. DISK's table has a sharp rim, which the curvature rule
-of :data:`MIN_OBSTACLE_RADIUS` does not cover: re-simulated, its coarse triangles still sink 2.6-6.3 mm into it
-(4.0-4.3 cm with vertex contacts alone) and the fine ones ~1 mm (6 % of their edge) -- see the README.
+mesh): SHEET coarse 4.8 ms (1.7 ms with vertex contacts alone), fine ~0.28-0.41 s; DISK coarse 2.4 ms with
+vertex contacts alone, fine ~0.88 s. Until 2026-11-29 DISK's table had a sharp rim, which no curvature rule
+covers: its coarse triangles sank 4.0-4.3 cm into it with vertex contacts (2.6-6.3 mm with 12 points per
+triangle) and the fine ones ~1 mm (6 % of their edge); the rounded rim gives the rule a radius.
 Initial state: the flat rest cloth (the fine one = Loop-subdivided coarse one), settled for ``settle_frames``
 frames with the obstacles at their t = 0 position and no wind, then the recorded sequence starts from the
 settled positions and velocities.
@@ -100,10 +100,12 @@ POLE_HALF_LENGTH = 0.3
 #: (:func:`simulate.face_samples_for`). With vertex contacts alone a coarse triangle (legs 12.5 cm) sags up to
 #: r - sqrt(r^2 - R^2) into a sphere of radius r between its corners (R its circumradius): the SHEET coarse
 #: frames stored before 2026-11-29 sank 1.0-3.0 cm (8-24 % of the edge) into the obstacles, the fine ones 0. The
-#: rule gives the coarse meshes the order-4 grid (4 intervals per edge, 12 points per triangle; sag 1.7 mm at
-#: r = 0.14 m, inside the 5 mm thickness) and the 3-level fine meshes none (sag 0.4 mm between vertices). The
-#: rule assumes smooth obstacles: DISK's table has a sharp rim (see the module docstring).
-MIN_OBSTACLE_RADIUS = min(SPHERE_RADII + (POLE_RADIUS,))
+#: rule gives the SHEET coarse mesh the order-4 grid (4 intervals per edge, 12 points per triangle; sag 1.7 mm at
+#: r = 0.14 m, inside the 5 mm thickness) and its 3-level fine mesh none (sag 0.4 mm between vertices). The rule
+#: needs smooth obstacles: DISK's table rims are rounded (:data:`TABLE_RIM_RADIUS`), which gives its coarse mesh
+#: the order-6 grid (25 points per triangle; sag 2.4 mm) and its 3-level fine mesh none (sag 1.7 mm). Per kind.
+TABLE_RIM_RADIUS = 0.05
+MIN_OBSTACLE_RADIUS = {"sheet": min(SPHERE_RADII + (POLE_RADIUS,)), "disk": TABLE_RIM_RADIUS}
 #: Range of the distance (m) the obstacle's centre travels past the sheet's rest plane before it turns back.
 SHEET_REACH = (0.05, 0.25)
 PIN_RADIUS_DISK = 0.06
@@ -260,7 +262,7 @@ def _sheet_track(rng, index: int, T: int, dt: float):
 
 
 def _disk_track(rng, index: int, n_per: int, T: int, dt: float):
-    table = obst.make(cylinders=[((0.0, TABLE_TOP, 0.0), TABLE_RADIUS, TABLE_TOP)], ground=0.0)
+    table = obst.make(cylinders=[((0.0, TABLE_TOP, 0.0), TABLE_RADIUS, TABLE_TOP, TABLE_RIM_RADIUS)], ground=0.0)
     lo, hi = 1.0, 5.0
     frac = (index % n_per + rng.uniform(0.1, 0.9)) / n_per
     speed = lo + (hi - lo) * frac
@@ -276,7 +278,8 @@ def _disk_track(rng, index: int, n_per: int, T: int, dt: float):
     s = speed * ramp * (1 + gust_amp * np.sin(2 * math.pi * t / gust_period + gust_phase))
     ang = az + drift * t / max(t[-1], dt)
     wind = np.stack([s * np.cos(ang), np.zeros(T), s * np.sin(ang)], 1)
-    meta = dict(obstacle="table", table_radius=TABLE_RADIUS, table_top=TABLE_TOP, wind_speed_m_s=speed,
+    meta = dict(obstacle="table", table_radius=TABLE_RADIUS, table_top=TABLE_TOP, table_rim_radius=TABLE_RIM_RADIUS,
+                wind_speed_m_s=speed,
                 wind_azimuth_deg=math.degrees(az), wind_drift_deg=math.degrees(drift), gust_amplitude=gust_amp,
                 gust_period_s=gust_period, turbulence_m_s=turb, ramp_s=1.0)
     return obst.static_track(table, T), wind, turb, meta
@@ -295,7 +298,7 @@ def scenario(kind: str, index: int, seed: int = 0, n_frames: int = N_FRAMES, n_s
     cv, cf, fv, ff = _meshes(kind, levels)
     pc, pf = _pins(kind, levels)
     params = PARAMS.replace(substeps=COARSE_STEPS[0], iterations=COARSE_STEPS[1], **KIND_PARAMS[kind])
-    params = params.replace(face_samples=sim.face_samples_for(cv, cf, params.thickness, MIN_OBSTACLE_RADIUS))
+    params = params.replace(face_samples=sim.face_samples_for(cv, cf, params.thickness, MIN_OBSTACLE_RADIUS[kind]))
     if kind == "sheet":
         track, wind, meta = _sheet_track(rng, index, n_frames, dt)
         x0 = cv.copy()
@@ -306,7 +309,7 @@ def scenario(kind: str, index: int, seed: int = 0, n_frames: int = N_FRAMES, n_s
     meta = dict(kind=kind, index=index, seed=seed, n_frames=n_frames, frame_dt=dt,
                 settle_frames=SETTLE_FRAMES[kind], coarse_vertices=len(cv), fine_vertices=len(fv),
                 coarse_steps=list(COARSE_STEPS), fine_steps=list(FINE_STEPS), params=params.as_dict(),
-                fine_face_samples=sim.face_samples_for(fv, ff, params.thickness, MIN_OBSTACLE_RADIUS),
+                fine_face_samples=sim.face_samples_for(fv, ff, params.thickness, MIN_OBSTACLE_RADIUS[kind]),
                 pinned_coarse=int(pc.sum()), pinned_fine=int(pf.sum()), levels=levels, **meta)
     return Scenario(kind, index, seed, n_frames, SETTLE_FRAMES[kind], track, wind.astype(np.float32), params,
                     pc, pf, x0.astype(np.float32), meta, levels)
