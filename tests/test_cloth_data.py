@@ -98,6 +98,19 @@ def test_dataset_refuses_nan_and_truncated_files(tmp_path):
         cdata.load_dataset(empty)
 
 
+def test_obstacle_tracks_without_rims_read_as_sharp_and_bad_rims_are_refused(tmp_path):
+    p = pair()
+    p["obstacles"] = obst.to_dict(obst.static_track(obst.make(cylinders=[((0, 1, 0), 0.5, 1.0)]), 4))
+    del p["obstacles"]["cylinder_rounding"]  # a file written before the rounded rims
+    write(tmp_path, [p])
+    track = cdata.load_dataset(tmp_path).sequences[0].obstacles
+    assert track["cylinder_rounding"].shape == (4, 1) and not track["cylinder_rounding"].any()
+    p["obstacles"]["cylinder_rounding"] = np.full((4, 1), 0.6, np.float32)  # wider than the radius
+    write(tmp_path, [p])
+    with pytest.raises(MeshFormatError, match="rim radius"):
+        cdata.load_dataset(tmp_path)
+
+
 def test_upsampler_is_libigl_loop_and_reaches_sheet_resolution():
     cv, cf = grid(9)
     fv, ff = cv, cf

@@ -82,6 +82,8 @@ def test_sdf_rounded_cylinder_rim_is_a_torus():
     np.testing.assert_allclose(d_corner, [0.1 * (np.sqrt(2) - 1)], atol=1e-6)
     with pytest.raises(ValueError, match="rim radius"):
         O.make(cylinders=[((0, 1, 0), 0.5, 1.0, 0.5)])
+    with pytest.raises(ValueError, match="top_centre, radius, height"):
+        O.make(cylinders=[((0, 1, 0), 0.5)])
     # a track stored before the rounding existed reads as sharp rims
     track = O.to_dict(O.static_track(O.make(cylinders=[((0, 1, 0), 0.5, 1.0)]), 3))
     del track["cylinder_rounding"]
@@ -255,13 +257,13 @@ def test_face_contacts_keep_a_coarse_sheet_out_of_a_sphere():
 
 
 def test_face_contacts_keep_a_coarse_sheet_out_of_a_rounded_table_rim():
-    """The same sheet dropped across the rounded rim (5 cm) of a table, half of it hanging off: with vertex contacts
+    """The same sheet dropped across the rounded rim (5 cm) of a table, part of it hanging off: with vertex contacts
     alone the rim sinks into the triangles that fold over it; with the points of ``face_samples_for`` for the rim's
     radius nothing inside any triangle penetrates by more than 1 % of the edge (the DISK scenes' table)."""
     x, f = _sheet(N, 0.5, 0.4)
     m = sim.build_model(x, f)
     e = 0.05
-    obs = _obs(cylinder=((-0.3, 0.3, 0.0), 0.3, 0.3, e), ground=0.0)  # rim above x = 0, the sheet's middle
+    obs = _obs(cylinder=((-0.3, 0.3, 0.0), 0.3, 0.3, e), ground=0.0)  # rim under the sheet's middle row (x = 0)
     track = O.static_track(obs, 20)
     n = sim.face_samples_for(x, f, STD.thickness, e)
     depth = {}

@@ -170,7 +170,7 @@ def read_sequence(path: Path) -> tuple[Sequence, dict]:
 def _obstacle_track(path: Path, arrays: dict, frames: int) -> dict:
     """The obstacle track (name -> (T, ...) array) of a sequence file: none, or every field of
     :class:`jaxdeform.cloth.obstacles.Obstacles`, numeric and finite, one entry per frame."""
-    from jaxdeform.cloth.obstacles import Obstacles, complete
+    from jaxdeform.cloth.obstacles import Obstacles, check_rims, complete
 
     track = {k[4:]: v for k, v in arrays.items() if k.startswith("obs_")}
     if not track:
@@ -186,6 +186,7 @@ def _obstacle_track(path: Path, arrays: dict, frames: int) -> dict:
                                   f"{a.dtype} {a.shape}.")
         if not np.all(np.isfinite(a)):
             raise MeshFormatError(f"{path}: obs_{name} holds NaN or infinite values.")
+    check_rims(track["cylinder_r"], track["cylinder_h"], track["cylinder_rounding"], MeshFormatError, f"{path}: ")
     return track
 
 

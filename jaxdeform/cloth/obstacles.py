@@ -59,16 +59,25 @@ class Obstacles(NamedTuple):
 OPTIONAL_FIELDS = {"cylinder_rounding": "cylinder_r"}  # name -> field whose shape its zeros take
 
 
+def check_rims(radius, height, rim, error=ValueError, where: str = "") -> None:
+    """Refuse rim radii outside [0, min(radius, height / 2)) (arrays of any equal shape), with one sentence."""
+    bad = ~((rim >= 0) & (rim < np.minimum(radius, 0.5 * height)))
+    if np.any(bad):
+        i = np.flatnonzero(bad.ravel())[0]
+        raise error(f"{where}a cylinder's rim radius must lie in [0, min(radius, height / 2)), got "
+                    f"{rim.ravel()[i]:g} for radius {radius.ravel()[i]:g} and height {height.ravel()[i]:g}.")
+
+
 def make(spheres=(), capsules=(), cylinders=(), ground: float = NO_GROUND, dtype=np.float32) -> Obstacles:
     """Obstacles from lists: spheres [(c, r)], capsules [(a, b, r)], cylinders [(top_centre, r, h)] or
     [(top_centre, r, h, rim_radius)] (host numpy)."""
     s = list(spheres)
     c = list(capsules)
+    if any(len(p) not in (3, 4) for p in cylinders):
+        raise ValueError("a cylinder is (top_centre, radius, height) or (top_centre, radius, height, rim_radius).")
     y = [tuple(p) + (0.0,) * (4 - len(p)) for p in cylinders]
-    for _, r, h, e in y:
-        if not 0.0 <= e < min(r, 0.5 * h):
-            raise ValueError(f"a cylinder's rim radius must lie in [0, min(radius, height / 2)), got {e} for radius "
-                             f"{r} and height {h}.")
+    check_rims(np.asarray([p[1] for p in y], np.float64), np.asarray([p[2] for p in y], np.float64),
+               np.asarray([p[3] for p in y], np.float64), ValueError)
 
     def vecs(rows):
         return np.asarray(rows, dtype).reshape(-1, 3)

@@ -97,6 +97,11 @@ def _stored_pair(path: Path, meta: dict) -> dict | None:
     return {**shared, **seq.pins, "coarse": seq.coarse, "fine": seq.fine, "meta": seq.meta}
 
 
+def holds_scenario(path: str | Path, meta: dict) -> bool:
+    """Whether the sequence file at ``path`` was simulated from the scenario ``meta`` (its stored record equals it)."""
+    return _stored_pair(Path(path), meta) is not None
+
+
 def _mean_edge(v, f) -> float:
     from jaxdeform.mesh.topology import unique_edges
 
