@@ -32,18 +32,19 @@ Scenes (every sequence is determined by (kind, index, seed) through ``np.random.
   its direction drifts by up to +-25 degrees over the sequence, and the turbulence RMS is 15-35 % of the speed.
 
 Both resolutions use the same :class:`ClothParams` physics and the same obstacle / wind / pin tracks; only the
-iteration budget differs (:data:`COARSE_STEPS` = 10 x 2, :data:`FINE_STEPS` = 40 x 4 (substeps, iterations)
-per frame), and so does the number of obstacle contact points inside each triangle (see
+iteration budget differs (:data:`COARSE_STEPS` = 10 x 2, DISK 10 x 4, :data:`FINE_STEPS` = 40 x 4 (substeps,
+iterations) per frame), and so does the number of obstacle contact points inside each triangle (see
 :data:`MIN_OBSTACLE_RADIUS`: SHEET coarse 12 per triangle, DISK coarse 25, the fine meshes none). Measured
 edge strain |l / L - 1| (2 CPU cores shared with other jobs, load ~6):
 SHEET index 0 fine, 30 frames through the impact: mean 0.13 %, p99 1.5 %, max 6.0 % (20 x 4: max 13 %);
 coarse mean 0.2 %, max 3.3 %. DISK index 5 fine, 60 frames: mean 0.17 %, max 5.7 %; coarse mean 0.24 %,
-max 4.9 %. Max obstacle penetration of every stored SHEET frame, at the vertices and inside the triangles
-(:func:`max_penetration` with faces): 0 at both resolutions. Time per frame (compilation apart, ~3-6 s per
-mesh): SHEET coarse 4.8 ms (1.7 ms with vertex contacts alone), fine ~0.28-0.41 s; DISK coarse 2.4 ms with
-vertex contacts alone, fine ~0.88 s. Until 2026-11-29 DISK's table had a sharp rim, which no curvature rule
-covers: its coarse triangles sank 4.0-4.3 cm into it with vertex contacts (2.6-6.3 mm with 12 points per
-triangle) and the fine ones ~1 mm (6 % of their edge); the rounded rim gives the rule a radius.
+max 4.9 % (2 iterations). Max obstacle penetration of every stored SHEET and DISK frame, at the vertices and
+inside the triangles (:func:`max_penetration` with faces): 0 at both resolutions. Time per frame (compilation
+apart, ~3-6 s per mesh): SHEET coarse 4.8 ms (1.7 ms with vertex contacts alone), fine ~0.28-0.41 s; DISK coarse
+~30 ms (25 points per triangle, 4 iterations; 2.4 ms with vertex contacts and 2 iterations), fine ~0.5-0.8 s.
+Until 2026-11-29 DISK's table had a sharp rim, which no curvature rule covers: its coarse triangles sank
+4.0-4.3 cm into it with vertex contacts (2.6-6.3 mm with 12 points per triangle) and the fine ones ~1 mm (6 % of
+their edge); the rounded rim gives the rule a radius.
 Initial state: the flat rest cloth (the fine one = Loop-subdivided coarse one), settled for ``settle_frames``
 frames with the obstacles at their t = 0 position and no wind, then the recorded sequence starts from the
 settled positions and velocities.
@@ -72,8 +73,10 @@ KINDS = ("sheet", "disk")
 N_FRAMES = 120
 #: Settling frames before recording (obstacles at t = 0, no wind).
 SETTLE_FRAMES = {"sheet": 10, "disk": 30}
-#: (substeps, iterations) per frame for the coarse and the fine meshes.
-COARSE_STEPS = (10, 2)
+#: (substeps, iterations) per frame for the coarse meshes (per kind) and the fine ones. DISK's coarse cloth gets 4
+#: iterations: with 2, a gust slapping it onto the rounded rim left one frame of 20 sequences 2.7 mm inside the
+#: table (2 % of the coarse edge; seq_018 at 4.6 m/s); with 4 none (2026-11-29).
+COARSE_STEPS = {"sheet": (10, 2), "disk": (10, 4)}
 FINE_STEPS = (40, 4)
 #: Physical parameters shared by both resolutions (defaults of ClothParams unless listed).
 PARAMS = ClothParams()
@@ -297,7 +300,7 @@ def scenario(kind: str, index: int, seed: int = 0, n_frames: int = N_FRAMES, n_s
     dt = PARAMS.frame_dt
     cv, cf, fv, ff = _meshes(kind, levels)
     pc, pf = _pins(kind, levels)
-    params = PARAMS.replace(substeps=COARSE_STEPS[0], iterations=COARSE_STEPS[1], **KIND_PARAMS[kind])
+    params = PARAMS.replace(substeps=COARSE_STEPS[kind][0], iterations=COARSE_STEPS[kind][1], **KIND_PARAMS[kind])
     params = params.replace(face_samples=sim.face_samples_for(cv, cf, params.thickness, MIN_OBSTACLE_RADIUS[kind]))
     if kind == "sheet":
         track, wind, meta = _sheet_track(rng, index, n_frames, dt)
@@ -308,7 +311,7 @@ def scenario(kind: str, index: int, seed: int = 0, n_frames: int = N_FRAMES, n_s
         x0 = cv + np.array([0.0, TABLE_TOP + PARAMS.thickness + 0.005, 0.0])
     meta = dict(kind=kind, index=index, seed=seed, n_frames=n_frames, frame_dt=dt,
                 settle_frames=SETTLE_FRAMES[kind], coarse_vertices=len(cv), fine_vertices=len(fv),
-                coarse_steps=list(COARSE_STEPS), fine_steps=list(FINE_STEPS), params=params.as_dict(),
+                coarse_steps=list(COARSE_STEPS[kind]), fine_steps=list(FINE_STEPS), params=params.as_dict(),
                 fine_face_samples=sim.face_samples_for(fv, ff, params.thickness, MIN_OBSTACLE_RADIUS[kind]),
                 pinned_coarse=int(pc.sum()), pinned_fine=int(pf.sum()), levels=levels, **meta)
     return Scenario(kind, index, seed, n_frames, SETTLE_FRAMES[kind], track, wind.astype(np.float32), params,
