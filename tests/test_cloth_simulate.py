@@ -276,6 +276,31 @@ def test_face_contacts_keep_a_coarse_sheet_out_of_a_rounded_table_rim():
     assert depth[n] <= 0.01 * float(m.mean_edge)
 
 
+def test_face_friction_carries_a_triangle_resting_on_its_interior():
+    """A rigid triangle (circumradius 10 cm) lies on the top of a sphere of radius 0.5 m, touching it only inside
+    (its corners are 1 cm above the surface), and the sphere accelerates sideways at 0.6 m/s^2 < mu g (3.9). With
+    friction at the contact points the triangle rides along (Coulomb: it sticks); without it the sphere slides
+    out from under the triangle, which tips off on the other side."""
+    R = 0.1
+    ang = np.deg2rad([90.0, 210.0, 330.0])
+    y0 = 0.5 + STD.thickness + 1e-3
+    x = np.stack([R * np.cos(ang), np.full(3, y0), R * np.sin(ang)], 1).astype(np.float32)
+    f = np.array([[0, 2, 1]])
+    m = sim.build_model(x, f)
+    T, a = 15, 0.6
+    t = np.arange(T) * STD.frame_dt
+    track = O.stack([_obs(sphere=((0.5 * a * tt * tt, 0.0, 0.0), 0.5)) for tt in t])
+    moved = {}
+    for friction in (True, False):
+        p = STD.replace(face_samples=6, face_friction=friction)
+        frames = sim.simulate(m, p, x, None, track, progress=False)
+        assert S.max_penetration(frames, track, f) <= 1e-6
+        moved[friction] = float(frames[-1, :, 0].mean())
+    s = 0.5 * a * t[-1] ** 2  # the sphere's travel, 5.9 cm
+    assert moved[True] == pytest.approx(s, rel=0.1)
+    assert moved[False] < 0.2 * s
+
+
 def test_disk_scenes_have_a_rounded_table_and_contacts_for_it():
     sc = S.scenario("disk", 0, n_frames=2)
     assert sc.track.cylinder_rounding[0, 0] == pytest.approx(S.TABLE_RIM_RADIUS) and sc.meta["table_rim_radius"] > 0

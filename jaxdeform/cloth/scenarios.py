@@ -27,12 +27,12 @@ Scenes (every sequence is determined by (kind, index, seed) through ``np.random.
   upsampled coarse sheet was 7-30 cm RMS from the fine one; with the turn-back, 1.6-3.3 cm on indices 0-3).
 - DISK: the cloth lies centred on a table (capped cylinder, radius 0.45 m, top at y = 0.75 m, height 0.75 m,
   rims rounded to :data:`TABLE_RIM_RADIUS` = 5 cm; ground at y = 0) with a weight in the middle (the vertices
-  within 6 cm of the centre are pinned: 1 coarse vertex, the corresponding patch of fine ones). Wind blows horizontally from a random direction; its mean speed
-  index-dependent across [1, 5] m/s (jittered), ramps up over the first second, gusts +-30 % (periods 1.5-4 s),
+  within 6 cm of the centre are pinned: 1 coarse vertex, the corresponding patch of fine ones). Wind blows
+  horizontally from a random direction; its mean speed index-dependent across [1, 5] m/s (jittered), ramps up over the first second, gusts +-30 % (periods 1.5-4 s),
   its direction drifts by up to +-25 degrees over the sequence, and the turbulence RMS is 15-35 % of the speed.
 
 Both resolutions use the same :class:`ClothParams` physics and the same obstacle / wind / pin tracks; only the
-iteration budget differs (:data:`COARSE_STEPS` = 10 x 2, DISK 10 x 4, :data:`FINE_STEPS` = 40 x 4 (substeps,
+iteration budget differs (:data:`COARSE_STEPS` = 10 x 2, :data:`FINE_STEPS` = 40 x 4 (substeps,
 iterations) per frame), and so does the number of obstacle contact points inside each triangle (see
 :data:`MIN_OBSTACLE_RADIUS`: SHEET coarse 12 per triangle, DISK coarse 25, the fine meshes none). Measured
 edge strain |l / L - 1| (2 CPU cores shared with other jobs, load ~6):
@@ -41,7 +41,7 @@ coarse mean 0.2 %, max 3.3 %. DISK index 5 fine, 60 frames: mean 0.17 %, max 5.7
 max 4.9 % (2 iterations). Max obstacle penetration of every stored SHEET and DISK frame, at the vertices and
 inside the triangles (:func:`max_penetration` with faces): 0 at both resolutions. Time per frame (compilation
 apart, ~3-6 s per mesh): SHEET coarse 4.8 ms (1.7 ms with vertex contacts alone), fine ~0.28-0.41 s; DISK coarse
-~30 ms (25 points per triangle, 4 iterations; 2.4 ms with vertex contacts and 2 iterations), fine ~0.5-0.8 s.
+~17-23 ms (25 points per triangle; 2 ms with vertex contacts alone), fine ~0.5-0.8 s.
 Until 2026-11-29 DISK's table had a sharp rim, which no curvature rule covers: its coarse triangles sank
 4.0-4.3 cm into it with vertex contacts (2.6-6.3 mm with 12 points per triangle) and the fine ones ~1 mm (6 % of
 their edge); the rounded rim gives the rule a radius.
@@ -73,10 +73,11 @@ KINDS = ("sheet", "disk")
 N_FRAMES = 120
 #: Settling frames before recording (obstacles at t = 0, no wind).
 SETTLE_FRAMES = {"sheet": 10, "disk": 30}
-#: (substeps, iterations) per frame for the coarse meshes (per kind) and the fine ones. DISK's coarse cloth gets 4
-#: iterations: with 2, a gust slapping it onto the rounded rim left one frame of 20 sequences 2.7 mm inside the
-#: table (2 % of the coarse edge; seq_018 at 4.6 m/s); with 4 none (2026-11-29).
-COARSE_STEPS = {"sheet": (10, 2), "disk": (10, 4)}
+#: (substeps, iterations) per frame for the coarse meshes (per kind) and the fine ones. With frictionless contact
+#: points inside the triangles DISK's coarse cloth needed 4 iterations (with 2 a gust slapping it onto the rounded
+#: rim left one frame of seq_018 2.7 mm inside the table); with friction there (``ClothParams.face_friction``) 2
+#: iterations leave no coarse frame of the 20 scenarios inside it (2026-11-29).
+COARSE_STEPS = {"sheet": (10, 2), "disk": (10, 2)}
 FINE_STEPS = (40, 4)
 #: Physical parameters shared by both resolutions (defaults of ClothParams unless listed).
 PARAMS = ClothParams()

@@ -10,8 +10,9 @@ simulation": many substeps with few iterations). One substep:
    frictionless push out of the obstacles (so the solver sees the contacts)
 3. self-collision: vertex-vertex separation to ``self_radius`` (see below)
 4. obstacle collision with friction -- the last vertex projection, so stored frames have vertex penetration ~0;
-   with ``face_samples`` > 1 a frictionless push of the triangles' interiors follows (and joins step 2); it only
-   moves points outward along the obstacles' normals, so the vertices stay out (what ``max_penetration`` checks)
+   with ``face_samples`` > 1 a push of the triangles' interiors follows (and joins step 2, frictionless there), with
+   friction like the vertices' (``face_friction``); its normal part only moves points outward along the obstacles'
+   normals
 5. v = (p - x) / h;  x = p
 
 Masses: lumped, m_i = density * (sum of the areas of the triangles at i) / 3.
@@ -48,8 +49,13 @@ linearly between stored frames (the track is interpolated per substep). Vertex c
 sink into a large triangle between its corners (by r - sqrt(r^2 - R^2) for a sphere of radius r and a triangle
 of circumradius R); ``face_samples`` = n > 1 adds contact points on the order-n barycentric grid of every
 triangle (n intervals per edge), each a zero-compliance point constraint whose correction goes to the corners by
-their barycentric weights (:func:`_push_out_faces`). These contacts have no friction: a triangle held up by its
-interior points alone slides freely, friction acts only where a vertex touches.
+their barycentric weights (:func:`_push_out_faces`). Inside the solver iterations these pushes are
+frictionless, like the vertices'; the final push of the substep (:func:`_collide_faces`, ``face_friction``, on by
+default) applies the same Coulomb law to each sample point q = sum b_k x_k: its tangential motion relative to the
+surface is removed or shortened by mu times its normal correction of the substep, the correction c spread over the
+corners as x_k += w_k b_k c / sum_j w_j b_j^2 and averaged per vertex. Without it a triangle held up by its
+interior points alone slides off a rim freely while a vertex resting there sticks, so two resolutions of one cloth
+part ways on a table (the DISK scenes).
 
 Tethers (long-range attachments, Kim et al. 2012; ``tethers``, on by default): every free vertex stays within
 its rest distance of its nearest pinned vertex (unilateral, projected after each stretch sweep). They remove the
@@ -135,6 +141,7 @@ class ClothParams:
     self_collision: bool = dataclasses.field(default=True, metadata=dict(static=True))
     tethers: bool = dataclasses.field(default=True, metadata=dict(static=True))
     face_samples: int = dataclasses.field(default=0, metadata=dict(static=True))  # 0 or 1: vertex contacts only
+    face_friction: bool = dataclasses.field(default=True, metadata=dict(static=True))  # Coulomb at face samples
 
     def replace(self, **kw) -> "ClothParams":
         return dataclasses.replace(self, **kw)
@@ -442,29 +449,61 @@ def face_samples_for(rest_vertices, faces, thickness: float, min_radius: float) 
     return n if n > 1 else 0
 
 
+def _face_points(model: ClothModel, bary, p):
+    """The sample points (F, S, 3) of every triangle at barycentric coordinates ``bary`` (S, 3)."""
+    return jnp.einsum("sk,fkd->fsd", bary, p[model.faces])
+
+
+def _spread(model: ClothModel, w, bary, c, active, V: int):
+    """Corner corrections of point constraints on the face samples: sample (f, s) moving by ``c`` (F, S, 3) moves
+    corner k by w_k b_k c / sum_j w_j b_j^2; per vertex the corrections of the ``active`` samples are averaged."""
+    F = model.faces
+    wF = w[F]  # (F, 3)
+    denom = jnp.einsum("fk,sk->fs", wF, bary * bary)  # sum_j w_j b_j^2
+    inv = jnp.where(active & (denom > 0), 1.0 / jnp.where(denom > 0, denom, 1.0), 0.0)
+    # sum over a triangle's samples first (a small contraction), then one scatter of F x 3 corner sums
+    acc = wF[..., None] * jnp.einsum("sk,fs,fsd->fkd", bary, inv, c)  # (F, 3, 3)
+    cnt = jnp.einsum("sk,fs->fk", (bary > 0).astype(c.dtype), (inv > 0).astype(c.dtype)) * (wF > 0)
+    acc = jax.ops.segment_sum(acc.reshape(-1, 3), F.reshape(-1), V)
+    cnt = jax.ops.segment_sum(cnt.reshape(-1), F.reshape(-1), V)
+    return acc / jnp.maximum(cnt, 1.0)[:, None]
+
+
 def _push_out_faces(model: ClothModel, params: ClothParams, w, obs: Obstacles, p):
     """Push the triangles' interiors out of the obstacles to d = thickness (no friction).
 
     Each sample point q = sum_k b_k x_k of :func:`face_barycentrics` (``params.face_samples``) with depth
-    delta = thickness - d(q) > 0 is one point constraint, projected with zero compliance: x_k += w_k b_k delta n
-    / sum_j w_j b_j^2 (n the closest shape's normal at q). The corrections of all active samples at a vertex are
-    averaged (Jacobi), as in the self-collision. Returns the positions and each vertex's push length."""
+    delta = thickness - d(q) > 0 is one point constraint, projected with zero compliance (:func:`_spread`, n the
+    closest shape's normal at q). Returns the positions, each vertex's push length and each sample's depth
+    (F, S)."""
     bary = jnp.asarray(face_barycentrics(params.face_samples), p.dtype)
-    F = model.faces
-    pts = jnp.einsum("sk,fkd->fsd", bary, p[F])
+    pts = _face_points(model, bary, p)
     d, n = obst.signed_distance(obs, pts.reshape(-1, 3))
     depth = jnp.maximum(params.thickness - d, 0.0).reshape(pts.shape[:2])
-    wb = w[F][:, None, :] * bary[None]  # (F, S, 3): w_k b_k
-    denom = jnp.sum(wb * bary[None], -1)
-    lam = jnp.where(denom > 0, depth / jnp.where(denom > 0, denom, 1.0), 0.0)
-    corr = (wb * lam[..., None])[..., None] * n.reshape(pts.shape[:2] + (1, 3))  # (F, S, 3, 3)
-    active = ((lam > 0)[..., None] & (wb > 0)).astype(p.dtype)
-    idx = jnp.broadcast_to(F[:, None, :], wb.shape).reshape(-1)
-    V = p.shape[0]
-    acc = jax.ops.segment_sum(corr.reshape(-1, 3), idx, V)
-    cnt = jax.ops.segment_sum(active.reshape(-1), idx, V)
-    dp = acc / jnp.maximum(cnt, 1.0)[:, None]
-    return p + dp, jnp.sqrt(jnp.sum(dp * dp, -1))
+    dp = _spread(model, w, bary, depth[..., None] * n.reshape(pts.shape), depth > 0, p.shape[0])
+    return p + dp, jnp.sqrt(jnp.sum(dp * dp, -1)), depth
+
+
+def _collide_faces(model: ClothModel, params: ClothParams, w, obs_now: Obstacles, obs_prev: Obstacles, x_old, p,
+                   prior_depth):
+    """The last push of the triangles' interiors, with Coulomb friction at the sample points. A sample in contact
+    loses its tangential motion relative to the surface since ``x_old`` when that is at most mu times its normal
+    correction in this substep (``prior_depth``, from the solver iterations, plus this push); otherwise that
+    much of it. Returns the positions."""
+    bary = jnp.asarray(face_barycentrics(params.face_samples), p.dtype)
+    q = _face_points(model, bary, p)
+    shape = q.shape
+    d, n, disp, _ = obst.query(obs_now, obs_prev, q.reshape(-1, 3))
+    d, n, disp = d.reshape(shape[:2]), n.reshape(shape), disp.reshape(shape)
+    depth = jnp.maximum(params.thickness - d, 0.0)
+    c = depth[..., None] * n
+    hit = (depth + prior_depth > 0) & (d < params.thickness + 1e-6)
+    dq = q + c - _face_points(model, bary, x_old) - disp
+    dqt = dq - jnp.sum(dq * n, -1, keepdims=True) * n
+    lt = jnp.sqrt(jnp.sum(dqt * dqt, -1))
+    lim = params.friction * (depth + prior_depth)
+    scale = jnp.where(hit, jnp.where(lt <= lim, 1.0, lim / jnp.maximum(lt, 1e-12)), 0.0)
+    return p + _spread(model, w, bary, c - scale[..., None] * dqt, hit | (depth > 0), p.shape[0])
 
 
 def _collide(params: ClothParams, w, obs_now: Obstacles, obs_prev: Obstacles, x_old, p, prior_push):
@@ -504,6 +543,8 @@ def _frame(model: ClothModel, params: ClothParams, modes: dict, inv_mass, pinned
     if params.self_collision:
         nbr, nmask = self_candidates(model, x, radius)
     n_col, m = model.color_len.shape
+    faces = params.face_samples > 1
+    fshape = (model.faces.shape[0], face_barycentrics(params.face_samples).shape[0]) if faces else (0,)
 
     def substep(k, carry):
         x, v = carry
@@ -518,25 +559,28 @@ def _frame(model: ClothModel, params: ClothParams, modes: dict, inv_mass, pinned
         obs_now = obst.lerp(obs0, obs1, s1)
 
         def iterate(_, c):
-            p, ls, lb, push = c
+            p, ls, lb, push, fpush = c
             p, lb = _bend_sweep(model, params, inv_mass, h2, p, lb)
             p, ls = _stretch_sweep(model, params, inv_mass, h2, p, ls)
             if params.tethers:
                 p = _tether_project(*tether, p)
             p, dpush = _push_out(params, inv_mass, obs_now, p)  # contacts seen by the solver
-            if params.face_samples > 1:
-                p, dface = _push_out_faces(model, params, inv_mass, obs_now, p)
-                dpush = dpush + dface
-            return p, ls, lb, push + dpush
+            if faces:
+                p, dface, fdepth = _push_out_faces(model, params, inv_mass, obs_now, p)
+                dpush, fpush = dpush + dface, fpush + fdepth
+            return p, ls, lb, push + dpush, fpush
 
         carry0 = (p, jnp.zeros((n_col, m), x.dtype), jnp.zeros(model.hinge_k.shape[:1] + (3,), x.dtype),
-                  jnp.zeros(x.shape[:1], x.dtype))
-        p, _, _, push = jax.lax.fori_loop(0, params.iterations, iterate, carry0)
+                  jnp.zeros(x.shape[:1], x.dtype), jnp.zeros(fshape, x.dtype))
+        p, _, _, push, fpush = jax.lax.fori_loop(0, params.iterations, iterate, carry0)
         if params.self_collision:
             p = _self_project(inv_mass, radius, p, nbr, nmask)
-        p = _collide(params, inv_mass, obs_now, obst.lerp(obs0, obs1, s0), x, p, push)
-        if params.face_samples > 1:
-            p, _ = _push_out_faces(model, params, inv_mass, obs_now, p)
+        obs_prev = obst.lerp(obs0, obs1, s0)
+        p = _collide(params, inv_mass, obs_now, obs_prev, x, p, push)
+        if faces and params.face_friction:
+            p = _collide_faces(model, params, inv_mass, obs_now, obs_prev, x, p, fpush)
+        elif faces:
+            p, _, _ = _push_out_faces(model, params, inv_mass, obs_now, p)
         return p, (p - x) / h
 
     x, v = jax.lax.fori_loop(0, n_sub, substep, (x, v))
