@@ -28,8 +28,9 @@ Scenes (every sequence is determined by (kind, index, seed) through ``np.random.
 - DISK: the cloth lies centred on a table (capped cylinder, radius 0.45 m, top at y = 0.75 m, height 0.75 m,
   rims rounded to :data:`TABLE_RIM_RADIUS` = 5 cm; ground at y = 0) with a weight in the middle (the vertices
   within 6 cm of the centre are pinned: 1 coarse vertex, the corresponding patch of fine ones). Wind blows
-  horizontally from a random direction; its mean speed index-dependent across [1, 5] m/s (jittered), ramps up over the first second, gusts +-30 % (periods 1.5-4 s),
-  its direction drifts by up to +-25 degrees over the sequence, and the turbulence RMS is 15-35 % of the speed.
+  horizontally from a random direction; its mean speed is index-dependent across [1, 5] m/s (jittered), ramps up
+  over the first second and gusts +-30 % (periods 1.5-4 s), its direction drifts by up to +-25 degrees over the
+  sequence, and the turbulence RMS is 15-35 % of the speed.
 
 Both resolutions use the same :class:`ClothParams` physics and the same obstacle / wind / pin tracks; only the
 iteration budget differs (:data:`COARSE_STEPS` = 10 x 2, :data:`FINE_STEPS` = 40 x 4 (substeps,

@@ -449,6 +449,16 @@ def face_samples_for(rest_vertices, faces, thickness: float, min_radius: float) 
     return n if n > 1 else 0
 
 
+def _coulomb(dx, n, bound, hit):
+    """Position-based Coulomb friction: the part of the tangential motion ``dx`` (relative to the surface, normal
+    ``n``) to remove at contacts ``hit``: all of it when its length is at most ``bound`` (static), else ``bound``
+    of it (kinetic); zero elsewhere."""
+    dxt = dx - jnp.sum(dx * n, -1, keepdims=True) * n
+    lt = jnp.sqrt(jnp.sum(dxt * dxt, -1))
+    scale = jnp.where(lt <= bound, 1.0, bound / jnp.maximum(lt, 1e-12))
+    return jnp.where(hit, scale, 0.0)[..., None] * dxt
+
+
 def _face_points(model: ClothModel, bary, p):
     """The sample points (F, S, 3) of every triangle at barycentric coordinates ``bary`` (S, 3)."""
     return jnp.einsum("sk,fkd->fsd", bary, p[model.faces])
@@ -498,12 +508,8 @@ def _collide_faces(model: ClothModel, params: ClothParams, w, obs_now: Obstacles
     depth = jnp.maximum(params.thickness - d, 0.0)
     c = depth[..., None] * n
     hit = (depth + prior_depth > 0) & (d < params.thickness + 1e-6)
-    dq = q + c - _face_points(model, bary, x_old) - disp
-    dqt = dq - jnp.sum(dq * n, -1, keepdims=True) * n
-    lt = jnp.sqrt(jnp.sum(dqt * dqt, -1))
-    lim = params.friction * (depth + prior_depth)
-    scale = jnp.where(hit, jnp.where(lt <= lim, 1.0, lim / jnp.maximum(lt, 1e-12)), 0.0)
-    return p + _spread(model, w, bary, c - scale[..., None] * dqt, hit | (depth > 0), p.shape[0])
+    stop = _coulomb(q + c - _face_points(model, bary, x_old) - disp, n, params.friction * (depth + prior_depth), hit)
+    return p + _spread(model, w, bary, c - stop, hit | (depth > 0), p.shape[0])
 
 
 def _collide(params: ClothParams, w, obs_now: Obstacles, obs_prev: Obstacles, x_old, p, prior_push):
@@ -513,12 +519,7 @@ def _collide(params: ClothParams, w, obs_now: Obstacles, obs_prev: Obstacles, x_
     depth = jnp.maximum(params.thickness - d, 0.0)
     hit = (w > 0) & (depth + prior_push > 0) & (d < params.thickness + 1e-6)
     p1 = p + jnp.where(w > 0, depth, 0.0)[:, None] * n
-    dx = p1 - x_old - disp
-    dxt = dx - jnp.sum(dx * n, -1, keepdims=True) * n
-    lt = jnp.sqrt(jnp.sum(dxt * dxt, -1))
-    lim = params.friction * (depth + prior_push)
-    scale = jnp.where(lt <= lim, 1.0, lim / jnp.maximum(lt, 1e-12))
-    return p1 - jnp.where(hit, scale, 0.0)[:, None] * dxt
+    return p1 - _coulomb(p1 - x_old - disp, n, params.friction * (depth + prior_push), hit)
 
 
 # ------------------------------------------------------------------------------------------------- stepping
