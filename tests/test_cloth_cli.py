@@ -243,6 +243,15 @@ def test_experiment_test_config_writes_summary(tmp_path):
     assert sc["rmse"] == pytest.approx(r["rmse"]["upsampled_coarse"], rel=1e-5)
     assert sc["coarse_scale_rmse"] ** 2 + sc["finer_rmse"] ** 2 == pytest.approx(sc["rmse"] ** 2, rel=1e-9)
     assert np.isfinite(r["evaluate"]["methods"]["linear_residual"]["train_rmse"])
+    sg = {g["train_sequences"]: g for g in r["scaling"]}  # every 4th / 2nd / every training sequence: 1 and 2 here
+    assert sorted(sg) == [1, 2]
+    full = sg[2]  # the whole training split: the linear stage's fit and the experiment's per-frame run again
+    assert full["upsampled_coarse"]["test"] == pytest.approx(r["rmse"]["upsampled_coarse"], rel=1e-6)
+    assert full["linear_residual"]["test"] == pytest.approx(r["rmse"]["linear_residual"], rel=1e-6)
+    assert full["linear_residual"]["train"] == pytest.approx(
+        r["evaluate"]["methods"]["linear_residual"]["train_rmse"], rel=1e-6)
+    assert full["no_temporal"]["test"] == pytest.approx(r["rmse"]["no_temporal"], rel=1e-4)
+    assert sg[1]["upsampled_coarse"]["test"] == full["upsampled_coarse"]["test"]
     fl = r["floor"]  # one test scenario re-simulated from a perturbed start: it moved, and only a little
     assert len(fl["sequences"]) == 1 and 0 < fl["perturbed_fine_rmse"] < 10 * fl["perturbation_m"]
     # it covers the whole test split here (one sequence), so its upsampled-coarse errors are the evaluation's

@@ -1,7 +1,7 @@
 """Seed 002 experiments: Tables 1, 2, 4 and 5 on generated SHEET and DISK data, and PNG strips.
 
     python -m experiments.cloth.run [--config default|test] [--out DIR] [--datasets sheet disk]
-                                    [--stages data train evaluate linear scale jumps timing floor figures]
+                                    [--stages data train evaluate linear scale scaling jumps timing floor figures]
                                     [--force]
 
 Stages (each dataset in turn; results merge into OUT/summary.json, markdown into OUT/results.md):
@@ -23,6 +23,9 @@ Stages (each dataset in turn; results merge into OUT/summary.json, markdown into
 - ``scale``: where the upsampled coarse cloth's error lies: the part that upsampled coarse offsets can express (the
   coarse and the fine simulation moving the cloth differently at the coarse mesh's scale) and the finer rest
   (wrinkles), over the test and the training sequences (``jaxdeform.cloth.evaluate.coarse_level_split``).
+- ``scaling``: does more data of the same kind help? The linear reference and the per-frame model
+  (``no_temporal``) are trained again on every 4th, every 2nd and every training sequence and scored on the
+  same test sequences, beside their error on the sequences they were trained on.
 - ``jumps``: frame-to-frame changes of the fine TS-ACAP and ACAP features over all sequences (largest,
   percentiles, fraction above pi).
 - ``timing``: Table 1: per frame, the coarse simulation, TS-ACAP extraction, synthesis, reconstruction and
@@ -73,6 +76,9 @@ METHODS = {  # name -> (model kind, representation, residual over the upsampled 
     "coords_self_fed": ("transformer", "coords", True, False, 0.0, 0.5),
 }
 
+
+#: the ``scaling`` stage trains on every k-th training sequence for each k here
+SCALING_EVERY = (4, 2, 1)
 
 #: RMS of the start perturbation (m) of the ``floor`` stage.
 FLOOR_PERTURBATION = 1e-4
@@ -223,6 +229,36 @@ def stage_scale(ds) -> dict:
     return out
 
 
+def stage_scaling(ds, s: Settings) -> list[dict]:
+    """The ``scaling`` stage (module docstring): per training subset, the linear reference's and the per-frame
+    model's RMSE on the test sequences and on the subset itself."""
+    ups = _upsampler(ds)
+    train, test = ds.subset("train"), ds.subset("test")
+    rows, seen = [], set()
+    for every in SCALING_EVERY:
+        part = train[::every]
+        if len(part) in seen:
+            continue
+        seen.add(len(part))
+        sub = dataclasses.replace(ds, split={"train": [x.name for x in part], "test": [x.name for x in test]})
+        ref = ceval.LinearResidual(ups, [x.coarse for x in part], [x.fine for x in part])
+        run = train_method(sub, "no_temporal", s, {}, progress=False)
+        row = {"every": every, "train_sequences": len(part),
+               "upsampled_coarse": {p: ceval.pooled_rmse((x.fine, ups(x.coarse)) for x in xs)
+                                    for p, xs in (("test", test), ("train", part))},
+               "linear_residual": {"test": ceval.pooled_rmse((x.fine, ref(x.coarse)) for x in test),
+                                   "train": ceval.pooled_rmse((x.fine, ref(x.coarse)) for x in part),
+                                   "ridge_lambda": ref.lam}}
+        row["no_temporal"] = {p: ceval.pool(method_errors(run, xs, ds.fine_faces))["rmse"]
+                              for p, xs in (("test", test), ("train", part))}
+        print(f"{ds.scenario} scaling, {len(part)} training sequences: linear {row['linear_residual']['test']:.5f} "
+              f"(train {row['linear_residual']['train']:.5f}), per-frame {row['no_temporal']['test']:.5f} "
+              f"(train {row['no_temporal']['train']:.5f}), upsampled coarse {row['upsampled_coarse']['test']:.5f}",
+              flush=True)
+        rows.append(row)
+    return rows
+
+
 def stage_jumps(ds) -> dict:
     """Frame-to-frame changes of the fine TS-ACAP and ACAP features over every sequence of the dataset."""
     return {kind: cfeat.frame_change_stats([cfeat.encode_sequence(kind, ds.fine_rest, ds.fine_faces, x.fine)
@@ -342,6 +378,13 @@ def markdown(summary: dict) -> str:
                              "share at the coarse scale"],
                             [[f"{part} sequences", f"{e['rmse']:.5f}", f"{e['coarse_scale_rmse']:.5f}",
                               f"{e['finer_rmse']:.5f}", f"{100 * e['coarse_scale_share']:.1f}%"] for part, e in sc.items()])
+        sg = r.get("scaling")
+        if sg:
+            lines += _table(["training sequences", "upsampled coarse: test / train RMSE (m)", "linear reference",
+                             "per-frame model"],
+                            [[str(g["train_sequences"])] + [f"{g[k]['test']:.5f} / {g[k]['train']:.5f}" for k in
+                                                            ("upsampled_coarse", "linear_residual", "no_temporal")]
+                             for g in sg])
         fl = r.get("floor")
         if fl:
             lines += [f"Fine simulation against itself from a start perturbed by {fl['perturbation_m'] * 1e3:.1f} mm: "
@@ -371,7 +414,7 @@ def _merge(path: Path, summary: dict, kind: str, r: dict) -> dict:
     return current
 
 
-STAGES = ("data", "train", "evaluate", "linear", "scale", "jumps", "timing", "floor", "figures")
+STAGES = ("data", "train", "evaluate", "linear", "scale", "scaling", "jumps", "timing", "floor", "figures")
 
 
 def main(argv=None) -> int:
@@ -410,6 +453,8 @@ def main(argv=None) -> int:
             stage_linear(ds, r)
         if "scale" in args.stages:
             r["scale"] = stage_scale(ds)
+        if "scaling" in args.stages:
+            r["scaling"] = stage_scaling(ds, s)
         if "jumps" in args.stages:
             r["jumps"] = stage_jumps(ds)
             r.get("evaluate", {}).pop("largest_frame_change_fine", None)
