@@ -245,7 +245,7 @@ def test_experiment_test_config_writes_summary(tmp_path):
     assert np.isfinite(r["evaluate"]["methods"]["linear_residual"]["train_rmse"])
     sg = {g["train_sequences"]: g for g in r["scaling"]}  # every 4th / 2nd / every training sequence: 1 and 2 here
     assert sorted(sg) == [1, 2]
-    full = sg[2]  # the whole training split: the linear stage's fit and the experiment's per-frame run again
+    full = sg[2]  # the whole training split: the linear stage's fit again and the experiment's per-frame run
     assert full["upsampled_coarse"]["test"] == pytest.approx(r["rmse"]["upsampled_coarse"], rel=1e-6)
     assert full["linear_residual"]["test"] == pytest.approx(r["rmse"]["linear_residual"], rel=1e-6)
     assert full["linear_residual"]["train"] == pytest.approx(

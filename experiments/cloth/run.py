@@ -24,8 +24,9 @@ Stages (each dataset in turn; results merge into OUT/summary.json, markdown into
   coarse and the fine simulation moving the cloth differently at the coarse mesh's scale) and the finer rest
   (wrinkles), over the test and the training sequences (``jaxdeform.cloth.evaluate.coarse_level_split``).
 - ``scaling``: does more data of the same kind help? The linear reference and the per-frame model
-  (``no_temporal``) are trained again on every 4th, every 2nd and every training sequence and scored on the
-  same test sequences, beside their error on the sequences they were trained on.
+  (``no_temporal``) are trained again on every 4th and every 2nd training sequence (on all of them: the
+  linear fit again, the ``train`` stage's stored per-frame run where there is one) and scored on the same test
+  sequences, beside their error on the sequences they were trained on.
 - ``jumps``: frame-to-frame changes of the fine TS-ACAP and ACAP features over all sequences (largest,
   percentiles, fraction above pi).
 - ``timing``: Table 1: per frame, the coarse simulation, TS-ACAP extraction, synthesis, reconstruction and
@@ -229,23 +230,29 @@ def stage_scale(ds) -> dict:
     return out
 
 
-def stage_scaling(ds, s: Settings) -> list[dict]:
+def stage_scaling(out: Path, ds, s: Settings) -> list[dict]:
     """The ``scaling`` stage (module docstring): per training subset, the linear reference's and the per-frame
-    model's RMSE on the test sequences and on the subset itself."""
+    model's RMSE on the test sequences and on the subset itself. On the whole training split the per-frame model
+    is the ``train`` stage's stored run when there is one (the same training)."""
     ups = _upsampler(ds)
     train, test = ds.subset("train"), ds.subset("test")
+    ups_test = ceval.pooled_rmse((x.fine, ups(x.coarse)) for x in test)
+    stored = out / "runs" / ds.scenario / "no_temporal"
     rows, seen = [], set()
     for every in SCALING_EVERY:
         part = train[::every]
         if len(part) in seen:
             continue
         seen.add(len(part))
-        sub = dataclasses.replace(ds, split={"train": [x.name for x in part], "test": [x.name for x in test]})
         ref = ceval.LinearResidual(ups, [x.coarse for x in part], [x.fine for x in part])
-        run = train_method(sub, "no_temporal", s, {}, progress=False)
+        if len(part) == len(train) and (stored / "run.json").is_file():
+            run = crun.load_run(stored)
+        else:
+            sub = dataclasses.replace(ds, split={"train": [x.name for x in part], "test": [x.name for x in test]})
+            run = train_method(sub, "no_temporal", s, {}, progress=False)
         row = {"every": every, "train_sequences": len(part),
-               "upsampled_coarse": {p: ceval.pooled_rmse((x.fine, ups(x.coarse)) for x in xs)
-                                    for p, xs in (("test", test), ("train", part))},
+               "upsampled_coarse": {"test": ups_test,
+                                    "train": ceval.pooled_rmse((x.fine, ups(x.coarse)) for x in part)},
                "linear_residual": {"test": ceval.pooled_rmse((x.fine, ref(x.coarse)) for x in test),
                                    "train": ceval.pooled_rmse((x.fine, ref(x.coarse)) for x in part),
                                    "ridge_lambda": ref.lam}}
@@ -454,7 +461,7 @@ def main(argv=None) -> int:
         if "scale" in args.stages:
             r["scale"] = stage_scale(ds)
         if "scaling" in args.stages:
-            r["scaling"] = stage_scaling(ds, s)
+            r["scaling"] = stage_scaling(out, ds, s)
         if "jumps" in args.stages:
             r["jumps"] = stage_jumps(ds)
             r.get("evaluate", {}).pop("largest_frame_change_fine", None)
