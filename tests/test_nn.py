@@ -369,14 +369,15 @@ def _block_losses(rings, shared: bool, kz: int):
 def test_native_fused_block_matches_pure_jax(dtype, shared, shapes):
     """The fused encoder and decoder calls (forward and adjoint) agree with the block built from the pure-JAX
     layers: values and the gradients of x and of every parameter (C, both convolutions), for three vmapped
-    blocks with their own or shared parameters. 400 vertices: several vertex tiles of 64, a partial last
-    one, and a split over threads where the machine has two or more cores. 5, 6 and 7 shapes per block: the
+    blocks with their own or shared parameters. 441 vertices: several vertex tiles of 64, a partial last
+    one of 57 (the kernels' vertex groups of 8 or 16: a partial last group either way), and a split over
+    threads where the machine has two or more cores. 5, 6 and 7 shapes per block: the
     kernels sum the rings of up to 4 shapes at once, then of the 1, 2 or 3 left over."""
     from jaxdeform.nn import native
 
     if not native.available():
         pytest.skip("native kernels unavailable here (no C++ compiler or not on CPU)")
-    n = 20
+    n = 21
     rings = rings_from_topology(build_topology(grid_faces(n), n * n))
     kz = 5
     keys = jax.random.split(jax.random.PRNGKey(0), 3)
@@ -394,6 +395,34 @@ def test_native_fused_block_matches_pure_jax(dtype, shared, shapes):
     for a, b in zip(jax.tree_util.tree_leaves(gn), jax.tree_util.tree_leaves(gr)):
         assert a.dtype == dtype and a.shape == b.shape
         np.testing.assert_allclose(a, b, rtol=tol, atol=tol * float(jnp.max(jnp.abs(b))))
+
+
+def test_native_fused_block_8_lane_build_matches_pure_jax():
+    """On an AVX-512 CPU the fused kernels run on groups of 16 vertices (float32); elsewhere, the AVX2 machines
+    included, on groups of 8. The 8-lane build (JAXDEFORM_NATIVE_CFLAGS=-mno-avx512f, its own cached library)
+    passes the same float32 comparisons with the pure-JAX blocks (plain and masked), in a fresh process."""
+    import os
+    import re
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from jaxdeform.nn import native
+
+    if not native.available():
+        pytest.skip("native kernels unavailable here (no C++ compiler or not on CPU)")
+    if " avx512f" not in native._cpu_tag():
+        pytest.skip("no AVX-512 here: the default build is the 8-lane one, tested above")
+    env = dict(os.environ, JAXDEFORM_NATIVE_CFLAGS="-mno-avx512f")
+    script = ("from jaxdeform.nn import native; assert native.available(); print(native.build().name)")
+    lib = subprocess.run([sys.executable, "-c", script], env=env, capture_output=True, text=True, timeout=600)
+    assert lib.returncode == 0, lib.stderr[-2000:]
+    assert lib.stdout.strip() != native.build().name  # another library than this process's
+    tests = "(test_native_fused_block_matches_pure_jax or test_masked_blocks_match_the_blocks) and float32"
+    proc = subprocess.run([sys.executable, "-m", "pytest", "-q", "-p", "no:cacheprovider", __file__, "-k", tests],
+                          env=env, capture_output=True, text=True, timeout=900, cwd=Path(__file__).parent.parent)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-2000:]
+    assert re.search(r"\b7 passed", proc.stdout), proc.stdout[-2000:]
 
 
 def test_native_fused_block_gradient_matches_finite_differences(grid):

@@ -599,36 +599,51 @@ ffi::Error BackwardDispatch(ffi::ThreadPool pool, ffi::AnyBuffer x, ffi::AnyBuff
 // Why: with one call per convolution, XLA still ran the tanh layers, the fully connected products with C and
 // their adjoints as separate passes over (G, P, V, 9) arrays (15 MB each on the horse split). Fused, the
 // products with C run over tiles of 64 vertices that stay in cache. Inside a tile the arithmetic runs on groups
-// of 8 vertices held channel by channel (Soa9: one 8-lane vector per channel), so a 9x9 channel mix is 81
-// full-width multiply-adds per 8 vertices, where the row layout of the convolution kernels above spends 18
-// vector and 18 scalar ones per vertex; the one-ring gathers stay on rows. tanh: float32, Eigen's 13/6 rational interpolant (a few ulp);
+// of kL vertices held channel by channel (Soa9: one kL-lane vector per channel; kL = 16 floats where the CPU
+// has AVX-512, else 8), so a 9x9 channel mix is 81 full-width multiply-adds per group, where the row layout of
+// the convolution kernels above spends 18 vector and 18 scalar ones per vertex; the one-ring gathers stay on
+// rows. On a 2-core Intel Xeon with AVX-512, 16 lanes instead of 8 took the horse training step from 70.7 to
+// 60.4 ms (medians of 8 alternated runs of 150 steps each). tanh: float32, Eigen's 13/6 rational interpolant (a few ulp);
 // float64, std::tanh. Work is split over vertex ranges, so the rows of dC a chunk writes are its own; the
 // reductions over vertices (z, dz, weight gradients) are summed per chunk (Plan), then in chunk order.
 
-constexpr int64_t kVertexTile = 64;  // a multiple of 8
+constexpr int64_t kVertexTile = 64;  // a multiple of 16
+
+// Vertices per group (lanes of one vector): 16 floats where the CPU has AVX-512 (one 512-bit register per
+// channel), else 8 (an AVX register of floats); 8 doubles.
+template <typename T>
+constexpr int64_t kL =
+#if defined(__AVX512F__)
+    std::is_same_v<T, float> ? 16 : 8;
+#else
+    8;
+#endif
+template <typename T>
+constexpr int64_t kG = kVertexTile / kL<T>;  // groups per tile
 
 template <typename T>
-struct Soa9 {  // 8 vertices x 9 channels, channel-major
-  typedef T V __attribute__((vector_size(8 * sizeof(T))));
+struct Soa9 {  // kL vertices x 9 channels, channel-major
+  static constexpr int L = static_cast<int>(kL<T>);
+  typedef T V __attribute__((vector_size(L * sizeof(T))));
   V c[9];
   static Soa9 Zero() {
     Soa9 r;
     for (auto& v : r.c) v = V{};
     return r;
   }
-  // n <= 8 rows of 9 channels at src (contiguous); the missing rows read as zero
+  // n <= L rows of 9 channels at src (contiguous); the missing rows read as zero
   static Soa9 FromRows(const T* src, int n) {
 #if defined(__AVX2__)
     if constexpr (std::is_same_v<T, float>) {
-      if (n == 8) return FromRows8(src);
+      if (n == L) return FromRowsFull(src);
     }
 #endif
-    alignas(64) T buf[9][8];
-    if (n == 8) {
-      for (int t = 0; t < 8; ++t)
+    alignas(64) T buf[9][L];
+    if (n == L) {
+      for (int t = 0; t < L; ++t)
         for (int ch = 0; ch < 9; ++ch) buf[ch][t] = src[t * 9 + ch];
     } else {
-      for (int t = 0; t < 8; ++t)
+      for (int t = 0; t < L; ++t)
         for (int ch = 0; ch < 9; ++ch) buf[ch][t] = t < n ? src[t * 9 + ch] : T(0);
     }
     Soa9 r;
@@ -638,64 +653,94 @@ struct Soa9 {  // 8 vertices x 9 channels, channel-major
   void ToRows(T* dst, int n) const {
 #if defined(__AVX2__)
     if constexpr (std::is_same_v<T, float>) {
-      if (n == 8) return ToRows8(dst);
+      if (n == L) return ToRowsFull(dst);
     }
 #endif
-    alignas(64) T buf[9][8];
+    alignas(64) T buf[9][L];
     for (int ch = 0; ch < 9; ++ch) std::memcpy(buf[ch], &c[ch], sizeof(V));
-    if (n == 8) {
-      for (int t = 0; t < 8; ++t)
-        for (int ch = 0; ch < 9; ++ch) dst[t * 9 + ch] = buf[ch][t];
-    } else {
-      for (int t = 0; t < n; ++t)
-        for (int ch = 0; ch < 9; ++ch) dst[t * 9 + ch] = buf[ch][t];
-    }
+    for (int t = 0; t < n; ++t)
+      for (int ch = 0; ch < 9; ++ch) dst[t * 9 + ch] = buf[ch][t];
   }
 
 #if defined(__AVX2__)
-  // float, 8 whole rows: channels 0-7 by an 8x8 register transpose of the rows' first 8 entries (unaligned
-  // loads at a stride of 9), channel 8 by one gather. The generic loops above go through a stack buffer with
-  // 72 scalar stores, and vector loads that the store buffer cannot forward: on the horse training split the
-  // two directions took 78 ns per group of 8 rows on a 2-core EPYC, these 19 ns, and a training step makes
-  // about 22 of them per group of 8 vertices per block and shape.
-  static void Transpose8(__m256& r0, __m256& r1, __m256& r2, __m256& r3, __m256& r4, __m256& r5, __m256& r6,
-                         __m256& r7) {
-    const __m256 t0 = _mm256_unpacklo_ps(r0, r1), t1 = _mm256_unpackhi_ps(r0, r1);
-    const __m256 t2 = _mm256_unpacklo_ps(r2, r3), t3 = _mm256_unpackhi_ps(r2, r3);
-    const __m256 t4 = _mm256_unpacklo_ps(r4, r5), t5 = _mm256_unpackhi_ps(r4, r5);
-    const __m256 t6 = _mm256_unpacklo_ps(r6, r7), t7 = _mm256_unpackhi_ps(r6, r7);
+  // float, whole groups: channels 0-7 of each 8 rows by an 8x8 register transpose of the rows' first 8 entries
+  // (unaligned loads at a stride of 9), channel 8 by one gather. The generic loops above go through a stack
+  // buffer with 9 L scalar stores, and vector loads that the store buffer cannot forward: on the horse training
+  // split the two directions took 78 ns per group of 8 rows on a 2-core EPYC, these 19 ns, and a training step
+  // makes about 22 of them per group of vertices per block and shape.
+  static void Transpose8(__m256* r) {
+    const __m256 t0 = _mm256_unpacklo_ps(r[0], r[1]), t1 = _mm256_unpackhi_ps(r[0], r[1]);
+    const __m256 t2 = _mm256_unpacklo_ps(r[2], r[3]), t3 = _mm256_unpackhi_ps(r[2], r[3]);
+    const __m256 t4 = _mm256_unpacklo_ps(r[4], r[5]), t5 = _mm256_unpackhi_ps(r[4], r[5]);
+    const __m256 t6 = _mm256_unpacklo_ps(r[6], r[7]), t7 = _mm256_unpackhi_ps(r[6], r[7]);
     const __m256 u0 = _mm256_shuffle_ps(t0, t2, 0x44), u1 = _mm256_shuffle_ps(t0, t2, 0xEE);
     const __m256 u2 = _mm256_shuffle_ps(t1, t3, 0x44), u3 = _mm256_shuffle_ps(t1, t3, 0xEE);
     const __m256 u4 = _mm256_shuffle_ps(t4, t6, 0x44), u5 = _mm256_shuffle_ps(t4, t6, 0xEE);
     const __m256 u6 = _mm256_shuffle_ps(t5, t7, 0x44), u7 = _mm256_shuffle_ps(t5, t7, 0xEE);
-    r0 = _mm256_permute2f128_ps(u0, u4, 0x20);
-    r1 = _mm256_permute2f128_ps(u1, u5, 0x20);
-    r2 = _mm256_permute2f128_ps(u2, u6, 0x20);
-    r3 = _mm256_permute2f128_ps(u3, u7, 0x20);
-    r4 = _mm256_permute2f128_ps(u0, u4, 0x31);
-    r5 = _mm256_permute2f128_ps(u1, u5, 0x31);
-    r6 = _mm256_permute2f128_ps(u2, u6, 0x31);
-    r7 = _mm256_permute2f128_ps(u3, u7, 0x31);
+    r[0] = _mm256_permute2f128_ps(u0, u4, 0x20);
+    r[1] = _mm256_permute2f128_ps(u1, u5, 0x20);
+    r[2] = _mm256_permute2f128_ps(u2, u6, 0x20);
+    r[3] = _mm256_permute2f128_ps(u3, u7, 0x20);
+    r[4] = _mm256_permute2f128_ps(u0, u4, 0x31);
+    r[5] = _mm256_permute2f128_ps(u1, u5, 0x31);
+    r[6] = _mm256_permute2f128_ps(u2, u6, 0x31);
+    r[7] = _mm256_permute2f128_ps(u3, u7, 0x31);
   }
-  static Soa9 FromRows8(const T* src) {
-    __m256 a[8];
+  // channels 0-7 of 8 rows at src, channel-major
+  static void Load8(const T* src, __m256* a) {
     for (int t = 0; t < 8; ++t) a[t] = _mm256_loadu_ps(src + 9 * t);
-    Transpose8(a[0], a[1], a[2], a[3], a[4], a[5], a[6], a[7]);
-    Soa9 r;
-    for (int ch = 0; ch < 8; ++ch) r.c[ch] = reinterpret_cast<const V&>(a[ch]);
-    const __m256 last = _mm256_i32gather_ps(src + 8, _mm256_setr_epi32(0, 9, 18, 27, 36, 45, 54, 63), 4);
-    r.c[8] = reinterpret_cast<const V&>(last);
-    return r;
+    Transpose8(a);
   }
-  void ToRows8(T* dst) const {
-    __m256 a[8];
-    for (int ch = 0; ch < 8; ++ch) a[ch] = reinterpret_cast<const __m256&>(c[ch]);
-    Transpose8(a[0], a[1], a[2], a[3], a[4], a[5], a[6], a[7]);
-    alignas(32) T last[8];
-    std::memcpy(last, &c[8], sizeof(V));
+  // channels 0-7 (a, channel-major; transposed in place) and channel 8 (last) of 8 rows to dst
+  static void Store8(__m256* a, const T* last, T* dst) {
+    Transpose8(a);
     for (int t = 0; t < 8; ++t) {  // row t's 8-wide store ends where row t + 1 begins: rows in order
       _mm256_storeu_ps(dst + 9 * t, a[t]);
       dst[9 * t + 8] = last[t];
+    }
+  }
+  static Soa9 FromRowsFull(const T* src) {
+    Soa9 r;
+    if constexpr (L == 8) {
+      __m256 a[8];
+      Load8(src, a);
+      for (int ch = 0; ch < 8; ++ch) r.c[ch] = reinterpret_cast<const V&>(a[ch]);
+      const __m256 last = _mm256_i32gather_ps(src + 8, _mm256_setr_epi32(0, 9, 18, 27, 36, 45, 54, 63), 4);
+      r.c[8] = reinterpret_cast<const V&>(last);
+    } else {
+#if defined(__AVX512F__)
+      __m256 lo[8], hi[8];
+      Load8(src, lo);
+      Load8(src + 72, hi);
+      for (int ch = 0; ch < 8; ++ch) {
+        const __m512 v = _mm512_insertf32x8(_mm512_castps256_ps512(lo[ch]), hi[ch], 1);
+        r.c[ch] = reinterpret_cast<const V&>(v);
+      }
+      const __m512i idx = _mm512_setr_epi32(0, 9, 18, 27, 36, 45, 54, 63, 72, 81, 90, 99, 108, 117, 126, 135);
+      const __m512 last = _mm512_i32gather_ps(idx, src + 8, 4);
+      r.c[8] = reinterpret_cast<const V&>(last);
+#endif
+    }
+    return r;
+  }
+  void ToRowsFull(T* dst) const {
+    alignas(64) T last[L];
+    std::memcpy(last, &c[8], sizeof(V));
+    if constexpr (L == 8) {
+      __m256 a[8];
+      for (int ch = 0; ch < 8; ++ch) a[ch] = reinterpret_cast<const __m256&>(c[ch]);
+      Store8(a, last, dst);
+    } else {
+#if defined(__AVX512F__)
+      __m256 lo[8], hi[8];
+      for (int ch = 0; ch < 8; ++ch) {
+        const __m512 v = reinterpret_cast<const __m512&>(c[ch]);
+        lo[ch] = _mm512_castps512_ps256(v);
+        hi[ch] = _mm512_extractf32x8_ps(v, 1);
+      }
+      Store8(lo, last, dst);
+      Store8(hi, last + 8, dst + 72);
+#endif
     }
   }
 #endif
@@ -720,7 +765,7 @@ typename Soa9<T>::V TanhV(typename Soa9<T>::V x) {
     q = x2 * q + 4.89352518554385e-03f;
     return x * p / q;
   } else {
-    for (int t = 0; t < 8; ++t) x[t] = std::tanh(x[t]);
+    for (int t = 0; t < Soa9<T>::L; ++t) x[t] = std::tanh(x[t]);
     return x;
   }
 }
@@ -733,7 +778,7 @@ void TanhSoa(Soa9<T>& a) {
 template <typename T>
 T HSum(typename Soa9<T>::V v) {
   T s = 0;
-  for (int t = 0; t < 8; ++t) s += v[t];
+  for (int t = 0; t < Soa9<T>::L; ++t) s += v[t];
   return s;
 }
 
@@ -840,7 +885,7 @@ void TileWeightedRingMeans(const T* base, int64_t P, int64_t pstride, const int3
   TileRingsPlanesT<T, true, true>(base, P, pstride, nbr, count, w, inv, K, i0, nt, buf);
 }
 
-// a[row t] *= w[t] for the n rows of a group of 8 (w: n entries; lanes past n are zero in a)
+// a[row t] *= w[t] for the n rows of a group (w: n entries; lanes past n are zero in a)
 template <typename T>
 void ScaleRows(Soa9<T>& a, const T* w, int n) {
   typename Soa9<T>::V s{};
@@ -851,7 +896,7 @@ void ScaleRows(Soa9<T>& a, const T* w, int n) {
 // Per chunk weight-gradient partial sums: gWp (81) | gWn (81) | gb (9) per output group.
 constexpr int64_t kWeightStride = 2 * 81 + 9;  // ReduceWeightGrads' stride for 9 channels
 
-// 8-lane accumulators of a^T d, a^T sg and d (gWp, gWn, gb of one group; sg: the adjoint ring sums of d, see
+// kL-lane accumulators of a^T d, a^T sg and d (gWp, gWn, gb of one group; sg: the adjoint ring sums of d, see
 // ConvAdjointRows), summed over lanes at the end
 template <typename T>
 struct WeightGrads {
@@ -877,26 +922,26 @@ std::unique_ptr<T[]> Scratch(int64_t n) {
   return std::unique_ptr<T[]>(new T[static_cast<size_t>(std::max<int64_t>(n, 1))]);
 }
 
-// The tile's rows of C (Kz of them, from vertex i0, nt vertices) as groups of 8: out[k * 8 + j]
+// The tile's rows of C (Kz of them, from vertex i0, nt vertices) as groups of kL: out[k * kG<T> + j]
 template <typename T>
 void TileC(const T* cg, int64_t Kz, int64_t V, int64_t i0, int64_t nt, Soa9<T>* out) {
   for (int64_t k = 0; k < Kz; ++k)
-    for (int64_t j = 0; j * 8 < nt; ++j)
-      out[k * 8 + j] = Soa9<T>::FromRows(cg + (k * V + i0 + 8 * j) * 9, static_cast<int>(std::min<int64_t>(8, nt - 8 * j)));
+    for (int64_t j = 0; j * kL<T> < nt; ++j)
+      out[k * kG<T> + j] = Soa9<T>::FromRows(cg + (k * V + i0 + kL<T> * j) * 9, static_cast<int>(std::min<int64_t>(kL<T>, nt - kL<T> * j)));
 }
 
 // Writes (first) or adds the tile's dC groups into dC's rows
 template <typename T>
 void FlushTileC(const Soa9<T>* d, int64_t Kz, int64_t V, int64_t i0, int64_t nt, bool first, T* dcg) {
   for (int64_t k = 0; k < Kz; ++k)
-    for (int64_t j = 0; j * 8 < nt; ++j) {
-      const int n = static_cast<int>(std::min<int64_t>(8, nt - 8 * j));
-      T* dst = dcg + (k * V + i0 + 8 * j) * 9;
+    for (int64_t j = 0; j * kL<T> < nt; ++j) {
+      const int n = static_cast<int>(std::min<int64_t>(kL<T>, nt - kL<T> * j));
+      T* dst = dcg + (k * V + i0 + kL<T> * j) * 9;
       if (first) {
-        d[k * 8 + j].ToRows(dst, n);
+        d[k * kG<T> + j].ToRows(dst, n);
       } else {
         Soa9<T> s = Soa9<T>::FromRows(dst, n);
-        for (int ch = 0; ch < 9; ++ch) s.c[ch] += d[k * 8 + j].c[ch];
+        for (int ch = 0; ch < 9; ++ch) s.c[ch] += d[k * kG<T> + j].c[ch];
         s.ToRows(dst, n);
       }
     }
@@ -907,14 +952,14 @@ void FlushTileC(const Soa9<T>* d, int64_t Kz, int64_t V, int64_t i0, int64_t nt,
 template <typename T>
 void EncoderForward(const AeGeometry& s, const T* x, Masked<T> mask, const int32_t* nbr, const int32_t* count,
                     const T* inv, const T* wp, const T* wn, const T* b, const T* c, T* z, T* hidden) {
-  typedef typename Soa9<T>::V V8;
+  typedef typename Soa9<T>::V Vec;
   const int64_t Kz = s.Kz, V = s.V, P = s.P;
   const Plan plan = PlanVertices(V, s.G * P * (s.K + 10 + Kz) * 9);
   std::vector<T> part(static_cast<size_t>(plan.chunks * s.G * P * Kz), T(0));
   RunPlan(plan, V, [&](int64_t t, int64_t v0, int64_t v1) {
     T* zp = part.data() + t * s.G * P * Kz;
-    std::vector<Soa9<T>> cs(static_cast<size_t>(Kz * 8));
-    std::vector<V8> acc(static_cast<size_t>(Kz));
+    std::vector<Soa9<T>> cs(static_cast<size_t>(Kz * kG<T>));
+    std::vector<Vec> acc(static_cast<size_t>(Kz));
     std::vector<T> rms(static_cast<size_t>(P * kVertexTile * 9));
     ConvW<T> w;
     for (int64_t g = 0; g < s.G; ++g) {
@@ -931,19 +976,19 @@ void EncoderForward(const AeGeometry& s, const T* x, Masked<T> mask, const int32
         for (int64_t p = 0; p < P; ++p) {
           const T* plane = x + (s.in[g] * P + p) * V * 9;
           const T* rm = rms.data() + p * kVertexTile * 9;
-          for (auto& a : acc) a = V8{};
-          for (int64_t j = 0; j * 8 < nt; ++j) {
-            const int n = static_cast<int>(std::min<int64_t>(8, nt - 8 * j));
+          for (auto& a : acc) a = Vec{};
+          for (int64_t j = 0; j * kL<T> < nt; ++j) {
+            const int n = static_cast<int>(std::min<int64_t>(kL<T>, nt - kL<T> * j));
             Soa9<T> h = w.Bias();
-            Soa9<T> xr = Soa9<T>::FromRows(plane + (i0 + 8 * j) * 9, n);
-            if (amg != nullptr) ScaleRows(xr, amg + i0 + 8 * j, n);
+            Soa9<T> xr = Soa9<T>::FromRows(plane + (i0 + kL<T> * j) * 9, n);
+            if (amg != nullptr) ScaleRows(xr, amg + i0 + kL<T> * j, n);
             MixAdd(h, xr, w.p);
-            MixAdd(h, Soa9<T>::FromRows(rm + 8 * j * 9, n), w.n);
+            MixAdd(h, Soa9<T>::FromRows(rm + kL<T> * j * 9, n), w.n);
             TanhSoa(h);
-            if (hidden != nullptr) h.ToRows(hidden + ((g * P + p) * V + i0 + 8 * j) * 9, n);
+            if (hidden != nullptr) h.ToRows(hidden + ((g * P + p) * V + i0 + kL<T> * j) * 9, n);
             for (int64_t k = 0; k < Kz; ++k) {
-              const Soa9<T>& ck = cs[k * 8 + j];  // zero in the missing rows
-              V8 a = acc[k];
+              const Soa9<T>& ck = cs[k * kG<T> + j];  // zero in the missing rows
+              Vec a = acc[k];
               for (int ch = 0; ch < 9; ++ch) a += ck.c[ch] * h.c[ch];
               acc[k] = a;
             }
@@ -991,27 +1036,27 @@ void ConvAdjointRows(const AeGeometry& s, const T* d, const T* a, Masked<T> mask
           const T* sg = sgs.data() + p * kVertexTile * 9;
           const T* xhp = xh != nullptr ? xh + (g * s.P + p) * s.V * 9 : nullptr;
           const T m2d = derr != nullptr ? T(-2) * derr[g * s.P + p] : T(0);
-          for (int64_t j = 0; j * 8 < nt; ++j) {
-            const int n = static_cast<int>(std::min<int64_t>(8, nt - 8 * j));
-            const Soa9<T> ds = Soa9<T>::FromRows(dp + (i0 + 8 * j) * 9, n);
-            const Soa9<T> ss = Soa9<T>::FromRows(sg + 8 * j * 9, n);
-            Soa9<T> ar = Soa9<T>::FromRows(ap + (i0 + 8 * j) * 9, n);
-            if (amg != nullptr) ScaleRows(ar, amg + i0 + 8 * j, n);
+          for (int64_t j = 0; j * kL<T> < nt; ++j) {
+            const int n = static_cast<int>(std::min<int64_t>(kL<T>, nt - kL<T> * j));
+            const Soa9<T> ds = Soa9<T>::FromRows(dp + (i0 + kL<T> * j) * 9, n);
+            const Soa9<T> ss = Soa9<T>::FromRows(sg + kL<T> * j * 9, n);
+            Soa9<T> ar = Soa9<T>::FromRows(ap + (i0 + kL<T> * j) * 9, n);
+            if (amg != nullptr) ScaleRows(ar, amg + i0 + kL<T> * j, n);
             Soa9<T> r = Soa9<T>::Zero();
             MixAdd(r, ds, w.p);
             MixAdd(r, ss, w.n);
             if (amg != nullptr) {
               if (xhp != nullptr) {
-                const Soa9<T> xr = Soa9<T>::FromRows(xhp + (i0 + 8 * j) * 9, n);
+                const Soa9<T> xr = Soa9<T>::FromRows(xhp + (i0 + kL<T> * j) * 9, n);
                 for (int ch = 0; ch < 9; ++ch) r.c[ch] += m2d * (xr.c[ch] - ar.c[ch]);
               }
-              ScaleRows(r, amg + i0 + 8 * j, n);
+              ScaleRows(r, amg + i0 + kL<T> * j, n);
               if (!first) {
-                const Soa9<T> prev = Soa9<T>::FromRows(o + (i0 + 8 * j) * 9, n);
+                const Soa9<T> prev = Soa9<T>::FromRows(o + (i0 + kL<T> * j) * 9, n);
                 for (int ch = 0; ch < 9; ++ch) r.c[ch] += prev.c[ch];
               }
             }
-            r.ToRows(o + (i0 + 8 * j) * 9, n);
+            r.ToRows(o + (i0 + kL<T> * j) * 9, n);
             wg->Add(ar, ss, ds);
           }
         }
@@ -1030,7 +1075,7 @@ void EncoderBackward(const AeGeometry& s, int64_t weight_groups, int64_t c_group
   const int64_t Kz = s.Kz, V = s.V, P = s.P;
   auto dpre = Scratch<T>(s.G * P * V * 9);  // cotangent of the conv's pre-activation
   RunPlan(PlanVertices(V, s.G * P * (10 + 2 * Kz) * 9), V, [&](int64_t, int64_t v0, int64_t v1) {
-    std::vector<Soa9<T>> cs(static_cast<size_t>(Kz * 8)), dcs(static_cast<size_t>(Kz * 8));
+    std::vector<Soa9<T>> cs(static_cast<size_t>(Kz * kG<T>)), dcs(static_cast<size_t>(Kz * kG<T>));
     for (int64_t g = 0; g < s.G; ++g) {
       const T* cg = c + s.c[g] * Kz * V * 9;
       T* dcg = dc + (c_groups == 1 ? 0 : g) * Kz * V * 9;
@@ -1042,21 +1087,21 @@ void EncoderBackward(const AeGeometry& s, int64_t weight_groups, int64_t c_group
           const int64_t plane = (g * P + p) * V * 9;
           const T* hp = hidden + (s.aux[g] * P + p) * V * 9;
           const T* dzp = dz + (s.cot[g] * P + p) * Kz;
-          for (int64_t j = 0; j * 8 < nt; ++j) {
-            const int n = static_cast<int>(std::min<int64_t>(8, nt - 8 * j));
-            const Soa9<T> h = Soa9<T>::FromRows(hp + (i0 + 8 * j) * 9, n);
+          for (int64_t j = 0; j * kL<T> < nt; ++j) {
+            const int n = static_cast<int>(std::min<int64_t>(kL<T>, nt - kL<T> * j));
+            const Soa9<T> h = Soa9<T>::FromRows(hp + (i0 + kL<T> * j) * 9, n);
             Soa9<T> d = Soa9<T>::Zero();  // cotangent of h, then of the pre-activation
             for (int64_t k = 0; k < Kz; ++k) {
               const T a = dzp[k];
-              const Soa9<T>& ck = cs[k * 8 + j];
-              Soa9<T>& dk = dcs[k * 8 + j];
+              const Soa9<T>& ck = cs[k * kG<T> + j];
+              Soa9<T>& dk = dcs[k * kG<T> + j];
               for (int ch = 0; ch < 9; ++ch) {
                 d.c[ch] += a * ck.c[ch];
                 dk.c[ch] += a * h.c[ch];
               }
             }
             for (int ch = 0; ch < 9; ++ch) d.c[ch] -= d.c[ch] * h.c[ch] * h.c[ch];
-            d.ToRows(dpre.get() + plane + (i0 + 8 * j) * 9, n);
+            d.ToRows(dpre.get() + plane + (i0 + kL<T> * j) * 9, n);
           }
         }
         FlushTileC(dcs.data(), Kz, V, i0, nt, c_groups != 1 || g == 0, dcg);
@@ -1074,7 +1119,7 @@ void EncoderBackward(const AeGeometry& s, int64_t weight_groups, int64_t c_group
 template <typename T>
 void DecoderHidden(const AeGeometry& s, const T* z, const T* c, T* S, int64_t v0, int64_t v1) {
   const int64_t Kz = s.Kz, V = s.V, P = s.P;
-  std::vector<Soa9<T>> cs(static_cast<size_t>(Kz * 8));
+  std::vector<Soa9<T>> cs(static_cast<size_t>(Kz * kG<T>));
   for (int64_t g = 0; g < s.G; ++g) {
     const T* cg = c + s.c[g] * Kz * V * 9;
     for (int64_t i0 = v0; i0 < v1; i0 += kVertexTile) {
@@ -1083,12 +1128,12 @@ void DecoderHidden(const AeGeometry& s, const T* z, const T* c, T* S, int64_t v0
       for (int64_t p = 0; p < P; ++p) {
         const T* zp = z + (s.in[g] * P + p) * Kz;
         T* out = S + (g * P + p) * V * 9;
-        for (int64_t j = 0; j * 8 < nt; ++j) {
+        for (int64_t j = 0; j * kL<T> < nt; ++j) {
           Soa9<T> a = Soa9<T>::Zero();
           for (int64_t k = 0; k < Kz; ++k)
-            for (int ch = 0; ch < 9; ++ch) a.c[ch] += zp[k] * cs[k * 8 + j].c[ch];
+            for (int ch = 0; ch < 9; ++ch) a.c[ch] += zp[k] * cs[k * kG<T> + j].c[ch];
           TanhSoa(a);
-          a.ToRows(out + (i0 + 8 * j) * 9, static_cast<int>(std::min<int64_t>(8, nt - 8 * j)));
+          a.ToRows(out + (i0 + kL<T> * j) * 9, static_cast<int>(std::min<int64_t>(kL<T>, nt - kL<T> * j)));
         }
       }
     }
@@ -1102,7 +1147,7 @@ template <typename T>
 void DecoderForward(const AeGeometry& s, const T* z, const int32_t* nbr, const int32_t* count, const T* inv,
                     const T* wp, const T* wn, const T* b, const T* c, const T* target, Masked<T> mask, T* xh,
                     T* S, T* err) {
-  typedef typename Soa9<T>::V V8;
+  typedef typename Soa9<T>::V Vec;
   const int64_t V = s.V, P = s.P;
   RunPlan(PlanVertices(V, s.G * P * (s.Kz + 10) * 9), V, [&](int64_t, int64_t v0, int64_t v1) {
     DecoderHidden(s, z, c, S, v0, v1);
@@ -1122,23 +1167,23 @@ void DecoderForward(const AeGeometry& s, const T* z, const int32_t* nbr, const i
           const T* plane = S + (g * P + p) * V * 9;
           T* out = xh + (g * P + p) * V * 9;
           const T* rm = rms.data() + p * kVertexTile * 9;
-          V8 sq{};
-          for (int64_t j = 0; j * 8 < nt; ++j) {
-            const int n = static_cast<int>(std::min<int64_t>(8, nt - 8 * j));
+          Vec sq{};
+          for (int64_t j = 0; j * kL<T> < nt; ++j) {
+            const int n = static_cast<int>(std::min<int64_t>(kL<T>, nt - kL<T> * j));
             Soa9<T> h = w.Bias();
-            MixAdd(h, Soa9<T>::FromRows(plane + (i0 + 8 * j) * 9, n), w.p);
-            MixAdd(h, Soa9<T>::FromRows(rm + 8 * j * 9, n), w.n);
+            MixAdd(h, Soa9<T>::FromRows(plane + (i0 + kL<T> * j) * 9, n), w.p);
+            MixAdd(h, Soa9<T>::FromRows(rm + kL<T> * j * 9, n), w.n);
             TanhSoa(h);
-            h.ToRows(out + (i0 + 8 * j) * 9, n);
+            h.ToRows(out + (i0 + kL<T> * j) * 9, n);
             if (target != nullptr) {
-              Soa9<T> t = Soa9<T>::FromRows(target + ((s.tgt[g] * P + p) * V + i0 + 8 * j) * 9, n);
-              if (amg != nullptr) ScaleRows(t, amg + i0 + 8 * j, n);
-              V8 e{};
+              Soa9<T> t = Soa9<T>::FromRows(target + ((s.tgt[g] * P + p) * V + i0 + kL<T> * j) * 9, n);
+              if (amg != nullptr) ScaleRows(t, amg + i0 + kL<T> * j, n);
+              Vec e{};
               for (int ch = 0; ch < 9; ++ch) {
-                const V8 d = h.c[ch] - t.c[ch];
+                const Vec d = h.c[ch] - t.c[ch];
                 e += d * d;
               }
-              for (int lane = n; lane < 8; ++lane) e[lane] = T(0);  // rows past the end (x_hat there: tanh(b))
+              for (int lane = n; lane < kL<T>; ++lane) e[lane] = T(0);  // rows past the end (x_hat there: tanh(b))
               sq += e;
             }
           }
@@ -1157,15 +1202,15 @@ template <typename T>
 void DecoderBackward(const AeGeometry& s, int64_t weight_groups, int64_t c_groups, const T* z, const T* S,
                      const T* dpre, const int32_t* nbr, const int32_t* count, const T* inv, const T* wp,
                      const T* wn, const T* c, T* dz, T* gwp, T* gwn, T* gb, T* dc) {
-  typedef typename Soa9<T>::V V8;
+  typedef typename Soa9<T>::V Vec;
   const int64_t Kz = s.Kz, V = s.V, P = s.P;
   const Plan plan = PlanVertices(V, s.G * P * (s.K + 40 + 2 * Kz) * 9);
   std::vector<T> acc(static_cast<size_t>(plan.chunks * weight_groups * kWeightStride), T(0));
   std::vector<T> part(static_cast<size_t>(plan.chunks * s.G * P * Kz), T(0));
   RunPlan(plan, V, [&](int64_t t, int64_t v0, int64_t v1) {
     ConvW<T> w;
-    std::vector<Soa9<T>> cs(static_cast<size_t>(Kz * 8)), dcs(static_cast<size_t>(Kz * 8));
-    std::vector<V8> dza(static_cast<size_t>(Kz));
+    std::vector<Soa9<T>> cs(static_cast<size_t>(Kz * kG<T>)), dcs(static_cast<size_t>(Kz * kG<T>));
+    std::vector<Vec> dza(static_cast<size_t>(Kz));
     std::vector<T> sgs(static_cast<size_t>(P * kVertexTile * 9));
     auto wg = std::make_unique<WeightGrads<T>>();
     T* zpart = part.data() + t * s.G * P * Kz;
@@ -1184,21 +1229,21 @@ void DecoderBackward(const AeGeometry& s, int64_t weight_groups, int64_t c_group
           const T* dp = dpre + (s.cot[g] * P + p) * V * 9;
           const T* zp = z + (s.in[g] * P + p) * Kz;
           const T* sg = sgs.data() + p * kVertexTile * 9;
-          for (auto& a : dza) a = V8{};
-          for (int64_t j = 0; j * 8 < nt; ++j) {
-            const int n = static_cast<int>(std::min<int64_t>(8, nt - 8 * j));
-            const Soa9<T> dd = Soa9<T>::FromRows(dp + (i0 + 8 * j) * 9, n);
-            const Soa9<T> ss = Soa9<T>::FromRows(sp + (i0 + 8 * j) * 9, n);
-            const Soa9<T> gs = Soa9<T>::FromRows(sg + 8 * j * 9, n);
+          for (auto& a : dza) a = Vec{};
+          for (int64_t j = 0; j * kL<T> < nt; ++j) {
+            const int n = static_cast<int>(std::min<int64_t>(kL<T>, nt - kL<T> * j));
+            const Soa9<T> dd = Soa9<T>::FromRows(dp + (i0 + kL<T> * j) * 9, n);
+            const Soa9<T> ss = Soa9<T>::FromRows(sp + (i0 + kL<T> * j) * 9, n);
+            const Soa9<T> gs = Soa9<T>::FromRows(sg + kL<T> * j * 9, n);
             Soa9<T> da = Soa9<T>::Zero();  // cotangent of S, then of (z C)
             MixAdd(da, dd, w.p);
             MixAdd(da, gs, w.n);
             for (int ch = 0; ch < 9; ++ch) da.c[ch] -= da.c[ch] * ss.c[ch] * ss.c[ch];
             for (int64_t k = 0; k < Kz; ++k) {
               const T a = zp[k];
-              const Soa9<T>& ck = cs[k * 8 + j];
-              Soa9<T>& dk = dcs[k * 8 + j];
-              V8 u = dza[k];
+              const Soa9<T>& ck = cs[k * kG<T> + j];
+              Soa9<T>& dk = dcs[k * kG<T> + j];
+              Vec u = dza[k];
               for (int ch = 0; ch < 9; ++ch) {
                 u += ck.c[ch] * da.c[ch];
                 dk.c[ch] += a * da.c[ch];

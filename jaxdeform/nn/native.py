@@ -11,7 +11,9 @@ fusion, and the kernel reads each 9-channel row once per use.
 
 The kernels are compiled on first use with the system C++ compiler against jaxlib's own FFI headers
 (``jax.ffi.include_dir()``) and cached under ``$XDG_CACHE_HOME/jaxdeform`` (default ``~/.cache/jaxdeform``),
-keyed by a hash of the source, the jaxlib version and the CPU. Where no compiler is found, the build fails,
+keyed by a hash of the source, the jaxlib version, the CPU and ``JAXDEFORM_NATIVE_CFLAGS`` (extra compiler
+flags, appended after ``-O3 -march=native``: ``-mno-avx512f`` builds the 8-lane AVX2 code on an AVX-512 CPU,
+which the tests use to check both). Where no compiler is found, the build fails,
 the default backend is not the CPU, or ``JAXDEFORM_NATIVE=0`` is set, :func:`available` is False and
 :mod:`jaxdeform.nn.graph_conv` uses its pure-JAX definition (same results, slower on CPU).
 
@@ -31,6 +33,7 @@ import ctypes
 import hashlib
 import os
 import platform
+import shlex
 import shutil
 import subprocess
 import tempfile
@@ -80,7 +83,9 @@ def build() -> Path:
     """Compile the kernels (once per source, jaxlib and CPU; cached) and return the shared library's path."""
     import jaxlib
 
-    tag = hashlib.sha256(_SOURCE.read_bytes() + jaxlib.__version__.encode() + _cpu_tag().encode()).hexdigest()[:16]
+    extra = shlex.split(os.environ.get("JAXDEFORM_NATIVE_CFLAGS", ""))
+    key = _SOURCE.read_bytes() + jaxlib.__version__.encode() + _cpu_tag().encode() + " ".join(extra).encode()
+    tag = hashlib.sha256(key).hexdigest()[:16]
     out = _cache_dir() / f"mesh_conv-{tag}.so"
     if out.is_file():
         return out
@@ -91,7 +96,7 @@ def build() -> Path:
     fd, tmp = tempfile.mkstemp(suffix=".so", dir=out.parent)
     os.close(fd)
     cmd = [cxx, "-O3", "-march=native", "-std=c++17", "-shared", "-fPIC", "-pthread",
-           f"-I{jax.ffi.include_dir()}", str(_SOURCE), "-o", tmp]
+           *extra, f"-I{jax.ffi.include_dir()}", str(_SOURCE), "-o", tmp]
     try:
         proc = subprocess.run(cmd, capture_output=True, text=True)
         if proc.returncode != 0:
