@@ -6,7 +6,8 @@ For each configuration (multiscale default Kz = [10, 5]; multiscale one level; T
 the training split of ``--data`` (every 10th shape): the first call of the jitted step (``compile_s``:
 compilation plus one step) and ``--repeats`` further steps, each blocked; ms per step (= per epoch: the horse
 split of 5 shapes fits one batch) as median and min, and the projected time of the configuration's full
-training (``epochs`` x median); with ``--breakdown``, the parts of each multiscale step timed alone
+training (``epochs`` x median); with ``--loop N``, N more steps dispatched back to back without blocking, as the training
+loop runs them (wall and process CPU ms per step); with ``--breakdown``, the parts of each multiscale step timed alone
 (:func:`breakdown`). The JSON is written atomically. Not a test: tests/test_benchmarks_smoke.py
 only runs it once on a tiny sequence so it cannot rot.
 """
@@ -57,7 +58,7 @@ def _timed(call, args, repeats: int) -> tuple[float, list[float], tuple]:
     return compile_s, times, out
 
 
-def time_step(x, rings, dist, cfg: model.Config, tc: train.TrainConfig, repeats: int) -> dict:
+def time_step(x, rings, dist, cfg: model.Config, tc: train.TrainConfig, repeats: int, loop: int = 0) -> dict:
     params = model.init(jax.random.PRNGKey(0), x.shape[1], cfg, x.dtype)
     opt_state = train.optimizer(tc).init(params)
     step = train.make_step(cfg, tc, rings, dist)
@@ -70,9 +71,19 @@ def time_step(x, rings, dist, cfg: model.Config, tc: train.TrainConfig, repeats:
 
     compile_s, times, (_, _, _, loss, _) = _timed(threaded, (), repeats)
     med = statistics.median(times)
-    return {"compile_s": round(compile_s, 3), "step_ms_median": round(med, 2), "step_ms_min": round(min(times), 2),
-            "epochs": tc.epochs, "projected_training_min": round(tc.epochs * med / 6e4, 2),
-            "loss_finite": bool(np.isfinite(float(loss)))}
+    rec = {"compile_s": round(compile_s, 3), "step_ms_median": round(med, 2), "step_ms_min": round(min(times), 2),
+           "epochs": tc.epochs, "projected_training_min": round(tc.epochs * med / 6e4, 2),
+           "loss_finite": bool(np.isfinite(float(loss)))}
+    if loop > 0:  # steps dispatched back to back, as the training loop runs them: wall and process CPU time
+        t0, c0 = time.perf_counter(), time.process_time()
+        for _ in range(loop):
+            out = step(*state, x)
+            state[:] = out[:3]
+        jax.block_until_ready(state)
+        rec["loop_steps"] = loop
+        rec["loop_ms_per_step"] = round(1e3 * (time.perf_counter() - t0) / loop, 2)
+        rec["loop_cpu_ms_per_step"] = round(1e3 * (time.process_time() - c0) / loop, 2)
+    return rec
 
 
 def _median_ms(fn, args, repeats: int) -> float:
@@ -111,6 +122,8 @@ def main(argv=None) -> dict:
     parser.add_argument("--json", required=True)
     parser.add_argument("--repeats", type=int, default=10)
     parser.add_argument("--cases", nargs="+", default=[f"{m}:{c}" for m, c in CASES], metavar="METHOD:CONFIG")
+    parser.add_argument("--loop", type=int, default=0, metavar="N",
+                        help="also time N steps dispatched back to back, unblocked, as the training loop runs them")
     parser.add_argument("--breakdown", action="store_true",
                         help="also time the parts of each multiscale step (forward, gradient, Adam, sparsity, level 0)")
     args = parser.parse_args(argv)
@@ -131,7 +144,7 @@ def main(argv=None) -> dict:
         rec = {"method": method, "config": name, "vertices": int(rest.shape[0]), "shapes": int(x.shape[0]),
                "blocks": [cfg.blocks(level) for level in range(cfg.levels)], "dtype": "float32",
                "device": jax.devices()[0].platform, "cpu": cpu_info()}
-        rec.update(time_step(x, rings, dist, cfg, tc, args.repeats))
+        rec.update(time_step(x, rings, dist, cfg, tc, args.repeats, args.loop))
         if args.breakdown and method == "multiscale":
             rec["breakdown"] = breakdown(x, rings, dist, cfg, tc, args.repeats)
         print(json.dumps(rec), flush=True)

@@ -124,12 +124,13 @@ def test_training_benchmark_smoke(tmp_path):
         save_mesh(tmp_path / "tube" / f"f{k:02d}.obj", v, faces)
     out = tmp_path / "b.json"
     payload = bench.main(["--data", str(tmp_path / "tube"), "--json", str(out), "--repeats", "2",
-                          "--cases", "multiscale:test", "tan:test", "--breakdown"])
+                          "--cases", "multiscale:test", "tan:test", "--breakdown", "--loop", "3"])
     assert json.loads(out.read_text()) == json.loads(json.dumps(payload))
     for rec in payload["records"]:
         assert {"compile_s", "step_ms_median", "step_ms_min", "projected_training_min"} <= set(rec)
         assert rec["loss_finite"] and rec["shapes"] == 2
         assert ("breakdown" in rec) == (rec["method"] == "multiscale")  # the parts of the multiscale step only
+        assert rec["loop_steps"] == 3 and rec["loop_ms_per_step"] > 0 and rec["loop_cpu_ms_per_step"] > 0
     parts = payload["records"][0]["breakdown"]
     assert set(parts) == {"forward_ms", "loss_and_gradient_ms", "adam_ms", "sparsity_and_gradient_ms",
                           "level0_loss_and_gradient_ms"}
