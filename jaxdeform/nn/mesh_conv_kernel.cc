@@ -613,7 +613,7 @@ constexpr int64_t kVertexTile = 64;  // a multiple of 16
 // channel), else 8 (an AVX register of floats); 8 doubles.
 template <typename T>
 constexpr int64_t kL =
-#if defined(__AVX512F__)
+#if defined(__AVX512F__) && defined(__AVX512DQ__)  // DQ: _mm512_insertf32x8 / extractf32x8 below
     std::is_same_v<T, float> ? 16 : 8;
 #else
     8;
@@ -665,7 +665,7 @@ struct Soa9 {  // kL vertices x 9 channels, channel-major
 #if defined(__AVX2__)
   // float, whole groups: channels 0-7 of each 8 rows by an 8x8 register transpose of the rows' first 8 entries
   // (unaligned loads at a stride of 9), channel 8 by one gather. The generic loops above go through a stack
-  // buffer with 9 L scalar stores, and vector loads that the store buffer cannot forward: on the horse training
+  // buffer with 9 x L scalar stores, and vector loads that the store buffer cannot forward: on the horse training
   // split the two directions took 78 ns per group of 8 rows on a 2-core EPYC, these 19 ns, and a training step
   // makes about 22 of them per group of vertices per block and shape.
   static void Transpose8(__m256* r) {
@@ -708,7 +708,7 @@ struct Soa9 {  // kL vertices x 9 channels, channel-major
       const __m256 last = _mm256_i32gather_ps(src + 8, _mm256_setr_epi32(0, 9, 18, 27, 36, 45, 54, 63), 4);
       r.c[8] = reinterpret_cast<const V&>(last);
     } else {
-#if defined(__AVX512F__)
+#if defined(__AVX512F__) && defined(__AVX512DQ__)
       __m256 lo[8], hi[8];
       Load8(src, lo);
       Load8(src + 72, hi);
@@ -731,7 +731,7 @@ struct Soa9 {  // kL vertices x 9 channels, channel-major
       for (int ch = 0; ch < 8; ++ch) a[ch] = reinterpret_cast<const __m256&>(c[ch]);
       Store8(a, last, dst);
     } else {
-#if defined(__AVX512F__)
+#if defined(__AVX512F__) && defined(__AVX512DQ__)
       __m256 lo[8], hi[8];
       for (int ch = 0; ch < 8; ++ch) {
         const __m512 v = reinterpret_cast<const __m512&>(c[ch]);
