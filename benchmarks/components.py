@@ -77,8 +77,7 @@ def time_step(x, rings, dist, cfg: model.Config, tc: train.TrainConfig, repeats:
     if loop > 0:  # steps dispatched back to back, as the training loop runs them: wall and process CPU time
         t0, c0 = time.perf_counter(), time.process_time()
         for _ in range(loop):
-            out = step(*state, x)
-            state[:] = out[:3]
+            threaded()
         jax.block_until_ready(state)
         rec["loop_steps"] = loop
         rec["loop_ms_per_step"] = round(1e3 * (time.perf_counter() - t0) / loop, 2)

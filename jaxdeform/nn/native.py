@@ -80,7 +80,8 @@ def _cpu_tag() -> str:
 
 
 def build() -> Path:
-    """Compile the kernels (once per source, jaxlib and CPU; cached) and return the shared library's path."""
+    """Compile the kernels (once per source, jaxlib, CPU and extra flags; cached) and return the shared library's
+    path."""
     import jaxlib
 
     extra = shlex.split(os.environ.get("JAXDEFORM_NATIVE_CFLAGS", ""))
