@@ -597,15 +597,15 @@ ffi::Error BackwardDispatch(ffi::ThreadPool pool, ffi::AnyBuffer x, ffi::AnyBuff
 // come back per group of their output buffer (summed where it has one group). Each forward also returns its
 // hidden layer (encoder tanh(conv(x)), decoder tanh(z C)) for its adjoint.
 // Why: with one call per convolution, XLA still ran the tanh layers, the fully connected products with C and
-// their adjoints as separate passes over (G, P, V, 9) arrays (15 MB each on the horse split). Fused, the
-// products with C run over tiles of 64 vertices that stay in cache. Inside a tile the arithmetic runs on groups
+// their adjoints as separate passes over (G, P, V, 9) arrays (15 MB each on the horse split). Fused, each
+// block's layers run over tiles of 64 vertices that stay in cache. The convolutions' arithmetic runs on groups
 // of kL vertices held channel by channel (Soa9: one kL-lane vector per channel; kL = 16 floats where the CPU
 // has AVX-512, else 8), so a 9x9 channel mix is 81 full-width multiply-adds per group, where the row layout of
 // the convolution kernels above spends 18 vector and 18 scalar ones per vertex; the one-ring gathers stay on
 // rows. On a 2-core Intel Xeon with AVX-512, 16 lanes instead of 8 took the horse training step from 70.7 to
 // 60.4 ms (medians of 8 alternated runs of 150 steps each). The products with C mix no channels, so they run on
-// the rows as stored (Flat), with no transposes: 56.8 -> 51.6 ms on the same machine (14 alternated runs of 100
-// steps each). tanh: float32, Eigen's 13/6 rational interpolant (a few ulp);
+// the rows as stored (Flat: kL consecutive entries at a time), with no transposes: 56.8 -> 51.6 ms on the same
+// machine (14 alternated runs of 100 steps each). tanh: float32, Eigen's 13/6 rational interpolant (a few ulp);
 // float64, std::tanh. Work is split over vertex ranges, so the rows of dC a chunk writes are its own; the
 // reductions over vertices (z, dz, weight gradients) are summed per chunk (Plan), then in chunk order.
 
@@ -665,8 +665,8 @@ struct Soa9 {  // kL vertices x 9 channels, channel-major
   // float, whole groups: channels 0-7 of each 8 rows by an 8x8 register transpose of the rows' first 8 entries
   // (unaligned loads at a stride of 9), channel 8 by one gather. The generic loops above go through a stack
   // buffer with 9 x L scalar stores, and vector loads that the store buffer cannot forward: on the horse training
-  // split the two directions took 78 ns per group of 8 rows on a 2-core EPYC, these 19 ns, and a training step
-  // makes about 22 of them per group of vertices per block and shape.
+  // split the two directions took 78 ns per group of 8 rows on a 2-core EPYC, these 19 ns (then with the
+  // transposes of C and dC that the products with C now avoid, see Flat).
   static void Transpose8(__m256* r) {
     const __m256 t0 = _mm256_unpacklo_ps(r[0], r[1]), t1 = _mm256_unpackhi_ps(r[0], r[1]);
     const __m256 t2 = _mm256_unpacklo_ps(r[2], r[3]), t3 = _mm256_unpackhi_ps(r[2], r[3]);
@@ -969,20 +969,19 @@ T DotFlat(const T* a, const T* b, int64_t n) {
 // Flat entries of one tile (kVertexTile rows of 9)
 template <typename T>
 constexpr int64_t kTileFlat = kVertexTile * 9 / kL<T>;
+static_assert(kVertexTile * 9 % kL<float> == 0 && kVertexTile * 9 % kL<double> == 0, "tiles of whole vectors");
 
 // ---- encoder ----
 
 template <typename T>
 void EncoderForward(const AeGeometry& s, const T* x, Masked<T> mask, const int32_t* nbr, const int32_t* count,
                     const T* inv, const T* wp, const T* wn, const T* b, const T* c, T* z, T* hidden) {
-  typedef typename Soa9<T>::V Vec;
-  const int64_t Kz = s.Kz, V = s.V, P = s.P;
+  const int64_t Kz = s.Kz, V = s.V, P = s.P;  // hidden: the output h, also read back for z (in cache)
   const Plan plan = PlanVertices(V, s.G * P * (s.K + 10 + Kz) * 9);
   std::vector<T> part(static_cast<size_t>(plan.chunks * s.G * P * Kz), T(0));
   RunPlan(plan, V, [&](int64_t t, int64_t v0, int64_t v1) {
     T* zp = part.data() + t * s.G * P * Kz;
     std::vector<T> rms(static_cast<size_t>(P * kVertexTile * 9));
-    std::vector<Vec> hbuf(static_cast<size_t>(kTileFlat<T>));  // the tile's h rows where hidden is null
     ConvW<T> w;
     for (int64_t g = 0; g < s.G; ++g) {
       w.Load(wp, wn, b, s.w[g], false);
@@ -997,7 +996,7 @@ void EncoderForward(const AeGeometry& s, const T* x, Masked<T> mask, const int32
         for (int64_t p = 0; p < P; ++p) {
           const T* plane = x + (s.in[g] * P + p) * V * 9;
           const T* rm = rms.data() + p * kVertexTile * 9;
-          T* hrows = hidden != nullptr ? hidden + ((g * P + p) * V + i0) * 9 : reinterpret_cast<T*>(hbuf.data());
+          T* hrows = hidden + ((g * P + p) * V + i0) * 9;
           for (int64_t j = 0; j * kL<T> < nt; ++j) {
             const int n = static_cast<int>(std::min<int64_t>(kL<T>, nt - kL<T> * j));
             Soa9<T> h = w.Bias();
@@ -1221,8 +1220,8 @@ void DecoderBackward(const AeGeometry& s, int64_t weight_groups, int64_t c_group
   RunPlan(plan, V, [&](int64_t t, int64_t v0, int64_t v1) {
     ConvW<T> w;
     std::vector<Vec> dcb(static_cast<size_t>(Kz * kTileFlat<T>));  // the tile's dC, flat
-    std::vector<Vec> darow(static_cast<size_t>(kTileFlat<T>));      // one plane's cotangent of (z C), as rows
-    T* da_rows = reinterpret_cast<T*>(darow.data());
+    std::vector<T> darow(static_cast<size_t>(kVertexTile * 9));     // one plane's cotangent of (z C), as rows
+    T* da_rows = darow.data();
     std::vector<T> sgs(static_cast<size_t>(P * kVertexTile * 9));
     auto wg = std::make_unique<WeightGrads<T>>();
     T* zpart = part.data() + t * s.G * P * Kz;
