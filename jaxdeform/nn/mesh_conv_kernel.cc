@@ -884,15 +884,45 @@ void TileWeightedRingMeans(const T* base, int64_t P, int64_t pstride, const int3
   TileRingsPlanesT<T, true, true>(base, P, pstride, nbr, count, w, inv, K, i0, nt, buf);
 }
 
+// The products with C (z C, C^T h, the outer products of dC) mix no channels: they run on the rows of 9 as
+// stored, kL<T> consecutive entries of a (..., V, 9) array at a time whatever their channels ("flat"), with no
+// transposes. (Through Soa9 groups they took a transpose of each C row group per tile, and another for each
+// dC row group written back: 5.5% of the horse training step's CPU time in FlushTileC alone.)
+template <typename T>
+using Flat = typename Soa9<T>::V;
+
+// n entries at src; with n < kL<T> the rest read as zero
+template <typename T>
+Flat<T> LoadFlat(const T* src, int64_t n) {
+  Flat<T> v;
+  if (n >= kL<T>) {
+    std::memcpy(&v, src, sizeof(v));
+  } else {
+    v = Flat<T>{};
+    std::memcpy(&v, src, static_cast<size_t>(n) * sizeof(T));
+  }
+  return v;
+}
+
+// the first min(n, kL<T>) entries of v to dst
+template <typename T>
+void StoreFlat(T* dst, const Flat<T>& v, int64_t n) {
+  if (n >= kL<T>) std::memcpy(dst, &v, sizeof(v));
+  else std::memcpy(dst, &v, static_cast<size_t>(n) * sizeof(T));
+}
+
+// Writes (first) or adds v into the first min(n, kL<T>) entries at dst
+template <typename T>
+void WriteOrAddFlat(T* dst, const Flat<T>& v, int64_t n, bool first) {
+  StoreFlat(dst, first ? v : LoadFlat(dst, n) + v, n);
+}
+
 // a[row t] *= w[t] for the n rows of a group (w: n entries; lanes past n are zero in a)
 template <typename T>
 void ScaleRows(Soa9<T>& a, const T* w, int n) {
-  typename Soa9<T>::V s{};
-  if (n == Soa9<T>::L) {
-    std::memcpy(&s, w, sizeof(s));  // (the loop below compiles to a string move: 4-8% of each caller's samples)
-  } else {
-    for (int t = 0; t < n; ++t) s[t] = w[t];
-  }
+  // one vector load for whole groups (a loop over the n weights compiled to a string move: 4-8% of each
+  // caller's samples)
+  const Flat<T> s = LoadFlat(w, n);
   for (auto& v : a.c) v *= s;
 }
 
@@ -923,33 +953,6 @@ struct WeightGrads {
 template <typename T>
 std::unique_ptr<T[]> Scratch(int64_t n) {
   return std::unique_ptr<T[]>(new T[static_cast<size_t>(std::max<int64_t>(n, 1))]);
-}
-
-// The products with C (z C, C^T h, the outer products of dC) mix no channels: they run on the rows of 9 as
-// stored, kL<T> consecutive entries of a (..., V, 9) array at a time whatever their channels ("flat"), with no
-// transposes. (Through Soa9 groups they took a transpose of each C row group per tile, and another for each
-// dC row group written back: 5.5% of the horse training step's CPU time in FlushTileC alone.)
-template <typename T>
-using Flat = typename Soa9<T>::V;
-
-// n entries at src; with n < kL<T> the rest read as zero
-template <typename T>
-Flat<T> LoadFlat(const T* src, int64_t n) {
-  Flat<T> v;
-  if (n >= kL<T>) {
-    std::memcpy(&v, src, sizeof(v));
-  } else {
-    v = Flat<T>{};
-    std::memcpy(&v, src, static_cast<size_t>(n) * sizeof(T));
-  }
-  return v;
-}
-
-// the first min(n, kL<T>) entries of v to dst
-template <typename T>
-void StoreFlat(T* dst, const Flat<T>& v, int64_t n) {
-  if (n >= kL<T>) std::memcpy(dst, &v, sizeof(v));
-  else std::memcpy(dst, &v, static_cast<size_t>(n) * sizeof(T));
 }
 
 // sum_e a[e] b[e] over n entries, in two independent chains of vector additions in registers (with one
@@ -1116,8 +1119,7 @@ void EncoderBackward(const AeGeometry& s, int64_t weight_groups, int64_t c_group
           StoreFlat(dpre.get() + (g * P + p) * n9 + f, d, n);
         }
         for (int64_t k = 0; k < Kz; ++k) {
-          T* dst = dcg + k * n9 + f;
-          StoreFlat(dst, first ? dck[k] : LoadFlat(dst, n) + dck[k], n);
+          WriteOrAddFlat(dcg + k * n9 + f, dck[k], n, first);
         }
       }
     }
@@ -1262,11 +1264,8 @@ void DecoderBackward(const AeGeometry& s, int64_t weight_groups, int64_t c_group
         }
         const bool first = c_groups != 1 || g == 0;
         for (int64_t k = 0; k < Kz; ++k)
-          for (int64_t f = 0, q = 0; f < nf; f += kL<T>, ++q) {
-            T* dst = dcg + k * V * 9 + i0 * 9 + f;
-            const Vec& d = dcb[k * kTileFlat<T> + q];
-            StoreFlat(dst, first ? d : LoadFlat(dst, nf - f) + d, nf - f);
-          }
+          for (int64_t f = 0, q = 0; f < nf; f += kL<T>, ++q)
+            WriteOrAddFlat(dcg + k * V * 9 + i0 * 9 + f, dcb[k * kTileFlat<T> + q], nf - f, first);
       }
       wg->FlushInto(acc.data() + (t * weight_groups + (weight_groups == 1 ? 0 : g)) * kWeightStride);
     }
