@@ -397,3 +397,46 @@ def test_chain_scores_each_stage_and_resumes(tmp_path, capsys):
         chain.main([str(data), "--out", str(tmp_path / "fresh"), "--from", str(out / "base"), "--quiet"])
     assert err.value.code == 2 and "has no scores" in capsys.readouterr().err
     assert sorted(p.name for p in (tmp_path / "fresh").iterdir()) == ["rigid"]
+
+
+def test_reference_variants_swap_the_block_and_restore_it():
+    import jax
+
+    from experiments.components import reference_variants as rv
+    from jaxdeform.components import model, train
+    from jaxdeform.data.synthetic import bending_tube_sequence
+    from jaxdeform.mesh.topology import build_topology
+    from jaxdeform.nn import graph_conv
+    from jaxdeform.nn.graph_conv import rings_from_topology
+
+    verts, faces = bending_tube_sequence(n_frames=3, n_around=8, n_along=6)
+    rings = rings_from_topology(build_topology(faces, verts.shape[1]))
+    cfg = model.Config(kz=(3, 2), d=(0.5, 0.3))
+    key = jax.random.PRNGKey(0)
+    params = model.init(key, verts.shape[1], cfg)
+    # N(0, 0.02^2) weights, biases untouched
+    drawn = rv.normal_weights(params, key, rv.TAN_STD)
+    c = np.asarray(drawn[0]["C"])
+    assert c.shape == np.asarray(params[0]["C"]).shape and abs(c.std() - rv.TAN_STD) < 0.15 * rv.TAN_STD
+    assert np.array_equal(drawn[1]["conv_dec"]["b"], params[1]["conv_dec"]["b"])
+    x = jax.random.uniform(jax.random.PRNGKey(1), (2, verts.shape[1], 9), minval=-0.9, maxval=0.9)
+    moved = tuple({**p, "conv_dec": {**p["conv_dec"], "W_point": p["conv_dec"]["W_point"] + 0.3}} for p in params)
+    plain = (train.reconstruct(params, x, rings, cfg), train.reconstruct(moved, x, rings, cfg))
+    assert not np.allclose(plain[0], plain[1])  # the decoders' own weights matter
+    with rv.swapped("tie"):
+        tied = (train.reconstruct(params, x, rings, cfg), train.reconstruct(moved, x, rings, cfg))
+    np.testing.assert_array_equal(tied[0], tied[1])  # tied: the decoders read the encoders' weights
+    assert not np.allclose(tied[0], plain[0])
+    before = os.environ.get("JAXDEFORM_NATIVE")
+    with rv.swapped("linear-fc"):
+        assert os.environ["JAXDEFORM_NATIVE"] == "0"
+        z = graph_conv.ae_encode(jax.tree_util.tree_map(lambda a: a[0], params[0]), x, rings)
+        p0 = jax.tree_util.tree_map(lambda a: a[0], params[0])
+        pre = graph_conv.ae_decode_pre(p0, z)
+        conv = graph_conv.mesh_conv(p0["conv_dec"], pre, rings.neighbors, rings.mask, rings.degree)
+        np.testing.assert_allclose(graph_conv.ae_decode(p0, z, rings), np.tanh(conv), rtol=1e-5, atol=1e-6)
+    assert os.environ.get("JAXDEFORM_NATIVE") == before
+    np.testing.assert_array_equal(train.reconstruct(moved, x, rings, cfg), plain[1])  # restored
+    with pytest.raises(ValueError, match="variant"):
+        with rv.swapped("nope"):
+            pass

@@ -66,7 +66,9 @@ def inside_fraction(c: np.ndarray, dist: np.ndarray, d: float) -> float:
     return float(np.median((norms * inside).sum(axis=1) / total))
 
 
-def main(argv=None) -> dict:
+def main(argv=None, extra_config: dict | None = None) -> dict:
+    """``extra_config``: entries added to the result line's configuration (callers that change the model, such as
+    :mod:`experiments.components.reference_variants`)."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--data", default=str(Path(__file__).resolve().parents[2].parent / "shared" / "data" / "horse-gallop"))
     ap.add_argument("--kz", default="10,5")
@@ -159,7 +161,7 @@ def main(argv=None) -> dict:
     seconds = time.perf_counter() - t0
 
     result = {"config": {**dataclasses.asdict(cfg), **dataclasses.asdict(tc), "turns": a.turns, "scale_quantile": a.scale_quantile,
-                         "augment": a.augment, **({"mix_regions": a.mix_regions, "mix_sigma": a.mix_sigma,
+                         "augment": a.augment, **(extra_config or {}), **({"mix_regions": a.mix_regions, "mix_sigma": a.mix_sigma,
                                                    "mix_alpha": a.mix_alpha} if a.augment else {})}, "data": str(a.data),
               "train_shapes": len(tr), "test_shapes": len(te), "train_seconds": round(seconds, 1),
               "final_loss": float(history[-1]),
