@@ -412,31 +412,64 @@ def test_reference_variants_swap_the_block_and_restore_it():
     verts, faces = bending_tube_sequence(n_frames=3, n_around=8, n_along=6)
     rings = rings_from_topology(build_topology(faces, verts.shape[1]))
     cfg = model.Config(kz=(3, 2), d=(0.5, 0.3))
+    dist = jnp.zeros((verts.shape[1], verts.shape[1]), jnp.float32)
     key = jax.random.PRNGKey(0)
     params = model.init(key, verts.shape[1], cfg)
-    # N(0, 0.02^2) weights, biases untouched
+    # N(0, 0.02^2) weights, biases untouched; an unknown parameter is refused
     drawn = rv.normal_weights(params, key, rv.TAN_STD)
     c = np.asarray(drawn[0]["C"])
     assert c.shape == np.asarray(params[0]["C"]).shape and abs(c.std() - rv.TAN_STD) < 0.15 * rv.TAN_STD
     assert np.array_equal(drawn[1]["conv_dec"]["b"], params[1]["conv_dec"]["b"])
+    with pytest.raises(ValueError, match="unexpected parameter"):
+        rv.normal_weights(({"conv_enc": {"scale": jnp.ones(3)}},), key, rv.TAN_STD)
     x = jax.random.uniform(jax.random.PRNGKey(1), (2, verts.shape[1], 9), minval=-0.9, maxval=0.9)
     moved = tuple({**p, "conv_dec": {**p["conv_dec"], "W_point": p["conv_dec"]["W_point"] + 0.3}} for p in params)
+    loss = lambda q: model.forward(q, x, rings, dist, cfg).loss  # noqa: E731  (the training path)
     plain = (train.reconstruct(params, x, rings, cfg), train.reconstruct(moved, x, rings, cfg))
-    assert not np.allclose(plain[0], plain[1])  # the decoders' own weights matter
+    assert not np.allclose(plain[0], plain[1]) and loss(params) != loss(moved)  # the decoders' own weights matter
+    originals = (model._levels, graph_conv.ae_decode_reference, train.train, os.environ.get("JAXDEFORM_NATIVE"))
     with rv.swapped("tie"):
         tied = (train.reconstruct(params, x, rings, cfg), train.reconstruct(moved, x, rings, cfg))
+        assert loss(params) == loss(moved)  # training too, the last level's masked blocks included
+        trained, _ = train.train(x[:1], rings, dist, cfg, train.TrainConfig(epochs=2))
     np.testing.assert_array_equal(tied[0], tied[1])  # tied: the decoders read the encoders' weights
     assert not np.allclose(tied[0], plain[0])
-    before = os.environ.get("JAXDEFORM_NATIVE")
+    for p in trained:  # the returned parameters decode as trained, also where read without the level function
+        np.testing.assert_array_equal(p["conv_dec"]["W_neighbor"], p["conv_enc"]["W_neighbor"])
     with rv.swapped("linear-fc"):
         assert os.environ["JAXDEFORM_NATIVE"] == "0"
-        z = graph_conv.ae_encode(jax.tree_util.tree_map(lambda a: a[0], params[0]), x, rings)
         p0 = jax.tree_util.tree_map(lambda a: a[0], params[0])
-        pre = graph_conv.ae_decode_pre(p0, z)
-        conv = graph_conv.mesh_conv(p0["conv_dec"], pre, rings.neighbors, rings.mask, rings.degree)
-        np.testing.assert_allclose(graph_conv.ae_decode(p0, z, rings), np.tanh(conv), rtol=1e-5, atol=1e-6)
-    assert os.environ.get("JAXDEFORM_NATIVE") == before
-    np.testing.assert_array_equal(train.reconstruct(moved, x, rings, cfg), plain[1])  # restored
+        z, x_hat, _ = graph_conv.ae_forward_error(p0, x, rings)
+        conv = graph_conv.mesh_conv(p0["conv_dec"], graph_conv.ae_decode_pre(p0, z), rings.neighbors, rings.mask,
+                                    rings.degree)
+        np.testing.assert_allclose(x_hat, np.tanh(conv), rtol=1e-5, atol=1e-6)
+        assert not np.allclose(train.reconstruct(params, x, rings, cfg), plain[0])
+    # init: train() gets the N(0, 0.02^2) draw of the key it would have drawn its own initialisation from
+    seen = {}
+
+    def record(data, rings_, dist_, config, tc, params=None, **kwargs):
+        seen["params"] = params
+        return params, np.zeros(1)
+
+    train.train = record
+    try:
+        with rv.swapped("init"):
+            train.train(x, rings, dist, cfg, train.TrainConfig(seed=3))
+            with pytest.raises(ValueError, match="params cannot be given"):
+                train.train(x, rings, dist, cfg, train.TrainConfig(), params=params)
+    finally:
+        train.train = originals[2]
+    k3 = jax.random.split(jax.random.PRNGKey(3))[1]
+    want = rv.normal_weights(model.init(k3, verts.shape[1], cfg, x.dtype), k3, rv.TAN_STD)
+    for got, ref in zip(jax.tree_util.tree_leaves(seen["params"]), jax.tree_util.tree_leaves(want)):
+        np.testing.assert_array_equal(got, ref)
+    # restored on exit, also where the block raises
+    with pytest.raises(RuntimeError):
+        with rv.swapped("tie"):
+            raise RuntimeError("inside")
+    assert (model._levels, graph_conv.ae_decode_reference, train.train,
+            os.environ.get("JAXDEFORM_NATIVE")) == originals
+    np.testing.assert_array_equal(train.reconstruct(moved, x, rings, cfg), plain[1])
     with pytest.raises(ValueError, match="variant"):
         with rv.swapped("nope"):
             pass

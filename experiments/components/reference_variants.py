@@ -30,6 +30,9 @@ VARIANTS = ("init", "tie", "init-tie", "linear-fc")
 TAN_STD = 0.02  # convMesh: tf.random_normal_initializer(stddev=0.02) for every weight
 
 
+WEIGHTS = ("W_point", "W_neighbor", "C")
+
+
 def normal_weights(params: tuple, key, std: float) -> tuple:
     """``params`` with every weight matrix (W_point, W_neighbor, C) redrawn from N(0, std^2); biases kept."""
     import jax
@@ -39,14 +42,28 @@ def normal_weights(params: tuple, key, std: float) -> tuple:
     out = []
     for (path, leaf), k in zip(leaves, keys):
         name = getattr(path[-1], "key", None)
+        if name not in WEIGHTS + ("b",):
+            raise ValueError(f"unexpected parameter {jax.tree_util.keystr(path)}: only {WEIGHTS} and biases are known.")
         out.append((std * jax.random.normal(k, leaf.shape)).astype(leaf.dtype) if name != "b" else leaf)
     return jax.tree_util.tree_unflatten(tree, out)
 
 
+def tie_decoders(params: tuple) -> tuple:
+    """Every block's decoder convolution with its encoder convolution's W_point and W_neighbor (bias its own)."""
+    return tuple({**p, "conv_dec": {**p["conv_dec"], "W_point": p["conv_enc"]["W_point"],
+                                    "W_neighbor": p["conv_enc"]["W_neighbor"]}} for p in params)
+
+
 @contextlib.contextmanager
 def swapped(variant: str):
-    """Within the block, the model trains and reconstructs as ``variant`` (see the module docstring); the swapped
-    functions, the cached jitted reconstruction and ``JAXDEFORM_NATIVE`` are restored on exit."""
+    """Within the block, the model trains and reconstructs as ``variant`` (see the module docstring). JAX's
+    caches of traced and compiled programs are cleared on entry and on exit, so that no program traced with the
+    block as it was serves inside, nor one traced inside serves after; the swapped functions and
+    ``JAXDEFORM_NATIVE`` are restored on exit, also where the block raises.
+
+    ``tie``: the parameters :func:`jaxdeform.components.train.train` returns hold the trained encoder weights in
+    the decoders too, so that code reading the parameters without the model's level function (components,
+    editing, :func:`jaxdeform.components.model.decode_latents`) decodes with them."""
     import jax
 
     from jaxdeform.components import model, train
@@ -54,48 +71,48 @@ def swapped(variant: str):
 
     if variant not in VARIANTS:
         raise ValueError(f"variant must be one of {VARIANTS}, got {variant!r}.")
-    saved = (model._levels, model.reconstruction, graph_conv.ae_decode_reference, train.train,
-             os.environ.get("JAXDEFORM_NATIVE"))
-    levels, fit, reconstruction = model._levels, train.train, model.reconstruction
-
-    def fresh_reconstruction(params, x, rings, config):
-        # a new function: JAX keeps the traces of the one it wraps, made with the block as it was
-        return reconstruction(params, x, rings, config)
+    saved = (model._levels, graph_conv.ae_decode_reference, train.train, os.environ.get("JAXDEFORM_NATIVE"))
+    levels, fit = model._levels, train.train
 
     def tied(params, *args, **kwargs):
-        params = tuple({**p, "conv_dec": {**p["conv_dec"], "W_point": p["conv_enc"]["W_point"],
-                                          "W_neighbor": p["conv_enc"]["W_neighbor"]}} for p in params)
-        return levels(params, *args, **kwargs)
+        return levels(tie_decoders(params), *args, **kwargs)
 
     def decode_linear_fc(params, z, rings):
         g = graph_conv.ae_decode_pre(params, z)
         return graph_conv._tanh(graph_conv.mesh_conv(params["conv_dec"], g, rings.neighbors, rings.mask,
                                                      rings.degree))
 
-    def train_normal(data, rings, dist, config, tc, **kwargs):
-        # the key train() draws its initialisation from, so that the batches follow the same seed
-        init_key = jax.random.split(jax.random.PRNGKey(tc.seed))[1]
-        params = model.init(init_key, data.shape[1], config, data.dtype)
-        return fit(data, rings, dist, config, tc, params=normal_weights(params, init_key, TAN_STD), **kwargs)
+    def train_variant(data, rings, dist, config, tc, **kwargs):
+        if "init" in variant:
+            if kwargs.get("params") is not None:
+                raise ValueError("the init variant draws the initial parameters itself; params cannot be given.")
+            # the key train() draws its initialisation from, so that the batches follow the same seed
+            init_key = jax.random.split(jax.random.PRNGKey(tc.seed))[1]
+            params = model.init(init_key, data.shape[1], config, data.dtype)
+            kwargs["params"] = normal_weights(params, init_key, TAN_STD)
+        params, history = fit(data, rings, dist, config, tc, **kwargs)
+        return (tie_decoders(params) if "tie" in variant else params), history
 
-    train._reconstruct_jit.cache_clear()  # rebuilt on the fresh function below
+    def clear():
+        jax.clear_caches()
+        train._reconstruct_jit.cache_clear()
+
+    clear()
     try:
-        model.reconstruction = fresh_reconstruction
         if "tie" in variant:
             model._levels = tied
-        if "init" in variant:
-            train.train = train_normal
+        train.train = train_variant
         if variant == "linear-fc":
             os.environ["JAXDEFORM_NATIVE"] = "0"  # the native kernels apply the tanh on z C
             graph_conv.ae_decode_reference = decode_linear_fc
         yield
     finally:
-        model._levels, model.reconstruction, graph_conv.ae_decode_reference, train.train, native = saved
+        model._levels, graph_conv.ae_decode_reference, train.train, native = saved
         if native is None:
             os.environ.pop("JAXDEFORM_NATIVE", None)
         else:
             os.environ["JAXDEFORM_NATIVE"] = native
-        train._reconstruct_jit.cache_clear()
+        clear()
 
 
 def main(argv=None) -> dict:
