@@ -459,7 +459,7 @@ def test_reference_variants_swap_the_block_and_restore_it():
                 train.train(x, rings, dist, cfg, train.TrainConfig(), params=params)
     finally:
         train.train = originals[2]
-    k3 = jax.random.split(jax.random.PRNGKey(3))[1]
+    k3 = train.seed_keys(3)[1]
     want = rv.normal_weights(model.init(k3, verts.shape[1], cfg, x.dtype), k3, rv.TAN_STD)
     for got, ref in zip(jax.tree_util.tree_leaves(seen["params"]), jax.tree_util.tree_leaves(want)):
         np.testing.assert_array_equal(got, ref)

@@ -28,8 +28,6 @@ import sys
 
 VARIANTS = ("init", "tie", "init-tie", "linear-fc")
 TAN_STD = 0.02  # convMesh: tf.random_normal_initializer(stddev=0.02) for every weight
-
-
 WEIGHTS = ("W_point", "W_neighbor", "C")
 
 
@@ -72,7 +70,7 @@ def swapped(variant: str):
     if variant not in VARIANTS:
         raise ValueError(f"variant must be one of {VARIANTS}, got {variant!r}.")
     saved = (model._levels, graph_conv.ae_decode_reference, train.train, os.environ.get("JAXDEFORM_NATIVE"))
-    levels, fit = model._levels, train.train
+    levels, _, fit, _ = saved
 
     def tied(params, *args, **kwargs):
         return levels(tie_decoders(params), *args, **kwargs)
@@ -86,8 +84,7 @@ def swapped(variant: str):
         if "init" in variant:
             if kwargs.get("params") is not None:
                 raise ValueError("the init variant draws the initial parameters itself; params cannot be given.")
-            # the key train() draws its initialisation from, so that the batches follow the same seed
-            init_key = jax.random.split(jax.random.PRNGKey(tc.seed))[1]
+            init_key = train.seed_keys(tc.seed)[1]  # train()'s own: the batches follow the same seed
             params = model.init(init_key, data.shape[1], config, data.dtype)
             kwargs["params"] = normal_weights(params, init_key, TAN_STD)
         params, history = fit(data, rings, dist, config, tc, **kwargs)

@@ -220,6 +220,13 @@ def _state(params, opt_state, key, history, stage_index, epoch):
             "stage": np.int32(stage_index), "epoch": np.int32(epoch)}
 
 
+def seed_keys(seed: int) -> tuple:
+    """(batch key, initialisation key): the two keys :func:`train` draws from ``seed``, the second for
+    :func:`jaxdeform.components.model.init` where no parameters are given."""
+    key, init_key = jax.random.split(jax.random.PRNGKey(seed))
+    return key, init_key
+
+
 def train(data, rings: Rings, dist, config: model.Config, tc: TrainConfig, *, params=None,
           checkpoint_dir=None, checkpoint_every: int = 1000, resume: bool = False, progress: bool = False,
           log: Callable[[int, float, dict], None] | None = None, log_every: int = 100,
@@ -233,8 +240,7 @@ def train(data, rings: Rings, dist, config: model.Config, tc: TrainConfig, *, pa
     """
     data = jnp.asarray(data)
     dtype = data.dtype
-    key = jax.random.PRNGKey(tc.seed)
-    key, init_key = jax.random.split(key)
+    key, init_key = seed_keys(tc.seed)
     if params is None:
         params = model.init(init_key, data.shape[1], config, dtype)
     else:  # the step donates its parameters: the caller's arrays stay valid
