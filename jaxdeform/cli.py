@@ -1131,9 +1131,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     """Run the CLI on ``argv`` (default ``sys.argv[1:]``); returns the exit status."""
     parser = build_parser()
     args = parser.parse_args(argv)
-    from jaxdeform.nn import native  # imports jax: after argument parsing, so that --help stays quick
+    import jax  # after argument parsing, so that --help stays quick
 
-    native.tune_host_allocator()
+    # the command computes in float64 where its inputs are float64 (a program's own setting, not the library's)
+    jax.config.update("jax_enable_x64", True)
     try:
         return int(args.func(args) or 0)
     except (JaxDeformError, ValueError, OSError) as exc:  # FileNotFoundError is an OSError

@@ -30,6 +30,8 @@ if "JAX_COMPILATION_CACHE_DIR" not in os.environ:  # set before jax is imported,
     atexit.register(shutil.rmtree, _cache, ignore_errors=True)  # the process that made it removes it
 os.environ.setdefault("JAX_PERSISTENT_CACHE_MIN_COMPILE_TIME_SECS", "0")
 os.environ.setdefault("JAX_DISABLE_MOST_OPTIMIZATIONS", "1")
+# the library changes no JAX setting; the tests run with x64 enabled (float64 checks), workers and subprocesses too
+os.environ["JAX_ENABLE_X64"] = "1"
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 

@@ -103,7 +103,7 @@ def build_graph(edges: np.ndarray, n: int) -> Graph:
     classes = [c[np.argsort(-degree[c], kind="stable")] for c in _colour_classes(nbr, mask)]
     i32 = lambda x: jnp.asarray(x, jnp.int32)  # noqa: E731
     rings = Rings(
-        nbr=i32(nbr), mask=jnp.asarray(mask), degree=jnp.asarray(degree, jnp.float64), parent=i32(parent),
+        nbr=i32(nbr), mask=jnp.asarray(mask), degree=i32(degree), parent=i32(parent),
         is_root=jnp.asarray(is_root), jumps=tuple(i32(j) for j in jumps),
         classes=tuple(i32(c) for c in classes),
         class_slots=tuple(tuple(int(np.count_nonzero(degree[c] > k)) for k in range(kmax)) for c in classes),
@@ -348,28 +348,43 @@ def _turns_sweeps(phi, r, rings: Rings):
     return _improve_turns(phi, r, rings, fixed=rings.is_root)
 
 
+def _with_turns(v, turns):
+    """v + turns * axis(v): the raw vectors v (3, V, N) moved by ``turns`` (V, N) radians along their own
+    axes. Differentiable in v (exactly v's derivative where turns = 0); ``turns`` is a constant."""
+    if turns is None:
+        return v
+    axis, _ = _axis_angle_cm(v)
+    return v + turns * axis
+
+
 @jax.jit
-def _vectors(phi, r, o, axis):
-    return ((phi + TWO_PI * r) * o) * axis
+def _vectors(v, r, o):
+    # (o theta + 2 pi r) o w = theta w + 2 pi r o w, as o^2 = 1: the orientation acts only through the turns
+    return _with_turns(v, TWO_PI * jax.lax.stop_gradient(r * o))
 
 
 @jax.jit
 def _temporal_cm(v, rings: Rings):
-    axis, angle = _axis_angle_cm(v)
+    axis, angle = _axis_angle_cm(jax.lax.stop_gradient(v))
     phi, o = _temporal_vm(axis, angle, rings)
-    return (phi * o) * axis
+    r = jnp.round((phi - o * angle) / TWO_PI)
+    return _with_turns(v, TWO_PI * jax.lax.stop_gradient(r * o))
 
 
 def consistent_cm(v: Float[Array, "3 v n"], rings: Rings, mode: str) -> Float[Array, "3 v n"]:
-    """:func:`consistent_vectors` in the component-major, vertex-major layout (3, V, N) (jitted stages)."""
+    """:func:`consistent_vectors` in the component-major, vertex-major layout (3, V, N) (jitted stages).
+
+    Traces under jit, vmap, grad and jvp: the integer choices (orientations, turns) are made on
+    ``stop_gradient(v)``, so the derivative holds them fixed and equals v's own where no turn is added.
+    """
     if mode == "temporal":
         return _temporal_cm(v, rings)
     if mode != "spatial":
         raise ValueError(f"unknown consistency '{mode}'; expected 'spatial' or 'temporal'.")
-    axis, angle, o, s_ring = _orientation_start(v, rings)
+    _, angle, o, s_ring = _orientation_start(jax.lax.stop_gradient(v), rings)
     o = _orientation_sweeps(o, s_ring, rings)
     phi, r = _turns_start(o, angle, rings)
-    return _vectors(phi, _turns_sweeps(phi, r, rings), o, axis)
+    return _vectors(v, _turns_sweeps(phi, r, rings), o)
 
 
 #: the jitted stages of :func:`consistent_cm` (tests check that none retraces)

@@ -4,32 +4,36 @@ Feature layout per vertex (official order): (logR_01, logR_02, logR_12, S_00, S_
 where logR is the skew matrix of the consistent axis-angle vector v: logR_01 = -v_z, logR_02 = v_y,
 logR_12 = -v_x.
 
-:class:`Acap` holds everything computed once per (reference, connectivity, weighting): topology, reference
-frame of the local fits, the host graph for consistency, and a jitted local step. ``encode``/``decode`` keep
-a small cache of these, keyed by the bytes of the reference and faces, so repeated calls do not refactor
-or recompile.
+:class:`Acap` (built by :func:`prepare`) is a pytree holding everything computed once per (reference,
+connectivity, weighting, solver): topology, the reference constants of the local fits, the consistency graph
+and the reconstruction with its factor. Its methods are pure and trace under jit, vmap, grad and jvp. The
+module-level :func:`encode`/:func:`decode` are host conveniences that keep a small cache of Acaps, keyed by
+the bytes of the reference and faces, so repeated calls do not refactor or recompile.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import hashlib
+import math
 from collections import OrderedDict
 
+import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float
+from jaxtyping import Array, Float, Int
 
 from jaxdeform.acap import consistency as cons
 from jaxdeform.acap.gradients import (
     RestFrame,
     Weighting,
+    _rest_constants,
     deformation_gradients_cm,
     rest_frame,
     to_vertex_major,
 )
-from jaxdeform.acap.reconstruct import Reconstructor
+from jaxdeform.acap.reconstruct import CG_MAX_STEPS, SOLVERS, ConjugateGradient, Reconstructor, SolveInfo
 from jaxdeform.acap.rotations import exp_rotation_cm, from_cm, log_rotation_cm, mm_cm, polar_cm, skew, to_cm
 from jaxdeform.errors import ConnectivityError, DegenerateMeshError
 from jaxdeform.mesh.topology import Topology, build_topology
@@ -89,13 +93,17 @@ def _output_stage(v, s):
     return jnp.moveaxis(v, (0, 1, 2), (2, 1, 0)), jnp.moveaxis(s, (0, 1, 2, 3), (2, 3, 1, 0))
 
 
+def _frame_as(frame: RestFrame, dtype) -> RestFrame:
+    """The reference constants of ``frame`` in ``dtype`` (the frame itself when it already is)."""
+    if frame.dtype == dtype:
+        return frame
+    return dataclasses.replace(frame, weights=frame.weights.astype(dtype), c_ring=frame.c_ring.astype(dtype),
+                               c_normal=frame.c_normal.astype(dtype))
+
+
 def _local_cm(frame: RestFrame, vertices):
     """Raw axis-angle vectors (3, V, N) and S (3, 3, V, N) of frames (N, V, 3) (component-major)."""
     return _polar_stage(_gradients_stage(frame, vertices))
-
-
-def _local(frame: RestFrame, vertices):
-    return _output_stage(*_local_cm(frame, vertices))
 
 
 def _encode_parts(frame: RestFrame, rings: cons.Rings, vertices, mode: str):
@@ -105,51 +113,130 @@ def _encode_parts(frame: RestFrame, rings: cons.Rings, vertices, mode: str):
     return _output_stage(v, s)
 
 
+def _is_traced(*trees) -> bool:
+    return any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(trees))
+
+
 def _check_vertices(vertices: np.ndarray, n: int) -> None:
-    if vertices.ndim != 3 or vertices.shape[-1] != 3:
-        raise ValueError(f"vertices must be (N, V, 3), got {vertices.shape}.")
-    if vertices.shape[1] != n:
-        raise ConnectivityError(f"the meshes have {vertices.shape[1]} vertices but the reference has {n}.")
+    if vertices.ndim < 2 or vertices.shape[-1] != 3:
+        raise ValueError(f"vertices must be (..., V, 3), got {vertices.shape}.")
+    if vertices.shape[-2] != n:
+        raise ConnectivityError(f"the meshes have {vertices.shape[-2]} vertices but the reference has {n}.")
     if not np.all(np.isfinite(vertices)):
         raise DegenerateMeshError("a vertex coordinate is NaN or infinite.")
 
 
-@dataclasses.dataclass
-class Acap:
-    """ACAP machinery for one reference mesh and connectivity (build once with :func:`prepare`)."""
+def _float_dtype(x, default):
+    return x.dtype if jnp.issubdtype(x.dtype, jnp.floating) else default
 
-    rest: np.ndarray
-    faces: np.ndarray
+
+class _HostCache:
+    """Per-:class:`Acap` host cache of reconstructors for concrete anchor sets (compared by identity, so that
+    an Acap stays a hashable static-free pytree)."""
+
+    def __init__(self):
+        self.items: dict = {}
+
+
+class Acap(eqx.Module):
+    """The ACAP machinery of one reference mesh and connectivity: a pytree, built once by :func:`prepare`.
+
+    Every method traces under ``jax.jit``, ``jax.vmap``, ``jax.grad``, ``jax.jvp`` and ``jax.jacfwd`` (the Acap
+    may be closed over or passed as an argument) and follows the dtype of its input: float32 in, float32 out;
+    float64 where x64 is enabled. Called eagerly, the methods also check their input on the host and raise
+    jaxdeform's errors; inside a trace the value checks are ``equinox.error_if``.
+    """
+
+    rest: Float[Array, "v 3"]
+    faces: Int[Array, "f 3"]
     topo: Topology
     frame: RestFrame
-    graph: cons.Graph
-    weighting: Weighting
-    _reconstructors: dict = dataclasses.field(default_factory=dict)
+    rings: cons.Rings
+    rec: Reconstructor  # the default anchors'
+    weighting: str = eqx.field(static=True, default="official")
+    _cache: _HostCache = eqx.field(static=True, default_factory=_HostCache)
+
+    def __hash__(self):
+        # by identity, so that bound methods are hashable: ``jax.jit(acap.encode)`` works as users write it
+        return id(self)
+
+    @property
+    def graph(self) -> cons.Graph:
+        """The host graph of the consistency solves (edges and component roots for the exact MILP path)."""
+        return cons.Graph(n=self.topo.n_vertices, edges=np.asarray(self.topo.edges, np.int64),
+                          roots=np.flatnonzero(np.asarray(self.rings.is_root)), rings=self.rings)
+
+    @property
+    def solver(self) -> str:
+        """The reconstruction solver: "host", "dense" or "cg"."""
+        return self.rec.solver
+
+    def _vertices(self, vertices):
+        """Vertices as a float array (..., V, 3), checked (host checks when concrete, error_if when traced)."""
+        if _is_traced(vertices):
+            x = jnp.asarray(vertices)
+            if x.ndim < 2 or x.shape[-1] != 3 or x.shape[-2] != self.topo.n_vertices:
+                raise ConnectivityError(f"vertices must be (..., {self.topo.n_vertices}, 3), got {x.shape}.")
+            x = x.astype(_float_dtype(x, self.frame.dtype))
+            return eqx.error_if(x, ~jnp.all(jnp.isfinite(x)), "a vertex coordinate is NaN or infinite.")
+        host = np.asarray(vertices)
+        _check_vertices(host, self.topo.n_vertices)
+        dtype = host.dtype if host.dtype in (np.float32, np.float64) else self.frame.dtype
+        return jnp.asarray(host, dtype=dtype)
 
     def local(self, vertices) -> tuple[Array, Array]:
-        """(axis-angle vectors (N,V,3) with angles in [0, pi], S (N,V,3,3)): jitted, no consistency."""
-        return _local(self.frame, jnp.asarray(vertices, dtype=self.frame.dtype))
+        """(axis-angle vectors (..., V, 3) with angles in [0, pi], S (..., V, 3, 3)) of vertices (..., V, 3)."""
+        return self.encode_parts(vertices, "none")
 
     def encode_parts(self, vertices, consistency: cons.Consistency | None = "spatial") -> tuple[Array, Array]:
-        """(consistent axis-angle vectors (N,V,3), S (N,V,3,3))."""
-        vertices = np.asarray(vertices)
-        if vertices.ndim == 2:
-            vertices = vertices[None]
-        _check_vertices(vertices, self.topo.n_vertices)
+        """(consistent axis-angle vectors (..., V, 3), S (..., V, 3, 3)) of vertices (..., V, 3).
+
+        "temporal" takes the frames along the first axis of (N, V, 3). Differentiable in the vertices: the
+        integer consistency choices are held fixed in the derivative.
+        """
         if consistency not in (None, "none", "spatial", "temporal"):
             raise ValueError(f"unknown consistency '{consistency}'; expected 'spatial', 'temporal' or 'none'.")
         mode = "none" if consistency is None else consistency
-        return _encode_parts(self.frame, self.graph.rings, jnp.asarray(vertices, dtype=self.frame.dtype), mode)
+        x = self._vertices(vertices)
+        if mode == "temporal" and x.ndim != 3:
+            raise ValueError(f"temporal consistency needs frames (N, V, 3), got {x.shape}.")
+        lead, n = x.shape[:-2], self.topo.n_vertices
+        v, s = _encode_parts(_frame_as(self.frame, x.dtype), self.rings, x.reshape(-1, n, 3), mode)
+        return v.reshape(*lead, n, 3), s.reshape(*lead, n, 3, 3)
 
-    def encode(self, vertices, consistency: cons.Consistency | None = "spatial") -> Float[Array, "n v 9"]:
+    def encode(self, vertices, consistency: cons.Consistency | None = "spatial") -> Float[Array, "... v 9"]:
+        """ACAP features (..., V, 9) of vertices (..., V, 3) (see :meth:`encode_parts`)."""
         v, s = self.encode_parts(vertices, consistency)
         return features_from(v, s)
 
     def reconstructor(self, anchors=None) -> Reconstructor:
-        key = None if anchors is None else tuple(np.atleast_1d(np.asarray(anchors)).tolist())
-        if key not in self._reconstructors:
-            self._reconstructors[key] = Reconstructor.build(self.rest, self.topo, self.frame.weights, anchors)
-        return self._reconstructors[key]
+        """The reconstruction for ``anchors`` (vertex indices; None: the prepared default). Concrete anchor
+        sets other than the default are built once and kept (a new factor for the factored solvers)."""
+        if anchors is None:
+            return self.rec
+        if isinstance(anchors, jax.core.Tracer):
+            return self.rec.with_anchors(anchors)
+        key = tuple(np.atleast_1d(np.asarray(anchors)).tolist())
+        if not _is_traced(self.rec.anchors) and key == tuple(np.asarray(self.rec.anchors).tolist()):
+            return self.rec
+        if key in self._cache.items:
+            return self._cache.items[key]
+        rec = self.rec.with_anchors(anchors)
+        if not _is_traced(rec):
+            self._cache.items[key] = rec
+        return rec
+
+    def with_rest(self, rest: Float[Array, "v 3"]) -> "Acap":
+        """The same Acap with its reference-side constants (fit constants, edge weights, reconstruction
+        weights) recomputed from ``rest``: :meth:`encode` and :meth:`decode` of the result are differentiable
+        with respect to ``rest``. The topology stays; a factored solver solves only at its own reference
+        (see :meth:`Reconstructor.with_rest`)."""
+        rest = jnp.asarray(rest)
+        frame = self.frame
+        w, c_ring, c_normal = _rest_constants(rest, frame.topo, frame.plan, self.weighting)
+        frame = dataclasses.replace(frame, weights=w, c_ring=c_ring, c_normal=c_normal)
+        return Acap(rest=rest, faces=self.faces, topo=self.topo, frame=frame, rings=self.rings,
+                    rec=self.rec.with_rest(rest, w), weighting=self.weighting)
 
     def deformation_energy(self, features, positions) -> Float[Array, "..."]:
         """The ACAP reconstruction's objective without its anchor term, per shape:
@@ -157,7 +244,7 @@ class Acap:
         ``features`` (..., V, 9) and p = ``positions`` (..., V, 3). Zero when the positions realise the features'
         gradients exactly; :meth:`decode` with ``refine=0`` minimises it under its anchors. Differentiable in both.
         """
-        rec = self.reconstructor(None)  # the edge terms are the same for every anchor set
+        rec = self.rec  # the edge terms are the same for every anchor set
         features = jnp.asarray(features)
         lead, v = features.shape[:-2], features.shape[-2]
         target = rec.edge_targets_vm(_decode_gradients(_features_cm(features)))  # (E, 3, B)
@@ -165,16 +252,43 @@ class Acap:
         diff = rec.sqrt_w.astype(target.dtype)[:, None, None] * (p[rec.edge_i] - p[rec.edge_j]) - target
         return jnp.sum(diff**2, axis=(0, 1)).reshape(lead)
 
-    def decode(self, features, *, anchors=None, targets=None, refine: int = DEFAULT_REFINE) -> Float[Array, "... v 3"]:
-        """Positions (..., V, 3) from features (..., V, 9); differentiable in features and targets.
+    def _features(self, features):
+        if _is_traced(features):
+            f = jnp.asarray(features)
+            f = f.astype(_float_dtype(f, self.frame.dtype))
+        else:
+            host = np.asarray(features)
+            if host.ndim < 2 or host.shape[-1] != 9:
+                raise ValueError(f"features must be (..., V, 9), got {host.shape}.")
+            if not np.all(np.isfinite(host)):
+                raise ValueError("a feature is NaN or infinite.")
+            f = jnp.asarray(host, dtype=host.dtype if host.dtype in (np.float32, np.float64) else self.frame.dtype)
+        if f.ndim < 2 or f.shape[-1] != 9 or f.shape[-2] != self.topo.n_vertices:
+            raise ConnectivityError(f"features must be (..., {self.topo.n_vertices}, 9), got {f.shape}.")
+        return f
+
+    def decode_info(self, features, *, anchors=None, targets=None, refine: int = DEFAULT_REFINE,
+                    initial=None) -> tuple[Float[Array, "... v 3"], SolveInfo]:
+        """(positions (..., V, 3), :class:`SolveInfo` of its linear solves) from features (..., V, 9).
+
+        Positions are in the features' dtype. ``anchors``: vertex indices held at ``targets`` (..., A, 3)
+        (default: their reference positions; without anchors the prepared default, vertex 0). ``initial``:
+        a starting guess of the positions (..., V, 3) for conjugate gradients (default: the reference; e.g. a
+        previous frame's positions); the factored solvers do not need one.
 
         ``refine=0`` is the plain ACAP reconstruction (one least-squares solve). Each refinement step
         (defect correction) re-fits the gradients of the current positions with the encoder's own local
-        fits and solves the same prefactored least-squares problem for the correction, so that the
-        decoded mesh reproduces the given gradients more closely (horse-gallop round trip, mean error
-        over the bounding-box diagonal: 1.5e-3 with 0 steps, 5.6e-4 with 1, 3.1e-4 with 2).
+        fits and solves the same least-squares problem for the correction, so that the decoded mesh
+        reproduces the given gradients more closely.
         """
-        return _decode(self.reconstructor(anchors), self.frame, features, targets, refine)
+        f = self._features(features)
+        return _decode(self.reconstructor(anchors), _frame_as(self.frame, f.dtype), f, targets, refine, initial)
+
+    def decode(self, features, *, anchors=None, targets=None, refine: int = DEFAULT_REFINE,
+               initial=None) -> Float[Array, "... v 3"]:
+        """Positions (..., V, 3) from features (..., V, 9); see :meth:`decode_info`. Differentiable in the
+        features and the targets (and the reference, through :meth:`with_rest`)."""
+        return self.decode_info(features, anchors=anchors, targets=targets, refine=refine, initial=initial)[0]
 
 
 @jax.jit
@@ -203,8 +317,8 @@ def _edge_stage(rec: Reconstructor, t):
 
 
 @jax.jit
-def _solve_stage(rec: Reconstructor, target, targets):
-    return rec.solve_targets_vm(target, targets)
+def _solve_stage(rec: Reconstructor, target, targets, y0):
+    return rec.solve(target, targets, y0)
 
 
 @jax.jit
@@ -225,21 +339,51 @@ def _decode_output(p, features):
     return jnp.moveaxis(p, -1, 0).reshape(*lead, v, 3)
 
 
-def _decode(rec: Reconstructor, frame: RestFrame, features, targets, refine: int):
+@jax.jit
+def _initial_stage(rec: Reconstructor, features, initial):
+    """The conjugate gradients' start (V, 3, B): ``initial`` (..., V, 3) broadcast to the batch, or the reference."""
+    lead, v = features.shape[:-2], features.shape[-2]
+    if initial is None:
+        return jnp.broadcast_to(rec.rest.astype(features.dtype)[:, :, None], (v, 3, math.prod(lead)))
+    x = jnp.broadcast_to(jnp.asarray(initial, features.dtype), (*lead, v, 3))
+    return jnp.moveaxis(x.reshape(-1, v, 3), 0, -1)
+
+
+def _decode(rec: Reconstructor, frame: RestFrame, features, targets, refine: int, initial=None):
     # Separately jitted stages (see the encoder's note): one program was 2-4x slower on XLA CPU.
     t = _decode_gradients(_features_cm(features))
     target = _edge_stage(rec, t)
     targets = None if targets is None else _anchor_targets(rec, features, targets)
-    p = _solve_stage(rec, target, targets)
+    y0 = _initial_stage(rec, features, initial) if isinstance(rec.method, ConjugateGradient) else None
+    p, info = _solve_stage(rec, target, targets, y0)
     if refine:
         zero = jnp.zeros((rec.anchors.shape[0], 3, target.shape[-1]), target.dtype)  # corrections move no anchor
         for _ in range(refine):
-            p = p + _solve_stage(rec, _defect_stage(rec, target, _refit_stage(frame, p)), zero)
-    return _decode_output(p, features)
+            dp, step_info = _solve_stage(rec, _defect_stage(rec, target, _refit_stage(frame, p)), zero, None)
+            p = p + dp
+            info = info.merge(step_info)
+    return _decode_output(p, features), info
 
 
-def prepare(rest, faces, weighting: Weighting = "official") -> Acap:
-    """Build the :class:`Acap` of a reference mesh (host work: topology, graph, reference fits)."""
+def default_solver(n_vertices: int, backend: str | None = None) -> str:
+    """The solver ``prepare(solver=None)`` picks: the host factor on CPU; on an accelerator the dense factor
+    up to DENSE_MAX_VERTICES vertices, conjugate gradients above."""
+    backend = jax.default_backend() if backend is None else backend
+    if backend == "cpu":
+        return "host"
+    return "dense" if n_vertices <= DENSE_MAX_VERTICES else "cg"
+
+
+def prepare(rest, faces, weighting: Weighting = "official", *, solver: str | None = None, anchors=None,
+            cg_rtol: float | None = None, cg_max_steps: int = CG_MAX_STEPS) -> Acap:
+    """Build the :class:`Acap` of a reference mesh: all host work (topology, consistency graph, reference
+    fits, edge weights, the reconstruction's factor for ``anchors``; default vertex 0).
+
+    ``solver``: "host" (sparse Cholesky on the host), "dense" (XLA Cholesky, on the device), "cg" (matrix-free
+    conjugate gradients to ``cg_rtol``, at most ``cg_max_steps``) or None (:func:`default_solver`). The
+    reference's dtype (float32 or float64; other types become float64) is the Acap's own; each call computes
+    in its input's dtype.
+    """
     rest = np.asarray(rest)
     if rest.dtype not in (np.float32, np.float64):
         rest = rest.astype(np.float64)
@@ -247,27 +391,34 @@ def prepare(rest, faces, weighting: Weighting = "official") -> Acap:
         raise ValueError(f"the reference must be (V, 3), got {rest.shape}.")
     if not np.all(np.isfinite(rest)):
         raise DegenerateMeshError("a reference vertex coordinate is NaN or infinite.")
+    if solver is not None and solver not in SOLVERS:
+        raise ValueError(f"unknown solver '{solver}'; expected one of {', '.join(SOLVERS)}.")
     faces = np.asarray(faces)
     topo = build_topology(faces, rest.shape[0])
-    frame = rest_frame(jnp.asarray(rest), topo, weighting)
+    rest_j = jnp.asarray(rest)
+    frame = rest_frame(rest_j, topo, weighting)
     graph = cons.build_graph(np.asarray(topo.edges), topo.n_vertices)
-    return Acap(rest=rest, faces=faces.astype(np.int32), topo=topo, frame=frame, graph=graph, weighting=weighting)
+    solver = default_solver(topo.n_vertices) if solver is None else solver
+    rec = Reconstructor.build(rest_j, topo, frame.weights, anchors, solver=solver, cg_rtol=cg_rtol,
+                              cg_max_steps=cg_max_steps)
+    return Acap(rest=rest_j, faces=jnp.asarray(faces, jnp.int32), topo=topo, frame=frame, rings=graph.rings, rec=rec,
+                weighting=weighting)
 
 
 _CACHE: OrderedDict = OrderedDict()
 _CACHE_SIZE = 8
 
 
-def cached(rest, faces, weighting: Weighting = "official") -> Acap:
+def cached(rest, faces, weighting: Weighting = "official", *, solver: str | None = None) -> Acap:
     """:func:`prepare` with a small LRU cache keyed by the reference and faces bytes."""
     rest = np.asarray(rest)
     faces = np.asarray(faces)
     key = (hashlib.sha1(rest.tobytes()).hexdigest(), rest.shape, str(rest.dtype),
-           hashlib.sha1(faces.astype(np.int64).tobytes()).hexdigest(), weighting)
+           hashlib.sha1(faces.astype(np.int64).tobytes()).hexdigest(), weighting, solver)
     if key in _CACHE:
         _CACHE.move_to_end(key)
         return _CACHE[key]
-    acap = prepare(rest, faces, weighting)
+    acap = prepare(rest, faces, weighting, solver=solver)
     _CACHE[key] = acap
     if len(_CACHE) > _CACHE_SIZE:
         _CACHE.popitem(last=False)
@@ -275,8 +426,9 @@ def cached(rest, faces, weighting: Weighting = "official") -> Acap:
 
 
 def encode(rest, faces, vertices, *, consistency: cons.Consistency | None = "spatial",
-           weighting: Weighting = "official") -> Float[Array, "n v 9"]:
-    """ACAP features (N, V, 9) of ``vertices`` (N, V, 3) relative to ``rest`` (V, 3).
+           weighting: Weighting = "official") -> Float[Array, "... v 9"]:
+    """ACAP features (..., V, 9) of ``vertices`` (..., V, 3) relative to ``rest`` (V, 3) (host convenience:
+    :func:`prepare` cached by the reference's bytes; use :meth:`Acap.encode` inside jit).
 
     ``consistency``: "spatial" (ACAP), "temporal" (TS-ACAP, frames in order) or None/"none" (angles in
     [0, pi]).
@@ -286,11 +438,11 @@ def encode(rest, faces, vertices, *, consistency: cons.Consistency | None = "spa
 
 def decode(features, rest, faces, *, anchors=None, targets=None, refine: int = DEFAULT_REFINE,
            weighting: Weighting = "official"):
-    """Vertex positions (..., V, 3) from features (..., V, 9); differentiable in ``features``.
+    """Vertex positions (..., V, 3) from features (..., V, 9) (host convenience, see :func:`encode`).
 
     ``anchors``: vertex indices held at ``targets`` (default: their reference positions); without anchors
     vertex 0 is held at its reference position (the features carry no translation). ``refine``: number
-    of defect-correction steps (see :meth:`Acap.decode`; 0 = plain ACAP reconstruction).
+    of defect-correction steps (see :meth:`Acap.decode_info`; 0 = plain ACAP reconstruction).
     """
     return cached(rest, faces, weighting).decode(features, anchors=anchors, targets=targets, refine=refine)
 

@@ -5,19 +5,26 @@ same positive edge weights as the encoder,
 
     min_p  sum_(i,j in E) w_ij |(p_i - p_j) - (T_i + T_j)/2 (q_i - q_j)|^2  +  a sum_(k in anchors) |p_k - t_k|^2
 
-solved by ``optimistix.least_squares`` with Gauss-Newton. The residual is linear in p, so J^T J is the
-weighted graph Laplacian plus ``a`` on the anchors' diagonal: a fixed sparse matrix, factored once per
-(reference, connectivity, anchors) with cholespy, and used through a lineax solver
-(:class:`PrefactoredCholesky`) both for the Gauss-Newton step and, via ``optimistix.ImplicitAdjoint``, for
-the backward pass. Gradients with respect to T, the reference-side constants and the anchor targets are
-therefore exact (implicit differentiation), and cost one more solve.
+solved by ``optimistix.least_squares`` (:class:`LinearLeastSquares`: the residual is affine in p, so one
+Gauss-Newton step from any start is exact). J^T J is the normal matrix M = weighted graph Laplacian plus ``a``
+on the anchors' diagonal. Three interchangeable solvers for M x = b, all behind one lineax solver
+(:class:`NormalSolver`) that serves the Gauss-Newton step and, through ``optimistix.ImplicitAdjoint``, the
+derivatives (forward and reverse mode):
+
+- ``"host"`` (:class:`HostCholesky`): a sparse Cholesky factor of M on the host (cholespy, float64), reached
+  through ``jax.pure_callback``;
+- ``"dense"`` (:class:`DenseCholesky`): a dense XLA Cholesky factor of M built once (meshes up to about 20k
+  vertices), solved on the device for all frames at once;
+- ``"cg"`` (:class:`ConjugateGradient`): matrix-free Jacobi-preconditioned conjugate gradients with the
+  edge-list product of M, batched over frames, any mesh size, started from the least squares' initial guess.
+
+Derivatives are implicit (one more solve of the same system), hence exact with respect to the gradients T,
+the anchor targets and the reference-side constants (edge vectors, weights, anchor weight): see
+:meth:`Reconstructor.with_rest` for derivatives with respect to the reference positions.
 
 Translation is free without anchors, so at least one anchor is always used: by default vertex 0 held at its
 reference position. The anchor weight ``a`` is ANCHOR_WEIGHT times the mean edge weight: large enough that
-anchors act as near-hard constraints, small enough to keep the float64 factor well conditioned.
-
-The factor lives on the host (cholespy); jitted code reaches it through ``jax.pure_callback`` and a
-registry key, so a compiled decoder never retraces for new features.
+anchors act as near-hard constraints, small enough to keep the factor well conditioned.
 """
 
 from __future__ import annotations
@@ -25,7 +32,7 @@ from __future__ import annotations
 import atexit
 import itertools
 import threading
-from typing import Any
+from typing import Any, Literal
 
 import equinox as eqx
 import jax
@@ -33,12 +40,24 @@ import jax.numpy as jnp
 import lineax as lx
 import numpy as np
 import optimistix as optx
-from jaxtyping import Array, Float
+from jaxtyping import Array, Bool, Float, Int
 
 from jaxdeform.errors import DegenerateMeshError
 from jaxdeform.mesh.topology import Topology
 
 ANCHOR_WEIGHT = 1e3
+#: largest mesh for which ``solver=None`` picks the dense factor on an accelerator
+DENSE_MAX_VERTICES = 20_000
+#: conjugate gradients: default relative residual tolerance per dtype, and default step limit
+CG_RTOL = {np.dtype(np.float32): 1e-6, np.dtype(np.float64): 1e-12}
+CG_MAX_STEPS = 20_000
+
+Solver = Literal["host", "dense", "cg"]
+SOLVERS = ("host", "dense", "cg")
+
+# --------------------------------------------------------------------------------------------------
+# host factors (cholespy), reached by a static integer key
+# --------------------------------------------------------------------------------------------------
 
 _FACTORS: dict[int, Any] = {}
 _FACTOR_SIZES: dict[int, int] = {}
@@ -92,11 +111,160 @@ def _callback_solve(key: int, rhs: Array) -> Array:
     return jax.pure_callback(host_any, jax.ShapeDtypeStruct(rhs.shape, rhs.dtype), rhs, vmap_method="broadcast_all")
 
 
+# --------------------------------------------------------------------------------------------------
+# the normal matrix, matrix-free
+# --------------------------------------------------------------------------------------------------
+
+
+def _scatter_edges(values, i, j, n):
+    """sum over edges e of values_e at i_e minus at j_e: (E, ...) -> (n, ...) (two segment sums)."""
+    return jax.ops.segment_sum(values, i, n, indices_are_sorted=True) - jax.ops.segment_sum(values, j, n)
+
+
+class NormalMatrix(eqx.Module):
+    """M = sum_e w_e (e_i - e_j)(e_i - e_j)^T + a sum_(k in anchors) e_k e_k^T, applied matrix-free.
+
+    ``mv(x)`` takes vertex-major x (V, ...) and returns M x of the same shape, in x's dtype.
+    """
+
+    sqrt_w: Float[Array, " e"]
+    edge_i: Int[Array, " e"]
+    edge_j: Int[Array, " e"]
+    anchors: Int[Array, " a"]
+    sqrt_a: Float[Array, ""]
+    n: int = eqx.field(static=True)
+
+    def mv(self, x):
+        dtype = x.dtype
+        w = (self.sqrt_w.astype(dtype) ** 2).reshape((-1,) + (1,) * (x.ndim - 1))
+        out = _scatter_edges(w * (x[self.edge_i] - x[self.edge_j]), self.edge_i, self.edge_j, self.n)
+        return out.at[self.anchors].add(self.sqrt_a.astype(dtype) ** 2 * x[self.anchors])
+
+    def diagonal(self, dtype) -> Array:
+        w = self.sqrt_w.astype(dtype) ** 2
+        d = jax.ops.segment_sum(w, self.edge_i, self.n, indices_are_sorted=True) + jax.ops.segment_sum(w, self.edge_j, self.n)
+        return d.at[self.anchors].add(self.sqrt_a.astype(dtype) ** 2)
+
+    def dense(self, dtype) -> Array:
+        """M as a dense (V, V) array."""
+        w = self.sqrt_w.astype(dtype) ** 2
+        m = jnp.zeros((self.n, self.n), dtype)
+        m = m.at[self.edge_i, self.edge_j].add(-w).at[self.edge_j, self.edge_i].add(-w)
+        m = m.at[self.edge_i, self.edge_i].add(w).at[self.edge_j, self.edge_j].add(w)
+        return m.at[self.anchors, self.anchors].add(self.sqrt_a.astype(dtype) ** 2)
+
+
+# --------------------------------------------------------------------------------------------------
+# the three solvers of M x = b; each returns (x, converged, steps)
+# --------------------------------------------------------------------------------------------------
+
+
+class HostCholesky(eqx.Module):
+    """Sparse Cholesky factor of M on the host (cholespy, float64), one per (reference, anchors).
+
+    The factor belongs to the matrix it was built from: derivatives through :meth:`Reconstructor.with_rest`
+    are exact at that reference, and solving a different matrix with it is refused (``eqx.error_if``).
+    """
+
+    key: int = eqx.field(static=True)
+
+    @staticmethod
+    def build(matrix: NormalMatrix) -> "HostCholesky":
+        """Factor ``matrix`` on the host; its arrays must be concrete (not traced)."""
+        if not _is_concrete(matrix):
+            raise ValueError("the host factor of a new anchor set needs a concrete Acap: call acap.reconstructor(anchors) "
+                             "outside the trace, or pass the Acap closed over instead of as an argument.")
+        w = np.asarray(matrix.sqrt_w, np.float64) ** 2
+        e = np.stack([np.asarray(matrix.edge_i), np.asarray(matrix.edge_j)], axis=1)
+        anchors = np.asarray(matrix.anchors)
+        a = float(np.asarray(matrix.sqrt_a, np.float64)) ** 2
+        rows = np.r_[e[:, 0], e[:, 1], e[:, 0], e[:, 1], anchors]
+        cols = np.r_[e[:, 1], e[:, 0], e[:, 0], e[:, 1], anchors]
+        vals = np.r_[-w, -w, w, w, np.full(anchors.size, a)]
+        return HostCholesky(register_factor(matrix.n, rows, cols, vals))
+
+    def solve(self, matrix: NormalMatrix, b, scale2=None):
+        del matrix, scale2
+        return _callback_solve(self.key, b), jnp.array(True), jnp.array(1, jnp.int32)
+
+
+class DenseCholesky(eqx.Module):
+    """Dense lower Cholesky factor (V, V) of M, computed by XLA once; solves all frames in one pair of
+    triangular solves in the factor's dtype (float64 where x64 is enabled and the reference is float64)."""
+
+    chol: Float[Array, "v v"]
+
+    @staticmethod
+    def build(matrix: NormalMatrix, dtype) -> "DenseCholesky":
+        chol = jax.jit(lambda m: jnp.linalg.cholesky(m.dense(dtype)))(matrix)
+        if not isinstance(chol, jax.core.Tracer) and not bool(np.isfinite(np.asarray(chol[-1, -1]))):
+            raise DegenerateMeshError("the reconstruction matrix is not positive definite (degenerate reference mesh).")
+        return DenseCholesky(chol)
+
+    def solve(self, matrix: NormalMatrix, b, scale2=None):
+        del matrix, scale2
+        n = self.chol.shape[0]
+        cols = b.reshape(n, -1).astype(self.chol.dtype)
+        x = jax.scipy.linalg.cho_solve((self.chol, True), cols)
+        return x.reshape(b.shape).astype(b.dtype), jnp.array(True), jnp.array(1, jnp.int32)
+
+
+class ConjugateGradient(eqx.Module):
+    """Matrix-free Jacobi-preconditioned conjugate gradients on M, every column (vertex-major b (V, ...):
+    coordinate and frame) solved at once with its own step sizes.
+
+    Starts from zero and stops when every column's residual satisfies |r|^2 <= rtol^2 max(|b|^2, scale2)
+    (``rtol=None``: 1e-6 in float32, 1e-12 in float64; ``scale2``: the squared norms of the full right-hand
+    side when b is the right-hand side of a correction from a warm start) or after ``max_steps``;
+    ``converged`` says which.
+    """
+
+    rtol: float | None = eqx.field(static=True, default=None)
+    max_steps: int = eqx.field(static=True, default=CG_MAX_STEPS)
+
+    def solve(self, matrix: NormalMatrix, b, scale2=None):
+        dtype = b.dtype
+        rtol = CG_RTOL[np.dtype(dtype)] if self.rtol is None else self.rtol
+        inv_d = (1.0 / matrix.diagonal(dtype)).reshape((-1,) + (1,) * (b.ndim - 1))
+        x = jnp.zeros_like(b)
+        r = b
+        z = inv_d * r
+        norm2 = jnp.sum(b * b, axis=0)
+        if scale2 is not None:
+            norm2 = jnp.maximum(norm2, scale2.astype(dtype))
+        bound = (rtol**2) * norm2
+
+        def cond(state):
+            _, r, _, _, _, k = state
+            return (k < self.max_steps) & jnp.any(jnp.sum(r * r, axis=0) > bound)
+
+        def body(state):
+            x, r, z, p, rz, k = state
+            mp = matrix.mv(p)
+            pmp = jnp.sum(p * mp, axis=0)
+            alpha = jnp.where(pmp > 0, rz / jnp.where(pmp > 0, pmp, 1.0), 0.0)
+            x = x + alpha * p
+            r = r - alpha * mp
+            z = inv_d * r
+            rz_new = jnp.sum(r * z, axis=0)
+            beta = jnp.where(rz > 0, rz_new / jnp.where(rz > 0, rz, 1.0), 0.0)
+            return x, r, z, z + beta * p, rz_new, k + 1
+
+        rz = jnp.sum(r * z, axis=0)
+        x, r, _, _, _, k = jax.lax.while_loop(cond, body, (x, r, z, z, rz, jnp.array(0, jnp.int32)))
+        return x, jnp.all(jnp.sum(r * r, axis=0) <= bound), k
+
+
+# --------------------------------------------------------------------------------------------------
+# lineax / optimistix glue
+# --------------------------------------------------------------------------------------------------
+
+
 class EdgeJacobianT(eqx.Module):
     """J^T of the reconstruction residuals (edge rows (E, 3, B), anchor rows (A, 3, B)) -> (V, 3, B).
 
     Written as segment sums: the transpose JAX derives from the residuals' gathers is a generic
-    scatter that XLA on CPU runs about 5x slower (horse-gallop, 48 frames: 16 against 3 ms).
+    scatter that XLA on CPU runs several times slower.
     """
 
     sqrt_w: Array
@@ -109,21 +277,22 @@ class EdgeJacobianT(eqx.Module):
     def __call__(self, residuals):
         r_edge, r_anchor = residuals
         sr = self.sqrt_w.astype(r_edge.dtype)[:, None, None] * r_edge
-        out = jax.ops.segment_sum(sr, self.edge_i, self.n, indices_are_sorted=True)
-        out = out - jax.ops.segment_sum(sr, self.edge_j, self.n)
+        out = _scatter_edges(sr, self.edge_i, self.edge_j, self.n)
         return out.at[self.anchors].add(self.sqrt_a.astype(r_anchor.dtype) * r_anchor)
 
 
-class PrefactoredCholesky(lx.AbstractLinearSolver):
-    """A lineax solver for operators whose normal matrix is a fixed, prefactored sparse SPD matrix M.
+class NormalSolver(lx.AbstractLinearSolver):
+    """A lineax solver for operators whose normal matrix is M (:class:`NormalMatrix`), solved by ``method``.
 
     For a square (self-adjoint) operator A = M it returns M^-1 v; for a rectangular operator J with
-    J^T J = M (a Gauss-Newton Jacobian) it returns the least-squares solution M^-1 J^T v. The operator is
-    only used for J^T v, and not even for that when ``jt`` (an explicit J^T, e.g. :class:`EdgeJacobianT`)
-    is given; M itself is never built in JAX.
+    J^T J = M (the Gauss-Newton Jacobian) it returns the least-squares solution M^-1 J^T v. The operator is
+    only used for J^T v, and not even for that when ``jt`` (an explicit J^T, :class:`EdgeJacobianT`) is
+    given. ``options["scale2"]``, where given, is passed to the method (see :class:`ConjugateGradient`).
+    Stats: ``{"steps": iterations of the method, "converged": bool}``.
     """
 
-    key: int = eqx.field(static=True)
+    method: Any
+    matrix: NormalMatrix
     jt: Any = None
 
     def init(self, operator, options):
@@ -131,13 +300,16 @@ class PrefactoredCholesky(lx.AbstractLinearSolver):
         return operator
 
     def compute(self, state, vector, options):
-        del options
         operator = state
+        scale2 = None if options is None else options.get("scale2")
         if operator.in_size() != operator.out_size():
             vector = operator.transpose().mv(vector) if self.jt is None else self.jt(vector)
         leaves, treedef = jax.tree_util.tree_flatten(vector)
-        sol = [_callback_solve(self.key, leaf) for leaf in leaves]
-        return jax.tree_util.tree_unflatten(treedef, sol), lx.RESULTS.successful, {}
+        outs = [self.method.solve(self.matrix, leaf, scale2) for leaf in leaves]
+        converged = jnp.all(jnp.stack([o[1] for o in outs]))
+        steps = jnp.max(jnp.stack([o[2] for o in outs]))
+        result = lx.RESULTS.where(converged, lx.RESULTS.successful, lx.RESULTS.max_steps_reached)
+        return jax.tree_util.tree_unflatten(treedef, [o[0] for o in outs]), result, {"steps": steps, "converged": converged}
 
     def transpose(self, state, options):
         return state.transpose(), options
@@ -150,20 +322,26 @@ class PrefactoredCholesky(lx.AbstractLinearSolver):
 
 
 class LinearLeastSquares(optx.AbstractLeastSquaresSolver):
-    """Least squares for residuals that are affine in y: one exact Gauss-Newton step, then stop.
+    """Least squares for residuals that are affine in y: one exact Gauss-Newton step from y0, then stop.
 
     ``optx.GaussNewton`` needs a second step (and a second solve) only to notice that the first step
-    already solved an affine problem; this solver takes that one step and terminates.
+    already solved an affine problem; this solver takes that one step and terminates. Its result is the
+    linear solve's (``max_steps_reached`` where an iterative solve stopped short), and its stats hold the
+    linear solve's ``steps`` and ``converged``. With ``warm_start`` the linear solver is told the size of the
+    problem's right-hand side from y = 0 (``options["scale2"]``), so that an iterative solve started from a
+    good y0 stops at the same absolute accuracy as one started from zero.
     """
 
-    linear_solver: lx.AbstractLinearSolver
+    linear_solver: NormalSolver
+    warm_start: bool = eqx.field(static=True, default=False)
     rtol: float = 0.0
     atol: float = 0.0
     norm: object = eqx.field(static=True, default=optx.max_norm)
 
     def init(self, fn, y, args, options, f_struct, aux_struct, tags):
         del fn, y, args, options, f_struct, tags
-        return (jnp.array(False), jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), aux_struct))
+        aux = jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), aux_struct)
+        return (jnp.array(False), aux, optx.RESULTS.successful, {"steps": jnp.array(0, jnp.int32), "converged": jnp.array(True)})
 
     def step(self, fn, y, args, options, state, tags):
         del options, state
@@ -172,17 +350,23 @@ class LinearLeastSquares(optx.AbstractLeastSquaresSolver):
         aux = fn(y, args)[1]
         operator = lx.FunctionLinearOperator(jvp, jax.eval_shape(lambda: y), tags)
         neg = jax.tree_util.tree_map(jnp.negative, residual)
-        sol = lx.linear_solve(operator, neg, self.linear_solver, throw=False)
+        solve_options = {}
+        if self.warm_start and self.linear_solver.jt is not None:
+            zero = jax.tree_util.tree_map(jnp.zeros_like, y)
+            b0 = self.linear_solver.jt(residual_fn(zero))
+            solve_options["scale2"] = jnp.sum(b0 * b0, axis=0)
+        sol = lx.linear_solve(operator, neg, self.linear_solver, options=solve_options, throw=False)
         y_new = jax.tree_util.tree_map(jnp.add, y, sol.value)
-        return y_new, (jnp.array(True), aux), aux
+        stats = {"steps": sol.stats["steps"], "converged": sol.stats["converged"]}
+        return y_new, (jnp.array(True), aux, optx.RESULTS.promote(sol.result), stats), aux
 
     def terminate(self, fn, y, args, options, state, tags):
         del fn, y, args, options, tags
-        return state[0], optx.RESULTS.successful
+        return state[0], state[2]
 
     def postprocess(self, fn, y, aux, args, options, state, tags, result):
-        del fn, args, options, state, tags, result
-        return y, aux, {}
+        del fn, args, options, tags, result
+        return y, aux, state[3]
 
 
 def _residuals(y, args):
@@ -203,11 +387,36 @@ def edge_targets(t_vm: Float[Array, "v 3 3 b"], rest_edges, sqrt_w, i, j) -> Flo
     return tsum[:, :, 0] * q[:, None, 0] + tsum[:, :, 1] * q[:, None, 1] + tsum[:, :, 2] * q[:, None, 2]
 
 
+
+class SolveInfo(eqx.Module):
+    """How a reconstruction's linear solves went: ``converged`` (always True for the factored solvers) and
+    ``steps`` (the most iterations any solve took; 1 for the factored solvers)."""
+
+    converged: Bool[Array, ""]
+    steps: Int[Array, ""]
+
+    def merge(self, other: "SolveInfo") -> "SolveInfo":
+        return SolveInfo(self.converged & other.converged, jnp.maximum(self.steps, other.steps))
+
+
+def _check_anchors(anchors, n: int) -> np.ndarray:
+    anchors = np.atleast_1d(np.asarray([0] if anchors is None else anchors, dtype=np.int64))
+    if anchors.ndim != 1 or anchors.size == 0 or anchors.min() < 0 or anchors.max() >= n:
+        raise ValueError(f"anchor indices must lie in [0, {n}).")
+    if np.unique(anchors).size != anchors.size:
+        raise ValueError("anchor indices must be distinct.")
+    return anchors
+
+
+def _is_concrete(*trees) -> bool:
+    return not any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(trees))
+
+
 class Reconstructor(eqx.Module):
     """Positions from deformation gradients for one (reference, connectivity, anchors); build once, call many.
 
-    ``__call__(t (..., V, 3, 3), targets (..., A, 3) | None) -> positions (..., V, 3)``, jit-able and
-    differentiable in ``t`` and ``targets``.
+    ``__call__(t (..., V, 3, 3), targets (..., A, 3) | None) -> positions (..., V, 3)``: traces under jit,
+    vmap, grad, jvp; differentiable in ``t``, ``targets`` and (through :meth:`with_rest`) the reference.
     """
 
     rest: Float[Array, "v 3"]
@@ -217,39 +426,90 @@ class Reconstructor(eqx.Module):
     edge_j: Array
     anchors: Array
     sqrt_a: Array
-    key: int = eqx.field(static=True)
+    method: HostCholesky | DenseCholesky | ConjugateGradient
+    anchor_weight: float = eqx.field(static=True, default=ANCHOR_WEIGHT)
 
     @staticmethod
-    def build(rest, topo: Topology, weights, anchors=None, anchor_weight: float = ANCHOR_WEIGHT) -> "Reconstructor":
+    def build(rest, topo: Topology, weights, anchors=None, anchor_weight: float = ANCHOR_WEIGHT,
+              solver: Solver = "host", cg_rtol: float | None = None, cg_max_steps: int = CG_MAX_STEPS) -> "Reconstructor":
+        """Host-side construction: checks (positive weights, anchors) and the factor of ``solver``.
+
+        ``rest`` (V, 3) and ``weights`` (E,) may be jax or numpy arrays; ``anchors``: vertex indices (default
+        [0]), a concrete sequence.
+        """
+        if solver not in SOLVERS:
+            raise ValueError(f"unknown solver '{solver}'; expected one of {', '.join(SOLVERS)}.")
         rest = jnp.asarray(rest)
-        weights = jnp.asarray(weights, dtype=rest.dtype)
-        if not bool(jnp.all(weights > 0)):
-            raise DegenerateMeshError(
-                "reconstruction needs positive edge weights; use weighting='official' for this mesh."
-            )
+        w_host = np.asarray(weights, dtype=np.float64)
+        if not np.all(w_host > 0):
+            raise DegenerateMeshError("reconstruction needs positive edge weights; use weighting='official' for this mesh.")
         n = topo.n_vertices
-        anchors = np.atleast_1d(np.asarray([0] if anchors is None else anchors, dtype=np.int64))
-        if anchors.size == 0 or anchors.min() < 0 or anchors.max() >= n:
-            raise ValueError(f"anchor indices must lie in [0, {n}).")
-        if np.unique(anchors).size != anchors.size:
-            raise ValueError("anchor indices must be distinct.")
-        a = float(anchor_weight * np.mean(np.asarray(weights)))
-        e = np.asarray(topo.edges)
-        w = np.asarray(weights, dtype=np.float64)
-        rows = np.r_[e[:, 0], e[:, 1], e[:, 0], e[:, 1], anchors]
-        cols = np.r_[e[:, 1], e[:, 0], e[:, 0], e[:, 1], anchors]
-        vals = np.r_[-w, -w, w, w, np.full(anchors.size, a)]
-        key = register_factor(n, rows, cols, vals)
-        return Reconstructor(
+        anchors = _check_anchors(anchors, n)
+        a = float(anchor_weight * np.mean(w_host))
+        weights = jnp.asarray(weights, dtype=rest.dtype)
+        edges = jnp.asarray(topo.edges)
+        rec = Reconstructor(
             rest=rest,
-            rest_edges=rest[topo.edges[:, 0]] - rest[topo.edges[:, 1]],
+            rest_edges=rest[edges[:, 0]] - rest[edges[:, 1]],
             sqrt_w=jnp.sqrt(weights),
-            edge_i=topo.edges[:, 0],
-            edge_j=topo.edges[:, 1],
+            edge_i=edges[:, 0],
+            edge_j=edges[:, 1],
             anchors=jnp.asarray(anchors, dtype=jnp.int32),
             sqrt_a=jnp.asarray(np.sqrt(a), dtype=rest.dtype),
-            key=key,
+            method=ConjugateGradient(cg_rtol, cg_max_steps),
+            anchor_weight=anchor_weight,
         )
+        return rec.with_method(solver, cg_rtol, cg_max_steps)
+
+    def with_method(self, solver: Solver, cg_rtol: float | None = None, cg_max_steps: int = CG_MAX_STEPS) -> "Reconstructor":
+        """The same problem solved by ``solver`` (factors are built now, on the host for ``"host"``)."""
+        if solver == "host":
+            method = HostCholesky.build(self.matrix())
+        elif solver == "dense":
+            method = DenseCholesky.build(self.matrix(), self.rest.dtype)
+        elif solver == "cg":
+            method = ConjugateGradient(cg_rtol, cg_max_steps)
+        else:
+            raise ValueError(f"unknown solver '{solver}'; expected one of {', '.join(SOLVERS)}.")
+        return eqx.tree_at(lambda r: r.method, self, method)
+
+    @property
+    def solver(self) -> Solver:
+        return {HostCholesky: "host", DenseCholesky: "dense", ConjugateGradient: "cg"}[type(self.method)]
+
+    def matrix(self) -> NormalMatrix:
+        """The normal matrix of this problem (matrix-free)."""
+        return NormalMatrix(self.sqrt_w, self.edge_i, self.edge_j, self.anchors, self.sqrt_a, self.rest.shape[0])
+
+    def with_anchors(self, anchors) -> "Reconstructor":
+        """The same reference with other anchors (vertex indices). The factored solvers need concrete indices
+        (a new factor is built); conjugate gradients take traced ones too."""
+        if isinstance(anchors, jax.core.Tracer):
+            if not isinstance(self.method, ConjugateGradient):
+                raise ValueError("traced anchor indices need solver='cg'; the factored solvers need concrete indices.")
+            return eqx.tree_at(lambda r: r.anchors, self, anchors.astype(jnp.int32))
+        idx = _check_anchors(anchors, self.rest.shape[0]).astype(np.int32)  # numpy: concrete inside a trace too
+        rec = eqx.tree_at(lambda r: r.anchors, self, idx)
+        if isinstance(self.method, HostCholesky):
+            return eqx.tree_at(lambda r: r.method, rec, HostCholesky.build(rec.matrix()))
+        if isinstance(self.method, DenseCholesky):
+            return eqx.tree_at(lambda r: r.method, rec, DenseCholesky.build(rec.matrix(), self.method.chol.dtype))
+        return rec
+
+    def with_rest(self, rest: Float[Array, "v 3"], weights: Float[Array, " e"]) -> "Reconstructor":
+        """The problem's reference-side constants recomputed from ``rest`` and its edge ``weights`` (which
+        the caller derives from ``rest``), so that positions are differentiable in the reference.
+
+        Conjugate gradients solve the new matrix; a factored solver keeps its factor, which is exact only at
+        the reference it was built for: there the derivatives are exact, elsewhere the solve is refused.
+        """
+        if not isinstance(self.method, ConjugateGradient):
+            rest = eqx.error_if(rest, jnp.any(rest != self.rest.astype(rest.dtype)),
+                                "a factored solver reconstructs only at its own reference; use solver='cg' to move it.")
+        weights = weights.astype(rest.dtype)
+        new = (rest, rest[self.edge_i] - rest[self.edge_j], jnp.sqrt(weights),
+               jnp.sqrt(self.anchor_weight * jnp.mean(weights)))
+        return eqx.tree_at(lambda r: (r.rest, r.rest_edges, r.sqrt_w, r.sqrt_a), self, new)
 
     def __call__(self, t: Float[Array, "... v 3 3"], targets: Float[Array, "... a 3"] | None = None):
         """Positions (..., V, 3) from gradients (..., V, 3, 3) (see :meth:`solve_vm` for the fast layout)."""
@@ -271,6 +531,10 @@ class Reconstructor(eqx.Module):
         targets = jnp.broadcast_to(jnp.asarray(targets, dtype), (*lead, a, 3))
         return jnp.moveaxis(targets.reshape(-1, a, 3), 0, -1)
 
+    def rest_targets_vm(self, b: int, dtype) -> Float[Array, "a 3 b"]:
+        """The anchors' reference positions for ``b`` frames (A, 3, B)."""
+        return jnp.broadcast_to(self.rest[self.anchors].astype(dtype)[:, :, None], (self.anchors.shape[0], 3, b))
+
     def edge_targets_vm(self, t_vm: Float[Array, "v 3 3 b"]) -> Float[Array, "e 3 b"]:
         """The residuals' edge targets (E, 3, B) of gradients (V, 3, 3, B); linear in the gradients."""
         dtype = t_vm.dtype
@@ -282,22 +546,28 @@ class Reconstructor(eqx.Module):
 
     def solve_targets_vm(self, target: Float[Array, "e 3 b"], targets_vm: Float[Array, "a 3 b"] | None = None):
         """Positions (V, 3, B) from edge targets (E, 3, B) (:meth:`edge_targets_vm`) and anchor targets."""
+        return self.solve(target, targets_vm)[0]
+
+    def solve(self, target: Float[Array, "e 3 b"], targets_vm: Float[Array, "a 3 b"] | None = None,
+              y0: Float[Array, "v 3 b"] | None = None) -> tuple[Array, SolveInfo]:
+        """(positions (V, 3, B), :class:`SolveInfo`) from edge and anchor targets, starting from ``y0``
+        (default zero; only conjugate gradients depend on the start, up to their tolerance)."""
         dtype = target.dtype
         b = target.shape[-1]
         if targets_vm is None:
-            targets_vm = jnp.broadcast_to(self.rest[self.anchors].astype(dtype)[:, :, None], (self.anchors.shape[0], 3, b))
-        # the residuals are affine in y, so the one Gauss-Newton step is exact from any start: start at 0
-        y0 = jnp.zeros((self.rest.shape[0], 3, b), dtype)
-        args = (target, targets_vm, self.sqrt_w.astype(dtype), self.edge_i, self.edge_j, self.anchors,
+            targets_vm = self.rest_targets_vm(b, dtype)
+        y0 = jnp.zeros((self.rest.shape[0], 3, b), dtype) if y0 is None else y0.astype(dtype)
+        args = (target, targets_vm.astype(dtype), self.sqrt_w.astype(dtype), self.edge_i, self.edge_j, self.anchors,
                 self.sqrt_a.astype(dtype))
-        linsolve = PrefactoredCholesky(self.key, self.normal_rhs())
+        # the solver holds primal values only: the derivatives come from the residuals' args (implicit adjoint)
+        linsolve = jax.lax.stop_gradient(NormalSolver(self.method, self.matrix(), self.normal_rhs()))
         sol = optx.least_squares(
             _residuals,
-            LinearLeastSquares(linear_solver=linsolve),
+            LinearLeastSquares(linear_solver=linsolve, warm_start=isinstance(self.method, ConjugateGradient)),
             y0,
             args,
             max_steps=2,
             adjoint=optx.ImplicitAdjoint(linear_solver=linsolve),
             throw=False,
         )
-        return sol.value
+        return sol.value, SolveInfo(jnp.asarray(sol.stats["converged"]), jnp.asarray(sol.stats["steps"], jnp.int32))
