@@ -126,9 +126,9 @@ HORSE_TRANSFORMS = """
 
 
 @pytest.mark.slow
-@pytest.mark.parametrize("solver", ["host", "cg"])
-def test_horse_stages_trace_and_differentiate_in_a_fresh_process(solver):
-    run_script(HORSE_TRANSFORMS.format(data=str(data_dir("horse-gallop")), solver=solver))
+def test_horse_stages_trace_and_differentiate_in_a_fresh_process():
+    """The CPU default (host factor) on real frames; the other solvers' transforms: the small-mesh test."""
+    run_script(HORSE_TRANSFORMS.format(data=str(data_dir("horse-gallop")), solver="host"))
 
 
 def test_every_stage_under_every_transform_on_a_small_mesh():
@@ -197,3 +197,32 @@ def test_solvers_agree_on_horse():
         assert not bool(info.converged) and int(info.steps) == 5
         print("OK")
     """)
+
+
+SHARDED_ACAP = """
+    import numpy as np, jax, jax.numpy as jnp
+    from jaxdeform import acap
+    from jaxdeform.acap import sharded
+    from jaxdeform.mesh import load_sequence
+    assert len(jax.devices()) == 4
+    verts, faces = load_sequence({data!r})
+    frames = verts[:10]  # not a multiple of 4: padded and trimmed
+    mesh = sharded.frames_mesh()
+    for solver in ("host", "cg"):
+        a = acap.prepare(verts[0], faces, solver=solver)
+        one = a.encode(frames)
+        many = sharded.encode(a, frames, mesh)
+        assert float(jnp.abs(one - many).max()) < 1e-12
+        d_one = a.decode(one)
+        d_many = sharded.decode(a, one, mesh)
+        assert float(jnp.abs(d_one - d_many).max()) < 1e-9 * float(np.ptp(verts[0])), float(jnp.abs(d_one - d_many).max())
+    even = sharded.encode(a, verts[:8], mesh)
+    assert even.sharding.spec == jax.sharding.PartitionSpec("frames")  # stays split along the frames
+    print("OK")
+"""
+
+
+@pytest.mark.slow
+def test_sharded_encode_decode_equal_one_device():
+    run_script(SHARDED_ACAP.format(data=str(data_dir("horse-gallop"))),
+               env_extra={"XLA_FLAGS": "--xla_force_host_platform_device_count=4"})

@@ -1,0 +1,87 @@
+"""Data-parallel ACAP over a device mesh: the frames of a batch split along one mesh axis, the Acap replicated.
+
+    mesh = sharded.frames_mesh()                    # every device along the axis "frames"
+    feats = sharded.encode(a, frames, mesh)         # (N, V, 9), sharded along N
+    pos = sharded.decode(a, feats, mesh)            # (N, V, 3), sharded along N
+
+Each device runs :meth:`Acap.encode` / :meth:`Acap.decode_info` on its own frames inside ``jax.shard_map`` (the
+host solver's callback included: each device's frames reach the host factor on their own). N need not be a
+multiple of the device count: the batch is padded with copies of its last frame, which are dropped again.
+Results equal the single-device call's to float round-off. Temporal consistency runs along the whole
+sequence and is not split over frames: shard several sequences with ``jax.vmap`` inside your own
+``shard_map`` instead.
+
+Multi-host: call ``jax.distributed.initialize()`` in every process first; ``frames_mesh()`` then spans all
+processes' devices, and each process passes a globally shaped array made from its own frames with
+``jax.make_array_from_process_local_data`` (see the README).
+"""
+
+from __future__ import annotations
+
+import functools
+
+import jax
+import jax.numpy as jnp
+import numpy as np
+from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
+from jaxtyping import Array, Float
+
+from jaxdeform.acap.features import Acap, _decode as _decode_with, _frame_as
+
+FRAMES = "frames"
+
+
+def frames_mesh(devices=None, axis: str = FRAMES) -> Mesh:
+    """A one-axis mesh named ``axis`` over ``devices`` (default: every device of every process)."""
+    devices = jax.devices() if devices is None else list(devices)
+    return Mesh(np.asarray(devices), (axis,))
+
+
+def _pad(x, size: int):
+    """x (N, ...) padded to (size, ...) with copies of its last entry."""
+    n = x.shape[0]
+    if n == size:
+        return x
+    return jnp.concatenate([x, jnp.broadcast_to(x[-1:], (size - n, *x.shape[1:]))], axis=0)
+
+
+def map_frames(fn, x, mesh: Mesh, axis: str = FRAMES):
+    """``fn`` applied to the frames (leading axis) of ``x``, split over ``mesh``'s ``axis``; ``fn`` maps
+    (n, ...) to a pytree of (n, ...) arrays. The result is sharded along its leading axis."""
+    n = x.shape[0]
+    k = mesh.shape[axis]
+    size = -(-n // k) * k
+    spec = P(axis)
+    mapped = jax.shard_map(fn, mesh=mesh, in_specs=spec, out_specs=spec, check_vma=False)
+    xs = jax.device_put(_pad(jnp.asarray(x), size), NamedSharding(mesh, spec))
+    out = mapped(xs)
+    return out if size == n else jax.tree_util.tree_map(lambda y: y[:n], out)
+
+
+def encode(acap: Acap, vertices: Float[Array, "n v 3"], mesh: Mesh, consistency: str = "spatial",
+           axis: str = FRAMES) -> Float[Array, "n v 9"]:
+    """:meth:`Acap.encode` of frames (N, V, 3), data-parallel over ``mesh`` (spatial or no consistency)."""
+    if consistency == "temporal":
+        raise ValueError("temporal consistency runs along the whole sequence and cannot be split over frames.")
+    x = acap._vertices(vertices)
+    if x.ndim != 3:
+        raise ValueError(f"vertices must be frames (N, V, 3), got {x.shape}.")
+    return map_frames(functools.partial(_encode, acap, consistency), x, mesh, axis)
+
+
+def decode(acap: Acap, features: Float[Array, "n v 9"], mesh: Mesh, *, anchors=None, refine: int = 1,
+           axis: str = FRAMES) -> Float[Array, "n v 3"]:
+    """:meth:`Acap.decode` of features (N, V, 9), data-parallel over ``mesh`` (anchors at their reference)."""
+    f = acap._features(features)
+    if f.ndim != 3:
+        raise ValueError(f"features must be (N, V, 9), got {f.shape}.")
+    rec = acap.reconstructor(anchors)  # built on the host now, once, not per device
+    return map_frames(functools.partial(_decode, acap, rec, refine), f, mesh, axis)
+
+
+def _encode(acap: Acap, consistency: str, x):
+    return acap.encode(x, consistency)
+
+
+def _decode(acap: Acap, rec, refine: int, f):
+    return _decode_with(rec, _frame_as(acap.frame, f.dtype), f, None, refine)[0]
