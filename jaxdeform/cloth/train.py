@@ -75,7 +75,7 @@ from jaxtyping import Array, Float, Int
 
 from jaxdeform.cloth.model import DetailModel, ModelConfig, new_model
 from jaxdeform.errors import JaxDeformError
-from jaxdeform.nn import native
+from jaxdeform.nn import xla
 from jaxdeform.nn.archive import load_state, read_archive, save_module
 from jaxdeform.nn.host import host_scalars, recent_mean
 from jaxdeform.nn.graph_conv import Rings
@@ -303,7 +303,7 @@ def _train_step(graphdef, window: int, batch: int, lr: float, decay_rate: float,
         updates, opt_state = tx.update(grads, opt_state, params)
         return optax.apply_updates(params, updates), new_rest, opt_state, loss
 
-    return jax.jit(step, donate_argnums=(0, 2), compiler_options=native.compiler_options())
+    return jax.jit(step, donate_argnums=(0, 2), compiler_options=xla.compiler_options())
 
 
 def train(
@@ -389,7 +389,7 @@ def _predict_fn(graphdef):
         model.eval()
         return model(coarse_win, fine_prev_win)
 
-    return jax.jit(run, compiler_options=native.compiler_options())
+    return jax.jit(run, compiler_options=xla.compiler_options())
 
 
 def predict_windows(
@@ -441,7 +441,7 @@ def _synthesize_fn(graphdef, chunk: int):
         _, ys = jax.lax.scan(frame, hist, jnp.arange(t_len))
         return ys
 
-    return jax.jit(run, compiler_options=native.compiler_options())
+    return jax.jit(run, compiler_options=xla.compiler_options())
 
 
 def synthesize(model: DetailModel, coarse_seq: Float[Array, "t vc c"], *, chunk: int = 32) -> Float[Array, "t vf c"]:

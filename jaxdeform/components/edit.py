@@ -243,25 +243,22 @@ def _control_residuals(model: _Model, free_translation: bool, w, controls, targe
 
 
 def _forward_jacobian(fn: Callable):
-    """``fn`` (K,) -> pytree of residual arrays, with a custom VJP that materialises the Jacobian by forward mode
-    (K batched JVPs, one primal pass) on the forward pass: then optimistix's reverse-mode Jacobian (R
-    cotangent rows) costs R cheap matrix products instead of R backward passes through the decoder."""
+    """``fn`` (K,) -> pytree of residual arrays, with a custom JVP that materialises the Jacobian by forward mode
+    (K batched JVPs, one primal pass) and returns its product with the tangent: reverse mode (optimistix's
+    Jacobian, R cotangent rows) then transposes that product, R cheap matrix products instead of R backward
+    passes through the decoder; forward mode and higher orders stay available."""
 
-    @jax.custom_vjp
+    @jax.custom_jvp
     def wrapped(w):
         return fn(w)
 
-    def fwd(w):
+    @wrapped.defjvp
+    def wrapped_jvp(primals, tangents):
+        (w,), (t,) = primals, tangents
         r, lin = jax.linearize(fn, w)
         jac = jax.vmap(lin, out_axes=-1)(jnp.eye(w.shape[0], dtype=w.dtype))  # leaves (..., K)
-        return r, jac
+        return r, jax.tree_util.tree_map(lambda j: j @ t, jac)
 
-    def bwd(jac, ct):
-        leaves = jax.tree_util.tree_leaves(jax.tree_util.tree_map(
-            lambda j, c: jnp.tensordot(c, j, axes=c.ndim), jac, ct))
-        return (sum(leaves),)
-
-    wrapped.defvjp(fwd, bwd)
     return wrapped
 
 
@@ -283,17 +280,10 @@ def _scaled(model, free_translation, tolerance, w0, w_ref, controls, targets, re
     def control_rows(w):
         return _control_residuals(model, free_translation, w, controls, targets)[0].astype(w0.dtype)
 
-    jac0 = None
     # the Jacobian of the control rows (3M, K) by forward mode when K <= 3M (few latents, the usual case)
     if w0.shape[0] <= 3 * controls.shape[0]:
-        forward_rows = _forward_jacobian(control_rows)
-        try:
-            jac0 = jax.jacrev(forward_rows)(w0)
-            control_rows = forward_rows
-        except TypeError:  # a decoder with a custom VJP (the mesh convolution's ring mean) has no forward mode
-            pass
-    if jac0 is None:
-        jac0 = jax.jacrev(control_rows)(w0)
+        control_rows = _forward_jacobian(control_rows)
+    jac0 = jax.jacrev(control_rows)(w0)
     jac0 = jac0.reshape(-1, w0.shape[0])
     c = jnp.sqrt(jnp.sum(jac0**2, axis=0) + regularization)
     c = jnp.where((c > 0) & (free > 0), c, 1.0)

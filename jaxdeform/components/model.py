@@ -24,8 +24,9 @@ import jax
 import jax.numpy as jnp
 from jaxtyping import Array, Float
 
-from jaxdeform.nn.graph_conv import MU, Rings, ae_decode, ae_forward, ae_forward_error, init_ae_block, masked_blocks_error
-from jaxdeform.nn.losses import group_sparsity, group_sparsity_gradient, latent_bound
+from jaxdeform.nn import graph_conv
+from jaxdeform.nn.graph_conv import MU, Rings, ae_forward, ae_forward_error, init_ae_block, masked_blocks_error
+from jaxdeform.nn.losses import group_sparsity, latent_bound
 
 
 @dataclasses.dataclass(frozen=True)
@@ -81,9 +82,6 @@ class Output(NamedTuple):
     loss: Array  # scalar: sum of the blocks' losses
     terms: dict  # per level: recon, sparsity, latent (summed over the level's blocks)
     latents: tuple  # per level: (n_l, B, Kz_l)
-    # per level (n_l, Kz_l, V): lambda2 w of eq. (3)'s closed-form gradient w C, where forward() was asked for
-    # it (sparsity_gradient=False: the loss then carries Omega's value without gradient); else None
-    sparsity_coefficients: tuple | None = None
 
 
 def init(key: Array, n_vertices: int, config: Config, dtype=jnp.float32) -> tuple[dict, ...]:
@@ -104,10 +102,9 @@ def attention_masks(c: Float[Array, "kz nine_v"]) -> Float[Array, "kz v"]:
 
 
 def _levels(params: tuple[dict, ...], x: Float[Array, "b v 9"], rings: Rings, config: Config,
-            with_error: bool = False, decoder_c: tuple | None = None) -> list:
+            with_error: bool = False) -> list:
     """Per level: (inputs (n_l, B, V, 9), latents (n_l, B, Kz_l), outputs (n_l, B, V, 9), errors (n_l, B) or
     None): ``with_error`` gives each block's summed squared error against its input, per shape.
-    ``decoder_c[l]`` (with ``with_error``; None entries allowed): level l's decoders read C from it instead.
 
     With ``with_error``, the last level's blocks run on their masked inputs (:func:`masked_blocks_error`: the
     parents' residuals and attention masks, the inputs not formed) where the masks take no gradient and the
@@ -116,19 +113,16 @@ def _levels(params: tuple[dict, ...], x: Float[Array, "b v 9"], rings: Rings, co
     parent = None  # (residuals (n_l, B, V, 9), masks (n_l, Kz_l, V)) of the level before, where attention applies
     levels = []
     for level, p in enumerate(params):
-        dec_c = None if decoder_c is None else decoder_c[level]
         if (with_error and parent is not None and level + 1 == len(params) and not config.attention_gradient
                 and config.latent == "linear"):
             res, am = parent
             split = lambda a: a.reshape(am.shape[:2] + a.shape[1:])  # noqa: E731  (n_l, ...) -> (parents, Kz, ...)
-            outs = masked_blocks_error(jax.tree_util.tree_map(split, p), res, am, rings,
-                                       None if dec_c is None else split(dec_c))
+            outs = masked_blocks_error(jax.tree_util.tree_map(split, p), res, am, rings)
             z, x_hat, err = (a.reshape((-1,) + a.shape[2:]) for a in outs)
             levels.append((None, z, x_hat, err))
             break
-        if with_error:  # dec_c None: an empty tree under vmap, the decoders read p["C"]
-            z, x_hat, err = jax.vmap(lambda q, c, xin: ae_forward_error(q, xin, rings, config.latent, c))(
-                p, dec_c, inputs)
+        if with_error:
+            z, x_hat, err = jax.vmap(lambda q, xin: ae_forward_error(q, xin, rings, config.latent))(p, inputs)
         else:
             (z, x_hat), err = jax.vmap(lambda q, xin: ae_forward(q, xin, rings, config.latent))(p, inputs), None
         levels.append((inputs, z, x_hat, err))
@@ -167,33 +161,25 @@ def level_sparsity(p: dict, dist: Float[Array, "v v"], config: Config, level: in
 
 
 def forward(params: tuple[dict, ...], x: Float[Array, "b v 9"], rings: Rings, dist: Float[Array, "v v"],
-            config: Config, *, decoder_c: tuple | None = None, sparsity_gradient: bool = True) -> Output:
+            config: Config) -> Output:
     """Run every level on a batch of scaled features and return the reconstruction and the total loss.
 
     ``params`` may hold fewer levels than ``config`` (a prefix: used by separate, level-by-level training).
-    For an optimizer that sums the gradient of C from its parts in one pass (``components.train`` on CPU):
-    ``decoder_c`` gives the decoders their C apart (see :func:`_levels`), and ``sparsity_gradient=False`` keeps
-    Omega(C) out of autodiff, returning its gradient's coefficients in :attr:`Output.sparsity_coefficients`.
     """
     total = jnp.zeros((), x.dtype)
     recon = jnp.zeros_like(x)
-    terms, latents, coefficients = [], [], []
-    levels = _levels(params, x, rings, config, True, decoder_c)
+    terms, latents = [], []
+    levels = _levels(params, x, rings, config, True)
     for level, (p, (_, z, x_hat, err)) in enumerate(zip(params, levels)):
         rec_l = jnp.mean(err, axis=-1)  # L_recon of each block: the paper's mean over shapes of the summed squares
-        if sparsity_gradient:
-            sparse_l = level_sparsity(p, dist, config, level)
-        else:
-            sparse_l, w = jax.vmap(lambda c: group_sparsity_gradient(c, dist, config.sparsity_cutoff(level),
-                                                                     config.mask))(p["C"])
-            coefficients.append(config.lambda_sparse * w)
+        sparse_l = level_sparsity(p, dist, config, level)
         latent_l = jax.vmap(lambda zz: latent_bound(zz, config.theta))(z)
         total = total + jnp.sum(config.lambda_recon * rec_l + config.lambda_sparse * sparse_l
                                 + config.lambda_latent * latent_l)
         recon = recon + jnp.sum(x_hat, axis=0)
         terms.append({"recon": jnp.sum(rec_l), "sparsity": jnp.sum(sparse_l), "latent": jnp.sum(latent_l)})
         latents.append(z)
-    return Output(recon, total, terms, tuple(latents), None if sparsity_gradient else tuple(coefficients))
+    return Output(recon, total, terms, tuple(latents))
 
 
 def decode_latents(params: tuple[dict, ...], latents: tuple, rings: Rings) -> Float[Array, "b v 9"]:
@@ -204,6 +190,6 @@ def decode_latents(params: tuple[dict, ...], latents: tuple, rings: Rings) -> Fl
     """
     out = None
     for p, z in zip(params, latents):
-        x_hat = jnp.sum(jax.vmap(lambda q, zz: ae_decode(q, zz, rings))(p, z), axis=0)
+        x_hat = jnp.sum(jax.vmap(lambda q, zz: graph_conv.ae_decode(q, zz, rings))(p, z), axis=0)
         out = x_hat if out is None else out + x_hat
     return out

@@ -1,8 +1,7 @@
 """Training of the multiscale model: one jitted Adam step, checkpoints with orbax, resume, progress.
 
-Adam (optax's; on CPU with the native kernels, the same update and state in one native pass per array, see
-:func:`make_step`) with learning rate 1e-3 and exponential decay; batches of up to ``batch`` shapes sampled with an
-explicit PRNG key (when the training set is not larger than the batch, every step sees the whole set, as the
+Adam (optax's, :func:`optimizer`) with learning rate 1e-3 and exponential decay; batches of up to ``batch``
+shapes sampled with an explicit PRNG key (when the training set is not larger than the batch, every step sees the whole set, as the
 paper's horse split of 5 shapes does). Everything of a step runs in one jitted call (parameters, optimizer
 state and key in, the same out).
 
@@ -29,7 +28,7 @@ import numpy as np
 import optax
 
 from jaxdeform.components import model
-from jaxdeform.nn import native
+from jaxdeform.nn import xla
 from jaxdeform.nn.graph_conv import Rings
 from jaxdeform.nn.host import host_scalars
 
@@ -75,54 +74,18 @@ def _batch(key, data, batch: int):
     return data[jax.random.choice(key, n, (batch,), replace=False)]
 
 
-# optax.adam's defaults, which the fused update (_fused_adam) repeats
-_B1, _B2, _EPS = 0.9, 0.999, 1e-8
-
-
-def fuses_adam(tc: TrainConfig) -> bool:
-    """Whether :func:`make_step` updates with the native one-pass Adam (CPU with the native kernels, no clipping)
-    instead of optax's: the same arithmetic and optimizer state, in one pass over each parameter array."""
-    return tc.clip_norm is None and native.available()
-
-
-def _fused_adam(tc: TrainConfig, params, opt_state, parts, coefficients):
-    """optax.adam(schedule(tc))'s update and apply_updates, leaf by leaf in one native pass (in place on the
-    donated buffers). ``parts``: per leaf of ``params`` a tuple of gradient arrays that add up to its gradient;
-    ``coefficients``: per leaf None or the row coefficients w of a further term w C (``native.adam_update``)."""
-    adam, sched = opt_state
-    count = optax.safe_increment(adam.count)
-    step = -schedule(tc)(sched.count)
-    leaves, treedef = jax.tree_util.tree_flatten(params)
-    flat = lambda tree: treedef.flatten_up_to(tree)  # noqa: E731
-    out_p, out_mu, out_nu = [], [], []
-    for p, mu, nu, gs, w in zip(leaves, flat(adam.mu), flat(adam.nu), flat(parts), flat(coefficients)):
-        scalars = jnp.stack([_B1, _B2, 1 - _B1 ** count, 1 - _B2 ** count, _EPS, step]).astype(p.dtype)
-        new = native.adam_update(p, mu, nu, gs, scalars, w)
-        for acc, a in zip((out_p, out_mu, out_nu), new):
-            acc.append(a)
-    unflat = lambda xs: jax.tree_util.tree_unflatten(treedef, xs)  # noqa: E731
-    state = (adam._replace(count=count, mu=unflat(out_mu), nu=unflat(out_nu)),
-             sched._replace(count=optax.safe_increment(sched.count)))
-    return unflat(out_p), state
-
-
 def make_step(config: model.Config, tc: TrainConfig, rings: Rings, dist, stage: int | None = None) -> Callable:
-    """The jitted step (params, opt_state, key, data) -> (params, opt_state, key, loss, terms).
+    """The jitted step (params, opt_state, key, data) -> (params, opt_state, key, loss, terms): the loss's
+    gradient (every term of eq. (2), the group sparsity's included) through :func:`optimizer` and
+    ``optax.apply_updates``.
 
-    The step donates ``params`` and ``opt_state``: their buffers hold the outputs (Adam updates in place, and
-    one copy of the parameters and moments is alive instead of two), so the arrays passed in are invalid after
-    the call; pass each step the previous step's outputs.
+    The step donates ``params`` and ``opt_state``: their buffers may hold the outputs, so the arrays passed in
+    are invalid after the call; pass each step the previous step's outputs.
 
     ``stage`` = None: joint training of every level. ``stage`` = l: separate training of level l; ``params``
     is then the prefix of levels 0..l, the levels before l are frozen (no gradient, not updated).
-
-    Where :func:`fuses_adam`, the gradient of each level's C comes back in parts (the encoders', the decoders',
-    and the group sparsity's in closed form) and one native pass per array adds them and updates (on the horse
-    model 3.4 ms for level 1's C where optax's update took 7.5 ms in three passes); the optimizer state is
-    optax.adam's either way, so checkpoints and resumes do not depend on it.
     """
     opt = optimizer(tc)
-    fused = fuses_adam(tc)
 
     def model_params(trainable, frozen):
         return tuple(frozen) + (trainable,) if stage is not None else trainable
@@ -131,32 +94,7 @@ def make_step(config: model.Config, tc: TrainConfig, rings: Rings, dist, stage: 
         out = model.forward(model_params(trainable, frozen), x, rings, dist, config)
         return out.loss, out.terms
 
-    def split_loss_fn(trainable, dec_c, frozen, x):
-        params = model_params(trainable, frozen)
-        decoder_c = dec_c if stage is None else (None,) * stage + (dec_c,)
-        out = model.forward(params, x, rings, dist, config, decoder_c=decoder_c, sparsity_gradient=False)
-        coefficients = out.sparsity_coefficients if stage is None else out.sparsity_coefficients[stage]
-        return out.loss, (out.terms, coefficients)
-
-    def fused_update(trainable, frozen, x, opt_state):
-        dec_c = tuple(p["C"] for p in trainable) if stage is None else trainable["C"]
-        (loss, (terms, coefficients)), (grads, dec_grads) = jax.value_and_grad(
-            split_loss_fn, argnums=(0, 1), has_aux=True)(trainable, dec_c, frozen, x)
-
-        def level_parts(g, g_dec, w):  # C: two parts and coefficients; the conv weights: their gradient, none
-            tm = jax.tree_util.tree_map
-            return ({k: (v, g_dec) if k == "C" else tm(lambda a: (a,), v) for k, v in g.items()},
-                    {k: w if k == "C" else tm(lambda a: None, v) for k, v in g.items()})
-
-        if stage is None:
-            both = [level_parts(g, gd, w) for g, gd, w in zip(grads, dec_grads, coefficients)]
-            parts, coefs = tuple(b[0] for b in both), tuple(b[1] for b in both)
-        else:
-            parts, coefs = level_parts(grads, dec_grads, coefficients)
-        trainable, opt_state = _fused_adam(tc, trainable, opt_state, parts, coefs)
-        return trainable, opt_state, loss, terms
-
-    @functools.partial(jax.jit, compiler_options=native.compiler_options(), donate_argnums=(0, 1))
+    @functools.partial(jax.jit, compiler_options=xla.compiler_options(), donate_argnums=(0, 1))
     def step(params, opt_state, key, data):
         key, sub = jax.random.split(key)
         x = _batch(sub, data, tc.batch)
@@ -164,12 +102,9 @@ def make_step(config: model.Config, tc: TrainConfig, rings: Rings, dist, stage: 
             trainable, frozen = params, ()
         else:
             trainable, frozen = params[stage], jax.lax.stop_gradient(params[:stage])
-        if fused and all(leaf.dtype in (jnp.float32, jnp.float64) for leaf in jax.tree_util.tree_leaves(trainable)):
-            trainable, opt_state, loss, terms = fused_update(trainable, frozen, x, opt_state)
-        else:
-            (loss, terms), grads = jax.value_and_grad(loss_fn, has_aux=True)(trainable, frozen, x)
-            updates, opt_state = opt.update(grads, opt_state, trainable)
-            trainable = optax.apply_updates(trainable, updates)
+        (loss, terms), grads = jax.value_and_grad(loss_fn, has_aux=True)(trainable, frozen, x)
+        updates, opt_state = opt.update(grads, opt_state, trainable)
+        trainable = optax.apply_updates(trainable, updates)
         params = trainable if stage is None else tuple(params[:stage]) + (trainable,)
         return params, opt_state, key, loss, terms
 
@@ -289,10 +224,9 @@ def train(data, rings: Rings, dist, config: model.Config, tc: TrainConfig, *, pa
             losses, on_host = [], upto
 
         t0 = time.perf_counter()
-        if first < tc.epochs:  # compiled ahead: its temporary-buffer size sets the host allocator
+        if first < tc.epochs:  # compiled ahead: its temporary-buffer size goes into the timing record
             step = step.lower(sub, opt_state, key, data).compile()
             temp = _temp_bytes(step)
-            native.fit_host_allocator(temp)
             if timing is not None and temp is not None:
                 timing["step_temp_bytes"] = max(temp, timing.get("step_temp_bytes", 0))
         for epoch in range(first, tc.epochs):
@@ -348,7 +282,7 @@ def _terms_text(loss: float, terms: list) -> str:
 @functools.cache
 def _reconstruct_jit():
     # built on first use: the compiler options depend on the backend, which importing must not initialize
-    return jax.jit(model.reconstruction, static_argnames=("config",), compiler_options=native.compiler_options())
+    return jax.jit(model.reconstruction, static_argnames=("config",), compiler_options=xla.compiler_options())
 
 
 def reconstruct(params, data, rings: Rings, config: model.Config):

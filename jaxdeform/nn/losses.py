@@ -91,18 +91,6 @@ def group_sparsity(C: Float[Array, "kz nine_v"], dist: Float[Array, "v v"], d: f
     return jnp.sum(lam * norms) / C.shape[0]
 
 
-def group_sparsity_gradient(C: Float[Array, "kz nine_v"], dist: Float[Array, "v v"],
-                            d: float | tuple[float, float], mask: str = "step") -> tuple:
-    """(Omega(C), w): :func:`group_sparsity`'s value, without gradient, and its gradient in closed form as one
-    coefficient per vertex row, d Omega / d C_k,i = w_ki C_k,i with w_ki = Lambda_ik / (Kz ||C_k,i||) (0 where
-    the row is zero). For an optimizer that adds w C to the rest of the gradient in its own pass
-    (:func:`jaxdeform.nn.native.adam_update`) instead of an array of it."""
-    lam, norms = _sparsity_terms(jax.lax.stop_gradient(C), dist, d, mask)
-    kz = C.shape[0]
-    w = jnp.where(norms > 0, lam / (kz * jnp.where(norms > 0, norms, 1.0)), 0.0)
-    return jnp.sum(lam * norms) / kz, w
-
-
 def latent_bound(z: Float[Array, "n kz"], theta: float = 5.0) -> Float[Array, ""]:
     """V(Z) = (1/Kz) sum_k max(max_m |Z_mk| - theta, 0)."""
     peak = jnp.max(jnp.abs(z), axis=0)
