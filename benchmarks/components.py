@@ -26,7 +26,6 @@ from pathlib import Path
 
 import numpy as np
 
-import jaxdeform  # noqa: F401  (x64)
 import jax
 import jax.numpy as jnp
 import optax
@@ -36,7 +35,7 @@ from jaxdeform.components import train
 from jaxdeform.mesh import load_sequence
 from jaxdeform.mesh.io import atomic_path
 from jaxdeform.mesh.topology import build_topology
-from jaxdeform.nn import native
+from jaxdeform.nn import xla
 from jaxdeform.nn.graph_conv import rings_from_topology
 from jaxdeform.components import model
 from benchmarks.acap import cpu_info
@@ -95,7 +94,7 @@ def breakdown(x, rings, dist, cfg: model.Config, tc: train.TrainConfig, repeats:
     params = model.init(jax.random.PRNGKey(0), x.shape[1], cfg, x.dtype)
     opt = train.optimizer(tc)
     opt_state = opt.init(params)
-    jit = lambda f: jax.jit(f, compiler_options=native.compiler_options())  # noqa: E731
+    jit = lambda f: jax.jit(f, compiler_options=xla.compiler_options())  # noqa: E731
     loss = lambda p, c=cfg: model.forward(p, x, rings, dist, c).loss  # noqa: E731
     grads = jit(jax.grad(loss))(params)
 
@@ -126,7 +125,6 @@ def main(argv=None) -> dict:
     parser.add_argument("--breakdown", action="store_true",
                         help="also time the parts of each multiscale step (forward, gradient, Adam, sparsity, level 0)")
     args = parser.parse_args(argv)
-    native.tune_host_allocator()  # as the CLI and the experiments do
     vertices, faces = load_sequence(args.data)
     train_idx, _ = crun.split_indices(vertices.shape[0])
     rest = vertices[0]

@@ -62,7 +62,6 @@ from jaxdeform.cloth import evaluate as ceval
 from jaxdeform.cloth import features as cfeat
 from jaxdeform.cloth import run as crun
 from jaxdeform.mesh.io import atomic_path
-from jaxdeform.nn import native
 
 METHODS = {  # name -> (model kind, representation, residual over the upsampled coarse features[, skip, position weight,
     #                 self-feeding probability])
@@ -432,7 +431,6 @@ def main(argv=None) -> int:
     ap.add_argument("--stages", nargs="+", default=list(STAGES), choices=STAGES)
     ap.add_argument("--force", action="store_true", help="redo cached data and runs")
     args = ap.parse_args(argv)
-    native.tune_host_allocator()
     root = Path(__file__).resolve().parent
     out = Path(args.out) if args.out else (root / "results" if args.config == "default"
                                           else Path("out/experiments/cloth-test"))

@@ -33,7 +33,6 @@ from jaxdeform.cloth import data as cdata
 from jaxdeform.cloth import evaluate as ceval
 from jaxdeform.cloth import run as crun
 from jaxdeform.mesh.io import atomic_path
-from jaxdeform.nn import native
 
 
 def train_seed(out: Path, ds, name: str, seed: int, s: xrun.Settings, cache: dict):
@@ -86,7 +85,6 @@ def main(argv=None) -> int:
     ap.add_argument("--config", choices=("default", "test"), default="default")
     ap.add_argument("--out", default=str(Path(__file__).resolve().parent / "results"))
     args = ap.parse_args(argv)
-    native.tune_host_allocator()
     out = Path(args.out)
     root = out / "data" / args.dataset
     if not (root / "dataset.json").is_file():

@@ -39,7 +39,6 @@ from jax.flatten_util import ravel_pytree
 from jaxdeform.components import model
 from jaxdeform.components import run as crun
 from jaxdeform.mesh.topology import build_topology
-from jaxdeform.nn import native
 from jaxdeform.nn.graph_conv import Rings, rings_from_topology
 from jaxdeform.nn.host import host_scalars
 from experiments.components.run import _write as write_text
@@ -126,7 +125,6 @@ def main(argv=None) -> dict:
     parser.add_argument("--lr", type=float, default=0.02)
     parser.add_argument("--json", help="write the result here")
     args = parser.parse_args(argv)
-    native.tune_host_allocator()
     run = crun.load(Path(args.run))
     if run.method not in crun.AUTOENCODERS:
         raise SystemExit(f"{args.run}: a {run.method} run has no decoders to fit codes through.")

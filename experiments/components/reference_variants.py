@@ -11,10 +11,9 @@ from this project's seed-000 block, each trained in memory by :mod:`experiments.
   here the two convolutions have their own weights and only C is shared.
 - ``init-tie``: both.
 - ``linear-fc``: the decoder without a tanh on z C, x_hat = tanh(conv_dec(reshape(z C))), as that code has it
-  (here: tanh(conv_dec(tanh(reshape(z C)))), the paper's "all the layers use the tanh"). The native kernels
-  apply that tanh, so this variant runs the pure-JAX blocks (``JAXDEFORM_NATIVE=0`` is set): about 4x slower.
+  (here: tanh(conv_dec(tanh(reshape(z C)))), the paper's "all the layers use the tanh").
 
-The variants are swapped in for this process only (the model's level function and the reference decoder), so
+The variants are swapped in for this process only (the model's level function and the decoder), so
 that the library keeps one block definition; every other option is the sweep's, and the result line is the
 sweep's with ``"variant"`` added to its configuration.
 """
@@ -23,7 +22,6 @@ from __future__ import annotations
 
 import argparse
 import contextlib
-import os
 import sys
 
 VARIANTS = ("init", "tie", "init-tie", "linear-fc")
@@ -56,8 +54,8 @@ def tie_decoders(params: tuple) -> tuple:
 def swapped(variant: str):
     """Within the block, the model trains and reconstructs as ``variant`` (see the module docstring). JAX's
     caches of traced and compiled programs are cleared on entry and on exit, so that no program traced with the
-    block as it was serves inside, nor one traced inside serves after; the swapped functions and
-    ``JAXDEFORM_NATIVE`` are restored on exit, also where the block raises.
+    block as it was serves inside, nor one traced inside serves after; the swapped functions are restored on exit,
+    also where the block raises.
 
     ``tie``: the parameters :func:`jaxdeform.components.train.train` returns hold the trained encoder weights in
     the decoders too, so that code reading the parameters without the model's level function (components,
@@ -69,8 +67,8 @@ def swapped(variant: str):
 
     if variant not in VARIANTS:
         raise ValueError(f"variant must be one of {VARIANTS}, got {variant!r}.")
-    saved = (model._levels, graph_conv.ae_decode_reference, train.train, os.environ.get("JAXDEFORM_NATIVE"))
-    levels, _, fit, _ = saved
+    saved = (model._levels, graph_conv.ae_decode, train.train)
+    levels, _, fit = saved
 
     def tied(params, *args, **kwargs):
         return levels(tie_decoders(params), *args, **kwargs)
@@ -100,15 +98,10 @@ def swapped(variant: str):
             model._levels = tied
         train.train = train_variant
         if variant == "linear-fc":
-            os.environ["JAXDEFORM_NATIVE"] = "0"  # the native kernels apply the tanh on z C
-            graph_conv.ae_decode_reference = decode_linear_fc
+            graph_conv.ae_decode = decode_linear_fc
         yield
     finally:
-        model._levels, graph_conv.ae_decode_reference, train.train, native = saved
-        if native is None:
-            os.environ.pop("JAXDEFORM_NATIVE", None)
-        else:
-            os.environ["JAXDEFORM_NATIVE"] = native
+        model._levels, graph_conv.ae_decode, train.train = saved
         clear()
 
 

@@ -36,7 +36,6 @@ import jaxdeform  # noqa: F401  (x64)
 from jaxdeform.components import run as crun
 from jaxdeform.components.edit import OBJECTIVES
 from jaxdeform.mesh.io import atomic_path, save_mesh
-from jaxdeform.nn import native
 
 #: data set -> split mode (Sec. 5.1: sequences every 10th, pose sets a random half)
 SPLITS = {"horse-gallop": "every10", "samba": "every10", "cactus": "half", "tube": "every10"}
@@ -243,7 +242,6 @@ def main(argv=None) -> dict:
         parser.error("fig6 edits toward unseen shapes on each data set's own split; --split is for table2/4/5.")
     if args.controls and min(args.controls) < 1:
         parser.error("--controls takes positive control-point counts.")
-    native.tune_host_allocator()
     t0 = time.perf_counter()
     if args.experiment == "fig6":
         from experiments.components import editing
