@@ -174,38 +174,6 @@ def test_separate_training_freezes_earlier_levels(setup):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
 
-@pytest.mark.parametrize("stage", [None, 0, 1])
-@pytest.mark.parametrize("dtype", [jnp.float64, jnp.float32])
-def test_fused_adam_step_is_the_optax_step(setup, monkeypatch, stage, dtype):
-    """The training step with the native one-pass Adam (the gradient of each C in parts: encoders', decoders',
-    the group sparsity's in closed form) and the plain step (autodiff's gradient, optax.adam) give the same loss,
-    parameters and optimizer state after 4 steps, joint and for each stage of separate training."""
-    from jaxdeform.nn import native
-
-    if not native.available():
-        pytest.skip("native kernels unavailable here (no C++ compiler or not on CPU)")
-    _, rings, dist, x = setup
-    x, dist = x.astype(dtype), dist.astype(dtype)
-    config = model.Config(kz=(3, 2), d=(0.5, 0.3))
-    tc = train.TrainConfig(epochs=4, batch=16, seed=2, joint=stage is None)
-    start = model.init(jax.random.PRNGKey(5), x.shape[1], config, dtype)
-    start = start if stage is None else start[: stage + 1]
-    runs = []
-    for fused in (True, False):
-        monkeypatch.setattr(train, "fuses_adam", lambda tc, fused=fused: fused)
-        step = train.make_step(config, tc, rings, dist, stage)
-        params, key = jax.tree_util.tree_map(jnp.copy, start), jax.random.PRNGKey(6)
-        state = train._opt_init(tc, params, stage)
-        for _ in range(4):
-            params, state, key, loss, _ = step(params, state, key, x)
-        runs.append((loss, params, state))
-    assert jax.tree_util.tree_structure(runs[0]) == jax.tree_util.tree_structure(runs[1])
-    tol = 1e-4 if dtype == jnp.float32 else 1e-12  # float32: Adam's first steps are near sign(g), a few ulp move them
-    for a, b in zip(jax.tree_util.tree_leaves(runs[0]), jax.tree_util.tree_leaves(runs[1])):
-        a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
-        assert np.max(np.abs(a - b)) <= tol * max(np.max(np.abs(b)), 1e-30)
-
-
 def test_attention_gradient_switch(setup):
     """With ``attention_gradient`` off, the children's losses reach the parent's C only through the residual;
     on, also through the masks: the gradients of the level-1 loss with respect to C0 are finite and differ."""
@@ -270,3 +238,48 @@ def test_learning_rate_schedule_and_gradient_clipping():
 def test_train_config_refuses_a_bad_rate_or_clip(bad):
     with pytest.raises(ValueError):
         train.TrainConfig(**bad)
+
+
+def test_model_forward_mode_and_second_order(setup):
+    """Through a seed-000 model (two levels, attention): jax.jvp of the reconstruction loss and of the
+    reconstruction matches central differences in float64, jax.jacfwd of the latent codes equals jax.jacrev's,
+    and grad-of-grad of the loss gives H v as central differences of the gradient. The attention masks take
+    their gradient here (``attention_gradient``), so that the derivatives are those of the function itself."""
+    _, rings, dist, x = setup
+    config = model.Config(kz=(3, 2), d=(0.5, 0.3), attention_gradient=True)
+    params = model.init(jax.random.PRNGKey(5), x.shape[1], config, jnp.float64)
+    x = x.astype(jnp.float64)
+
+    def random_like(tree, seed):
+        leaves, treedef = jax.tree_util.tree_flatten(tree)
+        keys = jax.random.split(jax.random.PRNGKey(seed), len(leaves))
+        return treedef.unflatten([jax.random.normal(k, a.shape, a.dtype) for k, a in zip(keys, leaves)])
+
+    def central(f, a, v, h=1e-5):
+        plus = f(jax.tree_util.tree_map(lambda p, t: p + h * t, a, v))
+        minus = f(jax.tree_util.tree_map(lambda p, t: p - h * t, a, v))
+        return jax.tree_util.tree_map(lambda p, m: (p - m) / (2 * h), plus, minus)
+
+    def close(got, want, rtol):  # relative to the largest entry of want
+        want = [np.asarray(b) for b in jax.tree_util.tree_leaves(want)]
+        scale = max(float(np.max(np.abs(b))) for b in want)
+        for a, b in zip(jax.tree_util.tree_leaves(got), want):
+            assert np.all(np.isfinite(np.asarray(a))) and np.max(np.abs(np.asarray(a) - b)) <= rtol * scale
+
+    def outputs(a):  # smooth in the parameters and the input (the sparsity centres are piecewise constant)
+        p, xx = a
+        out = model.forward(p, xx, rings, dist, config)
+        return sum(out.terms[level]["recon"] for level in range(config.levels)), out.reconstruction
+
+    v = random_like((params, x), 6)
+    _, tangent = jax.jit(lambda a, t: jax.jvp(outputs, (a,), (t,)))((params, x), v)
+    close(tangent, central(jax.jit(outputs), (params, x), v), 1e-6)
+
+    codes = lambda xx: model.encode(params, xx, rings, config)  # noqa: E731
+    close(jax.jit(jax.jacfwd(codes))(x[:2]), jax.jit(jax.jacrev(codes))(x[:2]), 1e-10)
+
+    loss = lambda a: outputs(a)[0]  # noqa: E731
+    grad = jax.grad(loss)
+    hv = jax.jit(jax.grad(lambda a: sum(jnp.vdot(g, t) for g, t in zip(jax.tree_util.tree_leaves(grad(a)),
+                                                                         jax.tree_util.tree_leaves(v)))))((params, x))
+    close(hv, central(jax.jit(grad), (params, x), v), 1e-6)
