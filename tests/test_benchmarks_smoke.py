@@ -8,15 +8,19 @@ import json
 import math
 
 import numpy as np
+import pytest
 
 from benchmarks import acap as bench
 from jaxdeform.data.synthetic import bending_tube_sequence
 from jaxdeform.mesh import save_mesh
 
-TIMING_KEYS = {"compile_s", "per_frame_ms_median", "per_frame_ms_min"}
+TIMING_KEYS = {"compile_s", "per_frame_ms_median", "per_frame_ms_min", "call_ms_median"}
 RECORD_KEYS = {
-    "case", "vertices", "faces", "frames", "dtype", "device", "cpu", "prepare_s", "encode", "encode_local",
-    "encode_temporal", "decode", "decode_plain", "cholespy_solve_3rhs_ms", "cholespy_factor_s", "decode_over_solve", "roundtrip",
+    "case", "solver", "vertices", "faces", "frames", "dtype", "device", "cpu", "prepare_s", "prepare_cold_s",
+    "solver_setup_s", "encode", "encode_local", "encode_temporal", "decode", "decode_plain", "cholespy_solve_3rhs_ms",
+    "cholespy_solve_all_ms", "cholespy_factor_s", "decode_over_solve", "decode_over_solve_paired",
+    "decode_plain_over_solve", "decode_plain_over_solve_paired", "cg_steps", "cg_converged", "roundtrip",
+    "max_dev_from_host",
 }
 
 
@@ -35,12 +39,14 @@ def test_benchmark_script_smoke(tmp_path):
     assert out.is_file()
     on_disk = json.loads(out.read_text())
     assert on_disk == json.loads(json.dumps(payload))
-    assert {"records", "date", "command"} <= set(on_disk)
+    assert {"records", "date", "command", "solvers"} <= set(on_disk)
     assert not [p for p in out.parent.iterdir() if p.name != out.name]  # no temporary file left behind
 
     records = on_disk["records"]
-    assert [(r["case"], r["dtype"]) for r in records] == [("dataset", "float32")]
+    assert [(r["case"], r["dtype"], r["solver"]) for r in records] == [
+        ("dataset", "float32", "host"), ("dataset", "float32", "dense"), ("dataset", "float32", "cg")]
     for r in records:
+        assert "skipped" not in r
         assert RECORD_KEYS <= set(r), RECORD_KEYS - set(r)
         assert (r["vertices"], r["faces"], r["frames"]) == (verts.shape[1], faces.shape[0], 3)
         assert {"platform", "name"} <= set(r["device"])
@@ -50,15 +56,43 @@ def test_benchmark_script_smoke(tmp_path):
         assert r["encode"]["consistency"] == "spatial"
         assert r["encode_local"]["consistency"] == "none"
         assert r["encode_temporal"]["consistency"] == "temporal"
-        assert r["cholespy_solve_3rhs_ms"] > 0 and r["decode_over_solve"] > 0
-        assert r["prepare_s"] > 0 and r["cholespy_factor_s"] is not None
+        for key in ("decode", "decode_plain"):
+            assert r[key]["solves"]["converged"] is True and r[key]["solves"]["steps"] >= 1
+        assert r["cholespy_solve_3rhs_ms"] > 0 and r["cholespy_solve_all_ms"] > 0
+        assert r["decode_over_solve"] > 0 and r["decode_over_solve_paired"] > 0
+        assert r["decode_plain_over_solve"] > 0 and r["decode_plain_over_solve_paired"] > 0
+        assert r["prepare_s"] > 0 and r["prepare_cold_s"] > 0 and r["cholespy_factor_s"] > 0
         rt = r["roundtrip"]
         assert np.isfinite(rt["mean_rel"]) and np.isfinite(rt["max_rel"]) and rt["max_rel"] >= rt["mean_rel"] >= 0
         # a smooth tube decodes close to itself: catches a broken pipeline, not a precision regression
         assert rt["max_rel"] < 0.1
+    host, dense, cg = records
+    assert host["solver_setup_s"] > 0 and dense["solver_setup_s"] > 0 and cg["solver_setup_s"] >= 0
+    assert host["max_dev_from_host"] is None  # the reference
+    # float32: the solvers agree with the host factor to float32 accuracy (1e-6 CG tolerance), not bit for bit
+    assert 0 <= dense["max_dev_from_host"] < 1e-4 and 0 <= cg["max_dev_from_host"] < 1e-4
+    assert host["decode"]["solves"]["steps"] == dense["decode"]["solves"]["steps"] == 1
+    assert host["cg_steps"] is None and dense["cg_converged"] is None
+    assert cg["cg_converged"] is True and cg["cg_steps"] == cg["decode"]["solves"]["steps"] > 1
 
     table = bench.format_table(records)
-    assert "float32" in table and "dataset" in table
+    assert "float32" in table and "dataset" in table and all(s in table for s in ("host", "dense", "cg"))
+
+
+def test_benchmark_solver_selection_and_skips():
+    """--solvers parsing and the recorded (not silent) skip of the dense solver on large meshes."""
+    from jaxdeform.acap import reconstruct
+
+    assert bench.parse_solvers("cg,host") == ["host", "cg"]
+    with pytest.raises(ValueError):
+        bench.parse_solvers("host,sparse")
+    limit = reconstruct.DENSE_MAX_VERTICES
+    assert bench.skip_reason("dense", limit) is None
+    assert "DENSE_MAX_VERTICES" in bench.skip_reason("dense", limit + 1)
+    assert bench.skip_reason("host", 10 * limit) is None and bench.skip_reason("cg", 10 * limit) is None
+    skipped = {"case": "big", "solver": "dense", "dtype": "float32", "vertices": limit + 1, "frames": 2,
+               "skipped": bench.skip_reason("dense", limit + 1)}
+    assert "skipped" in bench.format_table([skipped])
 
 
 def test_handles_benchmark_smoke(tmp_path):
