@@ -35,6 +35,12 @@ optionally decayed exponentially, lr(t) = lr0 * decay_rate^(t / decay_steps) (of
 The whole step (batch gather, forward, backward, Adam) is one ``jax.jit`` program, compiled once per run
 (its first call is reported apart as compile time).
 
+Data parallel: ``train(..., mesh=...)`` (a :class:`jax.sharding.Mesh`, e.g. :func:`jaxdeform.parallel.batch_mesh`)
+splits each step's ``batch_size`` windows along the mesh axis ``axis``; parameters, the rest of the model state,
+the optimizer state and the training windows are replicated on every device. The loss is the whole batch's mean
+(GSPMD all-reduces the gradients), so a step equals the single-device step to float round-off. ``batch_size``
+must be a multiple of the axis's device count (ValueError otherwise).
+
 Autoregressive synthesis (paper Fig. 5: "during testing, these [fine] features are initialized to zeros,
 and once a new high-resolution frame is generated, its TS-ACAP feature is added"). For frame t the window
 starts at s = max(t - W + 1, 0) and frame t is read at window position t - s:
@@ -73,6 +79,7 @@ import optax
 from flax import nnx
 from jaxtyping import Array, Float, Int
 
+from jaxdeform import parallel
 from jaxdeform.cloth.model import DetailModel, ModelConfig, new_model
 from jaxdeform.errors import JaxDeformError
 from jaxdeform.nn import xla
@@ -276,14 +283,21 @@ def _tx(lr: float, decay_rate: float, decay_steps: int) -> optax.GradientTransfo
 
 @functools.cache
 def _train_step(graphdef, window: int, batch: int, lr: float, decay_rate: float, decay_steps: int,
-                position_weight: float = 0.0, self_feed: float = 0.0, steps: int = 1):
-    """The jitted training step for one model structure and optimiser (cached: no retrace across runs)."""
+                position_weight: float = 0.0, self_feed: float = 0.0, steps: int = 1,
+                mesh: jax.sharding.Mesh | None = None, axis: str = parallel.BATCH):
+    """The jitted training step for one model structure and optimiser (cached: no retrace across runs).
+
+    ``mesh``: the windows of a step split along ``mesh``'s ``axis``, every argument and result replicated over
+    ``mesh`` (ValueError unless ``batch`` is a multiple of the axis's size).
+    """
     tx = _tx(lr, decay_rate, decay_steps)
+    if mesh is not None:
+        parallel.check_divisible(batch, mesh, axis, "batch_size")
 
     def step(params, rest, opt_state, coarse, fine, starts, key, t, pos):
         TRACE_COUNT["train_step"] += 1
         sel = jax.random.randint(jax.random.fold_in(key, t), (batch,), 0, starts.shape[0])
-        cw, fp, ft = gather_windows(coarse, fine, starts[sel], window)
+        cw, fp, ft = parallel.constrain_batch(gather_windows(coarse, fine, starts[sel], window), mesh, axis)
 
         def loss_fn(p):
             model = nnx.merge(graphdef, p, rest)
@@ -303,7 +317,11 @@ def _train_step(graphdef, window: int, batch: int, lr: float, decay_rate: float,
         updates, opt_state = tx.update(grads, opt_state, params)
         return optax.apply_updates(params, updates), new_rest, opt_state, loss
 
-    return jax.jit(step, donate_argnums=(0, 2), compiler_options=xla.compiler_options())
+    shardings = {}
+    if mesh is not None:
+        rep = parallel.replicated(mesh)
+        shardings = {"in_shardings": rep, "out_shardings": rep}
+    return jax.jit(step, donate_argnums=(0, 2), compiler_options=xla.compiler_options(), **shardings)
 
 
 def train(
@@ -318,6 +336,8 @@ def train(
     model: DetailModel | None = None,
     positions: PositionTarget | None = None,
     upsample=None,
+    mesh: jax.sharding.Mesh | None = None,
+    axis: str = parallel.BATCH,
 ) -> tuple[DetailModel, History]:
     """Fit a :class:`DetailModel` to paired scaled feature sequences with teacher forcing (module docstring).
 
@@ -326,7 +346,12 @@ def train(
     same configuration instead of a fresh one. ``positions`` enables the position term of the loss
     (``train_cfg.position_weight`` > 0; module docstring); ``upsample`` is the (Vf, Vc) interpolation matrix a
     ``skip`` model needs. Returns (model, history).
+    ``mesh``: data parallel over ``mesh``'s ``axis`` (module docstring); ValueError before any step unless
+    ``train_cfg.batch_size`` is a multiple of ``mesh.shape[axis]``. The returned model's arrays are then
+    replicated over ``mesh``.
     """
+    if mesh is not None:
+        parallel.check_divisible(int(train_cfg.batch_size), mesh, axis, "batch_size")
     win = windows(coarse_seqs, fine_seqs, model_cfg.window)
     nc, nf = int(np.shape(coarse_topo.degree)[0]), int(np.shape(fine_topo.degree)[0])
     if win.coarse.shape[1:] != (nc, model_cfg.in_channels):
@@ -351,8 +376,13 @@ def train(
         positions = None
     step_fn = _train_step(graphdef, win.window, int(tc.batch_size), float(tc.learning_rate), float(tc.decay_rate),
                           int(tc.decay_steps), float(tc.position_weight), float(tc.self_feed),
-                          int(tc.steps) if tc.self_feed > 0 else 1)
+                          int(tc.steps) if tc.self_feed > 0 else 1,
+                          **({} if mesh is None else {"mesh": mesh, "axis": axis}))
     key = jax.random.PRNGKey(tc.seed)
+    if mesh is not None:  # state and windows placed on the mesh once (the step would copy them on every call)
+        params, rest, opt_state, arrays, key = parallel.replicate(
+            (params, rest, opt_state, (win.coarse, win.fine, win.starts), key), mesh)
+        win = Windows(*arrays, window=win.window)
 
     from tqdm.auto import tqdm
 

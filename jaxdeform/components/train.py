@@ -12,6 +12,12 @@ for ``epochs`` epochs with a fresh optimizer.
 Checkpoints: with ``checkpoint_dir`` the state (parameters, optimizer state, key, loss history, stage) is
 saved by orbax every ``checkpoint_every`` epochs and at the end; ``resume=True`` continues from the newest
 one. The step is deterministic, so a resumed run ends bit-identical to an uninterrupted one (tested on CPU).
+
+Data parallel: with ``mesh`` (a :class:`jax.sharding.Mesh`, e.g. :func:`jaxdeform.parallel.batch_mesh`) the
+shapes of each step's batch are split along the mesh axis ``axis``; parameters, optimizer state, key and the
+training set are replicated on every device. The loss is the whole batch's (GSPMD all-reduces the gradients),
+so a step equals the single-device step to float round-off. The batch of a step (``min(len(data), tc.batch)``
+shapes) must be a multiple of the axis's device count (ValueError otherwise).
 """
 
 from __future__ import annotations
@@ -27,6 +33,7 @@ import jax.numpy as jnp
 import numpy as np
 import optax
 
+from jaxdeform import parallel
 from jaxdeform.components import model
 from jaxdeform.nn import xla
 from jaxdeform.nn.graph_conv import Rings
@@ -74,7 +81,13 @@ def _batch(key, data, batch: int):
     return data[jax.random.choice(key, n, (batch,), replace=False)]
 
 
-def make_step(config: model.Config, tc: TrainConfig, rings: Rings, dist, stage: int | None = None) -> Callable:
+def step_batch(n_data: int, tc: TrainConfig) -> int:
+    """The number of shapes in each step's batch for a training set of ``n_data`` shapes."""
+    return min(int(n_data), tc.batch)
+
+
+def make_step(config: model.Config, tc: TrainConfig, rings: Rings, dist, stage: int | None = None, *,
+              mesh: jax.sharding.Mesh | None = None, axis: str = parallel.BATCH) -> Callable:
     """The jitted step (params, opt_state, key, data) -> (params, opt_state, key, loss, terms): the loss's
     gradient (every term of eq. (2), the group sparsity's included) through :func:`optimizer` and
     ``optax.apply_updates``.
@@ -84,8 +97,16 @@ def make_step(config: model.Config, tc: TrainConfig, rings: Rings, dist, stage: 
 
     ``stage`` = None: joint training of every level. ``stage`` = l: separate training of level l; ``params``
     is then the prefix of levels 0..l, the levels before l are frozen (no gradient, not updated).
+
+    ``mesh``: data parallel over ``mesh``'s ``axis`` (see the module's docstring). The step then takes and
+    returns ``params``, ``opt_state``, ``key`` and ``data`` replicated over ``mesh`` (arrays elsewhere are copied
+    onto it when called; place them with :func:`jaxdeform.parallel.replicate` to avoid the copy) and splits the
+    batch along ``axis``; it raises ValueError when tracing if the step's batch (:func:`step_batch`) is not a
+    multiple of ``mesh.shape[axis]``. Loss and terms come back replicated.
     """
     opt = optimizer(tc)
+    if mesh is not None:
+        parallel.axis_size(mesh, axis)  # KeyError now for a mesh without the axis
 
     def model_params(trainable, frozen):
         return tuple(frozen) + (trainable,) if stage is not None else trainable
@@ -94,10 +115,11 @@ def make_step(config: model.Config, tc: TrainConfig, rings: Rings, dist, stage: 
         out = model.forward(model_params(trainable, frozen), x, rings, dist, config)
         return out.loss, out.terms
 
-    @functools.partial(jax.jit, compiler_options=xla.compiler_options(), donate_argnums=(0, 1))
     def step(params, opt_state, key, data):
+        if mesh is not None:
+            parallel.check_divisible(step_batch(data.shape[0], tc), mesh, axis, "step's batch")
         key, sub = jax.random.split(key)
-        x = _batch(sub, data, tc.batch)
+        x = parallel.constrain_batch(_batch(sub, data, tc.batch), mesh, axis)
         if stage is None:
             trainable, frozen = params, ()
         else:
@@ -108,7 +130,11 @@ def make_step(config: model.Config, tc: TrainConfig, rings: Rings, dist, stage: 
         params = trainable if stage is None else tuple(params[:stage]) + (trainable,)
         return params, opt_state, key, loss, terms
 
-    return step
+    shardings = {}
+    if mesh is not None:
+        rep = parallel.replicated(mesh)
+        shardings = {"in_shardings": rep, "out_shardings": rep}
+    return jax.jit(step, compiler_options=xla.compiler_options(), donate_argnums=(0, 1), **shardings)
 
 
 def _temp_bytes(compiled) -> int | None:
@@ -166,14 +192,20 @@ def train(data, rings: Rings, dist, config: model.Config, tc: TrainConfig, *, pa
           checkpoint_dir=None, checkpoint_every: int = 1000, resume: bool = False, progress: bool = False,
           log: Callable[[int, float, dict], None] | None = None, log_every: int = 100,
           timing: dict | None = None, snapshot: Callable[[int, tuple], None] | None = None,
-          snapshot_every: int = 1000):
+          snapshot_every: int = 1000, mesh: jax.sharding.Mesh | None = None, axis: str = parallel.BATCH):
     """Train for ``tc.epochs`` epochs (per level when ``tc.joint`` is False).
 
     Returns (params, loss history (stages * epochs,)). ``params``: start from these instead of a fresh
     initialization. ``progress``: a tqdm bar with the loss terms (refreshed every ``log_every`` epochs).
     ``snapshot(epochs_done, params)`` is called every ``snapshot_every`` epochs of a stage (learning curves).
+    ``mesh``: data parallel over ``mesh``'s ``axis`` (module docstring); ValueError before any step if
+    ``min(len(data), tc.batch)`` is not a multiple of ``mesh.shape[axis]``. The returned parameters are then
+    replicated over ``mesh``.
     """
     data = jnp.asarray(data)
+    if mesh is not None:
+        parallel.check_divisible(step_batch(data.shape[0], tc), mesh, axis, "step's batch")
+        data = parallel.replicate(data, mesh)
     dtype = data.dtype
     key, init_key = seed_keys(tc.seed)
     if params is None:
@@ -211,10 +243,12 @@ def train(data, rings: Rings, dist, config: model.Config, tc: TrainConfig, *, pa
     for stage_index in range(start_stage, len(stages)):
         stage = stages[stage_index]
         sub = params if stage is None else params[: stage + 1]
-        step = make_step(config, tc, rings, dist, stage)
+        step = make_step(config, tc, rings, dist, stage, mesh=mesh, axis=axis)
         first = start_epoch if stage_index == start_stage else 0
         if opt_state is None or first == 0:
             opt_state = _opt_init(tc, sub, stage)
+        if mesh is not None:  # the compiled step takes its state on the mesh
+            sub, opt_state, key = parallel.replicate((sub, opt_state, key), mesh)
         losses, on_host = [], first  # the step losses of epochs on_host, on_host + 1, ... still on the device
 
         def flush(upto: int) -> None:  # the losses of epochs < upto into `history`, one device_get
