@@ -226,3 +226,18 @@ SHARDED_ACAP = """
 def test_sharded_encode_decode_equal_one_device():
     run_script(SHARDED_ACAP.format(data=str(data_dir("horse-gallop"))),
                env_extra={"XLA_FLAGS": "--xla_force_host_platform_device_count=4"})
+
+
+def _readme_example() -> str:
+    text = (ROOT / "README.md").read_text()
+    start = text.index("<!-- jax-api-example -->")
+    block = text[text.index("```python\n", start) + len("```python\n"):]
+    return block[:block.index("```")]
+
+
+@pytest.mark.slow
+def test_readme_jax_example_runs_verbatim():
+    """The README's jit / vmap / grad / jvp / sharded example, exactly as printed, in a fresh process (4 devices)."""
+    data_dir("horse-gallop")  # skips with its reason when the data is absent
+    run_script(_readme_example() + '\nprint("OK")\n', x64=False,
+               env_extra={"XLA_FLAGS": "--xla_force_host_platform_device_count=4"})

@@ -64,7 +64,7 @@ class Rings:
 
     nbr: Int[Array, "v k"]  # padded one-rings (padding = the vertex itself)
     mask: Bool[Array, "v k"]
-    degree: Float[Array, " v"]
+    degree: Int[Array, " v"]
     parent: Int[Array, " v"]  # BFS parent; roots point to themselves
     is_root: Bool[Array, " v"]
     jumps: tuple  # ancestor tables parent, parent^2, parent^4, ... (pointer jumping)

@@ -114,7 +114,10 @@ def _encode_parts(frame: RestFrame, rings: cons.Rings, vertices, mode: str):
 
 
 def _is_traced(*trees) -> bool:
-    return any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(trees))
+    """Whether any leaf is a tracer, or a global array not all on this process (multi-host): values that the
+    host cannot read, checked inside the computation instead."""
+    return any(isinstance(x, jax.core.Tracer) or (isinstance(x, jax.Array) and not x.is_fully_addressable)
+               for x in jax.tree_util.tree_leaves(trees))
 
 
 def _check_vertices(vertices: np.ndarray, n: int) -> None:
