@@ -1,0 +1,26 @@
+"""Running a script in a fresh Python process, as the tests of the JAX API do (tests/test_jax_api*.py)."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+def run_script(code: str, *, x64: bool = True, timeout: int = 900, env_extra: dict | None = None) -> str:
+    """Run ``code`` in a fresh interpreter (x64 as asked, nothing else of the tests' settings changed); the
+    script must exit 0 and print ``OK`` last."""
+    env = dict(os.environ)
+    env.pop("JAX_ENABLE_X64", None)
+    if x64:
+        env["JAX_ENABLE_X64"] = "1"
+    env.update(env_extra or {})
+    proc = subprocess.run([sys.executable, "-c", textwrap.dedent(code)], cwd=ROOT, env=env, capture_output=True,
+                          text=True, timeout=timeout)
+    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-6000:]
+    assert proc.stdout.strip().endswith("OK"), proc.stdout[-3000:]
+    return proc.stdout
