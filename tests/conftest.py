@@ -35,6 +35,18 @@ os.environ["JAX_ENABLE_X64"] = "1"
 
 DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
 
+#: the packages whose annotations the tests check, and the checker (pyproject.toml: --jaxtyping-packages), for the
+#: scripts that tests/fresh_process.py runs in fresh interpreters (the hook lives in this process only)
+JAXTYPING_ENV = "JAXDEFORM_TEST_JAXTYPING_PACKAGES"
+
+
+def pytest_configure(config):
+    packages = config.getoption("jaxtyping_packages", None)
+    if packages:
+        os.environ[JAXTYPING_ENV] = packages
+    else:
+        os.environ.pop(JAXTYPING_ENV, None)
+
 
 @pytest.fixture(autouse=True, scope="module")
 def _release_compiled_code():

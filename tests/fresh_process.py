@@ -8,19 +8,26 @@ import sys
 import textwrap
 from pathlib import Path
 
+from conftest import JAXTYPING_ENV
+
 ROOT = Path(__file__).resolve().parents[1]
 
 
 def run_script(code: str, *, x64: bool = True, timeout: int = 900, env_extra: dict | None = None) -> str:
-    """Run ``code`` in a fresh interpreter (x64 as asked, nothing else of the tests' settings changed); the
-    script must exit 0 and print ``OK`` last."""
+    """Run ``code`` in a fresh interpreter (x64 as asked, nothing else of the tests' settings changed but the
+    annotation checks of conftest.py's ``JAXTYPING_ENV``); the script must exit 0 and print ``OK`` last."""
     env = dict(os.environ)
     env.pop("JAX_ENABLE_X64", None)
     if x64:
         env["JAX_ENABLE_X64"] = "1"
     env.update(env_extra or {})
-    proc = subprocess.run([sys.executable, "-c", textwrap.dedent(code)], cwd=ROOT, env=env, capture_output=True,
-                          text=True, timeout=timeout)
+    code = textwrap.dedent(code)
+    checked = os.environ.get(JAXTYPING_ENV)
+    if checked:  # the script's imports are checked as the tests' own (jaxtyping's import hook, beartype)
+        *packages, checker = checked.split(",")
+        code = f"import jaxtyping\njaxtyping.install_import_hook({packages!r}, {checker!r})\n" + code
+    proc = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=env, capture_output=True, text=True,
+                          timeout=timeout)
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-6000:]
     assert proc.stdout.strip().endswith("OK"), proc.stdout[-3000:]
     return proc.stdout

@@ -7,6 +7,10 @@ Each test runs a small script in a subprocess (``fresh_process.run_script``); th
 
 from __future__ import annotations
 
+import json
+import subprocess
+import sys
+
 import pytest
 
 from conftest import data_dir
@@ -54,3 +58,16 @@ def test_readme_jax_example_runs_verbatim():
     data_dir("horse-gallop")  # skips with its reason when the data is absent
     run_script(_readme_example() + '\nprint("OK")\n', x64=False,
                env_extra={"XLA_FLAGS": "--xla_force_host_platform_device_count=4"})
+
+
+@pytest.mark.slow
+def test_multihost_example_runs_two_processes():
+    """examples/multihost_acap.py: two processes on this machine (gloo collectives), each with its own frames."""
+    proc = subprocess.run([sys.executable, str(ROOT / "examples" / "multihost_acap.py"), str(data_dir("cactus")),
+                           "--processes", "2", "--frames", "4", "--timeout", "600"],
+                          cwd=ROOT, capture_output=True, text=True, timeout=660)
+    assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-4000:]
+    report = json.loads(proc.stdout.strip().splitlines()[-1])
+    assert report["processes"] == 2 and report["devices"] == 2 and report["features"][0] == 4
+    assert len(report["round_trip_max_over_diag"]) == 2  # one entry per process
+    assert max(report["round_trip_max_over_diag"]) < 0.02

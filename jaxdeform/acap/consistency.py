@@ -394,18 +394,18 @@ STAGES = (_orientation_start, _orientation_sweeps, _turns_start, _turns_sweeps, 
 # ------------------------------------------------------------------------------ numpy-facing wrappers
 
 
-def edge_signs(axis: np.ndarray, angle: np.ndarray, i: np.ndarray, j: np.ndarray) -> np.ndarray:
+def edge_signs(axis: np.ndarray, angle: np.ndarray, i: np.ndarray | slice, j: np.ndarray | slice) -> np.ndarray:
     """s of eq. (3) of seed 002 between (i) and (j) (index arrays or slices along the vertex axis)."""
     d = np.sum(axis[..., i, :] * axis[..., j, :], axis=-1)
     ok = (np.abs(d) > EPS_DOT) & (angle[..., i] >= EPS_ANGLE) & (angle[..., j] >= EPS_ANGLE)
     return np.where(ok, np.sign(d), 0.0)
 
 
-def orientation_energy(o: np.ndarray, s_edge: np.ndarray, g: Graph) -> np.ndarray:
+def orientation_energy(o: np.ndarray, s_edge: np.ndarray, g: Graph) -> np.ndarray | float:
     return np.sum(o[..., g.edges[:, 0]] * o[..., g.edges[:, 1]] * s_edge, axis=-1)
 
 
-def turn_energy(u: np.ndarray, g: Graph) -> np.ndarray:
+def turn_energy(u: np.ndarray, g: Graph) -> np.ndarray | float:
     return np.sum((u[..., g.edges[:, 0]] - u[..., g.edges[:, 1]]) ** 2, axis=-1)
 
 

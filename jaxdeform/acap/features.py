@@ -33,7 +33,15 @@ from jaxdeform.acap.gradients import (
     rest_frame,
     to_vertex_major,
 )
-from jaxdeform.acap.reconstruct import CG_MAX_STEPS, SOLVERS, ConjugateGradient, Reconstructor, SolveInfo
+from jaxdeform.acap.reconstruct import (
+    CG_MAX_STEPS,
+    SOLVERS,
+    ConjugateGradient,
+    Reconstructor,
+    SolveInfo,
+    all_finite,
+    is_traced,
+)
 from jaxdeform.acap.rotations import exp_rotation_cm, from_cm, log_rotation_cm, mm_cm, polar_cm, skew, to_cm
 from jaxdeform.errors import ConnectivityError, DegenerateMeshError
 from jaxdeform.mesh.topology import Topology, build_topology
@@ -42,7 +50,8 @@ DEFAULT_REFINE = 1
 _S_IDX = (np.array([0, 0, 0, 1, 1, 2]), np.array([0, 1, 2, 1, 2, 2]))
 
 
-def features_from(v: Float[Array, "... 3"], s: Float[Array, "... 3 3"]) -> Float[Array, "... 9"]:
+def features_from(v: Float[jax.typing.ArrayLike, "*batch 3"],
+                  s: Float[jax.typing.ArrayLike, "*batch 3 3"]) -> Float[Array, "*batch 9"]:
     """9-d features from axis-angle vectors and symmetric S."""
     rot = jnp.stack([-v[..., 2], v[..., 1], -v[..., 0]], axis=-1)
     return jnp.concatenate([rot, s[..., _S_IDX[0], _S_IDX[1]]], axis=-1)
@@ -55,7 +64,8 @@ def split_features_cm(f: Float[Array, "9 ..."]) -> tuple[Array, Array]:
     return v, jnp.stack([jnp.stack([s00, s01, s02]), jnp.stack([s01, s11, s12]), jnp.stack([s02, s12, s22])])
 
 
-def split_features(f: Float[Array, "... 9"]) -> tuple[Array, Array]:
+def split_features(f: Float[jax.typing.ArrayLike, "*batch 9"]
+                   ) -> tuple[Float[Array, "*batch 3"], Float[Array, "*batch 3 3"]]:
     """Inverse of :func:`features_from`: (axis-angle vectors (..., 3), S (..., 3, 3))."""
     v, s = split_features_cm(to_cm(f, 1))
     return from_cm(v, 1), from_cm(s)
@@ -67,7 +77,7 @@ def gradients_from_features_cm(f: Float[Array, "9 ..."]) -> Float[Array, "3 3 ..
     return mm_cm(exp_rotation_cm(v), s)
 
 
-def gradients_from_features(f: Float[Array, "... 9"]) -> Float[Array, "... 3 3"]:
+def gradients_from_features(f: Float[jax.typing.ArrayLike, "*batch 9"]) -> Float[Array, "*batch 3 3"]:
     """T = exp(log R) S."""
     return from_cm(gradients_from_features_cm(to_cm(f, 1)))
 
@@ -113,20 +123,16 @@ def _encode_parts(frame: RestFrame, rings: cons.Rings, vertices, mode: str):
     return _output_stage(v, s)
 
 
-def _is_traced(*trees) -> bool:
-    """Whether any leaf is a tracer, or a global array not all on this process (multi-host): values that the
-    host cannot read, checked inside the computation instead."""
-    return any(isinstance(x, jax.core.Tracer) or (isinstance(x, jax.Array) and not x.is_fully_addressable)
-               for x in jax.tree_util.tree_leaves(trees))
+def _check_shape(shape: tuple, n: int) -> None:
+    if len(shape) < 2 or shape[-1] != 3:
+        raise ValueError(f"vertices must be (..., V, 3), got {tuple(shape)}.")
+    if shape[-2] != n:
+        raise ConnectivityError(f"the meshes have {shape[-2]} vertices but the reference has {n}.")
 
 
-def _check_vertices(vertices: np.ndarray, n: int) -> None:
-    if vertices.ndim < 2 or vertices.shape[-1] != 3:
-        raise ValueError(f"vertices must be (..., V, 3), got {vertices.shape}.")
-    if vertices.shape[-2] != n:
-        raise ConnectivityError(f"the meshes have {vertices.shape[-2]} vertices but the reference has {n}.")
-    if not np.all(np.isfinite(vertices)):
-        raise DegenerateMeshError("a vertex coordinate is NaN or infinite.")
+def _host_float(host: np.ndarray, default):
+    """The JAX dtype of a NumPy input: its own float type (float64 only where x64 is enabled), else ``default``."""
+    return jax.dtypes.canonicalize_dtype(host.dtype if host.dtype in (np.float32, np.float64) else default)
 
 
 def _float_dtype(x, default):
@@ -176,22 +182,27 @@ class Acap(eqx.Module):
 
     def _vertices(self, vertices):
         """Vertices as a float array (..., V, 3), checked (host checks when concrete, error_if when traced)."""
-        if _is_traced(vertices):
+        if is_traced(vertices):
             x = jnp.asarray(vertices)
             if x.ndim < 2 or x.shape[-1] != 3 or x.shape[-2] != self.topo.n_vertices:
                 raise ConnectivityError(f"vertices must be (..., {self.topo.n_vertices}, 3), got {x.shape}.")
             x = x.astype(_float_dtype(x, self.frame.dtype))
             return eqx.error_if(x, ~jnp.all(jnp.isfinite(x)), "a vertex coordinate is NaN or infinite.")
-        host = np.asarray(vertices)
-        _check_vertices(host, self.topo.n_vertices)
-        dtype = host.dtype if host.dtype in (np.float32, np.float64) else self.frame.dtype
-        return jnp.asarray(host, dtype=dtype)
+        if isinstance(vertices, jax.Array):  # stays on its device: only the check's result is read
+            x = vertices.astype(_float_dtype(vertices, self.frame.dtype))
+        else:
+            host = np.asarray(vertices)
+            x = jnp.asarray(host, dtype=_host_float(host, self.frame.dtype))
+        _check_shape(x.shape, self.topo.n_vertices)
+        if not bool(all_finite(x)):
+            raise DegenerateMeshError("a vertex coordinate is NaN or infinite.")
+        return x
 
     def local(self, vertices) -> tuple[Array, Array]:
         """(axis-angle vectors (..., V, 3) with angles in [0, pi], S (..., V, 3, 3)) of vertices (..., V, 3)."""
         return self.encode_parts(vertices, "none")
 
-    def encode_parts(self, vertices, consistency: cons.Consistency | None = "spatial") -> tuple[Array, Array]:
+    def encode_parts(self, vertices, consistency: str | None = "spatial") -> tuple[Array, Array]:
         """(consistent axis-angle vectors (..., V, 3), S (..., V, 3, 3)) of vertices (..., V, 3).
 
         "temporal" takes the frames along the first axis of (N, V, 3). Differentiable in the vertices: the
@@ -207,7 +218,7 @@ class Acap(eqx.Module):
         v, s = _encode_parts(_frame_as(self.frame, x.dtype), self.rings, x.reshape(-1, n, 3), mode)
         return v.reshape(*lead, n, 3), s.reshape(*lead, n, 3, 3)
 
-    def encode(self, vertices, consistency: cons.Consistency | None = "spatial") -> Float[Array, "... v 9"]:
+    def encode(self, vertices, consistency: str | None = "spatial") -> Float[Array, "... v 9"]:
         """ACAP features (..., V, 9) of vertices (..., V, 3) (see :meth:`encode_parts`)."""
         v, s = self.encode_parts(vertices, consistency)
         return features_from(v, s)
@@ -217,19 +228,19 @@ class Acap(eqx.Module):
         sets other than the default are built once and kept (a new factor for the factored solvers)."""
         if anchors is None:
             return self.rec
-        if isinstance(anchors, jax.core.Tracer):
+        if is_traced(anchors):
             return self.rec.with_anchors(anchors)
         key = tuple(np.atleast_1d(np.asarray(anchors)).tolist())
-        if not _is_traced(self.rec.anchors) and key == tuple(np.asarray(self.rec.anchors).tolist()):
+        if not is_traced(self.rec.anchors) and key == tuple(np.asarray(self.rec.anchors).tolist()):
             return self.rec
         if key in self._cache.items:
             return self._cache.items[key]
         rec = self.rec.with_anchors(anchors)
-        if not _is_traced(rec):
+        if not is_traced(rec):
             self._cache.items[key] = rec
         return rec
 
-    def with_rest(self, rest: Float[Array, "v 3"]) -> "Acap":
+    def with_rest(self, rest: Float[jax.typing.ArrayLike, "v 3"]) -> "Acap":
         """The same Acap with its reference-side constants (fit constants, edge weights, reconstruction
         weights) recomputed from ``rest``: :meth:`encode` and :meth:`decode` of the result are differentiable
         with respect to ``rest``. The topology stays; a factored solver solves only at its own reference
@@ -256,16 +267,19 @@ class Acap(eqx.Module):
         return jnp.sum(diff**2, axis=(0, 1)).reshape(lead)
 
     def _features(self, features):
-        if _is_traced(features):
+        if is_traced(features):
             f = jnp.asarray(features)
             f = f.astype(_float_dtype(f, self.frame.dtype))
         else:
-            host = np.asarray(features)
-            if host.ndim < 2 or host.shape[-1] != 9:
-                raise ValueError(f"features must be (..., V, 9), got {host.shape}.")
-            if not np.all(np.isfinite(host)):
+            if isinstance(features, jax.Array):  # stays on its device: only the check's result is read
+                f = features.astype(_float_dtype(features, self.frame.dtype))
+            else:
+                host = np.asarray(features)
+                f = jnp.asarray(host, dtype=_host_float(host, self.frame.dtype))
+            if f.ndim < 2 or f.shape[-1] != 9:
+                raise ValueError(f"features must be (..., V, 9), got {f.shape}.")
+            if not bool(all_finite(f)):
                 raise ValueError("a feature is NaN or infinite.")
-            f = jnp.asarray(host, dtype=host.dtype if host.dtype in (np.float32, np.float64) else self.frame.dtype)
         if f.ndim < 2 or f.shape[-1] != 9 or f.shape[-2] != self.topo.n_vertices:
             raise ConnectivityError(f"features must be (..., {self.topo.n_vertices}, 9), got {f.shape}.")
         return f
@@ -428,7 +442,7 @@ def cached(rest, faces, weighting: Weighting = "official", *, solver: str | None
     return acap
 
 
-def encode(rest, faces, vertices, *, consistency: cons.Consistency | None = "spatial",
+def encode(rest, faces, vertices, *, consistency: str | None = "spatial",
            weighting: Weighting = "official") -> Float[Array, "... v 9"]:
     """ACAP features (..., V, 9) of ``vertices`` (..., V, 3) relative to ``rest`` (V, 3) (host convenience:
     :func:`prepare` cached by the reference's bytes; use :meth:`Acap.encode` inside jit).
@@ -450,13 +464,14 @@ def decode(features, rest, faces, *, anchors=None, targets=None, refine: int = D
     return cached(rest, faces, weighting).decode(features, anchors=anchors, targets=targets, refine=refine)
 
 
-def turn_reference(features: Float[Array, "n v 9"]) -> Float[Array, "v 3"]:
+def turn_reference(features: Float[jax.typing.ArrayLike, "n v 9"]) -> Float[Array, "v 3"]:
     """Per-vertex reference rotation vectors (V, 3) of a set of shapes' features, for :func:`align_turns`
     (the training shapes of a model: see :func:`jaxdeform.acap.consistency.turn_reference`)."""
     return cons.turn_reference(jnp.asarray(features)[..., :3])
 
 
-def align_turns(features: Float[Array, "... v 9"], reference: Float[Array, "v 3"]) -> Float[Array, "... v 9"]:
+def align_turns(features: Float[jax.typing.ArrayLike, "*batch v 9"],
+                reference: Float[jax.typing.ArrayLike, "v 3"]) -> Float[Array, "*batch v 9"]:
     """The same features with every rotation vector on the 2 pi branch nearest ``reference`` (consistency
     across shapes; the rotations, so the decoded positions, do not change)."""
     f = jnp.asarray(features)
@@ -535,6 +550,6 @@ class Scaler:
         return Scaler(*map(float, a[:5]))
 
 
-def log_matrices(v: Float[Array, "... 3"]) -> Float[Array, "... 3 3"]:
+def log_matrices(v: Float[jax.typing.ArrayLike, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
     """Full 3x3 log(R) (skew) from axis-angle vectors."""
     return skew(v)

@@ -49,7 +49,8 @@ def sexp(x: Array) -> Array:
     return jnp.where(jnp.isfinite(y) & (y <= 1e5), y, 1.0)
 
 
-def edge_weights(rest: Float[Array, "v 3"], topo: Topology, weighting: Weighting = "official") -> Float[Array, " e"]:
+def edge_weights(rest: Float[jax.typing.ArrayLike, "v 3"], topo: Topology,
+                 weighting: Weighting = "official") -> Float[Array, " e"]:
     c = cotangent_weights(rest, topo)
     if weighting == "official":
         return sexp(c) ** OFFICIAL_EXPONENT
@@ -140,7 +141,8 @@ class RestFrame:
         return self.c_ring.dtype
 
 
-def rest_frame(rest: Float[Array, "v 3"], topo: Topology, weighting: Weighting = "official") -> RestFrame:
+def rest_frame(rest: Float[jax.typing.ArrayLike, "v 3"], topo: Topology,
+               weighting: Weighting = "official") -> RestFrame:
     rest = jnp.asarray(rest)
     if weighting not in ("official", "cotangent"):
         raise ValueError(f"unknown weighting '{weighting}'; expected 'official' or 'cotangent'.")
@@ -207,13 +209,14 @@ def deformation_gradients_cm(frame: RestFrame, x: Float[Array, "3 v b"]) -> Floa
     return t[:, :, frame.plan.position]
 
 
-def to_vertex_major(vertices: Float[Array, "... v 3"]) -> Float[Array, "3 v b"]:
+def to_vertex_major(vertices: Float[jax.typing.ArrayLike, "... v 3"]) -> Float[Array, "3 v b"]:
     """(..., V, 3) -> (3, V, B) with the leading batch dimensions flattened into B."""
     v = vertices.shape[-2]
     return jnp.moveaxis(vertices.reshape(-1, v, 3), (0, 2), (2, 0))
 
 
-def deformation_gradients(frame: RestFrame, vertices: Float[Array, "... v 3"]) -> Float[Array, "... v 3 3"]:
+def deformation_gradients(frame: RestFrame,
+                          vertices: Float[jax.typing.ArrayLike, "*batch v 3"]) -> Float[Array, "*batch v 3 3"]:
     """T_i for each frame (any leading batch shape) relative to the reference of ``frame``."""
     vertices = jnp.asarray(vertices, dtype=frame.dtype)
     t = deformation_gradients_cm(frame, to_vertex_major(vertices))  # (3, 3, V, B)

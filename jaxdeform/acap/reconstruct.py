@@ -40,7 +40,7 @@ import jax.numpy as jnp
 import lineax as lx
 import numpy as np
 import optimistix as optx
-from jaxtyping import Array, Bool, Float, Int
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 from jaxdeform.errors import DegenerateMeshError
 from jaxdeform.mesh.topology import Topology
@@ -127,11 +127,11 @@ class NormalMatrix(eqx.Module):
     ``mv(x)`` takes vertex-major x (V, ...) and returns M x of the same shape, in x's dtype.
     """
 
-    sqrt_w: Float[Array, " e"]
-    edge_i: Int[Array, " e"]
-    edge_j: Int[Array, " e"]
-    anchors: Int[Array, " a"]
-    sqrt_a: Float[Array, ""]
+    sqrt_w: Float[ArrayLike, " e"]
+    edge_i: Int[ArrayLike, " e"]
+    edge_j: Int[ArrayLike, " e"]
+    anchors: Int[ArrayLike, " a"]
+    sqrt_a: Float[ArrayLike, ""]
     n: int = eqx.field(static=True)
 
     def mv(self, x):
@@ -171,7 +171,7 @@ class HostCholesky(eqx.Module):
     @staticmethod
     def build(matrix: NormalMatrix) -> "HostCholesky":
         """Factor ``matrix`` on the host; its arrays must be concrete (not traced)."""
-        if not _is_concrete(matrix):
+        if is_traced(matrix):
             raise ValueError("the host factor of a new anchor set needs a concrete Acap: call acap.reconstructor(anchors) "
                              "outside the trace, or pass the Acap closed over instead of as an argument.")
         w = np.asarray(matrix.sqrt_w, np.float64) ** 2
@@ -197,7 +197,7 @@ class DenseCholesky(eqx.Module):
     @staticmethod
     def build(matrix: NormalMatrix, dtype) -> "DenseCholesky":
         chol = jax.jit(lambda m: jnp.linalg.cholesky(m.dense(dtype)))(matrix)
-        if not isinstance(chol, jax.core.Tracer) and not bool(np.isfinite(np.asarray(chol[-1, -1]))):
+        if not is_traced(chol) and not bool(jnp.isfinite(chol[-1, -1])):
             raise DegenerateMeshError("the reconstruction matrix is not positive definite (degenerate reference mesh).")
         return DenseCholesky(chol)
 
@@ -267,11 +267,11 @@ class EdgeJacobianT(eqx.Module):
     scatter that XLA on CPU runs several times slower.
     """
 
-    sqrt_w: Array
-    edge_i: Array
-    edge_j: Array
-    anchors: Array
-    sqrt_a: Array
+    sqrt_w: ArrayLike
+    edge_i: ArrayLike
+    edge_j: ArrayLike
+    anchors: ArrayLike
+    sqrt_a: ArrayLike
     n: int = eqx.field(static=True)
 
     def __call__(self, residuals):
@@ -408,8 +408,17 @@ def _check_anchors(anchors, n: int) -> np.ndarray:
     return anchors
 
 
-def _is_concrete(*trees) -> bool:
-    return not any(isinstance(x, jax.core.Tracer) for x in jax.tree_util.tree_leaves(trees))
+def is_traced(*trees) -> bool:
+    """Whether any leaf of ``trees`` holds values the host cannot read now: a tracer, or a global array with
+    parts on other processes (multi-host). Such values are checked inside the computation, not on the host."""
+    return any(isinstance(x, jax.core.Tracer) or (isinstance(x, jax.Array) and not x.is_fully_addressable)
+               for x in jax.tree_util.tree_leaves(trees))
+
+
+@jax.jit
+def all_finite(x: ArrayLike) -> Array:
+    """Whether every entry of ``x`` is finite, as a device scalar (an eager check reads one bool, not ``x``)."""
+    return jnp.all(jnp.isfinite(x))
 
 
 class Reconstructor(eqx.Module):
@@ -422,16 +431,17 @@ class Reconstructor(eqx.Module):
     rest: Float[Array, "v 3"]
     rest_edges: Float[Array, "e 3"]
     sqrt_w: Float[Array, " e"]
-    edge_i: Array
-    edge_j: Array
-    anchors: Array
-    sqrt_a: Array
+    edge_i: Int[Array, " e"]
+    edge_j: Int[Array, " e"]
+    anchors: Int[ArrayLike, " a"]  # numpy after :meth:`with_anchors` of concrete indices
+    sqrt_a: Float[Array, ""]
     method: HostCholesky | DenseCholesky | ConjugateGradient
     anchor_weight: float = eqx.field(static=True, default=ANCHOR_WEIGHT)
 
     @staticmethod
-    def build(rest, topo: Topology, weights, anchors=None, anchor_weight: float = ANCHOR_WEIGHT,
-              solver: Solver = "host", cg_rtol: float | None = None, cg_max_steps: int = CG_MAX_STEPS) -> "Reconstructor":
+    def build(rest: Float[ArrayLike, "v 3"], topo: Topology, weights: Float[ArrayLike, " e"], anchors=None,
+              anchor_weight: float = ANCHOR_WEIGHT, solver: Solver = "host", cg_rtol: float | None = None,
+              cg_max_steps: int = CG_MAX_STEPS) -> "Reconstructor":
         """Host-side construction: checks (positive weights, anchors) and the factor of ``solver``.
 
         ``rest`` (V, 3) and ``weights`` (E,) may be jax or numpy arrays; ``anchors``: vertex indices (default
@@ -484,7 +494,7 @@ class Reconstructor(eqx.Module):
     def with_anchors(self, anchors) -> "Reconstructor":
         """The same reference with other anchors (vertex indices). The factored solvers need concrete indices
         (a new factor is built); conjugate gradients take traced ones too."""
-        if isinstance(anchors, jax.core.Tracer):
+        if is_traced(anchors):
             if not isinstance(self.method, ConjugateGradient):
                 raise ValueError("traced anchor indices need solver='cg'; the factored solvers need concrete indices.")
             return eqx.tree_at(lambda r: r.anchors, self, anchors.astype(jnp.int32))
@@ -496,7 +506,7 @@ class Reconstructor(eqx.Module):
             return eqx.tree_at(lambda r: r.method, rec, DenseCholesky.build(rec.matrix(), self.method.chol.dtype))
         return rec
 
-    def with_rest(self, rest: Float[Array, "v 3"], weights: Float[Array, " e"]) -> "Reconstructor":
+    def with_rest(self, rest: Float[ArrayLike, "v 3"], weights: Float[ArrayLike, " e"]) -> "Reconstructor":
         """The problem's reference-side constants recomputed from ``rest`` and its edge ``weights`` (which
         the caller derives from ``rest``), so that positions are differentiable in the reference.
 
@@ -511,7 +521,7 @@ class Reconstructor(eqx.Module):
                jnp.sqrt(self.anchor_weight * jnp.mean(weights)))
         return eqx.tree_at(lambda r: (r.rest, r.rest_edges, r.sqrt_w, r.sqrt_a), self, new)
 
-    def __call__(self, t: Float[Array, "... v 3 3"], targets: Float[Array, "... a 3"] | None = None):
+    def __call__(self, t: Float[ArrayLike, "... v 3 3"], targets: Float[ArrayLike, "... a 3"] | None = None):
         """Positions (..., V, 3) from gradients (..., V, 3, 3) (see :meth:`solve_vm` for the fast layout)."""
         lead = t.shape[:-3]
         v = self.rest.shape[0]
@@ -523,7 +533,7 @@ class Reconstructor(eqx.Module):
         """J^T of this problem's residuals, for the solver."""
         return EdgeJacobianT(self.sqrt_w, self.edge_i, self.edge_j, self.anchors, self.sqrt_a, self.rest.shape[0])
 
-    def targets_vm(self, targets: Float[Array, "... a 3"] | None, lead: tuple, dtype) -> Float[Array, "a 3 b"] | None:
+    def targets_vm(self, targets: Float[ArrayLike, "... a 3"] | None, lead: tuple, dtype) -> Float[Array, "a 3 b"] | None:
         """Anchor targets broadcast to the batch ``lead`` and laid out vertex-major (A, 3, B); None stays None."""
         if targets is None:
             return None

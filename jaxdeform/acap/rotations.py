@@ -36,7 +36,7 @@ REFLECTION_SHARES = (256, 16)
 # ------------------------------------------------------------------------------- layout conversion
 
 
-def to_cm(a: Array, rank: int = 2) -> Array:
+def to_cm(a: jax.typing.ArrayLike, rank: int = 2) -> Array:
     """(..., 3, 3) -> (3, 3, ...) for rank 2, (..., 3) -> (3, ...) for rank 1."""
     return jnp.moveaxis(a, tuple(range(a.ndim - rank, a.ndim)), tuple(range(rank)))
 
@@ -219,47 +219,48 @@ def exp_rotation_cm(v: Array) -> Array:
 # ------------------------------------------------------------------------------ public (..., 3, 3)
 
 
-def det3(a: Float[Array, "... 3 3"]) -> Float[Array, "..."]:
+def det3(a: Float[jax.typing.ArrayLike, "*batch 3 3"]) -> Float[Array, "*batch"]:
     return det_cm(to_cm(a))
 
 
-def adjugate3(a: Float[Array, "... 3 3"]) -> Float[Array, "... 3 3"]:
+def adjugate3(a: Float[jax.typing.ArrayLike, "*batch 3 3"]) -> Float[Array, "*batch 3 3"]:
     return from_cm(adjugate_cm(to_cm(a)))
 
 
-def inv3(a: Float[Array, "... 3 3"]) -> Float[Array, "... 3 3"]:
+def inv3(a: Float[jax.typing.ArrayLike, "*batch 3 3"]) -> Float[Array, "*batch 3 3"]:
     return from_cm(inv_cm(to_cm(a)))
 
 
-def sym(a: Array) -> Array:
+def sym(a: jax.typing.ArrayLike) -> Array:
     return 0.5 * (a + jnp.swapaxes(a, -1, -2))
 
 
-def polar(t: Float[Array, "... 3 3"], steps: int = NEWTON_STEPS) -> tuple[Array, Array]:
+def polar(t: Float[jax.typing.ArrayLike, "*batch 3 3"], steps: int = NEWTON_STEPS
+          ) -> tuple[Float[Array, "*batch 3 3"], Float[Array, "*batch 3 3"]]:
     """T = R S with R a proper rotation and S symmetric (official ACAP sign convention)."""
     r, s = polar_cm(to_cm(t), steps)
     return from_cm(r), from_cm(s)
 
 
-def skew(v: Float[Array, "... 3"]) -> Float[Array, "... 3 3"]:
+def skew(v: Float[jax.typing.ArrayLike, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
     return from_cm(skew_cm(to_cm(v, 1)))
 
 
-def vee(k: Float[Array, "... 3 3"]) -> Float[Array, "... 3"]:
+def vee(k: Float[jax.typing.ArrayLike, "*batch 3 3"]) -> Float[Array, "*batch 3"]:
     return from_cm(vee_cm(to_cm(k)), 1)
 
 
-def rotation_angle(r: Float[Array, "... 3 3"]) -> Float[Array, "..."]:
+def rotation_angle(r: Float[jax.typing.ArrayLike, "*batch 3 3"]) -> Float[Array, "*batch"]:
     rc = to_cm(r)
     c = 0.5 * (rc[0, 0] + rc[1, 1] + rc[2, 2] - 1.0)
     return jnp.arctan2(_safe_norm0(vee_cm(rc)), c)
 
 
-def log_rotation(r: Float[Array, "... 3 3"]) -> Float[Array, "... 3"]:
+def log_rotation(r: Float[jax.typing.ArrayLike, "*batch 3 3"]) -> Float[Array, "*batch 3"]:
     """Axis-angle vector theta * axis with theta in [0, pi]."""
     return from_cm(log_rotation_cm(to_cm(r)), 1)
 
 
-def exp_rotation(v: Float[Array, "... 3"]) -> Float[Array, "... 3 3"]:
+def exp_rotation(v: Float[jax.typing.ArrayLike, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
     """Rodrigues' formula for the rotation of axis-angle vector v (any angle)."""
     return from_cm(exp_rotation_cm(to_cm(v, 1)))

@@ -11,9 +11,10 @@ Results equal the single-device call's to float round-off. Temporal consistency 
 sequence and is not split over frames: shard several sequences with ``jax.vmap`` inside your own
 ``shard_map`` instead.
 
-Multi-host: call ``jax.distributed.initialize()`` in every process first; ``frames_mesh()`` then spans all
+Multi-host: call ``jax.distributed.initialize()`` in every process first (CPU devices also need
+``jax.config.update("jax_cpu_collectives_implementation", "gloo")`` before it); ``frames_mesh()`` then spans all
 processes' devices, and each process passes a globally shaped array made from its own frames with
-``jax.make_array_from_process_local_data`` (see the README).
+``jax.make_array_from_process_local_data`` (runnable: ``examples/multihost_acap.py``).
 """
 
 from __future__ import annotations
@@ -24,9 +25,9 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
-from jaxtyping import Array, Float
+from jaxtyping import Array, ArrayLike, Float
 
-from jaxdeform.acap.features import Acap, _decode as _decode_with, _frame_as
+from jaxdeform.acap.features import Acap
 
 FRAMES = "frames"
 
@@ -58,7 +59,7 @@ def map_frames(fn, x, mesh: Mesh, axis: str = FRAMES):
     return out if size == n else jax.tree_util.tree_map(lambda y: y[:n], out)
 
 
-def encode(acap: Acap, vertices: Float[Array, "n v 3"], mesh: Mesh, consistency: str = "spatial",
+def encode(acap: Acap, vertices: Float[ArrayLike, "n v 3"], mesh: Mesh, consistency: str = "spatial",
            axis: str = FRAMES) -> Float[Array, "n v 9"]:
     """:meth:`Acap.encode` of frames (N, V, 3), data-parallel over ``mesh`` (spatial or no consistency)."""
     if consistency == "temporal":
@@ -69,19 +70,19 @@ def encode(acap: Acap, vertices: Float[Array, "n v 3"], mesh: Mesh, consistency:
     return map_frames(functools.partial(_encode, acap, consistency), x, mesh, axis)
 
 
-def decode(acap: Acap, features: Float[Array, "n v 9"], mesh: Mesh, *, anchors=None, refine: int = 1,
+def decode(acap: Acap, features: Float[ArrayLike, "n v 9"], mesh: Mesh, *, anchors=None, refine: int = 1,
            axis: str = FRAMES) -> Float[Array, "n v 3"]:
     """:meth:`Acap.decode` of features (N, V, 9), data-parallel over ``mesh`` (anchors at their reference)."""
     f = acap._features(features)
     if f.ndim != 3:
         raise ValueError(f"features must be (N, V, 9), got {f.shape}.")
-    rec = acap.reconstructor(anchors)  # built on the host now, once, not per device
-    return map_frames(functools.partial(_decode, acap, rec, refine), f, mesh, axis)
+    acap.reconstructor(anchors)  # a new anchor set's factor is built on the host now, once, and kept by the Acap
+    return map_frames(functools.partial(_decode, acap, anchors, refine), f, mesh, axis)
 
 
 def _encode(acap: Acap, consistency: str, x):
     return acap.encode(x, consistency)
 
 
-def _decode(acap: Acap, rec, refine: int, f):
-    return _decode_with(rec, _frame_as(acap.frame, f.dtype), f, None, refine)[0]
+def _decode(acap: Acap, anchors, refine: int, f):
+    return acap.decode(f, anchors=anchors, refine=refine)

@@ -43,9 +43,7 @@ max 4.9 % (2 iterations). Max obstacle penetration of every stored SHEET and DIS
 inside the triangles (:func:`max_penetration` with faces): 0 at both resolutions. Time per frame (compilation
 apart, ~3-6 s per mesh): SHEET coarse 4.8 ms (1.7 ms with vertex contacts alone), fine ~0.28-0.41 s; DISK coarse
 ~17-23 ms (25 points per triangle; 2 ms with vertex contacts alone), fine ~0.5-0.8 s.
-Until 2026-11-29 DISK's table had a sharp rim, which no curvature rule covers: its coarse triangles sank
-4.0-4.3 cm into it with vertex contacts (2.6-6.3 mm with 12 points per triangle) and the fine ones ~1 mm (6 % of
-their edge); the rounded rim gives the rule a radius.
+DISK's table has a rounded rim: a sharp one gives the contact-point rule no curvature radius to work with.
 Initial state: the flat rest cloth (the fine one = Loop-subdivided coarse one), settled for ``settle_frames``
 frames with the obstacles at their t = 0 position and no wind, then the recorded sequence starts from the
 settled positions and velocities.
@@ -77,7 +75,7 @@ SETTLE_FRAMES = {"sheet": 10, "disk": 30}
 #: (substeps, iterations) per frame for the coarse meshes (per kind) and the fine ones. With frictionless contact
 #: points inside the triangles DISK's coarse cloth needed 4 iterations (with 2 a gust slapping it onto the rounded
 #: rim left one frame of seq_018 2.7 mm inside the table); with friction there (``ClothParams.face_friction``) 2
-#: iterations leave no coarse frame of the 20 scenarios inside it (2026-11-29).
+#: iterations leave no coarse frame of the 20 scenarios inside it.
 COARSE_STEPS = {"sheet": (10, 2), "disk": (10, 2)}
 FINE_STEPS = (40, 4)
 #: Physical parameters shared by both resolutions (defaults of ClothParams unless listed).
@@ -88,7 +86,7 @@ PARAMS = ClothParams()
 #: far from the stored one as the upsampled coarse cloth does (damping 2 alone: 0.26x / 0.23x; bending 1e-4
 #: alone: 0.27x on scenario 2), with both 0.07x and 0.004x: the fine cloth is determined by its scenario, so
 #: what it adds to the coarse one can be learned (:func:`simulate_pair` against :func:`simulate_fine` with
-#: ``perturbation=1e-4``, 100 frames, 2026-11-29).
+#: ``perturbation=1e-4``, 100 frames).
 KIND_PARAMS = {"sheet": dict(bend_stiffness=1.0e-4, damping=2.0), "disk": {}}
 
 SHEET_TOP = 1.4
@@ -103,8 +101,8 @@ POLE_RADIUS = 0.14
 POLE_HALF_LENGTH = 0.3
 #: Smallest curvature radius of the obstacles (m): it sets the contact points per triangle of each mesh
 #: (:func:`simulate.face_samples_for`). With vertex contacts alone a coarse triangle (legs 12.5 cm) sags up to
-#: r - sqrt(r^2 - R^2) into a sphere of radius r between its corners (R its circumradius): the SHEET coarse
-#: frames stored before 2026-11-29 sank 1.0-3.0 cm (8-24 % of the edge) into the obstacles, the fine ones 0. The
+#: r - sqrt(r^2 - R^2) into a sphere of radius r between its corners (R its circumradius; SHEET's coarse
+#: triangles would sink 1.0-3.0 cm, 8-24 % of the edge, into the obstacles with vertex contacts alone). The
 #: rule gives the SHEET coarse mesh the order-4 grid (4 intervals per edge, 12 points per triangle; sag 1.7 mm at
 #: r = 0.14 m, inside the 5 mm thickness) and its 3-level fine mesh none (sag 0.4 mm between vertices). The rule
 #: needs smooth obstacles: DISK's table rims are rounded (:data:`TABLE_RIM_RADIUS`), which gives its coarse mesh

@@ -46,9 +46,8 @@ class TrainConfig:
     batch: int = 256
     learning_rate: float = 1e-3
     # Exponential decay, lr * decay_rate ** (step / decay_steps): the paper gives no rate. 0.1 ** 0.1 takes the
-    # rate to 1e-4 over the 10,000 epochs. With 0.96 per 1,000 (1e-3 -> 6.6e-4) Adam's oscillation grew into a
-    # loss explosion between epochs 6,000 and 8,500 in each of three seeds on horse-gallop (loss 45 -> 1e5,
-    # test Erms 14-16 -> 22-28 at the end); with this rate none of the three explodes (H100 sweep, 2026-11-26).
+    # rate to 1e-4 over the 10,000 epochs; a slower decay (0.96 per 1,000 steps) lets Adam's oscillation grow
+    # into a loss explosion late in horse-gallop training (docs/seed000-components.md).
     decay_rate: float = 0.1 ** 0.1
     decay_steps: int = 1000
     seed: int = 0

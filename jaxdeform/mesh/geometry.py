@@ -12,7 +12,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float
+from jaxtyping import Array, ArrayLike, Float, Int
 
 from jaxdeform.mesh.topology import Topology
 
@@ -20,20 +20,20 @@ from jaxdeform.mesh.topology import Topology
 DEGENERATE_RELATIVE_AREA = 1e-10
 
 
-def safe_norm(x: Array, axis: int = -1, keepdims: bool = False) -> Array:
+def safe_norm(x: ArrayLike, axis: int = -1, keepdims: bool = False) -> Array:
     """|x| with value 0 and finite (zero) gradient at zero vectors."""
     sq = jnp.sum(x * x, axis=axis, keepdims=keepdims)
     ok = sq > 0
     return jnp.where(ok, jnp.sqrt(jnp.where(ok, sq, 1.0)), 0.0)
 
 
-def safe_normalize(x: Array, axis: int = -1) -> Array:
+def safe_normalize(x: ArrayLike, axis: int = -1) -> Array:
     """x / |x| with 0 for zero vectors and finite gradients everywhere."""
     n = safe_norm(x, axis=axis, keepdims=True)
     return x / jnp.where(n > 0, n, 1.0)
 
 
-def zero_area_faces(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
+def zero_area_faces(vertices: Float[ArrayLike, "v 3"], faces: Int[ArrayLike, "f 3"]) -> Int[np.ndarray, " bad"]:
     """Indices of the faces whose area is zero relative to their longest edge (host numpy, float64): the
     faces :func:`corner_cotangents` gives no cotangent."""
     p = np.asarray(vertices, np.float64)[np.asarray(faces)]
@@ -43,28 +43,28 @@ def zero_area_faces(vertices: np.ndarray, faces: np.ndarray) -> np.ndarray:
     return np.flatnonzero(cross <= DEGENERATE_RELATIVE_AREA * longest)
 
 
-def face_cross(vertices: Float[Array, "v 3"], faces) -> Float[Array, "f 3"]:
+def face_cross(vertices: Float[ArrayLike, "v 3"], faces: Int[ArrayLike, "f 3"]) -> Float[Array, "f 3"]:
     """(p1 - p0) x (p2 - p0): normal direction with length = twice the face area."""
     p = vertices[faces]
     return jnp.cross(p[:, 1] - p[:, 0], p[:, 2] - p[:, 0])
 
 
-def face_areas(vertices: Float[Array, "v 3"], topo: Topology) -> Float[Array, " f"]:
+def face_areas(vertices: Float[ArrayLike, "v 3"], topo: Topology) -> Float[Array, " f"]:
     return 0.5 * safe_norm(face_cross(vertices, topo.faces))
 
 
-def face_normals(vertices: Float[Array, "v 3"], topo: Topology) -> Float[Array, "f 3"]:
+def face_normals(vertices: Float[ArrayLike, "v 3"], topo: Topology) -> Float[Array, "f 3"]:
     return safe_normalize(face_cross(vertices, topo.faces))
 
 
-def vertex_normals(vertices: Float[Array, "v 3"], topo: Topology) -> Float[Array, "v 3"]:
+def vertex_normals(vertices: Float[ArrayLike, "v 3"], topo: Topology) -> Float[Array, "v 3"]:
     """Area-weighted vertex normals (unit length; zero only if every incident face is degenerate)."""
     cross = face_cross(vertices, topo.faces)
     acc = jax.ops.segment_sum(jnp.repeat(cross, 3, axis=0), topo.faces.reshape(-1), topo.n_vertices)
     return safe_normalize(acc)
 
 
-def corner_cotangents(vertices: Float[Array, "v 3"], topo: Topology) -> Float[Array, "f 3"]:
+def corner_cotangents(vertices: Float[ArrayLike, "v 3"], topo: Topology) -> Float[Array, "f 3"]:
     """cot of the angle at each corner k of each face (0 for degenerate faces)."""
     p = vertices[topo.faces]
     u = jnp.roll(p, -1, axis=1) - p  # p[k+1] - p[k]
@@ -76,13 +76,15 @@ def corner_cotangents(vertices: Float[Array, "v 3"], topo: Topology) -> Float[Ar
     return jnp.where(ok, dot / jnp.where(ok, cross, 1.0), 0.0)
 
 
-def cotangent_weights(vertices: Float[Array, "v 3"], topo: Topology) -> Float[Array, " e"]:
+def cotangent_weights(vertices: Float[ArrayLike, "v 3"], topo: Topology) -> Float[Array, " e"]:
     """Per undirected edge c_ij = (cot a + cot b) / 2 (one term on boundary edges)."""
     cot = corner_cotangents(vertices, topo)
     return jax.ops.segment_sum(0.5 * cot.reshape(-1), topo.face_edge.reshape(-1), topo.n_edges)
 
 
-def laplacian_coo(topo: Topology, weights: Float[Array, " e"]):
+def laplacian_coo(
+    topo: Topology, weights: Float[ArrayLike, " e"]
+) -> tuple[Int[np.ndarray, " nnz"], Int[np.ndarray, " nnz"], Float[Array, " nnz"]]:
     """Graph Laplacian L = D - W (positive semidefinite) as COO ``(rows, cols, vals)``.
 
     ``(L p)_i = sum_j w_ij (p_i - p_j)``; with cotangent weights this is the negated libigl ``cotmatrix``.
@@ -97,7 +99,7 @@ def laplacian_coo(topo: Topology, weights: Float[Array, " e"]):
     return rows, cols, vals
 
 
-def cot_laplacian(vertices: Float[Array, "v 3"], topo: Topology):
+def cot_laplacian(vertices: Float[ArrayLike, "v 3"], topo: Topology):
     """Cotangent Laplacian (PSD convention) as a ``scipy.sparse.csr_matrix`` (host)."""
     import scipy.sparse as sp
 

@@ -17,6 +17,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
+from jaxtyping import ArrayLike, Float, Int, Real
 
 from jaxdeform.errors import ConnectivityError, MeshFormatError
 
@@ -179,7 +180,7 @@ def _ply_counts(path: Path) -> dict[str, int]:
     return counts
 
 
-def load_mesh(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
+def load_mesh(path: str | os.PathLike) -> tuple[Float[np.ndarray, "v 3"], Int[np.ndarray, "f 3"]]:
     """Load one mesh (OBJ, PLY, OFF) as ``(vertices (V,3) float64, faces (F,3) int32)``."""
     path = Path(path)
     suffix = _suffix(path)
@@ -208,7 +209,7 @@ def _expand(paths: Sequence[str | os.PathLike] | str | os.PathLike) -> list[Path
     return out
 
 
-def check_same_connectivity(faces_ref: np.ndarray, faces: np.ndarray, n_ref: int, n: int, where: str) -> None:
+def check_same_connectivity(faces_ref: ArrayLike, faces: ArrayLike, n_ref: int, n: int, where: str) -> None:
     """Raise ConnectivityError unless two meshes have the same vertex count and identical faces."""
     if n != n_ref:
         raise ConnectivityError(f"{where} has {n} vertices but the first mesh has {n_ref}; meshes must share one connectivity.")
@@ -216,7 +217,9 @@ def check_same_connectivity(faces_ref: np.ndarray, faces: np.ndarray, n_ref: int
         raise ConnectivityError(f"{where} has different faces from the first mesh; meshes must share one connectivity.")
 
 
-def load_sequence(paths: Sequence[str | os.PathLike] | str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
+def load_sequence(
+    paths: Sequence[str | os.PathLike] | str | os.PathLike,
+) -> tuple[Float[np.ndarray, "n v 3"], Int[np.ndarray, "f 3"]]:
     """Load meshes that share one connectivity as ``(vertices (N,V,3) float64, faces (F,3) int32)``.
 
     ``paths`` is a folder (its mesh files in natural order), one file, or a list of files/folders.
@@ -323,7 +326,7 @@ def atomic_path(path: Path):
     return _cm()
 
 
-def save_mesh(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray) -> None:
+def save_mesh(path: str | os.PathLike, vertices: Real[ArrayLike, "v 3"], faces: Int[ArrayLike, "f 3"]) -> None:
     """Write one mesh as OBJ, OFF or PLY (chosen by suffix), atomically."""
     path = Path(path)
     suffix = _suffix(path)
@@ -348,7 +351,7 @@ def save_mesh(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray) 
                 np.savetxt(fh, faces + 1, fmt="f %d %d %d")
 
 
-def save_sequence(path: str | os.PathLike, vertices: np.ndarray, faces: np.ndarray) -> None:
+def save_sequence(path: str | os.PathLike, vertices: Real[ArrayLike, "n v 3"], faces: Int[ArrayLike, "f 3"]) -> None:
     """Write a sequence ``(N,V,3)`` as one ``.npz`` (arrays ``vertices``, ``faces``), atomically."""
     path = Path(path)
     if path.suffix.lower() != ".npz":

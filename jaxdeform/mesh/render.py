@@ -18,12 +18,13 @@ from __future__ import annotations
 import math
 import os
 import tempfile
+from collections.abc import Sequence
 from dataclasses import dataclass, field
 from pathlib import Path
 
 import numpy as np
 from embreex import rtcore_scene as rtcs
-from jaxtyping import Float
+from jaxtyping import ArrayLike, Float, Real
 from embreex.mesh_construction import TriangleMesh
 from PIL import Image, ImageDraw, ImageFont
 
@@ -119,6 +120,10 @@ def _vec3(x, name: str) -> tuple[float, float, float]:
     return (float(a[0]), float(a[1]), float(a[2]))
 
 
+#: A 3-vector as :class:`Camera` takes it: any 3 numbers, a sequence or an array (it stores a tuple of 3 floats).
+Vector3 = Sequence[float | int] | Real[ArrayLike, "3"]
+
+
 @dataclass(frozen=True)
 class Camera:
     """A pinhole camera at ``eye`` looking at ``target``; ``up`` need not be orthogonal to the view.
@@ -127,10 +132,10 @@ class Camera:
     floats (the dataclass is hashable).
     """
 
-    eye: tuple[float, float, float]
-    target: tuple[float, float, float]
-    up: tuple[float, float, float] = (0.0, 1.0, 0.0)
-    fov_deg: float = 35.0
+    eye: Vector3
+    target: Vector3
+    up: Vector3 = (0.0, 1.0, 0.0)
+    fov_deg: float | int = 35.0
 
     def __post_init__(self):
         for name in ("eye", "target", "up"):
@@ -160,11 +165,11 @@ class Camera:
 def auto_camera(
     vertices,
     *,
-    azimuth_deg: float = 30.0,
-    elevation_deg: float = 20.0,
-    fov_deg: float = 35.0,
+    azimuth_deg: float | int = 30.0,
+    elevation_deg: float | int = 20.0,
+    fov_deg: float | int = 35.0,
     up_axis: str = "y",
-    margin: float = 1.08,
+    margin: float | int = 1.08,
 ) -> Camera:
     """A camera looking at the bounding-box centre from where the bounding sphere fits the view.
 
@@ -327,7 +332,9 @@ def pixel_scale(camera: Camera, width: int, height: int) -> float:
     return math.tan(math.radians(camera.fov_deg) / 2.0) / (min(width, height) / 2.0)
 
 
-def project(camera: Camera, width: int, height: int, points: Float[np.ndarray, "p 3"]) -> tuple[np.ndarray, np.ndarray]:
+def project(
+    camera: Camera, width: int, height: int, points: Float[ArrayLike, "p 3"]
+) -> tuple[Float[np.ndarray, "p 2"], Float[np.ndarray, " p"]]:
     """Display coordinates (P, 2) of points and their depth (P,) along the view direction.
 
     The inverse of the renderer's rays: the ray through pixel (i, j)'s centre (j + 0.5, i + 0.5) has direction

@@ -19,24 +19,25 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Bool, Int
+from jaxtyping import ArrayLike, Bool, Int
 
 from jaxdeform.errors import ConnectivityError
+from jaxdeform.typing import NonArrayLeaf
 
 
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class Topology:
-    faces: Int[Array, "f 3"]
-    edges: Int[Array, "e 2"]
-    face_edge: Int[Array, "f 3"]
-    half_src: Int[Array, " h"]
-    half_dst: Int[Array, " h"]
-    half_edge: Int[Array, " h"]
-    neighbors: Int[Array, "v k"]
-    mask: Bool[Array, "v k"]
-    degree: Int[Array, " v"]
-    boundary_vertex: Bool[Array, " v"]
+    faces: Int[ArrayLike, "f 3"] | NonArrayLeaf
+    edges: Int[ArrayLike, "e 2"] | NonArrayLeaf
+    face_edge: Int[ArrayLike, "f 3"] | NonArrayLeaf
+    half_src: Int[ArrayLike, " h"] | NonArrayLeaf
+    half_dst: Int[ArrayLike, " h"] | NonArrayLeaf
+    half_edge: Int[ArrayLike, " h"] | NonArrayLeaf
+    neighbors: Int[ArrayLike, "v k"] | NonArrayLeaf
+    mask: Bool[ArrayLike, "v k"] | NonArrayLeaf
+    degree: Int[ArrayLike, " v"] | NonArrayLeaf
+    boundary_vertex: Bool[ArrayLike, " v"] | NonArrayLeaf
     n_vertices: int = dataclasses.field(metadata=dict(static=True))
     n_faces: int = dataclasses.field(metadata=dict(static=True))
     n_edges: int = dataclasses.field(metadata=dict(static=True))
@@ -50,21 +51,21 @@ class Topology:
         return np.asarray(self.faces)
 
 
-def unique_edges(faces: np.ndarray) -> np.ndarray:
+def unique_edges(faces: Int[ArrayLike, "f 3"]) -> Int[np.ndarray, "e 2"]:
     """Undirected edges (E, 2) of a triangle list, ``i < j``, sorted lexicographically (numpy, no checks)."""
     f = np.asarray(faces, dtype=np.int64)
     e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
     return np.unique(np.sort(e, axis=1), axis=0)
 
 
-def repeated_vertex_face(faces: np.ndarray) -> int:
+def repeated_vertex_face(faces: Int[ArrayLike, "f 3"]) -> int:
     """Index of the first face that names one vertex twice, or -1 if every face has 3 distinct vertices."""
     f = np.asarray(faces)
     repeated = (f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 0] == f[:, 2])
     return int(np.argmax(repeated)) if repeated.any() else -1
 
 
-def validate_faces(faces: np.ndarray, n_vertices: int | None = None) -> tuple[np.ndarray, int]:
+def validate_faces(faces: ArrayLike, n_vertices: int | None = None) -> tuple[Int[np.ndarray, "f 3"], int]:
     """(faces as int64, vertex count) after the checks every connectivity must pass: a non-empty (F, 3)
     integer array, indices in range, three distinct vertices per face, every vertex in some face."""
     faces = np.asarray(faces)
@@ -86,7 +87,7 @@ def validate_faces(faces: np.ndarray, n_vertices: int | None = None) -> tuple[np
     return faces, n
 
 
-def vertex_components(elements: np.ndarray, n_vertices: int) -> tuple[int, np.ndarray]:
+def vertex_components(elements: Int[ArrayLike, "m s"], n_vertices: int) -> tuple[int, Int[np.ndarray, " v"]]:
     """(number, per-vertex label) of the connected components of the vertex graph of a simplex mesh: triangles
     (F, 3) or tetrahedra (T, 4); a vertex in no element is a component of its own."""
     from scipy.sparse import coo_matrix
@@ -101,7 +102,7 @@ def vertex_components(elements: np.ndarray, n_vertices: int) -> tuple[int, np.nd
     return int(count), labels
 
 
-def build_topology(faces: np.ndarray, n_vertices: int | None = None) -> Topology:
+def build_topology(faces: ArrayLike, n_vertices: int | None = None) -> Topology:
     """Build the :class:`Topology` of a triangle mesh on the host (numpy), once per connectivity."""
     faces, n = validate_faces(faces, n_vertices)
 

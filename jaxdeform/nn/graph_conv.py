@@ -36,7 +36,7 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Bool, Float, Int
+from jaxtyping import Array, ArrayLike, Bool, Float, Int
 
 MU = 9  # ACAP feature size per vertex
 
@@ -74,7 +74,8 @@ def init_mesh_conv(key: Array, cin: int, cout: int, dtype=jnp.float32) -> dict[s
     }
 
 
-def _slot_gathers(vm: Float[Array, "v f"], neighbors: Int[Array, "v k"], mask: Bool[Array, "v k"]) -> Float[Array, "v f"]:
+def _slot_gathers(vm: Float[Array, "v f"], neighbors: Int[ArrayLike, "v k"],
+                  mask: Bool[ArrayLike, "v k"]) -> Float[Array, "v f"]:
     """sum_k [mask_ik] vm[n_ik]: one gather of whole rows per ring slot."""
     acc = jnp.zeros_like(vm)
     for k in range(neighbors.shape[1]):
@@ -82,7 +83,8 @@ def _slot_gathers(vm: Float[Array, "v f"], neighbors: Int[Array, "v k"], mask: B
     return acc
 
 
-def _slot_scatters(vm: Float[Array, "v f"], neighbors: Int[Array, "v k"], mask: Bool[Array, "v k"]) -> Float[Array, "v f"]:
+def _slot_scatters(vm: Float[Array, "v f"], neighbors: Int[ArrayLike, "v k"],
+                   mask: Bool[ArrayLike, "v k"]) -> Float[Array, "v f"]:
     """The transpose of :func:`_slot_gathers`: row i added to row n_ik for every valid slot (a scatter-add per
     slot). Equal to :func:`_slot_gathers` on symmetric rings."""
     acc = jnp.zeros_like(vm)
@@ -105,7 +107,8 @@ def _ring_mean_vm_jvp(primals, tangents):
 
 
 def ring_mean(
-    x: Float[Array, "b v c"], neighbors: Int[Array, "v k"], mask: Bool[Array, "v k"], degree: Int[Array, " v"]
+    x: Float[ArrayLike, "b v c"], neighbors: Int[ArrayLike, "v k"], mask: Bool[ArrayLike, "v k"],
+    degree: Int[ArrayLike, " v"],
 ) -> Float[Array, "b v c"]:
     """(1/D_i) sum_j x_{n_ij} over the one-rings. The rings must be symmetric (j in ring(i) iff i in ring(j), as
     mesh one-rings are): the derivatives rely on it."""
@@ -117,11 +120,11 @@ def ring_mean(
 
 
 def mesh_conv(
-    params: dict[str, Array],
-    x: Float[Array, "b v cin"],
-    neighbors: Int[Array, "v k"],
-    mask: Bool[Array, "v k"],
-    degree: Int[Array, " v"],
+    params: dict[str, ArrayLike],
+    x: Float[ArrayLike, "b v cin"],
+    neighbors: Int[ArrayLike, "v k"],
+    mask: Bool[ArrayLike, "v k"],
+    degree: Int[ArrayLike, " v"],
 ) -> Float[Array, "b v cout"]:
     """Mesh convolution of eq. (1) without activation: ``x W_point + ring_mean(x) W_neighbor + b``."""
     nbr = ring_mean(x, neighbors, mask, degree)
@@ -148,25 +151,25 @@ def init_ae_block(key: Array, n_vertices: int, kz: int, dtype=jnp.float32) -> di
     }
 
 
-def ae_encode(params: dict, x: Float[Array, "b v 9"], rings: Rings) -> Float[Array, "b kz"]:
+def ae_encode(params: dict, x: Float[ArrayLike, "b v 9"], rings: Rings) -> Float[Array, "b kz"]:
     """z = flatten(tanh(conv_enc(x))) @ C^T; linear, no tanh on z (see the module docstring)."""
     h = _tanh(mesh_conv(params["conv_enc"], x, rings.neighbors, rings.mask, rings.degree))
     return h.reshape(h.shape[0], -1) @ params["C"].T
 
 
-def ae_decode_pre(params: dict, z: Float[Array, "b kz"]) -> Float[Array, "b v 9"]:
+def ae_decode_pre(params: dict, z: Float[ArrayLike, "b kz"]) -> Float[Array, "b v 9"]:
     """Decoder fully connected pre-activation: (z @ C) reshaped to (B, V, 9)."""
     out = z @ params["C"]
     return out.reshape(z.shape[0], -1, MU)
 
 
-def ae_decode(params: dict, z: Float[Array, "b kz"], rings: Rings) -> Float[Array, "b v 9"]:
+def ae_decode(params: dict, z: Float[ArrayLike, "b kz"], rings: Rings) -> Float[Array, "b v 9"]:
     """x_hat = tanh(conv_dec(tanh(reshape(z @ C))))."""
     g = _tanh(ae_decode_pre(params, z))
     return _tanh(mesh_conv(params["conv_dec"], g, rings.neighbors, rings.mask, rings.degree))
 
 
-def ae_decode_error(params: dict, z: Float[Array, "b kz"], target: Float[Array, "b v 9"],
+def ae_decode_error(params: dict, z: Float[ArrayLike, "b kz"], target: Float[ArrayLike, "b v 9"],
                     rings: Rings) -> tuple[Float[Array, "b v 9"], Float[Array, " b"]]:
     """(x_hat, err): :func:`ae_decode` and err_m = sum over (V, 9) of (x_hat_m - target_m)^2, the block's
     reconstruction error per shape."""
@@ -175,19 +178,19 @@ def ae_decode_error(params: dict, z: Float[Array, "b kz"], target: Float[Array, 
     return x_hat, jnp.sum(jnp.square(x_hat.reshape(flat) - target.reshape(flat)), axis=-1)
 
 
-def _latent_code(params: dict, x: Float[Array, "b v 9"], rings: Rings, latent: str) -> Float[Array, "b kz"]:
+def _latent_code(params: dict, x: Float[ArrayLike, "b v 9"], rings: Rings, latent: str) -> Float[Array, "b kz"]:
     z = ae_encode(params, x, rings)
     return jnp.tanh(z) if latent == "tanh" else z
 
 
-def ae_forward(params: dict, x: Float[Array, "b v 9"], rings: Rings,
+def ae_forward(params: dict, x: Float[ArrayLike, "b v 9"], rings: Rings,
                latent: str = "linear") -> tuple[Float[Array, "b kz"], Float[Array, "b v 9"]]:
     """(z, x_hat) of one autoencoder block; ``latent="tanh"`` puts a tanh on z (see the module docstring)."""
     z = _latent_code(params, x, rings, latent)
     return z, ae_decode(params, z, rings)
 
 
-def ae_forward_error(params: dict, x: Float[Array, "b v 9"], rings: Rings, latent: str = "linear") -> tuple:
+def ae_forward_error(params: dict, x: Float[ArrayLike, "b v 9"], rings: Rings, latent: str = "linear") -> tuple:
     """(z, x_hat, err) of one block: :func:`ae_forward` and the squared error of x_hat against the block's own
     input x per shape (:func:`ae_decode_error`)."""
     z = _latent_code(params, x, rings, latent)
@@ -195,7 +198,8 @@ def ae_forward_error(params: dict, x: Float[Array, "b v 9"], rings: Rings, laten
     return z, x_hat, err
 
 
-def masked_blocks_error(params: dict, x: Float[Array, "n b v 9"], am: Float[Array, "n k v"], rings: Rings) -> tuple:
+def masked_blocks_error(params: dict, x: Float[ArrayLike, "n b v 9"], am: Float[ArrayLike, "n k v"],
+                        rings: Rings) -> tuple:
     """(z, x_hat, err) of blocks (n, k) on their masked inputs: block (j, m) (parameters stacked (n, k, ...))
     runs :func:`ae_forward_error` (linear latent) on am[j, m, :, None] x[j], its error against that same input.
     Seed 000's children of a level's last blocks: n parents, k children each, am the parents' attention masks,

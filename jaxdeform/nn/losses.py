@@ -13,13 +13,16 @@ from __future__ import annotations
 
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, Float, Int
+from jaxtyping import Array, ArrayLike, Float, Int
 
 MU = 9
 
+#: A float or a scalar array (a tracer where the caller jits over it).
+FloatScalar = Float[ArrayLike, ""]
+
 
 def reconstruction_loss(
-    x: Float[Array, "b v 9"], x_hat: Float[Array, "b v 9"], reduction: str = "shape"
+    x: Float[ArrayLike, "b v 9"], x_hat: Float[ArrayLike, "b v 9"], reduction: str = "shape"
 ) -> Float[Array, ""]:
     """MSE reconstruction. ``"shape"`` (paper): mean over shapes of the summed squared error;
     ``"element"``: mean over all entries."""
@@ -37,17 +40,17 @@ def _sqrt_or_zero(sq: Array) -> Array:
     return jnp.where(pos, jnp.sqrt(jnp.where(pos, sq, 1.0)), 0.0)
 
 
-def vertex_squared_norms(C: Float[Array, "kz nine_v"], n_vertices: int) -> Float[Array, "kz v"]:
+def vertex_squared_norms(C: Float[ArrayLike, "kz nine_v"], n_vertices: int) -> Float[Array, "kz v"]:
     """||C_k,i||_2^2 for every component k and vertex i (rows of C are (V, 9) blocks, vertex-major)."""
     return jnp.sum(jnp.square(C.reshape(C.shape[0], n_vertices, MU)), axis=-1)
 
 
-def vertex_norms(C: Float[Array, "kz nine_v"], n_vertices: int) -> Float[Array, "kz v"]:
+def vertex_norms(C: Float[ArrayLike, "kz nine_v"], n_vertices: int) -> Float[Array, "kz v"]:
     """||C_k,i||_2 for every component k and vertex i (rows of C are (V, 9) blocks, vertex-major)."""
     return _sqrt_or_zero(vertex_squared_norms(C, n_vertices))
 
 
-def component_centres(C: Float[Array, "kz nine_v"], n_vertices: int) -> Int[Array, " kz"]:
+def component_centres(C: Float[ArrayLike, "kz nine_v"], n_vertices: int) -> Int[Array, " kz"]:
     """c_k = argmax_i ||C_k,i||_2 (first index on ties)."""
     return _centres(vertex_squared_norms(C, n_vertices))
 
@@ -56,13 +59,14 @@ def _centres(sq: Float[Array, "kz v"]) -> Int[Array, " kz"]:
     return jnp.argmax(sq, axis=1).astype(jnp.int32)
 
 
-def geodesic_step_mask(dist: Float[Array, "v v"], centres: Int[Array, " kz"], d: float) -> Float[Array, "kz v"]:
+def geodesic_step_mask(dist: Float[ArrayLike, "v v"], centres: Int[ArrayLike, " kz"],
+                       d: FloatScalar) -> Float[Array, "kz v"]:
     """Lambda_ik = 0 where the normalized geodesic distance dist[c_k, i] < d, else 1 (eq. 3)."""
     return (dist[centres, :] >= d).astype(dist.dtype)
 
 
-def geodesic_linear_mask(dist: Float[Array, "v v"], centres: Int[Array, " kz"], d_min: float,
-                         d_max: float) -> Float[Array, "kz v"]:
+def geodesic_linear_mask(dist: Float[ArrayLike, "v v"], centres: Int[ArrayLike, " kz"], d_min: FloatScalar,
+                         d_max: FloatScalar) -> Float[Array, "kz v"]:
     """Tan et al. (2018)'s mask: Lambda_ik = clip((dist[c_k, i] - d_min) / (d_max - d_min), 0, 1)."""
     return jnp.clip((dist[centres, :] - d_min) / (d_max - d_min), 0.0, 1.0).astype(dist.dtype)
 
@@ -82,8 +86,8 @@ def _sparsity_terms(C, dist, d, mask):
     return jax.lax.stop_gradient(lam).astype(C.dtype), _sqrt_or_zero(sq)
 
 
-def group_sparsity(C: Float[Array, "kz nine_v"], dist: Float[Array, "v v"], d: float | tuple[float, float],
-                   mask: str = "step") -> Float[Array, ""]:
+def group_sparsity(C: Float[ArrayLike, "kz nine_v"], dist: Float[ArrayLike, "v v"],
+                   d: FloatScalar | tuple[FloatScalar, FloatScalar], mask: str = "step") -> Float[Array, ""]:
     """Omega(C) = (1/Kz) sum_k sum_i Lambda_ik ||C_k,i||_2 with centres recomputed from C (no gradient
     flows through the centres or the mask). ``mask="step"`` (seed 000, eq. 3) takes the cut-off ``d``;
     ``mask="linear"`` (Tan et al.) takes ``d = (d_min, d_max)``."""
@@ -91,7 +95,7 @@ def group_sparsity(C: Float[Array, "kz nine_v"], dist: Float[Array, "v v"], d: f
     return jnp.sum(lam * norms) / C.shape[0]
 
 
-def latent_bound(z: Float[Array, "n kz"], theta: float = 5.0) -> Float[Array, ""]:
+def latent_bound(z: Float[ArrayLike, "n kz"], theta: FloatScalar = 5.0) -> Float[Array, ""]:
     """V(Z) = (1/Kz) sum_k max(max_m |Z_mk| - theta, 0)."""
     peak = jnp.max(jnp.abs(z), axis=0)
     return jnp.mean(jnp.maximum(peak - theta, 0.0))

@@ -35,7 +35,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 from flax import nnx
-from jaxtyping import Array, Bool, Float
+from jaxtyping import Array, ArrayLike, Bool, Float
 
 NEG_INF = -1e9  # additive mask value
 
@@ -74,7 +74,10 @@ class MultiHeadAttention(nnx.Module):
         return jnp.swapaxes(x, -2, -3)
 
     def __call__(
-        self, x_q: Float[Array, "... tq d"], x_kv: Float[Array, "... tk d"], mask: Bool[Array, "..."] | None = None
+        self,
+        x_q: Float[ArrayLike, "... tq d"],
+        x_kv: Float[ArrayLike, "... tk d"],
+        mask: Bool[ArrayLike, "..."] | None = None,
     ) -> Float[Array, "... tq d"]:
         q, k, v = self._split(self.q(x_q)), self._split(self.k(x_kv)), self._split(self.v(x_kv))
         logits = (q @ jnp.swapaxes(k, -1, -2)) / math.sqrt(self.d_k)  # (..., h, tq, tk)
@@ -92,7 +95,7 @@ class FeedForward(nnx.Module):
         self.w1 = nnx.Linear(d_model, ffn, rngs=rngs)
         self.w2 = nnx.Linear(ffn, d_model, rngs=rngs)
 
-    def __call__(self, x: Float[Array, "... d"]) -> Float[Array, "... d"]:
+    def __call__(self, x: Float[ArrayLike, "... d"]) -> Float[Array, "... d"]:
         return self.w2(jax.nn.relu(self.w1(x)))
 
 
@@ -118,7 +121,9 @@ class EncoderBlock(nnx.Module):
         self.ln2 = nnx.LayerNorm(d_model, rngs=rngs)
         self.drop = _dropout(dropout, rngs)
 
-    def __call__(self, x: Float[Array, "... t d"], mask: Bool[Array, "..."] | None = None) -> Float[Array, "... t d"]:
+    def __call__(
+        self, x: Float[ArrayLike, "... t d"], mask: Bool[ArrayLike, "..."] | None = None
+    ) -> Float[Array, "... t d"]:
         x = self.ln1(x + _drop(self.drop, self.attn(x, x, mask)))
         return self.ln2(x + _drop(self.drop, self.ffn(x)))
 
@@ -137,10 +142,10 @@ class DecoderBlock(nnx.Module):
 
     def __call__(
         self,
-        y: Float[Array, "... tt d"],
-        memory: Float[Array, "... ts d"],
-        self_mask: Bool[Array, "..."] | None = None,
-        memory_mask: Bool[Array, "..."] | None = None,
+        y: Float[ArrayLike, "... tt d"],
+        memory: Float[ArrayLike, "... ts d"],
+        self_mask: Bool[ArrayLike, "..."] | None = None,
+        memory_mask: Bool[ArrayLike, "..."] | None = None,
     ) -> Float[Array, "... tt d"]:
         y = self.ln1(y + _drop(self.drop, self.self_attn(y, y, self_mask)))
         y = self.ln2(y + _drop(self.drop, self.cross_attn(y, memory, memory_mask)))
@@ -165,18 +170,22 @@ class Transformer(nnx.Module):
         self.encoder = nnx.List([EncoderBlock(d_model, heads, ffn, dropout, rngs=rngs) for _ in range(blocks)])
         self.decoder = nnx.List([DecoderBlock(d_model, heads, ffn, dropout, rngs=rngs) for _ in range(blocks)])
 
-    def encode(self, src: Float[Array, "... ts d"]) -> Float[Array, "... ts d"]:
+    def encode(self, src: Float[ArrayLike, "... ts d"]) -> Float[Array, "... ts d"]:
         x = src + sinusoidal_encoding(src.shape[-2], self.d_model, src.dtype)
         for block in self.encoder:
             x = block(x)
         return x
 
-    def decode(self, tgt: Float[Array, "... tt d"], memory: Float[Array, "... ts d"]) -> Float[Array, "... tt d"]:
+    def decode(
+        self, tgt: Float[ArrayLike, "... tt d"], memory: Float[ArrayLike, "... ts d"]
+    ) -> Float[Array, "... tt d"]:
         y = tgt + sinusoidal_encoding(tgt.shape[-2], self.d_model, tgt.dtype)
         mask = causal_mask(tgt.shape[-2])
         for block in self.decoder:
             y = block(y, memory, mask)
         return y
 
-    def __call__(self, src: Float[Array, "... ts d"], tgt: Float[Array, "... tt d"]) -> Float[Array, "... tt d"]:
+    def __call__(
+        self, src: Float[ArrayLike, "... ts d"], tgt: Float[ArrayLike, "... tt d"]
+    ) -> Float[Array, "... tt d"]:
         return self.decode(tgt, self.encode(src))
