@@ -12,5 +12,8 @@ Modules, bottom to top:
 - ``weights``: DFD weights W = max(1 - ||z_i - z_j||, 0), anchors (eq. 7), locality (eq. 8), symmetry (eq. 9),
   linear blending of per-handle affine transforms (eq. 1) and its partition-of-unity extension (eq. 10).
 - ``baselines``: ARAP and biharmonic weights through libigl, for timing.
-- ``server``: the interactive page (``jaxdeform handles serve``).
+- ``viewport``: the interactive page's camera, ray-cast picking and frames, and its display-pixel helpers.
+- ``session``: the interactive page's state without transport (``EditSession``: handles, anchors, options, the
+  deformed mesh, picks, drags and frames as plain method calls).
+- ``server``: the interactive page over HTTP (``jaxdeform handles serve``): routing and request checks only.
 """
