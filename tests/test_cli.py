@@ -2,6 +2,7 @@
 
 import subprocess
 import sys
+import textwrap
 from pathlib import Path
 
 import numpy as np
@@ -395,3 +396,28 @@ def test_console_script_and_module():
     res = subprocess.run(cmd, capture_output=True, text=True, timeout=120)
     assert res.returncode == 0, res.stderr
     assert "acap" in res.stdout and "render" in res.stdout
+
+
+def test_help_imports_no_jax_or_numpy_and_names_every_method():
+    """--help (top-level and per method) in a fresh process imports neither JAX nor NumPy, and the top-level
+    description names the six methods."""
+    methods = ("acap", "render", "parts", "components", "handles", "cloth")
+    code = textwrap.dedent(f"""
+        import contextlib, io, sys
+        from jaxdeform.cli import main
+        top = io.StringIO()
+        with contextlib.redirect_stdout(top), contextlib.suppress(SystemExit):
+            main(["--help"])
+        for method in {methods!r}:
+            with contextlib.redirect_stdout(io.StringIO()), contextlib.suppress(SystemExit):
+                main([method, "--help"])
+        heavy = [m for m in sys.modules if m.split(".")[0] in ("jax", "jaxlib", "jaxtyping", "numpy", "scipy", "flax")]
+        assert not heavy, sorted(set(m.split(".")[0] for m in heavy))
+        print(top.getvalue())
+    """)
+    res = subprocess.run([sys.executable, "-c", code], cwd=Path(__file__).resolve().parents[1], capture_output=True,
+                         text=True, timeout=120)
+    assert res.returncode == 0, res.stderr
+    description = " ".join(res.stdout.split("positional arguments:")[0].split())
+    for method in methods:
+        assert f"{method} (" in description, (method, description)

@@ -19,6 +19,7 @@ when the views were rendered from the simplified one.
 
 from __future__ import annotations
 
+import os
 import time
 from dataclasses import dataclass, field as dc_field
 
@@ -71,6 +72,17 @@ def check_mesh(vertices, faces) -> tuple[np.ndarray, np.ndarray]:
     if bad >= 0:
         raise DegenerateMeshError(f"face {bad} repeats a vertex index; faces must have 3 distinct vertices.")
     return v, f.astype(np.int64)
+
+
+def load_mesh_file(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
+    """A mesh file read and checked as :func:`check_mesh` does, its sentence naming the file."""
+    from jaxdeform.mesh.io import load_mesh
+
+    vertices, faces = load_mesh(path)
+    try:
+        return check_mesh(vertices, faces)
+    except DegenerateMeshError as exc:
+        raise DegenerateMeshError(f"{path}: {exc}") from None
 
 
 def distill_mesh(vertices, faces, *, config: DistillConfig = DistillConfig(), backbone=None,

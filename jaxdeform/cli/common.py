@@ -1,0 +1,198 @@
+"""What every command shares: the error contract, output checks and atomic outputs, and the shared options.
+
+Error contract: an expected failure (a :class:`~jaxdeform.errors.JaxDeformError`, a ``ValueError`` from bad
+arguments, a missing file or another ``OSError``) prints exactly one line ``jaxdeform: error: <sentence>`` to
+stderr and the command returns 2, leaving no output behind. Unexpected exceptions propagate with their traceback.
+
+This module imports only the standard library and :mod:`jaxdeform.errors`; the libraries a command needs are
+imported when it runs.
+"""
+
+from __future__ import annotations
+
+import argparse
+import contextlib
+import os
+import shutil
+import sys
+import tempfile
+from collections.abc import Callable, Sequence
+from pathlib import Path
+
+from jaxdeform.errors import JaxDeformError
+
+PROG = "jaxdeform"
+MESH_OUT = (".obj", ".ply", ".off")  # the formats save_mesh writes one mesh in
+
+
+# --------------------------------------------------------------------------------------- error contract
+
+
+def message(exc: BaseException) -> str:
+    """``exc`` as one sentence on one line (a system error as ``path: reason.``)."""
+    if isinstance(exc, OSError) and exc.strerror:  # a system error: "[Errno 2] ..." -> "path: reason."
+        where = f"{exc.filename}: " if exc.filename else ""
+        text = f"{where}{exc.strerror}."
+    else:
+        text = str(exc) or type(exc).__name__
+    return " ".join(text.split())
+
+
+def setup_process() -> None:
+    """The command's process settings: it computes in float64 where its inputs are float64 (a program's own
+    setting, not the library's)."""
+    import jax
+
+    jax.config.update("jax_enable_x64", True)
+
+
+def run_command(func: Callable[[argparse.Namespace], int | None], args: argparse.Namespace) -> int:
+    """Run a parsed command; an expected failure becomes one ``jaxdeform: error:`` line and exit status 2."""
+    try:
+        return int(func(args) or 0)
+    except (JaxDeformError, ValueError, OSError) as exc:  # FileNotFoundError is an OSError
+        print(f"{PROG}: error: {message(exc)}", file=sys.stderr)
+        return 2
+
+
+# ---------------------------------------------------------------------------------------- shared options
+
+
+def add_out(p: argparse.ArgumentParser, metavar: str, help: str | None, required: bool = True) -> None:
+    p.add_argument("--out", "-o", required=required, metavar=metavar, help=help)
+
+
+def add_json(p: argparse.ArgumentParser, help: str | None = None, required: bool = False) -> None:
+    p.add_argument("--json", required=required, metavar="OUT.json", help=help)
+
+
+def add_seed(p: argparse.ArgumentParser, help: str | None = None, default: int | None = None) -> None:
+    p.add_argument("--seed", type=int, default=default, metavar="S", help=help)
+
+
+def add_steps(p: argparse.ArgumentParser, help: str, default: int | None = None) -> None:
+    p.add_argument("--steps", type=int, default=default, metavar="N", help=help)
+
+
+def add_quiet(p: argparse.ArgumentParser, help: str = "no progress bars") -> None:
+    """``--quiet``: the command's progress bars off."""
+    p.add_argument("--quiet", action="store_true", help=help)
+
+
+def add_force(p: argparse.ArgumentParser, help: str) -> None:
+    p.add_argument("--force", action="store_true", help=help)
+
+
+def steps_seed(cfg, args: argparse.Namespace):
+    """``cfg`` (a frozen dataclass with ``steps`` and ``seed``) with the --steps / --seed given, checked."""
+    from dataclasses import replace
+
+    if args.steps is not None:
+        if args.steps < 1:
+            raise ValueError(f"--steps must be positive, got {args.steps}.")
+        cfg = replace(cfg, steps=args.steps)
+    return cfg if args.seed is None else replace(cfg, seed=args.seed)
+
+
+# ------------------------------------------------------------------------------------ inputs and outputs
+
+
+def check_exists(paths: Sequence[str]) -> None:
+    for p in paths:
+        if not Path(p).exists():
+            raise FileNotFoundError(f"{p}: no such file or folder.")
+
+
+@contextlib.contextmanager
+def writing(path: Path):
+    """Re-raise a system error met while writing ``path`` as one sentence naming ``path``, not a temporary."""
+    try:
+        yield
+    except OSError as exc:
+        if exc.strerror is None:
+            raise
+        raise OSError(f"cannot write {path}: {exc.strerror}.") from None
+
+
+def check_out_folder(out: Path, force: bool, inputs: Sequence[str | os.PathLike] = ()) -> None:
+    """--out must be a folder, empty unless --force, and neither one of ``inputs`` nor a folder holding one
+    (replacing it would delete what the command reads)."""
+    target = out.resolve()
+    for p in inputs:
+        src = Path(p).resolve()
+        if src == target or target in src.parents:
+            raise ValueError(f"--out {out} would replace the input {p}; write the output elsewhere.")
+    if out.exists() and not out.is_dir():
+        raise FileExistsError(f"--out {out} exists and is not a folder.")
+    blocking = next((p for p in out.parents if p.exists() and not p.is_dir()), None)
+    if blocking is not None:
+        raise NotADirectoryError(f"--out {out} cannot be created: {blocking} is a file, not a folder.")
+    if out.is_dir() and any(out.iterdir()) and not force:
+        raise FileExistsError(f"--out {out} exists and is not empty; use --force to replace it.")
+
+
+def check_out_file(out: Path, suffixes: Sequence[str], inputs: Sequence[str | os.PathLike], what: str,
+                   option: str = "--out", protect: Sequence[str | os.PathLike] = ()) -> None:
+    """An output file must not be a folder, must end in one of ``suffixes`` (the format written), and must be
+    neither one of ``inputs``, nor a file already in an input folder, nor a mesh file added to an input folder
+    (which the command reads whole); nor one of the files in ``protect`` (a run folder's own files: other files,
+    such as earlier metrics, may be replaced there)."""
+    from jaxdeform.mesh.io import SEQUENCE_SUFFIXES
+
+    if out.is_dir():
+        raise IsADirectoryError(f"{option} {out} is a folder; give the path of the {what} to write.")
+    if suffixes and out.suffix.lower() not in suffixes:
+        raise ValueError(f"{option} {out} must end in {' or '.join(suffixes)} (the {what} written).")
+    target = out.resolve()
+    for p in inputs:
+        src = Path(p).resolve()
+        if src == target:
+            raise ValueError(f"{option} {out} would replace the input {p}; write the output elsewhere.")
+        if src.is_dir() and target.parent == src and target.suffix.lower() in SEQUENCE_SUFFIXES:
+            raise ValueError(f"{option} {out} would add a mesh file to the input folder {p}; write it elsewhere.")
+        if src.is_dir() and src in target.parents and target.exists():
+            raise ValueError(f"{option} {out} would replace a file of the input {p}; write the output elsewhere.")
+    for p in protect:
+        if Path(p).resolve() == target:
+            raise ValueError(f"{option} {out} would replace {p}, which the command reads; write the output elsewhere.")
+
+
+@contextlib.contextmanager
+def staged_folder(out: Path):
+    """Yield a temporary sibling folder to fill; on success it replaces ``out`` (an existing non-empty ``out``
+    only with --force, checked by the caller), on failure it is removed and ``out`` is left as it was."""
+    from jaxdeform.mesh.io import default_mode
+
+    with writing(out):
+        out.parent.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent))
+        default_mode(tmp, directory=True)
+    trash = None
+    try:
+        with writing(out):
+            yield tmp
+            if out.exists():
+                if any(out.iterdir()):  # move aside, swap in, then delete
+                    trash = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".old", dir=out.parent))
+                    os.replace(out, trash / out.name)
+                else:
+                    out.rmdir()
+            os.replace(tmp, out)
+    except BaseException:
+        shutil.rmtree(tmp, ignore_errors=True)
+        if trash is not None:
+            if not out.exists() and (trash / out.name).exists():
+                os.replace(trash / out.name, out)  # put the old folder back
+            shutil.rmtree(trash, ignore_errors=True)
+        raise
+    if trash is not None:
+        shutil.rmtree(trash, ignore_errors=True)
+
+
+@contextlib.contextmanager
+def atomic_file(out: Path):
+    """Yield a temporary path beside ``out`` that replaces it on success (a write error names ``out``)."""
+    from jaxdeform.mesh.io import atomic_path
+
+    with writing(out), atomic_path(out) as tmp:
+        yield tmp
