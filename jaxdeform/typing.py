@@ -7,10 +7,12 @@ their arrays are annotated ``Float[ArrayLike, "v 3"]`` with jaxtyping's ``ArrayL
 ``jax.typing.ArrayLike``, the spelling of the modules that do not import it), which with a shape means a JAX array
 (tracers included) or a NumPy array of that shape and dtype kind.
 
-:class:`NonArrayLeaf` is for the array fields of ``jax.tree_util.register_dataclass`` pytrees.
+:class:`NonArrayLeaf` is for the array fields of ``jax.tree_util.register_dataclass`` pytrees. :class:`Int` and
+:class:`Real` replace jaxtyping's own in these packages (they also admit NumPy's ``longlong`` arrays).
 """
 
 import jax
+import jaxtyping
 import numpy as np
 
 
@@ -30,3 +32,16 @@ class NonArrayLeaf(metaclass=_NonArrayLeafMeta):
     (``eqx.partition``), wrapped leaves (``eqx.tree_at``). Such a field is annotated
     ``Int[ArrayLike, "f 3"] | NonArrayLeaf``: a real array in it is still checked, shape and dtype.
     """
+
+
+class Int(jaxtyping.AbstractDtype):
+    """jaxtyping's ``Int``, also admitting NumPy's ``longlong``: int64 on Linux, but a type of its own that
+    jaxtyping tells apart by name (libigl returns its index arrays in it)."""
+
+    dtypes = [*jaxtyping.Int.dtypes, "longlong"]
+
+
+class Real(jaxtyping.AbstractDtype):
+    """jaxtyping's ``Real``, also admitting NumPy's ``longlong`` and ``ulonglong`` (see :class:`Int`)."""
+
+    dtypes = [*jaxtyping.Real.dtypes, "longlong", "ulonglong"]

@@ -31,7 +31,8 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import scipy.sparse as sp
-from jaxtyping import Array, Bool, Float, Int
+from jaxtyping import Array, Bool, Float
+from jaxdeform.typing import Int
 from scipy.sparse import csgraph
 
 EPS_DOT = 1e-2

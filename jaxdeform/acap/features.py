@@ -22,7 +22,7 @@ import equinox as eqx
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, Float, Int
+from jaxtyping import Array, Float
 
 from jaxdeform.acap import consistency as cons
 from jaxdeform.acap.gradients import (
@@ -45,6 +45,7 @@ from jaxdeform.acap.reconstruct import (
 from jaxdeform.acap.rotations import exp_rotation_cm, from_cm, log_rotation_cm, mm_cm, polar_cm, skew, to_cm
 from jaxdeform.errors import ConnectivityError, DegenerateMeshError
 from jaxdeform.mesh.topology import Topology, build_topology
+from jaxdeform.typing import Int
 
 DEFAULT_REFINE = 1
 _S_IDX = (np.array([0, 0, 0, 1, 1, 2]), np.array([0, 1, 2, 1, 2, 2]))
@@ -130,6 +131,17 @@ def _check_shape(shape: tuple, n: int) -> None:
         raise ConnectivityError(f"the meshes have {shape[-2]} vertices but the reference has {n}.")
 
 
+def _finite_or_raise(x: Array, error: Exception) -> Array:
+    """``x`` after checking that every entry is finite: raises ``error`` when called eagerly; inside a trace
+    that closes over a concrete ``x`` the check becomes ``equinox.error_if`` (its result is not concrete)."""
+    ok = all_finite(x)
+    if is_traced(ok):
+        return eqx.error_if(x, ~ok, str(error))
+    if not bool(ok):
+        raise error
+    return x
+
+
 def _host_float(host: np.ndarray, default):
     """The JAX dtype of a NumPy input: its own float type (float64 only where x64 is enabled), else ``default``."""
     return jax.dtypes.canonicalize_dtype(host.dtype if host.dtype in (np.float32, np.float64) else default)
@@ -194,9 +206,7 @@ class Acap(eqx.Module):
             host = np.asarray(vertices)
             x = jnp.asarray(host, dtype=_host_float(host, self.frame.dtype))
         _check_shape(x.shape, self.topo.n_vertices)
-        if not bool(all_finite(x)):
-            raise DegenerateMeshError("a vertex coordinate is NaN or infinite.")
-        return x
+        return _finite_or_raise(x, DegenerateMeshError("a vertex coordinate is NaN or infinite."))
 
     def local(self, vertices) -> tuple[Array, Array]:
         """(axis-angle vectors (..., V, 3) with angles in [0, pi], S (..., V, 3, 3)) of vertices (..., V, 3)."""
@@ -278,8 +288,7 @@ class Acap(eqx.Module):
                 f = jnp.asarray(host, dtype=_host_float(host, self.frame.dtype))
             if f.ndim < 2 or f.shape[-1] != 9:
                 raise ValueError(f"features must be (..., V, 9), got {f.shape}.")
-            if not bool(all_finite(f)):
-                raise ValueError("a feature is NaN or infinite.")
+            f = _finite_or_raise(f, ValueError("a feature is NaN or infinite."))
         if f.ndim < 2 or f.shape[-1] != 9 or f.shape[-2] != self.topo.n_vertices:
             raise ConnectivityError(f"features must be (..., {self.topo.n_vertices}, 9), got {f.shape}.")
         return f

@@ -40,10 +40,11 @@ import jax.numpy as jnp
 import lineax as lx
 import numpy as np
 import optimistix as optx
-from jaxtyping import Array, ArrayLike, Bool, Float, Int
+from jaxtyping import Array, ArrayLike, Bool, Float
 
 from jaxdeform.errors import DegenerateMeshError
 from jaxdeform.mesh.topology import Topology
+from jaxdeform.typing import Int
 
 ANCHOR_WEIGHT = 1e3
 #: largest mesh for which ``solver=None`` picks the dense factor on an accelerator
@@ -65,9 +66,14 @@ _KEYS = itertools.count()
 _LOCK = threading.Lock()
 
 
+_RELEASED = threading.Event()
+
+
 @atexit.register
 def _release_factors() -> None:
-    """Free the host factors before interpreter teardown (nanobind objects must die first)."""
+    """Free the host factors before interpreter teardown (nanobind objects must die first). A solve still
+    in flight afterwards (an unread result of asynchronous dispatch) gets NaN instead of a crash."""
+    _RELEASED.set()
     _FACTORS.clear()
 
 
@@ -90,7 +96,12 @@ def solve_factor(key: int, b: np.ndarray) -> np.ndarray:
     """Host solve with a registered factor; ``b`` is (n,) or (n, k)."""
     b64 = np.require(b, dtype=np.float64, requirements=["C", "W"])  # nanobind rejects read-only views
     x = np.empty_like(b64)
-    _FACTORS[key].solve(b64, x)
+    factor = _FACTORS.get(key)
+    if factor is None:
+        if _RELEASED.is_set():  # interpreter teardown: nobody reads this result
+            return np.full_like(b64, np.nan)
+        raise KeyError(f"no host factor {key} is registered.")
+    factor.solve(b64, x)
     return x
 
 

@@ -12,9 +12,10 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import Array, ArrayLike, Float, Int
+from jaxtyping import Array, ArrayLike, Float
 
 from jaxdeform.mesh.topology import Topology
+from jaxdeform.typing import Int
 
 #: A face whose doubled area is below this fraction of its squared longest edge counts as degenerate.
 DEGENERATE_RELATIVE_AREA = 1e-10

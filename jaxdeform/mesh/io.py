@@ -17,9 +17,10 @@ from collections.abc import Sequence
 from pathlib import Path
 
 import numpy as np
-from jaxtyping import ArrayLike, Float, Int, Real
+from jaxtyping import ArrayLike, Float
 
 from jaxdeform.errors import ConnectivityError, MeshFormatError
+from jaxdeform.typing import Int, Real
 
 MESH_SUFFIXES = (".obj", ".ply", ".off")
 SEQUENCE_SUFFIXES = MESH_SUFFIXES + (".npz",)

@@ -24,12 +24,13 @@ from pathlib import Path
 
 import numpy as np
 from embreex import rtcore_scene as rtcs
-from jaxtyping import ArrayLike, Float, Real
+from jaxtyping import ArrayLike, Float
 from embreex.mesh_construction import TriangleMesh
 from PIL import Image, ImageDraw, ImageFont
 
 from jaxdeform.errors import ConnectivityError, DegenerateMeshError, MeshFormatError
 from jaxdeform.mesh.io import default_mode
+from jaxdeform.typing import Real
 
 #: Fraction of light that is ambient; the rest is the (two-sided) Lambert headlight.
 AMBIENT = 0.25

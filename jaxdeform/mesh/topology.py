@@ -19,10 +19,11 @@ import dataclasses
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jaxtyping import ArrayLike, Bool, Int
+from jaxtyping import ArrayLike, Bool
 
 from jaxdeform.errors import ConnectivityError
 from jaxdeform.typing import NonArrayLeaf
+from jaxdeform.typing import Int
 
 
 @jax.tree_util.register_dataclass

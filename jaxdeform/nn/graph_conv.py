@@ -36,7 +36,8 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
-from jaxtyping import Array, ArrayLike, Bool, Float, Int
+from jaxtyping import Array, ArrayLike, Bool, Float
+from jaxdeform.typing import Int
 
 MU = 9  # ACAP feature size per vertex
 

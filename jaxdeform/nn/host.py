@@ -9,7 +9,7 @@ CPU, paid again at every checkpoint. ``jax.device_get`` of the list copies the b
 
 from __future__ import annotations
 
-from typing import Sequence
+from collections.abc import Sequence
 
 import jax
 import numpy as np
