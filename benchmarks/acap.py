@@ -500,12 +500,15 @@ def parse_args(argv=None) -> argparse.Namespace:
     p.add_argument("--big-cg-repeats", type=int, default=1,
                    help="at most this many timed calls for conjugate gradients in the big case")
     p.add_argument("--skip-big", action="store_true", help="leave out the subdivided big case")
+    p.add_argument("--skip-dataset", action="store_true", help="leave out the data set itself (the big case only)")
     p.add_argument("--no-float64", action="store_true", help="float32 only (leave out the float64 runs)")
     p.add_argument("--chunk-frames", type=int, default=0,
                    help=f"frames per encode/decode call (0: auto, <= {CHUNK_VERTEX_FRAMES} vertex-frames per call)")
     args = p.parse_args(argv)
     if args.repeats < 1:
         p.error("--repeats must be at least 1")
+    if args.skip_big and args.skip_dataset:
+        p.error("--skip-big and --skip-dataset leave nothing to measure")
     if args.big_frames < 1 or args.big_cg_frames < 1 or args.big_cg_repeats < 1:
         p.error("--big-frames, --big-cg-frames and --big-cg-repeats must be at least 1")
     try:
@@ -535,7 +538,7 @@ def _run(args: argparse.Namespace, argv: list[str]) -> dict:
     dtypes = [np.float32] if args.no_float64 else [np.float32, np.float64]
 
     records = []
-    for dtype in dtypes:
+    for dtype in [] if args.skip_dataset else dtypes:
         records += bench_case("dataset", frames, faces, dtype, args.repeats, args.chunk_frames, args.solvers)
     if not args.skip_big:
         t0 = time.perf_counter()
