@@ -4,7 +4,7 @@ VENV := .venv
 PY := $(VENV)/bin/python
 STAMP := $(VENV)/.installed
 
-.PHONY: test demo bench clean lock wheel-check
+.PHONY: test lint demo bench clean lock wheel-check
 
 $(STAMP): pyproject.toml requirements.lock
 	test -x $(PY) || $(PYTHON) -m venv $(VENV)
@@ -20,6 +20,11 @@ $(STAMP): pyproject.toml requirements.lock
 # compilation, which the second core otherwise leaves idle
 test: $(STAMP)
 	$(PY) -m pytest -q -n auto --dist loadfile --durations=30
+
+# ruff (configured in pyproject.toml): lint and formatting
+lint: $(STAMP)
+	$(PY) -m ruff check .
+	$(PY) -m ruff format --check .
 
 demo: $(STAMP)
 	$(PY) -m jaxdeform.demo --out out/demo

@@ -337,3 +337,13 @@ def test_explicit_jacobian_transpose_equals_autodiff_transpose():
     r = (jnp.asarray(rng.normal(size=(e, 3, b))), jnp.asarray(rng.normal(size=(n_anchor, 3, b))))
     (auto,) = jax.linear_transpose(lambda y: _residuals(y, zero_args), y)(r)
     np.testing.assert_allclose(np.asarray(rec.normal_rhs()(r)), np.asarray(auto), rtol=1e-12, atol=1e-12)
+
+
+def test_default_solver_by_backend_and_size():
+    from jaxdeform.acap.features import default_solver
+    from jaxdeform.acap.reconstruct import DENSE_MAX_VERTICES
+
+    assert default_solver(10**6, "cpu") == "host"
+    assert default_solver(DENSE_MAX_VERTICES, "gpu") == "dense"
+    assert default_solver(DENSE_MAX_VERTICES + 1, "gpu") == "cg"
+    assert default_solver(100, "tpu") == "dense"

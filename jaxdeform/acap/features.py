@@ -35,6 +35,7 @@ from jaxdeform.acap.gradients import (
 )
 from jaxdeform.acap.reconstruct import (
     CG_MAX_STEPS,
+    DENSE_MAX_VERTICES,
     SOLVERS,
     ConjugateGradient,
     Reconstructor,

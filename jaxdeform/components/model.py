@@ -155,7 +155,7 @@ def reconstruction(params: tuple[dict, ...], x: Float[Array, "b v 9"], rings: Ri
     return sum(jnp.sum(x_hat, axis=0) for _, _, x_hat, _ in _levels(params, x, rings, config))
 
 
-def level_sparsity(p: dict, dist: Float[Array, "v v"], config: Config, level: int) -> Float[Array, "k"]:
+def level_sparsity(p: dict, dist: Float[Array, "v v"], config: Config, level: int) -> Float[Array, " k"]:
     """Omega(C) (eq. 3) of every block of one level, ``p`` that level's parameters (C stacked over its blocks)."""
     return jax.vmap(lambda c: group_sparsity(c, dist, config.sparsity_cutoff(level), config.mask))(p["C"])
 
