@@ -201,8 +201,13 @@ def _edge_colouring(edges: np.ndarray, n_vertices: int) -> np.ndarray:
     return colour
 
 
-def build_model(rest_vertices, faces) -> ClothModel:
-    """Edges, colours, hinges, lumped areas and rest quantities of a triangle mesh (host numpy, once)."""
+def _rest_mesh(rest_vertices, faces) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Checked rest mesh with its areas: ``(X (V, 3) float64, F (F, 3) int64, tri_area (F,), area_v (V,))``.
+
+    ``tri_area`` is each triangle's area (all > 1e-14) and ``area_v`` the lumped area per vertex (a third of the
+    area of every triangle at it). Raises, in this order, SimulationError for wrong shapes, ConnectivityError
+    for a face index out of range, DegenerateMeshError for a triangle of (near) zero area.
+    """
     X = np.asarray(rest_vertices, np.float64)
     F = np.asarray(faces, np.int64)
     if X.ndim != 2 or X.shape[1] != 3 or F.ndim != 2 or F.shape[1] != 3:
@@ -216,8 +221,28 @@ def build_model(rest_vertices, faces) -> ClothModel:
         raise DegenerateMeshError("The cloth rest mesh has a triangle of zero area.")
     area_v = np.zeros(V)
     np.add.at(area_v, F.ravel(), np.repeat(tri_area / 3.0, 3))
+    return X, F, tri_area, area_v
 
-    # half-edges -> unique edges with their (one or two) faces and opposite vertices
+
+class _EdgeTable(NamedTuple):
+    """Unique edges of a mesh and the sorted half-edges they come from (:func:`_edge_table`)."""
+
+    edges: np.ndarray  # (E, 2) sorted vertex pairs, lexicographic order
+    rest_len: np.ndarray  # (E,)
+    edge_area: np.ndarray  # (E,) a third of the area of the (one or two) triangles at each edge
+    he: np.ndarray  # (3F, 2) half-edges sorted by edge; the half-edges of edge e start at starts[e]
+    opp: np.ndarray  # (3F,) the vertex opposite each half-edge in its triangle
+    fid: np.ndarray  # (3F,) the triangle of each half-edge
+    starts: np.ndarray  # (E,) index of each edge's first half-edge
+    two: np.ndarray  # (E,) bool: interior edge (two triangles)
+
+
+def _edge_table(X: np.ndarray, F: np.ndarray, tri_area: np.ndarray) -> _EdgeTable:
+    """Half-edges grouped into unique edges with their (one or two) faces and opposite vertices.
+
+    Takes the checked rest mesh ``X``, ``F`` and its triangle areas. Raises ConnectivityError if an edge has
+    more than two triangles (not a manifold).
+    """
     he = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
     opp = np.concatenate([F[:, 2], F[:, 0], F[:, 1]])
     fid = np.tile(np.arange(len(F)), 3)
@@ -235,11 +260,19 @@ def build_model(rest_vertices, faces) -> ClothModel:
     edge_area = tri_area[fid[starts]] / 3.0
     two = counts == 2
     edge_area[two] += tri_area[fid[starts[two] + 1]] / 3.0
+    return _EdgeTable(edges, rest_len, edge_area, he, opp, fid, starts, two)
 
-    # hinges of interior edges, oriented as the first face's half-edge
-    s2 = starts[two]
-    x0, x1 = he[s2, 0], he[s2, 1]
-    x2, x3 = opp[s2], opp[s2 + 1]
+
+def _hinges(X: np.ndarray, et: _EdgeTable, tri_area: np.ndarray):
+    """Bending hinges of the interior edges, oriented as the first face's half-edge (module docstring).
+
+    Returns ``(hinges (H, 4) [x0, x1, x2, x3], hinge_k (H, 4), hinge_rest (H, 3), hinge_comp (H,),
+    hinge_count (V,) float64)``: the constraint coefficients k_i, the constraint value c at rest, (A0 + A1) / 3,
+    and the number of hinges touching each vertex.
+    """
+    s2 = et.starts[et.two]
+    x0, x1 = et.he[s2, 0], et.he[s2, 1]
+    x2, x3 = et.opp[s2], et.opp[s2 + 1]
     hinges = np.stack([x0, x1, x2, x3], 1)
     e = X[x1] - X[x0]
     el = np.linalg.norm(e, axis=1)
@@ -258,10 +291,19 @@ def build_model(rest_vertices, faces) -> ClothModel:
     k0 = -(k1 + k2 + k3)
     hinge_k = np.stack([k0, k1, k2, k3], 1)
     hinge_rest = np.einsum("hk,hkd->hd", hinge_k, X[hinges])
-    hinge_comp = (tri_area[fid[s2]] + tri_area[fid[s2 + 1]]) / 3.0
-    hinge_count = np.bincount(hinges.ravel(), minlength=V).astype(np.float64)
+    hinge_comp = (tri_area[et.fid[s2]] + tri_area[et.fid[s2 + 1]]) / 3.0
+    hinge_count = np.bincount(hinges.ravel(), minlength=len(X)).astype(np.float64)
+    return hinges, hinge_k, hinge_rest, hinge_comp, hinge_count
 
-    colour = _edge_colouring(edges, V)
+
+def _colour_tables(et: _EdgeTable, n_vertices: int):
+    """The edges grouped by colour (:func:`_edge_colouring`), padded to the largest colour.
+
+    Returns ``(edges (K, M, 2) int64, rest lengths (K, M), compliance factors L^2 / A_e (K, M), mask (K, M))``;
+    padding slots hold zeros and mask False. A mesh without edges gives one colour of one masked slot.
+    """
+    edges = et.edges
+    colour = _edge_colouring(edges, n_vertices)
     n_col = int(colour.max()) + 1 if len(edges) else 1
     m = int(np.bincount(colour, minlength=n_col).max()) if len(edges) else 1
     ce = np.zeros((n_col, m, 2), np.int64)
@@ -271,9 +313,23 @@ def build_model(rest_vertices, faces) -> ClothModel:
     for k in range(n_col):
         sel = np.flatnonzero(colour == k)
         ce[k, : len(sel)] = edges[sel]
-        cl[k, : len(sel)] = rest_len[sel]
-        cc[k, : len(sel)] = rest_len[sel] ** 2 / edge_area[sel]
+        cl[k, : len(sel)] = et.rest_len[sel]
+        cc[k, : len(sel)] = et.rest_len[sel] ** 2 / et.edge_area[sel]
         cm[k, : len(sel)] = True
+    return ce, cl, cc, cm
+
+
+def build_model(rest_vertices, faces) -> ClothModel:
+    """Edges, colours, hinges, lumped areas and rest quantities of a triangle mesh (host numpy, once).
+
+    Raises SimulationError, ConnectivityError or DegenerateMeshError for a malformed, non-manifold or degenerate
+    rest mesh (:func:`_rest_mesh`, :func:`_edge_table`). Float arrays of the result are float32, indices int32.
+    """
+    X, F, tri_area, area_v = _rest_mesh(rest_vertices, faces)
+    et = _edge_table(X, F, tri_area)
+    hinges, hinge_k, hinge_rest, hinge_comp, hinge_count = _hinges(X, et, tri_area)
+    ce, cl, cc, cm = _colour_tables(et, len(X))
+    edges, rest_len = et.edges, et.rest_len
 
     f32 = np.float32
     return ClothModel(

@@ -324,6 +324,71 @@ def _train_step(graphdef, window: int, batch: int, lr: float, decay_rate: float,
     return jax.jit(step, donate_argnums=(0, 2), compiler_options=xla.compiler_options(), **shardings)
 
 
+def _checked_windows(model_cfg: ModelConfig, coarse_topo, fine_topo, coarse_seqs: Sequence,
+                     fine_seqs: Sequence) -> Windows:
+    """The training :func:`windows` of the paired sequences, checked against the two meshes.
+
+    Guarantees ``win.coarse`` is (rows, Vc, C) and ``win.fine`` (rows, Vf, C) with Vc / Vf the vertex counts of
+    ``coarse_topo`` / ``fine_topo`` and C = ``model_cfg.in_channels``; raises ValueError otherwise (coarse first),
+    and whatever :func:`windows` raises before that.
+    """
+    win = windows(coarse_seqs, fine_seqs, model_cfg.window)
+    nc, nf = int(np.shape(coarse_topo.degree)[0]), int(np.shape(fine_topo.degree)[0])
+    if win.coarse.shape[1:] != (nc, model_cfg.in_channels):
+        raise ValueError(f"coarse features must be (T, {nc}, {model_cfg.in_channels}), got (T, {win.coarse.shape[1]}, "
+                         f"{win.coarse.shape[2]}).")
+    if win.fine.shape[1:] != (nf, model_cfg.in_channels):
+        raise ValueError(f"fine features must be (T, {nf}, {model_cfg.in_channels}), got (T, {win.fine.shape[1]}, "
+                         f"{win.fine.shape[2]}).")
+    return win
+
+
+def _position_target(tc: TrainConfig, positions: PositionTarget | None, win: Windows) -> PositionTarget | None:
+    """The :class:`PositionTarget` the step uses: ``positions`` when ``tc.position_weight`` > 0, else None.
+
+    With a positive weight, raises ValueError if ``positions`` is None or its frames do not line up with the
+    rows of ``win.fine``.
+    """
+    if tc.position_weight > 0:
+        if positions is None:
+            raise ValueError("position_weight > 0 needs the fine positions (a PositionTarget).")
+        if positions.positions.shape[:2] != win.fine.shape[:2]:
+            raise ValueError("the PositionTarget's frames do not line up with the training windows.")
+        return positions
+    return None
+
+
+def _run_steps(step_fn, state: tuple, win: Windows, key, positions: PositionTarget | None, tc: TrainConfig,
+               desc: str, progress: bool) -> tuple[tuple, np.ndarray, float, float]:
+    """Run ``tc.steps`` calls of the jitted ``step_fn`` from ``state`` = (params, rest, opt_state).
+
+    Step t passes ``jnp.int32(t)`` and the same ``key``, windows and ``positions``. A tqdm bar titled ``desc``
+    (shown when ``progress``) advances every ``tc.log_every`` steps and at the end, with the mean recent loss.
+    Returns ``(final state, losses (steps,) float32, seconds, compile seconds)``: the wall time of the whole loop
+    (the losses' transfer to the host included) and of the first step (tracing, compilation and one step).
+    """
+    from tqdm.auto import tqdm
+
+    params, rest, opt_state = state
+    losses = []
+    t0 = time.perf_counter()
+    compile_s = 0.0
+    with tqdm(total=tc.steps, desc=desc, unit="step", disable=not progress) as bar:
+        for t in range(tc.steps):
+            params, rest, opt_state, loss = step_fn(params, rest, opt_state, win.coarse, win.fine, win.starts, key,
+                                                    jnp.int32(t), positions)
+            losses.append(loss)
+            if t == 0:
+                loss.block_until_ready()
+                compile_s = time.perf_counter() - t0
+            if (t + 1) % tc.log_every == 0 or t + 1 == tc.steps:
+                bar.set_postfix(loss=f"{recent_mean(losses, tc.log_every):.5f}")
+                bar.update((t + 1) - bar.n)
+    loss_arr = host_scalars(losses)
+    seconds = time.perf_counter() - t0
+    return (params, rest, opt_state), loss_arr, seconds, compile_s
+
+
 def train(
     model_cfg: ModelConfig,
     train_cfg: TrainConfig,
@@ -352,14 +417,7 @@ def train(
     """
     if mesh is not None:
         parallel.check_divisible(int(train_cfg.batch_size), mesh, axis, "batch_size")
-    win = windows(coarse_seqs, fine_seqs, model_cfg.window)
-    nc, nf = int(np.shape(coarse_topo.degree)[0]), int(np.shape(fine_topo.degree)[0])
-    if win.coarse.shape[1:] != (nc, model_cfg.in_channels):
-        raise ValueError(f"coarse features must be (T, {nc}, {model_cfg.in_channels}), got (T, {win.coarse.shape[1]}, "
-                         f"{win.coarse.shape[2]}).")
-    if win.fine.shape[1:] != (nf, model_cfg.in_channels):
-        raise ValueError(f"fine features must be (T, {nf}, {model_cfg.in_channels}), got (T, {win.fine.shape[1]}, "
-                         f"{win.fine.shape[2]}).")
+    win = _checked_windows(model_cfg, coarse_topo, fine_topo, coarse_seqs, fine_seqs)
     if model is None:
         model = new_model(coarse_topo, fine_topo, model_cfg, upsample)
     elif model.config != model_cfg:
@@ -367,13 +425,7 @@ def train(
     graphdef, params, rest = nnx.split(model, nnx.Param, ...)
     tc = train_cfg
     opt_state = _tx(tc.learning_rate, tc.decay_rate, tc.decay_steps).init(params)
-    if tc.position_weight > 0:
-        if positions is None:
-            raise ValueError("position_weight > 0 needs the fine positions (a PositionTarget).")
-        if positions.positions.shape[:2] != win.fine.shape[:2]:
-            raise ValueError("the PositionTarget's frames do not line up with the training windows.")
-    else:
-        positions = None
+    positions = _position_target(tc, positions, win)
     step_fn = _train_step(graphdef, win.window, int(tc.batch_size), float(tc.learning_rate), float(tc.decay_rate),
                           int(tc.decay_steps), float(tc.position_weight), float(tc.self_feed),
                           int(tc.steps) if tc.self_feed > 0 else 1,
@@ -384,24 +436,8 @@ def train(
             (params, rest, opt_state, (win.coarse, win.fine, win.starts), key), mesh)
         win = Windows(*arrays, window=win.window)
 
-    from tqdm.auto import tqdm
-
-    losses = []
-    t0 = time.perf_counter()
-    compile_s = 0.0
-    with tqdm(total=tc.steps, desc=f"train {model_cfg.kind}", unit="step", disable=not progress) as bar:
-        for t in range(tc.steps):
-            params, rest, opt_state, loss = step_fn(params, rest, opt_state, win.coarse, win.fine, win.starts, key,
-                                                    jnp.int32(t), positions)
-            losses.append(loss)
-            if t == 0:
-                loss.block_until_ready()
-                compile_s = time.perf_counter() - t0
-            if (t + 1) % tc.log_every == 0 or t + 1 == tc.steps:
-                bar.set_postfix(loss=f"{recent_mean(losses, tc.log_every):.5f}")
-                bar.update((t + 1) - bar.n)
-    loss_arr = host_scalars(losses)
-    seconds = time.perf_counter() - t0
+    (params, rest, opt_state), loss_arr, seconds, compile_s = _run_steps(
+        step_fn, (params, rest, opt_state), win, key, positions, tc, f"train {model_cfg.kind}", progress)
     nnx.update(model, params, rest)
     model.eval()
     step_s = (seconds - compile_s) / max(tc.steps - 1, 1)

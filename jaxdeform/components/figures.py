@@ -17,6 +17,7 @@ input never leaves a file. Both functions return the ``(H, W, 3)`` uint8 image.
 from __future__ import annotations
 
 from collections.abc import Sequence
+from typing import NamedTuple
 
 import numpy as np
 from PIL import Image, ImageDraw, ImageFont
@@ -157,6 +158,82 @@ def _framed_points(x: np.ndarray, spread: float = 1.5) -> np.ndarray:
     return x[keep].reshape(-1, 3)
 
 
+def _check_grid_options(panel, max_columns, vmax) -> tuple[int, int]:
+    """``(panel, max_columns)`` of :func:`components_figure` as ints, after checking them and ``vmax``.
+
+    Guarantees ``panel`` >= 16 and ``max_columns`` >= 1; raises ValueError, in this order, for a small panel,
+    a non-positive ``max_columns`` or a ``vmax`` that is neither None nor a positive finite number.
+    """
+    panel, max_columns = int(panel), int(max_columns)
+    if panel < 16:
+        raise ValueError(f"panel must be at least 16 pixels, got {panel}.")
+    if max_columns < 1:
+        raise ValueError(f"max_columns must be a positive integer, got {max_columns}.")
+    if vmax is not None and not (np.isfinite(vmax) and vmax > 0):
+        raise ValueError(f"vmax must be a positive finite number or None, got {vmax}.")
+    return panel, max_columns
+
+
+class _Grid(NamedTuple):
+    """Pixel geometry and fonts of a :func:`components_figure` canvas (:func:`_grid_geometry`)."""
+
+    font: object  # captions, legend and "no component kept"
+    big: object  # row names and the title
+    caption_h: int  # caption band above each panel line
+    label_w: int  # row-name column at the left
+    gap: int  # between panels and between lines
+    width: int
+    title_h: int  # 0 without a title
+    legend_h: int  # legend strip at the bottom
+    line_h: int  # one drawn line: caption band + panel + gap
+    height: int
+
+
+def _grid_geometry(lines: list[tuple[str, list[int]]], panel: int, title: str | None) -> _Grid:
+    """The canvas geometry for ``lines`` (from :func:`_layout_rows`) of square ``panel``-pixel panels.
+
+    Font sizes scale with ``panel``; the width fits the longest line (at least one column) after the widest
+    row name, the height the title band (when ``title``), every line and the legend strip.
+    """
+    font = _font(max(10, panel // 18))
+    big = _font(max(12, panel // 12))
+    caption_h = _text_size(font, "Ag#0.9")[1] + 8
+    label_w = max([_text_size(big, name)[0] for name, _ in lines] + [0]) + 24
+    columns = max([len(m) for _, m in lines] + [1])
+    gap = 4
+    width = label_w + columns * (panel + gap)
+    title_h = _text_size(big, title)[1] + 16 if title else 0
+    legend_h = max(28, panel // 8)
+    line_h = panel + caption_h + gap
+    height = title_h + len(lines) * line_h + legend_h
+    return _Grid(font, big, caption_h, label_w, gap, width, title_h, legend_h, line_h, height)
+
+
+def _draw_grid_text(canvas: np.ndarray, g: _Grid, lines, titles: list[str], title: str | None,
+                    panel: int) -> np.ndarray:
+    """``canvas`` (left unchanged) with the title, row names, panel captions and line separators drawn.
+
+    Rows without members get "no component kept". Returns a new ``(g.height, g.width, 3)`` uint8 array.
+    """
+    pil = Image.fromarray(canvas)
+    draw = ImageDraw.Draw(pil)
+    if title:
+        draw.text((g.width // 2, 8), title, font=g.big, fill=_INK, anchor="mt")
+    for r, (name, members) in enumerate(lines):
+        top = g.title_h + r * g.line_h
+        if name:
+            draw.text((12, top + g.caption_h + panel // 2), name, font=g.big, fill=_INK, anchor="lm")
+        if not members:
+            draw.text((g.label_w + 8, top + g.caption_h + panel // 2), "no component kept", font=g.font,
+                      fill=_MUTED, anchor="lm")
+        for c, i in enumerate(members):
+            xo = g.label_w + c * (panel + g.gap)
+            draw.text((xo + panel // 2, top + g.caption_h - 4), titles[i], font=g.font, fill=_INK, anchor="mb")
+        if r:
+            draw.line([(8, top - g.gap // 2), (g.width - 8, top - g.gap // 2)], fill=(225, 225, 225))
+    return np.asarray(pil)
+
+
 def components_figure(
     meshes,
     faces,
@@ -188,59 +265,25 @@ def components_figure(
     k = x.shape[0]
     groups = _labels(groups, k, "groups", lambda i: "components")
     titles = _labels(titles, k, "titles", lambda i: f"#{i}")
-    panel, max_columns = int(panel), int(max_columns)
-    if panel < 16:
-        raise ValueError(f"panel must be at least 16 pixels, got {panel}.")
-    if max_columns < 1:
-        raise ValueError(f"max_columns must be a positive integer, got {max_columns}.")
-    if vmax is not None and not (np.isfinite(vmax) and vmax > 0):
-        raise ValueError(f"vmax must be a positive finite number or None, got {vmax}.")
+    panel, max_columns = _check_grid_options(panel, max_columns, vmax)
     _check_cmap(cmap)
     lines = _layout_rows(groups, rows, max_columns)
     if camera is None:
         az, el = view_angles(view)
         camera = auto_camera(_framed_points(x), azimuth_deg=az, elevation_deg=el, up_axis=up_axis)
 
-    font = _font(max(10, panel // 18))
-    big = _font(max(12, panel // 12))
-    caption_h = _text_size(font, "Ag#0.9")[1] + 8
-    label_w = max([_text_size(big, name)[0] for name, _ in lines] + [0]) + 24
-    columns = max([len(m) for _, m in lines] + [1])
-    gap = 4
-    width = label_w + columns * (panel + gap)
-    title_h = _text_size(big, title)[1] + 16 if title else 0
-    legend_h = max(28, panel // 8)
-    line_h = panel + caption_h + gap
-    height = title_h + len(lines) * line_h + legend_h
-
-    canvas = np.full((height, width, 3), 255, dtype=np.uint8)
+    g = _grid_geometry(lines, panel, title)
+    canvas = np.full((g.height, g.width, 3), 255, dtype=np.uint8)
     for r, (_, members) in enumerate(lines):
-        y = title_h + r * line_h + caption_h
+        y = g.title_h + r * g.line_h + g.caption_h
         for c, i in enumerate(members):
-            xo = label_w + c * (panel + gap)
+            xo = g.label_w + c * (panel + g.gap)
             canvas[y:y + panel, xo:xo + panel] = render_component(x[i], f, s[i], camera, panel, panel, vmax=vmax,
                                                                   cmap=cmap)
     scale_text = ("per-vertex strength ||X_diff,i||, each panel scaled to its maximum" if vmax is None
                   else f"per-vertex strength ||X_diff,i|| from 0 to {vmax:.3g}")
-    canvas[height - legend_h:] = _draw_legend(width, legend_h, cmap, GREY, scale_text, font)
-
-    pil = Image.fromarray(canvas)
-    draw = ImageDraw.Draw(pil)
-    if title:
-        draw.text((width // 2, 8), title, font=big, fill=_INK, anchor="mt")
-    for r, (name, members) in enumerate(lines):
-        top = title_h + r * line_h
-        if name:
-            draw.text((12, top + caption_h + panel // 2), name, font=big, fill=_INK, anchor="lm")
-        if not members:
-            draw.text((label_w + 8, top + caption_h + panel // 2), "no component kept", font=font, fill=_MUTED,
-                      anchor="lm")
-        for c, i in enumerate(members):
-            xo = label_w + c * (panel + gap)
-            draw.text((xo + panel // 2, top + caption_h - 4), titles[i], font=font, fill=_INK, anchor="mb")
-        if r:
-            draw.line([(8, top - gap // 2), (width - 8, top - gap // 2)], fill=(225, 225, 225))
-    image = np.asarray(pil)
+    canvas[g.height - g.legend_h:] = _draw_legend(g.width, g.legend_h, cmap, GREY, scale_text, g.font)
+    image = _draw_grid_text(canvas, g, lines, titles, title, panel)
     save_png(image, path)
     return image
 
@@ -278,6 +321,99 @@ def _rotated_text(text: str, font, ink) -> Image.Image:
     return img.rotate(90, expand=True)
 
 
+def _check_similarity(matrix) -> np.ndarray:
+    """The similarity ``matrix`` as float64, checked to be a non-empty square of finite values in [-1, 1].
+
+    Raises ValueError for a wrong shape or a value beyond 1 + 1e-6 in magnitude, DegenerateMeshError (naming
+    the first bad entry) for a NaN or infinite one.
+    """
+    m = np.asarray(matrix, dtype=np.float64)
+    if m.ndim != 2 or m.shape[0] != m.shape[1] or m.shape[0] == 0:
+        raise ValueError(f"the similarity matrix must be a non-empty square array, got shape {m.shape}.")
+    if not np.all(np.isfinite(m)):
+        bad = np.argwhere(~np.isfinite(m))[0]
+        raise DegenerateMeshError(f"similarity entry ({int(bad[0])}, {int(bad[1])}) is NaN or infinite.")
+    if np.abs(m).max() > 1.0 + 1e-6:
+        raise ValueError(f"cosine similarities lie in [-1, 1], got a value of {np.abs(m).max():.6g}.")
+    return m
+
+
+def _heat_options(m: np.ndarray, vmin, cmap, cell, annotate) -> tuple[float, str, int, bool]:
+    """:func:`similarity_figure`'s defaults resolved for the checked K x K ``m``: ``(lo, cmap, cell, annotate)``.
+
+    ``lo`` = ``vmin`` or 0 / -1 (any negative entry), finite and below 1; ``cmap`` viridis / coolwarm by the sign
+    of ``lo`` unless given, and known; ``cell`` in pixels (default ``720 // K`` clamped to 8..48), at least 2;
+    ``annotate`` default K <= 16. Raises ValueError, in that order, for a bad ``vmin``, ``cmap`` or ``cell``.
+    """
+    k = m.shape[0]
+    lo = (0.0 if m.min() >= 0 else -1.0) if vmin is None else float(vmin)
+    if not (np.isfinite(lo) and lo < 1.0):
+        raise ValueError(f"vmin must be a finite number below 1, got {vmin}.")
+    cmap = ("viridis" if lo >= 0 else "coolwarm") if cmap is None else cmap
+    _check_cmap(cmap)
+    cell = max(8, min(48, 720 // k)) if cell is None else int(cell)
+    if cell < 2:
+        raise ValueError(f"cell must be at least 2 pixels, got {cell}.")
+    annotate = k <= 16 if annotate is None else bool(annotate)
+    return lo, cmap, cell, annotate
+
+
+class _Heat(NamedTuple):
+    """Pixel geometry and fonts of a :func:`similarity_figure` canvas (:func:`_heat_geometry`)."""
+
+    font: object  # labels and cell values
+    tick_font: object
+    big: object  # title
+    x0: int  # left edge of the K x K cells
+    y0: int  # top edge of the cells
+    side: int  # K * cell
+    bx: int  # left edge of the colour bar
+    bar_w: int
+    width: int
+    height: int
+
+
+def _heat_geometry(labels: list[str], k: int, cell: int, lo: float, title: str | None) -> _Heat:
+    """The canvas geometry for K x K cells of ``cell`` pixels: labels at the left and (rotated) above, the title
+    band (when ``title``), and the colour bar with ticks ``lo``, the middle and 1 at the right."""
+    font = _font(max(8, min(14, cell - 2)))
+    tick_font = _font(12)
+    big = _font(16)
+    label_w = max(_text_size(font, t)[0] for t in labels) + 10
+    label_h = label_w
+    title_h = _text_size(big, title)[1] + 16 if title else 6
+    pad = 12
+    bar_w = 16
+    tick_w = max(_text_size(tick_font, f"{v:.2g}")[0] for v in (lo, 1.0, 0.5 * (lo + 1.0))) + 8
+    x0, y0 = pad + label_w, title_h + label_h
+    side = k * cell
+    width = x0 + side + pad + bar_w + 6 + tick_w + pad
+    height = y0 + side + pad
+    return _Heat(font, tick_font, big, x0, y0, side, x0 + side + pad, bar_w, width, height)
+
+
+def _draw_heat_frame(draw: ImageDraw.ImageDraw, h: _Heat, lo: float) -> None:
+    """Outline the cells and the colour bar and draw the bar's ticks (1, the middle, ``lo``) with ``draw``."""
+    x0, y0, side, bx, bar_w = h.x0, h.y0, h.side, h.bx, h.bar_w
+    draw.rectangle([x0 - 1, y0 - 1, x0 + side, y0 + side], outline=_INK)
+    draw.rectangle([bx - 1, y0 - 1, bx + bar_w, y0 + side], outline=_INK)
+    for v in (1.0, 0.5 * (lo + 1.0), lo):
+        y = round(y0 + (1.0 - v) / (1.0 - lo) * (side - 1))
+        draw.line([(bx + bar_w, y), (bx + bar_w + 4, y)], fill=_INK)
+        draw.text((bx + bar_w + 6, y), f"{v:.2g}", font=h.tick_font, fill=_INK, anchor="lm")
+
+
+def _annotate_cells(draw: ImageDraw.ImageDraw, h: _Heat, m: np.ndarray, lo: float, cmap: str, cell: int) -> None:
+    """Write each value of ``m`` (two decimals) centred in its cell, dark on light colours and light on dark."""
+    k = m.shape[0]
+    for i in range(k):
+        for j in range(k):
+            t = (m[i, j] - lo) / (1.0 - lo)
+            luminance = float(np.dot(colormap(t, cmap), [0.299, 0.587, 0.114]))
+            draw.text((h.x0 + j * cell + cell // 2, h.y0 + i * cell + cell // 2), f"{m[i, j]:.2f}", font=h.font,
+                      fill=(20, 20, 20) if luminance > 0.5 else (240, 240, 240), anchor="mm")
+
+
 def similarity_figure(
     matrix,
     path,
@@ -295,70 +431,31 @@ def similarity_figure(
     otherwise; ``cmap`` defaults to viridis on [0, 1] and the diverging coolwarm on [-1, 1]. ``labels`` (K,)
     name rows and columns (default 0 ... K-1); ``annotate`` writes each value in its cell (default: K <= 16).
     """
-    m = np.asarray(matrix, dtype=np.float64)
-    if m.ndim != 2 or m.shape[0] != m.shape[1] or m.shape[0] == 0:
-        raise ValueError(f"the similarity matrix must be a non-empty square array, got shape {m.shape}.")
-    if not np.all(np.isfinite(m)):
-        bad = np.argwhere(~np.isfinite(m))[0]
-        raise DegenerateMeshError(f"similarity entry ({int(bad[0])}, {int(bad[1])}) is NaN or infinite.")
-    if np.abs(m).max() > 1.0 + 1e-6:
-        raise ValueError(f"cosine similarities lie in [-1, 1], got a value of {np.abs(m).max():.6g}.")
+    m = _check_similarity(matrix)
     k = m.shape[0]
     labels = _labels(labels, k, "labels", str)
-    lo = (0.0 if m.min() >= 0 else -1.0) if vmin is None else float(vmin)
-    if not (np.isfinite(lo) and lo < 1.0):
-        raise ValueError(f"vmin must be a finite number below 1, got {vmin}.")
-    cmap = ("viridis" if lo >= 0 else "coolwarm") if cmap is None else cmap
-    _check_cmap(cmap)
-    cell = max(8, min(48, 720 // k)) if cell is None else int(cell)
-    if cell < 2:
-        raise ValueError(f"cell must be at least 2 pixels, got {cell}.")
-    annotate = k <= 16 if annotate is None else bool(annotate)
+    lo, cmap, cell, annotate = _heat_options(m, vmin, cmap, cell, annotate)
+    h = _heat_geometry(labels, k, cell, lo, title)
 
-    font = _font(max(8, min(14, cell - 2)))
-    tick_font = _font(12)
-    big = _font(16)
-    label_w = max(_text_size(font, t)[0] for t in labels) + 10
-    label_h = label_w
-    title_h = _text_size(big, title)[1] + 16 if title else 6
-    pad = 12
-    bar_w = 16
-    tick_w = max(_text_size(tick_font, f"{v:.2g}")[0] for v in (lo, 1.0, 0.5 * (lo + 1.0))) + 8
-    x0, y0 = pad + label_w, title_h + label_h
-    side = k * cell
-    width = x0 + side + pad + bar_w + 6 + tick_w + pad
-    height = y0 + side + pad
-
-    canvas = np.full((height, width, 3), 255, dtype=np.uint8)
+    canvas = np.full((h.height, h.width, 3), 255, dtype=np.uint8)
     rgb = (colormap((m - lo) / (1.0 - lo), cmap) * 255 + 0.5).astype(np.uint8)
-    canvas[y0:y0 + side, x0:x0 + side] = np.repeat(np.repeat(rgb, cell, axis=0), cell, axis=1)
-    rows = np.arange(side)
-    ramp = (colormap(1.0 - rows / max(side - 1, 1), cmap) * 255 + 0.5).astype(np.uint8)
-    bx = x0 + side + pad
-    canvas[y0:y0 + side, bx:bx + bar_w] = ramp[:, None]
+    canvas[h.y0:h.y0 + h.side, h.x0:h.x0 + h.side] = np.repeat(np.repeat(rgb, cell, axis=0), cell, axis=1)
+    rows = np.arange(h.side)
+    ramp = (colormap(1.0 - rows / max(h.side - 1, 1), cmap) * 255 + 0.5).astype(np.uint8)
+    canvas[h.y0:h.y0 + h.side, h.bx:h.bx + h.bar_w] = ramp[:, None]
 
     pil = Image.fromarray(canvas)
     draw = ImageDraw.Draw(pil)
     if title:
-        draw.text((x0 + side // 2, 8), title, font=big, fill=_INK, anchor="mt")
+        draw.text((h.x0 + h.side // 2, 8), title, font=h.big, fill=_INK, anchor="mt")
     for i, text in enumerate(labels):
-        draw.text((x0 - 6, y0 + i * cell + cell // 2), text, font=font, fill=_INK, anchor="rm")
-        rot = _rotated_text(text, font, _INK)
-        pil.paste(rot, (x0 + i * cell + (cell - rot.width) // 2, y0 - 4 - rot.height), rot)
+        draw.text((h.x0 - 6, h.y0 + i * cell + cell // 2), text, font=h.font, fill=_INK, anchor="rm")
+        rot = _rotated_text(text, h.font, _INK)
+        pil.paste(rot, (h.x0 + i * cell + (cell - rot.width) // 2, h.y0 - 4 - rot.height), rot)
     draw = ImageDraw.Draw(pil)
-    draw.rectangle([x0 - 1, y0 - 1, x0 + side, y0 + side], outline=_INK)
-    draw.rectangle([bx - 1, y0 - 1, bx + bar_w, y0 + side], outline=_INK)
-    for v in (1.0, 0.5 * (lo + 1.0), lo):
-        y = round(y0 + (1.0 - v) / (1.0 - lo) * (side - 1))
-        draw.line([(bx + bar_w, y), (bx + bar_w + 4, y)], fill=_INK)
-        draw.text((bx + bar_w + 6, y), f"{v:.2g}", font=tick_font, fill=_INK, anchor="lm")
+    _draw_heat_frame(draw, h, lo)
     if annotate:
-        for i in range(k):
-            for j in range(k):
-                t = (m[i, j] - lo) / (1.0 - lo)
-                luminance = float(np.dot(colormap(t, cmap), [0.299, 0.587, 0.114]))
-                draw.text((x0 + j * cell + cell // 2, y0 + i * cell + cell // 2), f"{m[i, j]:.2f}", font=font,
-                          fill=(20, 20, 20) if luminance > 0.5 else (240, 240, 240), anchor="mm")
+        _annotate_cells(draw, h, m, lo, cmap, cell)
     image = np.asarray(pil)
     save_png(image, path)
     return image

@@ -187,6 +187,156 @@ def seed_keys(seed: int) -> tuple:
     return key, init_key
 
 
+def _resume(ckpt: _Checkpoints, tc: TrainConfig, stages: list[int | None], params: tuple, key, history: np.ndarray):
+    """The training state of ``ckpt``'s newest checkpoint, restored in the structure of the fresh state given.
+
+    ``params``, ``key`` and ``history`` are the fresh run's (they give the checkpoint's tree structure and
+    dtypes). Returns ``(params, opt_state, key, history, start_stage, start_epoch)`` as device arrays (a host
+    copy for ``history``): training continues with epoch ``start_epoch`` of stage ``start_stage``.
+    """
+    latest = ckpt.latest()
+    stage_index = min(latest // tc.epochs, len(stages) - 1)  # the stage whose optimizer state was saved
+    stage0 = stages[stage_index]
+    prefix = params if stage0 is None else params[: stage0 + 1]
+    like = _state(params, _opt_init(tc, prefix, stage0), key, history, stage_index, 0)
+    state = ckpt.restore(latest, jax.tree_util.tree_map(np.asarray, like))
+    params = jax.tree_util.tree_map(jnp.asarray, tuple(state["params"]))
+    opt_state = jax.tree_util.tree_map(jnp.asarray, state["opt_state"])
+    key = jnp.asarray(state["key"])
+    history = np.asarray(state["history"]).copy()
+    return params, opt_state, key, history, int(state["stage"]), int(state["epoch"])
+
+
+def _full_params(sub, params: tuple, stage: int | None) -> tuple:
+    """Every level's parameters: the trained ``sub`` (all levels, or levels 0..``stage``) followed by the levels
+    of ``params`` after ``stage``."""
+    return sub if stage is None else tuple(sub) + tuple(params[stage + 1:])
+
+
+class _StageLosses:
+    """The step losses of one stage on their way into ``history`` (kept on the device until :meth:`flush`).
+
+    ``history[base + e]`` receives the loss of epoch ``e`` of the stage; losses are appended in epoch order from
+    epoch ``first``.
+    """
+
+    def __init__(self, history: np.ndarray, base: int, first: int):
+        self.history, self.base = history, base
+        self.losses, self.on_host = [], first  # the step losses of epochs on_host, on_host + 1, ... on the device
+
+    def append(self, loss) -> None:
+        self.losses.append(loss)  # kept on the device: no sync per step
+
+    def flush(self, upto: int) -> None:
+        """Write the losses of epochs < ``upto`` into ``history`` with one device_get."""
+        self.history[self.base + self.on_host: self.base + upto] = host_scalars(self.losses)
+        self.losses, self.on_host = [], upto
+
+
+@dataclasses.dataclass
+class _Run:
+    """The fixed inputs and the side channels (log, progress bar, snapshots, checkpoints, timing) of one
+    :func:`train` call; :meth:`stage` trains one stage with them. ``history`` is filled in place."""
+
+    data: object
+    rings: Rings
+    dist: object
+    config: model.Config
+    tc: TrainConfig
+    stages: list
+    history: np.ndarray
+    mesh: object
+    axis: str
+    log: Callable | None
+    log_every: int
+    bar: object
+    snapshot: Callable | None
+    snapshot_every: int
+    ckpt: _Checkpoints | None
+    checkpoint_every: int
+    timing: dict | None
+
+    def stage(self, stage_index: int, first: int, params: tuple, opt_state, key) -> tuple:
+        """Train stage ``stage_index`` from epoch ``first`` to ``tc.epochs``; returns ``(params, key)`` after it.
+
+        ``params`` holds every level; ``opt_state`` is the optimizer state to continue (used only when ``first``
+        > 0; None or a fresh start initializes one). Every epoch's loss lands in ``history``; the compile and
+        run times (when ``timing``) accumulate into ``timing``.
+        """
+        tc, timing, data = self.tc, self.timing, self.data
+        stage = self.stages[stage_index]
+        sub = params if stage is None else params[: stage + 1]
+        step = make_step(self.config, tc, self.rings, self.dist, stage, mesh=self.mesh, axis=self.axis)
+        if opt_state is None or first == 0:
+            opt_state = _opt_init(tc, sub, stage)
+        if self.mesh is not None:  # the compiled step takes its state on the mesh
+            sub, opt_state, key = parallel.replicate((sub, opt_state, key), self.mesh)
+        losses = _StageLosses(self.history, stage_index * tc.epochs, first)
+
+        t0 = time.perf_counter()
+        if first < tc.epochs:  # compiled ahead: its temporary-buffer size goes into the timing record
+            step = step.lower(sub, opt_state, key, data).compile()
+            temp = _temp_bytes(step)
+            if timing is not None and temp is not None:
+                timing["step_temp_bytes"] = max(temp, timing.get("step_temp_bytes", 0))
+        for epoch in range(first, tc.epochs):
+            if epoch == first and timing is not None:  # compiling and the first call: timed apart
+                sub, opt_state, key, loss, terms = jax.block_until_ready(step(sub, opt_state, key, data))
+                timing["compile_s"] = timing.get("compile_s", 0.0) + time.perf_counter() - t0
+                t_run = time.perf_counter()
+            else:
+                sub, opt_state, key, loss, terms = step(sub, opt_state, key, data)
+            losses.append(loss)
+            self._after_epoch(stage_index, epoch, loss, terms, sub, opt_state, key, params, losses)
+        if timing is not None and tc.epochs > first:
+            jax.block_until_ready(sub)
+            timing["run_s"] = timing.get("run_s", 0.0) + time.perf_counter() - t_run
+            timing["epochs_timed"] = timing.get("epochs_timed", 0) + tc.epochs - first - 1
+        losses.flush(tc.epochs)
+        return _full_params(sub, params, stage), key
+
+    def _after_epoch(self, stage_index: int, epoch: int, loss, terms, sub, opt_state, key, params: tuple,
+                     losses: _StageLosses) -> None:
+        """Log, progress, snapshot and checkpoint after ``epoch`` of stage ``stage_index``, each when due.
+
+        ``sub``, ``opt_state``, ``key`` are the state after the epoch's step, ``params`` every level's parameters
+        at the start of the stage.
+        """
+        tc, bar = self.tc, self.bar
+        stage = self.stages[stage_index]
+        done = epoch + 1
+        if (self.log is not None or bar is not None) and (epoch % self.log_every == 0 or done == tc.epochs):
+            terms_f = jax.tree_util.tree_map(float, terms)
+            if self.log is not None:
+                self.log(stage_index * tc.epochs + epoch, float(loss), terms_f)
+            if bar is not None:
+                bar.set_postfix_str(_terms_text(float(loss), terms_f), refresh=False)
+        if bar is not None and (done % self.log_every == 0 or done == tc.epochs):
+            bar.update(done - bar.n + stage_index * tc.epochs)
+        if self.snapshot is not None and done % self.snapshot_every == 0:
+            self.snapshot(stage_index * tc.epochs + done, _full_params(sub, params, stage))
+        if self.ckpt is not None and (done % self.checkpoint_every == 0 or done == tc.epochs):
+            losses.flush(done)
+            self._save(stage_index, done, _full_params(sub, params, stage), opt_state, key)
+
+    def _save(self, stage_index: int, done: int, full: tuple, opt_state, key) -> None:
+        """Checkpoint after ``done`` epochs of stage ``stage_index`` (``full``: every level's parameters).
+
+        Mid-stage the optimizer state is saved as is; at the end of a stage the checkpoint holds the next
+        stage's fresh optimizer state and epoch 0 of it (after the last stage: stage ``len(stages)``).
+        """
+        tc, stages, history = self.tc, self.stages, self.history
+        base = stage_index * tc.epochs
+        if done < tc.epochs:
+            saved = _state(full, opt_state, key, history, stage_index, done)
+        elif stage_index + 1 < len(stages):  # the next stage starts with a fresh optimizer
+            nxt = stages[stage_index + 1]
+            saved = _state(full, _opt_init(tc, full[: nxt + 1], nxt), key, history, stage_index + 1, 0)
+        else:
+            saved = _state(full, opt_state, key, history, len(stages), 0)
+        self.ckpt.save(base + done, saved)
+
+
 def train(data, rings: Rings, dist, config: model.Config, tc: TrainConfig, *, params=None,
           checkpoint_dir=None, checkpoint_every: int = 1000, resume: bool = False, progress: bool = False,
           log: Callable[[int, float, dict], None] | None = None, log_every: int = 100,
@@ -219,17 +369,7 @@ def train(data, rings: Rings, dist, config: model.Config, tc: TrainConfig, *, pa
 
     start_stage, start_epoch = 0, 0
     if ckpt is not None and resume and ckpt.latest() is not None:
-        latest = ckpt.latest()
-        stage_index = min(latest // tc.epochs, len(stages) - 1)  # the stage whose optimizer state was saved
-        stage0 = stages[stage_index]
-        prefix = params if stage0 is None else params[: stage0 + 1]
-        like = _state(params, _opt_init(tc, prefix, stage0), key, history, stage_index, 0)
-        state = ckpt.restore(latest, jax.tree_util.tree_map(np.asarray, like))
-        params = jax.tree_util.tree_map(jnp.asarray, tuple(state["params"]))
-        opt_state = jax.tree_util.tree_map(jnp.asarray, state["opt_state"])
-        key = jnp.asarray(state["key"])
-        history = np.asarray(state["history"]).copy()
-        start_stage, start_epoch = int(state["stage"]), int(state["epoch"])
+        params, opt_state, key, history, start_stage, start_epoch = _resume(ckpt, tc, stages, params, key, history)
     else:
         opt_state = None
 
@@ -239,66 +379,11 @@ def train(data, rings: Rings, dist, config: model.Config, tc: TrainConfig, *, pa
 
         bar = tqdm(total=len(stages) * tc.epochs, initial=start_stage * tc.epochs + start_epoch,
                    desc="components train", unit="epoch", dynamic_ncols=True)
+    run = _Run(data, rings, dist, config, tc, stages, history, mesh, axis, log, log_every, bar, snapshot,
+               snapshot_every, ckpt, checkpoint_every, timing)
     for stage_index in range(start_stage, len(stages)):
-        stage = stages[stage_index]
-        sub = params if stage is None else params[: stage + 1]
-        step = make_step(config, tc, rings, dist, stage, mesh=mesh, axis=axis)
         first = start_epoch if stage_index == start_stage else 0
-        if opt_state is None or first == 0:
-            opt_state = _opt_init(tc, sub, stage)
-        if mesh is not None:  # the compiled step takes its state on the mesh
-            sub, opt_state, key = parallel.replicate((sub, opt_state, key), mesh)
-        losses, on_host = [], first  # the step losses of epochs on_host, on_host + 1, ... still on the device
-
-        def flush(upto: int) -> None:  # the losses of epochs < upto into `history`, one device_get
-            nonlocal losses, on_host
-            base = stage_index * tc.epochs
-            history[base + on_host: base + upto] = host_scalars(losses)
-            losses, on_host = [], upto
-
-        t0 = time.perf_counter()
-        if first < tc.epochs:  # compiled ahead: its temporary-buffer size goes into the timing record
-            step = step.lower(sub, opt_state, key, data).compile()
-            temp = _temp_bytes(step)
-            if timing is not None and temp is not None:
-                timing["step_temp_bytes"] = max(temp, timing.get("step_temp_bytes", 0))
-        for epoch in range(first, tc.epochs):
-            if epoch == first and timing is not None:  # compiling and the first call: timed apart
-                sub, opt_state, key, loss, terms = jax.block_until_ready(step(sub, opt_state, key, data))
-                timing["compile_s"] = timing.get("compile_s", 0.0) + time.perf_counter() - t0
-                t_run = time.perf_counter()
-            else:
-                sub, opt_state, key, loss, terms = step(sub, opt_state, key, data)
-            losses.append(loss)  # kept on the device: no sync per step
-            done = epoch + 1
-            if (log is not None or bar is not None) and (epoch % log_every == 0 or done == tc.epochs):
-                terms_f = jax.tree_util.tree_map(float, terms)
-                if log is not None:
-                    log(stage_index * tc.epochs + epoch, float(loss), terms_f)
-                if bar is not None:
-                    bar.set_postfix_str(_terms_text(float(loss), terms_f), refresh=False)
-            if bar is not None and (done % log_every == 0 or done == tc.epochs):
-                bar.update(done - bar.n + stage_index * tc.epochs)
-            if snapshot is not None and done % snapshot_every == 0:
-                snapshot(stage_index * tc.epochs + done, sub if stage is None else tuple(sub) + tuple(params[stage + 1:]))
-            if ckpt is not None and (done % checkpoint_every == 0 or done == tc.epochs):
-                base = stage_index * tc.epochs
-                flush(done)
-                full = sub if stage is None else tuple(sub) + tuple(params[stage + 1:])
-                if done < tc.epochs:
-                    saved = _state(full, opt_state, key, history, stage_index, done)
-                elif stage_index + 1 < len(stages):  # the next stage starts with a fresh optimizer
-                    nxt = stages[stage_index + 1]
-                    saved = _state(full, _opt_init(tc, full[: nxt + 1], nxt), key, history, stage_index + 1, 0)
-                else:
-                    saved = _state(full, opt_state, key, history, len(stages), 0)
-                ckpt.save(base + done, saved)
-        if timing is not None and tc.epochs > first:
-            jax.block_until_ready(sub)
-            timing["run_s"] = timing.get("run_s", 0.0) + time.perf_counter() - t_run
-            timing["epochs_timed"] = timing.get("epochs_timed", 0) + tc.epochs - first - 1
-        flush(tc.epochs)
-        params = sub if stage is None else tuple(sub) + tuple(params[stage + 1:])
+        params, key = run.stage(stage_index, first, params, opt_state, key)
         opt_state = None
     if bar is not None:
         bar.close()

@@ -116,6 +116,83 @@ def _bump_field(rng, n_frames, n_around, n_along, n_bumps, amplitude, width, rad
     return amplitude * np.einsum("nb,bla->nla", env, g)
 
 
+def _check_sequence(n_frames: int, max_bend_turns, bump_amplitude, radius, length, bump_width) -> tuple[float, float]:
+    """Validate :func:`bending_tube_sequence`'s numbers; return ``(h, omega_max)`` of its helix.
+
+    ``h`` = ``1.5 * 2 radius / (2 pi)`` is the rise per radian of turning and ``omega_max`` =
+    ``max_bend_turns * 2 pi / length`` the projected turning per unit arclength of the last frame. Raises
+    ValueError, in this order, unless ``n_frames`` >= 1; ``radius``, ``length`` and ``bump_width`` > 0;
+    ``max_bend_turns`` >= 0; ``bump_amplitude`` in [0, ``radius``); and the coils stay looser than the tube
+    (``omega_max * h < 1`` and ``omega_max * (radius + bump_amplitude) < 1``).
+    """
+    if n_frames < 1:
+        raise ValueError(f"n_frames must be at least 1, got {n_frames}.")
+    if not (radius > 0 and length > 0 and bump_width > 0):
+        raise ValueError("radius, length and bump_width must be positive.")
+    if max_bend_turns < 0:
+        raise ValueError(f"max_bend_turns must be non-negative, got {max_bend_turns}.")
+    if bump_amplitude < 0 or abs(bump_amplitude) >= radius:
+        raise ValueError(f"bump_amplitude must be in [0, radius), got {bump_amplitude}.")
+
+    h = 1.5 * (2.0 * radius) / (2.0 * np.pi)  # rise per radian of turning
+    omega_max = max_bend_turns * 2.0 * np.pi / length  # projected turning per unit arclength
+    if omega_max * h >= 1.0 or omega_max * (radius + bump_amplitude) >= 1.0:
+        raise ValueError(
+            f"max_bend_turns={max_bend_turns} is too large for a tube of length {length} and radius "
+            f"{radius}: the coils would be tighter than the tube."
+        )
+    return h, omega_max
+
+
+def _start_rotation(cos_a: np.ndarray, sin_a: np.ndarray) -> np.ndarray:
+    """Per-frame rigid rotations ``(N, 3, 3)`` about y taking the helix start frame (T0, N0, B0) to (+x, +y, +z).
+
+    ``cos_a``, ``sin_a`` (N,): cosine and sine of each frame's climb angle. Row-major: apply as ``q @ p``.
+    """
+    q = np.zeros((cos_a.shape[0], 3, 3))
+    q[:, 0, 0] = cos_a
+    q[:, 0, 2] = sin_a
+    q[:, 1, 1] = 1.0
+    q[:, 2, 0] = -sin_a
+    q[:, 2, 2] = cos_a
+    return q
+
+
+def _centre_line_frames(f: np.ndarray, s: np.ndarray, omega_max: float, h: float):
+    """The bent centre line and its rotation-minimizing cross-section axes, per frame and ring.
+
+    ``f`` (N,): progress of each frame in [0, 1]; ``s`` (L,): arclength of each ring; ``omega_max``, ``h``: from
+    :func:`_check_sequence`. Returns ``(centre, u, v)``, each ``(N, L, 3)``: the unit-speed helix of turning
+    ``f * omega_max`` per unit arclength (a straight line at ``f = 0``) and two orthonormal axes perpendicular
+    to its tangent, rigidly rotated so that ring 0 sits at the origin with tangent +x, ``u`` = +y, ``v`` = +z.
+    """
+    omega = f * omega_max  # (N,)
+    sin_a = omega * h  # sine of the helix climb angle
+    cos_a = np.sqrt(1.0 - sin_a**2)
+    tau = omega * sin_a  # torsion of the unit-speed helix (curvature is omega * cos_a)
+
+    x = omega[:, None] * s[None, :]  # (N, L) projected turning angle
+    cx, sx = np.cos(x), np.sin(x)
+    # Stable forms of sin(x)/omega and (1 - cos x)/omega (straight line at omega = 0).
+    sin_over = s[None, :] * np.sinc(x / np.pi)
+    one_minus_cos_over = s[None, :] * 0.5 * x * np.sinc(x / (2.0 * np.pi)) ** 2
+    ca, sa = cos_a[:, None], sin_a[:, None]
+    zeros = np.zeros_like(x)
+    # Helix in its own frame: axis +z, start tangent (cos_a, 0, sin_a), start normal +y; its tangent
+    # is (cos_a cos x, cos_a sin x, sin_a), normal (-sin x, cos x, 0), binormal = tangent x normal.
+    centre = np.stack([ca * sin_over, ca * one_minus_cos_over, sa * s[None, :] + zeros], axis=-1)
+    normal = np.stack([-sx, cx, zeros], axis=-1)
+    binormal = np.stack([-sa * cx, -sa * sx, ca + zeros], axis=-1)
+    # Rotation-minimizing frame: Frenet frame rotated by -tau * s about the tangent.
+    rot = (tau[:, None] * s[None, :])[..., None]
+    u = np.cos(rot) * normal - np.sin(rot) * binormal
+    v = np.cos(rot) * binormal + np.sin(rot) * normal
+
+    q = _start_rotation(cos_a, sin_a)
+    centre, u, v = (np.einsum("nij,nlj->nli", q, a) for a in (centre, u, v))
+    return centre, u, v
+
+
 def bending_tube_sequence(
     n_frames: int = 24,
     *,
@@ -146,57 +223,12 @@ def bending_tube_sequence(
     """
     _check_counts(n_around, n_along)
     n_frames, n_around, n_along = int(n_frames), int(n_around), int(n_along)
-    if n_frames < 1:
-        raise ValueError(f"n_frames must be at least 1, got {n_frames}.")
-    if not (radius > 0 and length > 0 and bump_width > 0):
-        raise ValueError("radius, length and bump_width must be positive.")
-    if max_bend_turns < 0:
-        raise ValueError(f"max_bend_turns must be non-negative, got {max_bend_turns}.")
-    if bump_amplitude < 0 or abs(bump_amplitude) >= radius:
-        raise ValueError(f"bump_amplitude must be in [0, radius), got {bump_amplitude}.")
-
-    h = 1.5 * (2.0 * radius) / (2.0 * np.pi)  # rise per radian of turning
-    omega_max = max_bend_turns * 2.0 * np.pi / length  # projected turning per unit arclength
-    if omega_max * h >= 1.0 or omega_max * (radius + bump_amplitude) >= 1.0:
-        raise ValueError(
-            f"max_bend_turns={max_bend_turns} is too large for a tube of length {length} and radius "
-            f"{radius}: the coils would be tighter than the tube."
-        )
+    h, omega_max = _check_sequence(n_frames, max_bend_turns, bump_amplitude, radius, length, bump_width)
 
     f = np.linspace(0.0, 1.0, n_frames) if n_frames > 1 else np.zeros(1)
     s = np.linspace(0.0, float(length), n_along)
     ang = _ring_angles(n_around)
-
-    omega = f * omega_max  # (N,)
-    sin_a = omega * h  # sine of the helix climb angle
-    cos_a = np.sqrt(1.0 - sin_a**2)
-    tau = omega * sin_a  # torsion of the unit-speed helix (curvature is omega * cos_a)
-
-    x = omega[:, None] * s[None, :]  # (N, L) projected turning angle
-    cx, sx = np.cos(x), np.sin(x)
-    # Stable forms of sin(x)/omega and (1 - cos x)/omega (straight line at omega = 0).
-    sin_over = s[None, :] * np.sinc(x / np.pi)
-    one_minus_cos_over = s[None, :] * 0.5 * x * np.sinc(x / (2.0 * np.pi)) ** 2
-    ca, sa = cos_a[:, None], sin_a[:, None]
-    zeros = np.zeros_like(x)
-    # Helix in its own frame: axis +z, start tangent (cos_a, 0, sin_a), start normal +y; its tangent
-    # is (cos_a cos x, cos_a sin x, sin_a), normal (-sin x, cos x, 0), binormal = tangent x normal.
-    centre = np.stack([ca * sin_over, ca * one_minus_cos_over, sa * s[None, :] + zeros], axis=-1)
-    normal = np.stack([-sx, cx, zeros], axis=-1)
-    binormal = np.stack([-sa * cx, -sa * sx, ca + zeros], axis=-1)
-    # Rotation-minimizing frame: Frenet frame rotated by -tau * s about the tangent.
-    rot = (tau[:, None] * s[None, :])[..., None]
-    u = np.cos(rot) * normal - np.sin(rot) * binormal
-    v = np.cos(rot) * binormal + np.sin(rot) * normal
-
-    # Rigid rotation about y taking the start frame (T0, N0, B0) to (+x, +y, +z).
-    q = np.zeros((n_frames, 3, 3))
-    q[:, 0, 0] = cos_a
-    q[:, 0, 2] = sin_a
-    q[:, 1, 1] = 1.0
-    q[:, 2, 0] = -sin_a
-    q[:, 2, 2] = cos_a
-    centre, u, v = (np.einsum("nij,nlj->nli", q, a) for a in (centre, u, v))
+    centre, u, v = _centre_line_frames(f, s, omega_max, h)
 
     twist = (f * max_twist_turns * 2.0 * np.pi)[:, None] / length * s[None, :]  # (N, L)
     phi = ang[None, None, :] + twist[:, :, None]  # (N, L, A)

@@ -54,7 +54,7 @@ import re
 from collections.abc import Mapping
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Protocol, runtime_checkable
+from typing import NamedTuple, Protocol, runtime_checkable
 
 import jax
 import jax.numpy as jnp
@@ -439,15 +439,19 @@ def _trace_to_initializer(name: str, producers: dict, inits: dict, passthrough=(
     return name
 
 
-def onnx_dinov2_state(path: str | Path) -> dict[str, np.ndarray]:
-    """The ViT tensors of a HuggingFace-``Dinov2Model`` ONNX export, renamed to facebookresearch/dinov2 keys.
+class _OnnxGraph(NamedTuple):
+    """An ONNX graph with its lookup tables (:func:`_onnx_graph`)."""
 
-    MatMul weights (stored ``(in, out)``, unnamed) are named from the ``*.bias`` added to their product.
-    """
+    graph: object  # onnx GraphProto
+    inits: dict  # initializer name -> TensorProto
+    producers: dict  # value name -> the node that outputs it
+    consumers: dict  # value name -> the nodes that read it, in graph order
+
+
+def _onnx_graph(path: Path) -> _OnnxGraph:
+    """Load the ONNX model at ``path`` and index its graph; JaxDeformError for a missing or unreadable file."""
     import onnx
-    from onnx import numpy_helper
 
-    path = Path(path)
     if not path.is_file():
         raise JaxDeformError(f"{path}: no such ONNX file.")
     try:
@@ -461,24 +465,48 @@ def onnx_dinov2_state(path: str | Path) -> dict[str, np.ndarray]:
     for node in graph.node:
         for name in node.input:
             consumers.setdefault(name, []).append(node)
+    return _OnnxGraph(graph, inits, producers, consumers)
+
+
+def _hf_tensors(g: _OnnxGraph, path: Path) -> dict[str, np.ndarray]:
+    """The ``backbone.*`` tensors of a HuggingFace Dinov2 export by their HuggingFace names.
+
+    Includes the anonymous MatMul weights (stored ``(in, out)``), named ``X.weight`` after the ``X.bias`` that
+    the Add consuming their product applies. JaxDeformError (``path`` in the message) without
+    ``backbone.embeddings.cls_token``.
+    """
+    from onnx import numpy_helper
+
+    inits = g.inits
     hf: dict[str, np.ndarray] = {n: numpy_helper.to_array(t) for n, t in inits.items() if n.startswith("backbone.")}
     if "backbone.embeddings.cls_token" not in hf:
         raise JaxDeformError(f"{path}: not a HuggingFace Dinov2 export (no backbone.embeddings.cls_token).")
 
     # anonymous MatMul weights: name them after the bias that the consuming Add applies
-    for node in graph.node:
+    for node in g.graph.node:
         if node.op_type != "MatMul" or node.input[1] not in inits or node.input[1].startswith("backbone."):
             continue
-        for add in consumers.get(node.output[0], []):
+        for add in g.consumers.get(node.output[0], []):
             biases = [i for i in add.input if i in inits and i.endswith(".bias")]
             if add.op_type == "Add" and biases:
                 hf[biases[0][: -len(".bias")] + ".weight"] = numpy_helper.to_array(inits[node.input[1]])
+    return hf
 
-    # positional embeddings: the patch part feeds the embeddings' Resize, the CLS part is concatenated to it
+
+def _positional_embeddings(g: _OnnxGraph, path: Path) -> tuple[np.ndarray, np.ndarray]:
+    """``(cls_pos, patch_pos)``: the CLS and patch parts of a Dinov2 export's positional embedding.
+
+    The patch part feeds the embeddings' Resize (through shape-only nodes); the CLS part is the initializer
+    concatenated in front of the resized patch part. JaxDeformError (``path`` in the message) if either is
+    not found.
+    """
+    from onnx import numpy_helper
+
+    inits, consumers = g.inits, g.consumers
     patch_pos = cls_pos = None
-    for node in graph.node:
+    for node in g.graph.node:
         if node.op_type == "Resize" and node.name.startswith("/backbone/embeddings"):
-            src = _trace_to_initializer(node.input[0], producers, inits)
+            src = _trace_to_initializer(node.input[0], g.producers, inits)
             patch_pos = None if src is None else numpy_helper.to_array(inits[src])
             reshaped = node.output[0]
             # Resize -> Cast -> Transpose -> Reshape -> Concat([cls_pos, patch_pos])
@@ -493,6 +521,44 @@ def onnx_dinov2_state(path: str | Path) -> dict[str, np.ndarray]:
                 reshaped = nxt[0].output[0]
     if patch_pos is None or cls_pos is None:
         raise JaxDeformError(f"{path}: cannot find the positional embedding of the Dinov2 export.")
+    return cls_pos, patch_pos
+
+
+def _block_tensors(hf: dict[str, np.ndarray], i: int, out: dict[str, np.ndarray]) -> None:
+    """Add transformer block ``i`` of the HuggingFace tensors ``hf`` to ``out`` under facebookresearch names.
+
+    MatMul weights go from ``(in, out)`` to torch's ``(out, in)``; query, key and value are stacked into
+    ``qkv``. Raises KeyError for a missing tensor (``out`` may then hold part of the block).
+    """
+    h, b = f"backbone.encoder.layer.{i}", f"blocks.{i}"
+    att = f"{h}.attention.attention"
+    for suffix in ("weight", "bias"):
+        out[f"{b}.norm1.{suffix}"] = hf[f"{h}.norm1.{suffix}"]
+        out[f"{b}.norm2.{suffix}"] = hf[f"{h}.norm2.{suffix}"]
+    # (in, out) MatMul weights -> torch (out, in)
+    out[f"{b}.attn.qkv.weight"] = np.concatenate(
+        [hf[f"{att}.{n}.weight"].T for n in ("query", "key", "value")], axis=0)
+    out[f"{b}.attn.qkv.bias"] = np.concatenate([hf[f"{att}.{n}.bias"] for n in ("query", "key", "value")])
+    out[f"{b}.attn.proj.weight"] = hf[f"{h}.attention.output.dense.weight"].T
+    out[f"{b}.attn.proj.bias"] = hf[f"{h}.attention.output.dense.bias"]
+    out[f"{b}.ls1.gamma"] = hf[f"{h}.layer_scale1.lambda1"]
+    out[f"{b}.ls2.gamma"] = hf[f"{h}.layer_scale2.lambda1"]
+    for fc in ("fc1", "fc2"):
+        out[f"{b}.mlp.{fc}.weight"] = hf[f"{h}.mlp.{fc}.weight"].T
+        out[f"{b}.mlp.{fc}.bias"] = hf[f"{h}.mlp.{fc}.bias"]
+
+
+def onnx_dinov2_state(path: str | Path) -> dict[str, np.ndarray]:
+    """The ViT tensors of a HuggingFace-``Dinov2Model`` ONNX export, renamed to facebookresearch/dinov2 keys.
+
+    MatMul weights (stored ``(in, out)``, unnamed) are named from the ``*.bias`` added to their product.
+    JaxDeformError (naming ``path``) for a missing or unreadable file, a graph that is not a Dinov2 export, or
+    a missing tensor.
+    """
+    path = Path(path)
+    g = _onnx_graph(path)
+    hf = _hf_tensors(g, path)
+    cls_pos, patch_pos = _positional_embeddings(g, path)
     dim = hf["backbone.embeddings.cls_token"].shape[-1]
 
     out = {
@@ -509,22 +575,7 @@ def onnx_dinov2_state(path: str | Path) -> dict[str, np.ndarray]:
                 out[f"{key}.{suffix}"] = hf[f"backbone.{hf_key}.{suffix}"]
         i = 0
         while f"backbone.encoder.layer.{i}.norm1.weight" in hf:
-            h, b = f"backbone.encoder.layer.{i}", f"blocks.{i}"
-            att = f"{h}.attention.attention"
-            for suffix in ("weight", "bias"):
-                out[f"{b}.norm1.{suffix}"] = hf[f"{h}.norm1.{suffix}"]
-                out[f"{b}.norm2.{suffix}"] = hf[f"{h}.norm2.{suffix}"]
-            # (in, out) MatMul weights -> torch (out, in)
-            out[f"{b}.attn.qkv.weight"] = np.concatenate(
-                [hf[f"{att}.{n}.weight"].T for n in ("query", "key", "value")], axis=0)
-            out[f"{b}.attn.qkv.bias"] = np.concatenate([hf[f"{att}.{n}.bias"] for n in ("query", "key", "value")])
-            out[f"{b}.attn.proj.weight"] = hf[f"{h}.attention.output.dense.weight"].T
-            out[f"{b}.attn.proj.bias"] = hf[f"{h}.attention.output.dense.bias"]
-            out[f"{b}.ls1.gamma"] = hf[f"{h}.layer_scale1.lambda1"]
-            out[f"{b}.ls2.gamma"] = hf[f"{h}.layer_scale2.lambda1"]
-            for fc in ("fc1", "fc2"):
-                out[f"{b}.mlp.{fc}.weight"] = hf[f"{h}.mlp.{fc}.weight"].T
-                out[f"{b}.mlp.{fc}.bias"] = hf[f"{h}.mlp.{fc}.bias"]
+            _block_tensors(hf, i, out)
             i += 1
     except KeyError as exc:
         raise JaxDeformError(f"{path}: the Dinov2 export lacks tensor {exc.args[0]}.") from None

@@ -476,6 +476,104 @@ def _draw_colorbar(image: np.ndarray, strip: int, layout, vmin, vmax, cmap, labe
     return np.asarray(pil)
 
 
+def _check_vertex_colors(vertex_colors, scalar, n_vertices: int) -> np.ndarray | None:
+    """Validate :func:`render`'s ``vertex_colors`` against ``scalar`` and the vertex count.
+
+    Takes the raw ``vertex_colors`` (or None), the raw ``scalar`` (only tested for None) and ``n_vertices``.
+    Returns None when ``vertex_colors`` is None, else a float64 ``(n_vertices, 3)`` array with every entry finite
+    and in [0, 1]. Raises ValueError (nothing else is checked first) if both ``scalar`` and ``vertex_colors``
+    are given, if the shape is not ``(n_vertices, 3)``, or if a colour is not finite or leaves [0, 1].
+    """
+    if vertex_colors is not None and scalar is not None:
+        raise ValueError("give either scalar or vertex_colors, not both.")
+    vc = None
+    if vertex_colors is not None:
+        vc = np.asarray(vertex_colors, dtype=np.float64)
+        if vc.shape != (n_vertices, 3):
+            raise ValueError(f"vertex_colors must have shape ({n_vertices}, 3) (one RGB per vertex), got {vc.shape}.")
+        if not np.all(np.isfinite(vc)) or vc.min() < 0.0 or vc.max() > 1.0:
+            raise ValueError("vertex_colors must be finite RGB floats in [0, 1].")
+    return vc
+
+
+def _check_image_size(width, height, supersample) -> tuple[int, int, int]:
+    """``(width, height, k)`` as ints, ``k`` the supersampling factor.
+
+    Guarantees ``width``, ``height`` >= 1 and ``k`` >= 1; raises ValueError otherwise (size first).
+    """
+    width, height, k = int(width), int(height), int(supersample)
+    if width < 1 or height < 1:
+        raise ValueError(f"image size must be at least 1 x 1 pixels, got {width} x {height}.")
+    if k < 1:
+        raise ValueError(f"supersample must be a positive integer, got {supersample}.")
+    return width, height, k
+
+
+def _check_scalar(scalar, n_vertices: int, vmin, vmax) -> tuple[np.ndarray | None, float | None, float | None]:
+    """Validate a per-vertex ``scalar`` and resolve its colour range.
+
+    Returns ``(None, None, None)`` when ``scalar`` is None; else ``(s, lo, hi)`` with ``s`` the float64 scalar
+    flattened to ``(n_vertices,)`` (all finite), ``lo`` = ``vmin`` (default ``s.min()``) and ``hi`` = ``vmax``
+    (default ``s.max()``) as floats, both finite with ``lo <= hi``. Raises MeshFormatError for a wrong length
+    or a NaN / infinite value (naming the first such vertex), ValueError for a bad range.
+    """
+    if scalar is None:
+        return None, None, None
+    s = np.asarray(scalar, dtype=np.float64).reshape(-1)
+    if s.shape[0] != n_vertices:
+        raise MeshFormatError(f"scalar has {s.shape[0]} values but the mesh has {n_vertices} vertices.")
+    if not np.all(np.isfinite(s)):
+        bad = int(np.argwhere(~np.isfinite(s))[0, 0])
+        raise MeshFormatError(f"scalar value of vertex {bad} is NaN or infinite; cannot colour by it.")
+    lo = float(s.min()) if vmin is None else float(vmin)
+    hi = float(s.max()) if vmax is None else float(vmax)
+    if not (np.isfinite(lo) and np.isfinite(hi)) or hi < lo:
+        raise ValueError(f"vmin and vmax must be finite with vmin <= vmax, got {lo} and {hi}.")
+    return s, lo, hi
+
+
+def _hit_colours(v, f, tr: Trace, s, lo, hi, cmap: str, vc, base: np.ndarray, shading: bool) -> np.ndarray:
+    """Linear RGB of every hit pixel of ``tr``: an ``(len(tr.pixel), 3)`` float array.
+
+    With a scalar ``s`` (and its range ``lo``..``hi``; ``hi == lo`` maps to the middle of ``cmap``) the colour is
+    ``cmap`` at the scalar interpolated at the hit point; else with vertex colours ``vc`` the colour of the hit
+    triangle's vertex of largest barycentric weight; else ``base``. ``shading`` multiplies by the two-sided
+    Lambert factor of :func:`_shade` (in [AMBIENT, 1]). Values stay in [0, 1] when the inputs do.
+    """
+    if s is not None:
+        value = np.einsum("nk,nk->n", tr.barycentric, s[f[tr.triangle]])
+        t = np.full_like(value, 0.5) if hi == lo else (value - lo) / (hi - lo)
+        colour = colormap(t, cmap)
+    elif vc is not None:
+        corner = np.argmax(tr.barycentric, axis=-1)  # the hit triangle's nearest vertex
+        colour = vc[f[tr.triangle, corner]]
+    else:
+        colour = np.broadcast_to(base, (tr.pixel.size, 3))
+    if shading:
+        colour = colour * _shade(v, f, tr, AMBIENT)[:, None]
+    return colour
+
+
+def _compose_image(tr: Trace, colour: np.ndarray, bg: np.ndarray, width: int, height: int, view_w: int,
+                   k: int) -> np.ndarray:
+    """The ``(height, width, 3)`` uint8 image: the traced view in the left ``view_w`` columns, background elsewhere.
+
+    ``tr`` was traced at ``(view_w * k) x (height * k)`` pixels and ``colour`` holds its hit pixels' colours; the
+    ``k x k`` samples of each pixel are averaged, then values are clipped to [0, 1] and rounded to 0..255. The
+    columns right of ``view_w`` (the colour bar's strip) are left at ``bg``.
+    """
+    image = np.empty((height * k * view_w * k, 3))
+    image[...] = bg
+    image[tr.pixel] = colour
+    image = image.reshape(height * k, view_w * k, 3)
+    if k > 1:
+        image = image.reshape(height, k, view_w, k, 3).mean(axis=(1, 3))
+    full = np.empty((height, width, 3))
+    full[...] = bg
+    full[:, :view_w] = image
+    return (np.clip(full, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+
+
 def render(
     vertices,
     faces,
@@ -510,36 +608,13 @@ would take more than half the width). ``camera`` defaults to :func:`auto_camera`
     ``supersample`` > 1 on boundary pixels), and no colour bar. It cannot be combined with ``scalar``.
     """
     v, f = _check_mesh(vertices, faces)
-    if vertex_colors is not None and scalar is not None:
-        raise ValueError("give either scalar or vertex_colors, not both.")
-    vc = None
-    if vertex_colors is not None:
-        vc = np.asarray(vertex_colors, dtype=np.float64)
-        if vc.shape != (v.shape[0], 3):
-            raise ValueError(f"vertex_colors must have shape ({v.shape[0]}, 3) (one RGB per vertex), got {vc.shape}.")
-        if not np.all(np.isfinite(vc)) or vc.min() < 0.0 or vc.max() > 1.0:
-            raise ValueError("vertex_colors must be finite RGB floats in [0, 1].")
+    vc = _check_vertex_colors(vertex_colors, scalar, v.shape[0])
     if cmap not in COLORMAPS:
         _cmap_anchors(cmap)  # raises with the list of names
     base = _rgb(base_color, "base_color")
     bg = _rgb(background, "background")
-    width, height, k = int(width), int(height), int(supersample)
-    if width < 1 or height < 1:
-        raise ValueError(f"image size must be at least 1 x 1 pixels, got {width} x {height}.")
-    if k < 1:
-        raise ValueError(f"supersample must be a positive integer, got {supersample}.")
-    s = None
-    if scalar is not None:
-        s = np.asarray(scalar, dtype=np.float64).reshape(-1)
-        if s.shape[0] != v.shape[0]:
-            raise MeshFormatError(f"scalar has {s.shape[0]} values but the mesh has {v.shape[0]} vertices.")
-        if not np.all(np.isfinite(s)):
-            bad = int(np.argwhere(~np.isfinite(s))[0, 0])
-            raise MeshFormatError(f"scalar value of vertex {bad} is NaN or infinite; cannot colour by it.")
-        lo = float(s.min()) if vmin is None else float(vmin)
-        hi = float(s.max()) if vmax is None else float(vmax)
-        if not (np.isfinite(lo) and np.isfinite(hi)) or hi < lo:
-            raise ValueError(f"vmin and vmax must be finite with vmin <= vmax, got {lo} and {hi}.")
+    width, height, k = _check_image_size(width, height, supersample)
+    s, lo, hi = _check_scalar(scalar, v.shape[0], vmin, vmax)
     if camera is None:
         camera = auto_camera(v)
 
@@ -550,27 +625,8 @@ would take more than half the width). ``camera`` defaults to :func:`auto_camera`
     view_w = width - strip
 
     tr = _trace(v, f, camera, view_w * k, height * k)
-    image = np.empty((height * k * view_w * k, 3))
-    image[...] = bg
-    if s is not None:
-        value = np.einsum("nk,nk->n", tr.barycentric, s[f[tr.triangle]])
-        t = np.full_like(value, 0.5) if hi == lo else (value - lo) / (hi - lo)
-        colour = colormap(t, cmap)
-    elif vc is not None:
-        corner = np.argmax(tr.barycentric, axis=-1)  # the hit triangle's nearest vertex
-        colour = vc[f[tr.triangle, corner]]
-    else:
-        colour = np.broadcast_to(base, (tr.pixel.size, 3))
-    if shading:
-        colour = colour * _shade(v, f, tr, AMBIENT)[:, None]
-    image[tr.pixel] = colour
-    image = image.reshape(height * k, view_w * k, 3)
-    if k > 1:
-        image = image.reshape(height, k, view_w, k, 3).mean(axis=(1, 3))
-    full = np.empty((height, width, 3))
-    full[...] = bg
-    full[:, :view_w] = image
-    out = (np.clip(full, 0.0, 1.0) * 255.0 + 0.5).astype(np.uint8)
+    colour = _hit_colours(v, f, tr, s, lo, hi, cmap, vc, base, shading)
+    out = _compose_image(tr, colour, bg, width, height, view_w, k)
     if layout is not None:
         out = _draw_colorbar(out, strip, layout, lo, hi, cmap, label, bg)
     return out
