@@ -185,6 +185,12 @@ def test_sweep_runs_on_a_tube(tmp_path):
     assert res_aug["config"]["augment"] == 6 and res_aug["config"]["batch"] == 4
     assert res_aug["config"]["mix_regions"] == "1,2" and res_aug["train_shapes"] == 2  # errors of the real shapes
     assert np.isfinite(res_aug["test_erms"])
+    # a reference variant: the sweep with the variant's model options, named in the result line
+    from experiments.components import reference_variants as rv
+    res_tie = rv.main(["--variant", "init-tie", "--data", str(tmp_path / "tube"), "--kz", "3,2", "--epochs", "2"])
+    assert res_tie["config"]["variant"] == "init-tie" and res_tie["config"]["tie_conv"] is True
+    assert res_tie["config"]["init"] == "normal" and res_tie["config"]["decoder_tanh"] is True
+    assert np.isfinite(res_tie["test_erms"]) and res["config"]["tie_conv"] is False
     assert res_all["test_max_rse"] == res_all["train_max_rse"] and res_all["test_erms"] == res_all["train_erms"]
     assert [p["epoch"] for p in res_all["curve"]] == [50, 100]
     assert set(res_all["curve"][0]) == {"epoch", "seconds", "train_feature_mse", "train_max_rse", "train_mean_rse"}
@@ -198,7 +204,8 @@ def test_sweep_runs_on_a_tube(tmp_path):
     assert f"| 100 | {res_all['curve'][-1]['train_max_rse']:.4g} |" in md
     assert json.loads((tmp_path / "curves" / "results.json").read_text())["rows"]["two"]["epochs"] == 100
     from PIL import Image
-    assert Image.open(tmp_path / "curves" / "curves.png").size == (640, 420)
+    from experiments import charts
+    assert Image.open(tmp_path / "curves" / "curves.png").size == charts.SIZE
     with pytest.raises(SystemExit, match="LABEL=FILE"):
         curves.main([str(tmp_path / "all.jsonl"), "--out", str(tmp_path / "c2")])
     with pytest.raises(SystemExit, match="no learning curve"):
@@ -399,7 +406,10 @@ def test_chain_scores_each_stage_and_resumes(tmp_path, capsys):
     assert sorted(p.name for p in (tmp_path / "fresh").iterdir()) == ["rigid"]
 
 
-def test_reference_variants_swap_the_block_and_restore_it():
+def test_reference_variants_are_model_options():
+    """Tan et al.'s block, detail by detail, as options of model.Config (init/init_std, tie_conv, decoder_tanh)."""
+    import dataclasses
+
     import jax
 
     from experiments.components import reference_variants as rv
@@ -410,64 +420,69 @@ def test_reference_variants_swap_the_block_and_restore_it():
     from jaxdeform.nn.graph_conv import rings_from_topology
 
     verts, faces = bending_tube_sequence(n_frames=3, n_around=8, n_along=6)
-    rings = rings_from_topology(build_topology(faces, verts.shape[1]))
-    cfg = model.Config(kz=(3, 2), d=(0.5, 0.3))
-    dist = jnp.zeros((verts.shape[1], verts.shape[1]), jnp.float32)
+    n = verts.shape[1]
+    rings = rings_from_topology(build_topology(faces, n))
+    base = model.Config(kz=(3, 2), d=(0.5, 0.3))
+    dist = jnp.zeros((n, n), jnp.float32)
     key = jax.random.PRNGKey(0)
-    params = model.init(key, verts.shape[1], cfg)
-    # N(0, 0.02^2) weights, biases untouched; an unknown parameter is refused
-    drawn = rv.normal_weights(params, key, rv.TAN_STD)
-    c = np.asarray(drawn[0]["C"])
-    assert c.shape == np.asarray(params[0]["C"]).shape and abs(c.std() - rv.TAN_STD) < 0.15 * rv.TAN_STD
-    assert np.array_equal(drawn[1]["conv_dec"]["b"], params[1]["conv_dec"]["b"])
-    with pytest.raises(ValueError, match="unexpected parameter"):
-        rv.normal_weights(({"conv_enc": {"scale": jnp.ones(3)}},), key, rv.TAN_STD)
-    x = jax.random.uniform(jax.random.PRNGKey(1), (2, verts.shape[1], 9), minval=-0.9, maxval=0.9)
-    moved = tuple({**p, "conv_dec": {**p["conv_dec"], "W_point": p["conv_dec"]["W_point"] + 0.3}} for p in params)
-    loss = lambda q: model.forward(q, x, rings, dist, cfg).loss  # noqa: E731  (the training path)
-    plain = (train.reconstruct(params, x, rings, cfg), train.reconstruct(moved, x, rings, cfg))
-    assert not np.allclose(plain[0], plain[1]) and loss(params) != loss(moved)  # the decoders' own weights matter
-    originals = (model._levels, graph_conv.ae_decode, train.train)
-    with rv.swapped("tie"):
-        tied = (train.reconstruct(params, x, rings, cfg), train.reconstruct(moved, x, rings, cfg))
-        assert loss(params) == loss(moved)  # training too, the last level's masked blocks included
-        trained, _ = train.train(x[:1], rings, dist, cfg, train.TrainConfig(epochs=2))
-    np.testing.assert_array_equal(tied[0], tied[1])  # tied: the decoders read the encoders' weights
-    assert not np.allclose(tied[0], plain[0])
-    for p in trained:  # the returned parameters decode as trained, also where read without the level function
-        np.testing.assert_array_equal(p["conv_dec"]["W_neighbor"], p["conv_enc"]["W_neighbor"])
-    with rv.swapped("linear-fc"):
-        p0 = jax.tree_util.tree_map(lambda a: a[0], params[0])
-        z, x_hat, _ = graph_conv.ae_forward_error(p0, x, rings)
-        conv = graph_conv.mesh_conv(p0["conv_dec"], graph_conv.ae_decode_pre(p0, z), rings.neighbors, rings.mask,
-                                    rings.degree)
-        np.testing.assert_allclose(x_hat, np.tanh(conv), rtol=1e-5, atol=1e-6)
-        assert not np.allclose(train.reconstruct(params, x, rings, cfg), plain[0])
-    # init: train() gets the N(0, 0.02^2) draw of the key it would have drawn its own initialisation from
-    seen = {}
-
-    def record(data, rings_, dist_, config, tc, params=None, **kwargs):
-        seen["params"] = params
-        return params, np.zeros(1)
-
-    train.train = record
-    try:
-        with rv.swapped("init"):
-            train.train(x, rings, dist, cfg, train.TrainConfig(seed=3))
-            with pytest.raises(ValueError, match="params cannot be given"):
-                train.train(x, rings, dist, cfg, train.TrainConfig(), params=params)
-    finally:
-        train.train = originals[2]
-    k3 = train.seed_keys(3)[1]
-    want = rv.normal_weights(model.init(k3, verts.shape[1], cfg, x.dtype), k3, rv.TAN_STD)
-    for got, ref in zip(jax.tree_util.tree_leaves(seen["params"]), jax.tree_util.tree_leaves(want)):
-        np.testing.assert_array_equal(got, ref)
-    # restored on exit, also where the block raises
-    with pytest.raises(RuntimeError):
-        with rv.swapped("tie"):
-            raise RuntimeError("inside")
-    assert (model._levels, graph_conv.ae_decode, train.train) == originals
-    np.testing.assert_array_equal(train.reconstruct(moved, x, rings, cfg), plain[1])
+    x = jax.random.uniform(jax.random.PRNGKey(1), (2, n, 9), minval=-0.9, maxval=0.9)
+    assert rv.variant_config(base, "init-tie") == dataclasses.replace(base, init="normal", init_std=rv.TAN_STD,
+                                                                      tie_conv=True)
+    assert rv.variant_config(base, "linear-fc") == dataclasses.replace(base, decoder_tanh=False)
     with pytest.raises(ValueError, match="variant"):
-        with rv.swapped("nope"):
-            pass
+        rv.variant_config(base, "nope")
+    with pytest.raises(ValueError, match="init"):
+        model.Config(init="uniform")
+    with pytest.raises(ValueError, match="init_std"):
+        model.Config(init="normal", init_std=0.0)
+    plain = model.init(key, n, base)
+
+    # init: the Glorot draw's weights redrawn from N(0, 0.02^2), one key of split(key) per array in pytree order
+    # (the draw of the earlier runs in results/reference_variants.jsonl); the biases stay zero
+    drawn = model.init(key, n, rv.variant_config(base, "init"))
+    paths = jax.tree_util.tree_flatten_with_path(plain)[0]
+    for (path, ref), got, k in zip(paths, jax.tree_util.tree_leaves(drawn), jax.random.split(key, len(paths))):
+        want = ref if path[-1].key == "b" else (rv.TAN_STD * jax.random.normal(k, ref.shape)).astype(ref.dtype)
+        np.testing.assert_array_equal(got, want)
+    assert abs(np.asarray(drawn[0]["C"]).std() - rv.TAN_STD) < 0.15 * rv.TAN_STD
+
+    # tie: no decoder weights of its own; the decoders read their encoders' (the bias their own)
+    tie = rv.variant_config(base, "tie")
+    tied = model.init(key, n, tie)
+    assert all(set(p["conv_dec"]) == {"b"} for p in tied)
+    for p, q in zip(tied, plain):  # the other arrays are the untied model's
+        np.testing.assert_array_equal(p["C"], q["C"])
+        np.testing.assert_array_equal(p["conv_enc"]["W_point"], q["conv_enc"]["W_point"])
+    untied = tuple({**p, "conv_dec": {**p["conv_dec"], "W_point": p["conv_enc"]["W_point"],
+                                      "W_neighbor": p["conv_enc"]["W_neighbor"]}} for p in tied)
+    np.testing.assert_allclose(train.reconstruct(tied, x, rings, tie), train.reconstruct(untied, x, rings, base),
+                               rtol=1e-6, atol=1e-7)
+    loss = lambda q, cfg: model.forward(q, x, rings, dist, cfg).loss  # noqa: E731  (the training path)
+    assert loss(tied, tie) == pytest.approx(float(loss(untied, base)), rel=1e-6)
+    g_tied, g_untied = jax.grad(lambda q: loss(q, tie))(tied), jax.grad(lambda q: loss(q, base))(untied)
+    for level in (0, 1):  # the encoder's weights get the gradient of both uses
+        for w in ("W_point", "W_neighbor"):
+            np.testing.assert_allclose(g_tied[level]["conv_enc"][w],
+                                       g_untied[level]["conv_enc"][w] + g_untied[level]["conv_dec"][w],
+                                       rtol=1e-4, atol=1e-6)
+    out = model.forward(tied, x, rings, dist, tie)
+    with pytest.raises(ValueError, match="tie_conv"):
+        model.decode_latents(tied, out.latents, rings)  # no configuration: no decoder weights to read
+    np.testing.assert_allclose(model.decode_latents(tied, out.latents, rings, tie), out.reconstruction,
+                               rtol=1e-5, atol=1e-6)
+    trained, history = train.train(x[:1], rings, dist, tie, train.TrainConfig(epochs=2))
+    assert all(set(p["conv_dec"]) == {"b"} for p in trained) and np.all(np.isfinite(history))
+
+    # linear-fc: no tanh on z C before the decoder's convolution
+    linear = rv.variant_config(base, "linear-fc")
+    p0 = jax.tree_util.tree_map(lambda a: a[0], plain[0])
+    z = graph_conv.ae_encode(p0, x, rings)
+    conv = graph_conv.mesh_conv(p0["conv_dec"], graph_conv.ae_decode_pre(p0, z), rings.neighbors, rings.mask,
+                                rings.degree)
+    np.testing.assert_allclose(model.decode_block(p0, z, rings, linear), np.tanh(conv), rtol=1e-5, atol=1e-6)
+    np.testing.assert_array_equal(model.decode_block(p0, z, rings), graph_conv.ae_decode(p0, z, rings))
+    out = model.forward(plain, x, rings, dist, linear)  # the last level on its masked inputs
+    np.testing.assert_allclose(out.reconstruction, model.reconstruction(plain, x, rings, linear), rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(model.decode_latents(plain, out.latents, rings, linear), out.reconstruction,
+                               rtol=1e-5, atol=1e-6)
+    assert not np.allclose(out.reconstruction, model.forward(plain, x, rings, dist, base).reconstruction)

@@ -105,7 +105,7 @@ def settings(config: str) -> Settings:
     return Settings(sequences={"sheet": 40, "disk": 20}, frames=100, steps=1000, batch=8, figure_frames=3, size=320, timing_frames=30)
 
 
-def _upsampler(ds) -> ceval.Upsampler:
+def upsampler(ds) -> ceval.Upsampler:
     """Loop subdivision from the dataset's coarse to its fine connectivity."""
     return ceval.Upsampler(ds.coarse_faces, ds.coarse_rest.shape[0], ds.fine_faces)
 
@@ -187,7 +187,7 @@ def stage_train(out: Path, ds, s: Settings, force: bool, cache: dict) -> dict:
 
 def stage_evaluate(out: Path, ds, cache: dict) -> dict:
     test = ds.subset("test")
-    ups = _upsampler(ds)
+    ups = upsampler(ds)
     methods = {"upsampled_coarse": ceval.pool([ceval.sequence_errors(x.fine, ups(x.coarse), ds.fine_faces)
                                                for x in test])}
     for name in METHODS:
@@ -198,7 +198,7 @@ def stage_evaluate(out: Path, ds, cache: dict) -> dict:
 
 def stage_linear(ds, r: dict) -> None:
     """The ``linear`` stage: fit LinearResidual on the training split, add its test errors to ``r``'s tables."""
-    ups = _upsampler(ds)
+    ups = upsampler(ds)
     train = ds.subset("train")
     ref = ceval.LinearResidual(ups, [x.coarse for x in train], [x.fine for x in train])
     m = ceval.pool([ceval.sequence_errors(x.fine, ref(x.coarse), ds.fine_faces) for x in ds.subset("test")])
@@ -214,7 +214,7 @@ def stage_linear(ds, r: dict) -> None:
 def stage_scale(ds) -> dict:
     """The ``scale`` stage: the upsampled coarse cloth's error split into its coarse-mesh-scale part and the finer
     rest (``evaluate.coarse_level_split``), pooled over the test and over the training sequences."""
-    ups = _upsampler(ds)
+    ups = upsampler(ds)
     out = {}
     for part in ("test", "train"):
         low = high = count = 0.0
@@ -233,7 +233,7 @@ def stage_scaling(out: Path, ds, s: Settings) -> list[dict]:
     """The ``scaling`` stage (module docstring): per training subset, the linear reference's and the per-frame
     model's RMSE on the test sequences and on the subset itself. On the whole training split the per-frame model
     is the ``train`` stage's stored run when there is one (the same training)."""
-    ups = _upsampler(ds)
+    ups = upsampler(ds)
     train, test = ds.subset("train"), ds.subset("test")
     ups_test = ceval.pooled_rmse((x.fine, ups(x.coarse)) for x in test)
     stored = out / "runs" / ds.scenario / "no_temporal"
@@ -295,7 +295,7 @@ def stage_floor(ds, s: Settings) -> dict:
     """The ``floor`` stage (module docstring): fine vs perturbed fine against fine vs upsampled coarse."""
     from jaxdeform.cloth import scenarios
 
-    ups = _upsampler(ds)
+    ups = upsampler(ds)
     per, errors = [], []
     for x in ds.subset("test")[: s.floor_sequences]:
         again = scenarios.simulate_fine(_scenario_of(ds, x, x.fine.shape[0]), perturbation=FLOOR_PERTURBATION)
@@ -316,7 +316,7 @@ def stage_figures(out: Path, ds, s: Settings) -> list[str]:
     from jaxdeform.mesh.render import auto_camera, caption, hstack, render, save_png
 
     run = crun.load_run(out / "runs" / ds.scenario / "ours")
-    ups = _upsampler(ds)
+    ups = upsampler(ds)
     x = ds.subset("test")[0]
     fine, _ = crun.synthesize_timed(run, x.coarse, x.obstacles, pins=x.pins)
     coarse_up = ups(x.coarse)

@@ -34,7 +34,7 @@ from jaxdeform import acap
 from jaxdeform.components import baselines
 from jaxdeform.components import run as crun
 from jaxdeform.mesh.io import atomic_path
-from experiments.components.run import SPLITS
+from experiments.components.common import SPLITS
 
 DEFAULT_DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "horse-gallop"
 

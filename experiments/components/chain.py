@@ -26,8 +26,7 @@ import sys
 import time
 from pathlib import Path
 
-from experiments.components.run import _write as write_text
-from experiments.components.run import hardware
+from experiments.components.common import hardware, write_text
 
 
 def stage_plan(args) -> list[tuple[str, list[str]]]:

@@ -14,12 +14,9 @@ from __future__ import annotations
 
 import argparse
 import json
-import math
 from pathlib import Path
 
-from PIL import Image, ImageDraw, ImageFont
-
-from experiments.components.editing import COLOURS
+from experiments import charts
 from jaxdeform.mesh.io import atomic_path
 
 #: Table 5 of the paper (horse, maximum of eq. 8): one, two and three levels.
@@ -81,57 +78,41 @@ def markdown(rows: dict, title: str, hardware: str) -> str:
     return "\n".join(lines + [""])
 
 
-def plot(rows: dict, path: Path, size=(640, 420)) -> None:
-    """Largest relative squared error against the epoch (log10 axis), one polyline per run; the paper's
-    figures for the runs' level counts as dashed horizontal lines."""
-    w, h = size
-    left, right, top, bottom = 70, 170, 20, 50
-    img = Image.new("RGB", (w, h), "white")
-    d = ImageDraw.Draw(img)
-    font = ImageFont.load_default()
-    values = [p["max_rse"] for r in rows.values() for p in r["curve"] if p["max_rse"] > 0]
-    papers = [r["paper_max_relative_squared_error"] for r in rows.values() if r["paper_max_relative_squared_error"]]
-    lo = math.floor(math.log10(min(values + papers)))
-    hi = math.ceil(math.log10(max(values + papers)))
-    hi = max(hi, lo + 1)
-    emax = max(p["epoch"] for r in rows.values() for p in r["curve"])
+TITLE = "Seed 000, Table 5: learning curves of eq. 8"
 
-    def x(e):
-        return left + (w - left - right) * e / emax
 
-    def y(v):
-        return top + (h - top - bottom) * (hi - math.log10(v)) / (hi - lo)
-
-    d.line([(left, top), (left, h - bottom), (w - right, h - bottom)], fill="black")
-    for k in range(lo, hi + 1):
-        d.line([(left - 4, y(10.0**k)), (left, y(10.0**k))], fill="black")
-        d.text((8, y(10.0**k) - 5), f"1e{k}", fill="black", font=font)
-    for k in range(5):
-        e = round(emax * k / 4)
-        d.text((x(e) - 10, h - bottom + 6), f"{e:,}", fill="black", font=font)
-    d.text((left + 60, h - 20), "epoch (largest eq. 8 over the shapes)", fill="black", font=font)
+def plot(rows: dict, path: Path, size=charts.SIZE, title: str = TITLE) -> Path:
+    """A line chart of ``size`` pixels at ``path`` (PNG): the largest relative squared error (eq. 8) against the
+    epoch (log axis), one line per run; the paper's figure for each level count of the runs as a dashed
+    horizontal line in the colour of the first run with that count."""
+    fig, ax = charts.figure(size)
+    papers = {}
     for i, (label, r) in enumerate(rows.items()):
-        colour = COLOURS[i % len(COLOURS)]
+        colour = f"C{i % 10}"
+        pts = [(p["epoch"], p["max_rse"]) for p in r["curve"] if p["max_rse"] > 0]  # a log axis
+        levels = f"{r['levels']} level{'s' * (r['levels'] > 1)}"
+        ax.plot([e for e, _ in pts], [v for _, v in pts], color=colour, marker="o", markersize=3, linewidth=1.6,
+                label=f"{label} ({levels})")
         paper = r["paper_max_relative_squared_error"]
-        if paper:
-            for s in range(left, w - right, 12):
-                d.line([(s, y(paper)), (min(s + 6, w - right), y(paper))], fill=colour, width=1)
-        pts = [(x(p["epoch"]), y(p["max_rse"])) for p in r["curve"] if p["max_rse"] > 0]
-        d.line(pts, fill=colour, width=2)
-        for p in pts:
-            d.ellipse([p[0] - 2, p[1] - 2, p[0] + 2, p[1] + 2], fill=colour)
-        d.text((w - right + 10, top + 16 * i), f"{label} ({r['levels']} lvl)", fill=colour, font=font)
-    d.text((w - right + 10, top + 16 * len(rows) + 8), "dashed: paper", fill="black", font=font)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_path(path) as tmp:
-        img.save(tmp, format="PNG")
+        if paper and r["levels"] not in papers:
+            papers[r["levels"]] = paper
+            ax.axhline(paper, color=colour, linestyle="--", linewidth=1.2, label=f"paper, {levels} ({paper:.4g})")
+    ax.set_yscale("log")
+    ax.set_xlim(left=0)
+    charts.thousands(ax.xaxis)
+    ax.set_xlabel("epoch")
+    ax.set_ylabel("largest relative squared error over the shapes\n(eq. 8, scaled features, dimensionless)")
+    charts.title(ax, title)
+    if rows:
+        fig.legend(loc="outside right upper", fontsize="small")
+    return charts.save(fig, path)
 
 
 def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("runs", nargs="+", metavar="LABEL=FILE")
     ap.add_argument("--out", required=True)
-    ap.add_argument("--title", default="Seed 000, Table 5: learning curves of eq. 8")
+    ap.add_argument("--title", default=TITLE)
     ap.add_argument("--hardware", default="not given")
     a = ap.parse_args(argv)
     rows = summary(load(a.runs))
@@ -141,7 +122,7 @@ def main(argv=None) -> dict:
         Path(tmp).write_text(json.dumps({"title": a.title, "hardware": a.hardware, "rows": rows}, indent=1))
     with atomic_path(out / "results.md") as tmp:
         Path(tmp).write_text(markdown(rows, a.title, a.hardware))
-    plot(rows, out / "curves.png")
+    plot(rows, out / "curves.png", title=a.title)
     return rows
 
 

@@ -16,20 +16,21 @@ import time
 from pathlib import Path
 
 import numpy as np
-from PIL import Image, ImageDraw, ImageFont
+from matplotlib.ticker import NullLocator
 
+from experiments import charts
+from experiments.components.common import SPLITS, hardware, write_text
 from jaxdeform.components import run as crun
-from jaxdeform.mesh.io import atomic_path
 
 METHODS = ("multiscale", "tan", "pca", "splocs")
 CONTROLS = {"default": (5, 10, 20, 40), "test": (3, 6)}
 SHAPES = {"default": 8, "test": 2}
-COLOURS = [(31, 119, 180), (214, 39, 40), (44, 160, 44), (148, 103, 189), (255, 127, 14)]
+ONE_STAGE = " (one stage)"  # suffix of the multiscale model's one-stage row
 
 
 def fig6(args, datasets, train_and_evaluate) -> dict:
-    from experiments.components.run import SPLITS, _write, hardware
-
+    """Fig. 6 over ``datasets`` ((name, path) pairs); ``train_and_evaluate``: the run experiment's
+    (:func:`experiments.components.run.train_and_evaluate`), which trains a missing Table-2 run."""
     rows = {}
     controls = tuple(args.controls) if args.controls else CONTROLS[args.config]
     for name, path in datasets:
@@ -44,7 +45,7 @@ def fig6(args, datasets, train_and_evaluate) -> dict:
             ed = crun.editor(loaded)
             # a model of several levels edits coarse to fine (the run's default); its one-stage edit (every code
             # at once) is the ablation row
-            variants = [("", ed.stages)] + ([(" (one stage)", None)]
+            variants = [("", ed.stages)] + ([(ONE_STAGE, None)]
                                             if ed.stages is not None and not args.skip_one_stage else [])
             for suffix, stages in variants:
                 per_n = {}
@@ -63,7 +64,7 @@ def fig6(args, datasets, train_and_evaluate) -> dict:
                           flush=True)
                 rows[f"{name}/{method}{suffix}"] = per_n
     out = Path(args.out) / "fig6"
-    _write(out / "results.md", markdown(rows, controls, hardware()))
+    write_text(out / "results.md", markdown(rows, controls, hardware()))
     plot(rows, controls, out / "fig6.png")
     return rows
 
@@ -77,34 +78,27 @@ def markdown(rows: dict, controls, hw: str) -> str:
     return "\n".join(lines + [""])
 
 
-def plot(rows: dict, controls, path: Path, size=(640, 420)) -> None:
-    """A line chart (PIL): mean error against the number of control points, one polyline per run."""
-    left, right, top, bottom = 70, max(170, 20 + 7 * max((len(k) for k in rows), default=0)), 20, 50
-    w, h = size[0] + right - 170, size[1]  # the legend's column grows with the longest row name
-    img = Image.new("RGB", (w, h), "white")
-    d = ImageDraw.Draw(img)
-    font = ImageFont.load_default()
-    values = [v["mean_error"] for per_n in rows.values() for v in per_n.values()]
-    ymax = max(values) * 1.1 if values and max(values) > 0 else 1.0
-    xs = {n: left + (w - left - right) * (i / max(len(controls) - 1, 1)) for i, n in enumerate(controls)}
-
-    def y(v):
-        return top + (h - top - bottom) * (1 - v / ymax)
-
-    d.line([(left, top), (left, h - bottom), (w - right, h - bottom)], fill="black")
-    for n, x in xs.items():
-        d.text((x - 6, h - bottom + 6), str(n), fill="black", font=font)
-    for k in range(5):
-        v = ymax * k / 4
-        d.text((4, y(v) - 5), f"{v:.3g}", fill="black", font=font)
-    d.text((left + 60, h - 20), "control points", fill="black", font=font)
-    for i, (key, per_n) in enumerate(rows.items()):
-        colour = COLOURS[i % len(COLOURS)]
-        pts = [(xs[n], y(per_n[str(n)]["mean_error"])) for n in controls]
-        d.line(pts, fill=colour, width=2)
-        for p in pts:
-            d.ellipse([p[0] - 3, p[1] - 3, p[0] + 3, p[1] + 3], fill=colour)
-        d.text((w - right + 10, top + 16 * i), key, fill=colour, font=font)
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_path(path) as tmp:
-        img.save(tmp, format="PNG")
+def plot(rows: dict, controls, path: Path, size=charts.SIZE) -> Path:
+    """A line chart of ``size`` pixels at ``path`` (PNG): mean vertex error (percent of the bounding-box
+    diagonal) against the number of control points (log axis, ticks at ``controls``), one line per row; a
+    one-stage row is dashed in the colour of its coarse-to-fine row."""
+    fig, ax = charts.figure(size)
+    colour = {}
+    for key, per_n in rows.items():
+        base = key.removesuffix(ONE_STAGE)
+        c = colour.setdefault(base, f"C{len(colour) % 10}")
+        ys = [100.0 * per_n[str(n)]["mean_error"] for n in controls]
+        ax.plot(controls, ys, color=c, linestyle="--" if key.endswith(ONE_STAGE) else "-", marker="o",
+                markersize=4, linewidth=1.6, label=key)
+    ax.set_xscale("log")
+    ax.set_xticks(list(controls), [str(n) for n in controls])
+    ax.xaxis.set_minor_locator(NullLocator())
+    if len(controls) == 1:
+        ax.set_xlim(controls[0] / 1.5, controls[0] * 1.5)
+    ax.set_ylim(bottom=0)
+    ax.set_xlabel("control points (vertices held at the target's positions)")
+    ax.set_ylabel("mean vertex error (% of bounding-box diagonal)")
+    charts.title(ax, "Seed 000, Fig. 6: editing error toward unseen shapes")
+    if rows:
+        fig.legend(loc="outside right upper", fontsize="small", title="data / method")
+    return charts.save(fig, path)

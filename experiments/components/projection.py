@@ -41,7 +41,7 @@ from jaxdeform.components import run as crun
 from jaxdeform.mesh.topology import build_topology
 from jaxdeform.nn.graph_conv import Rings, rings_from_topology
 from jaxdeform.nn.host import host_scalars
-from experiments.components.run import _write as write_text
+from experiments.components.common import write_text
 
 
 def fit_codes(params, rings: Rings, x, codes0, *, steps: int = 300, lr: float = 0.02,

@@ -33,12 +33,12 @@ import time
 from pathlib import Path
 
 import jaxdeform  # noqa: F401  (x64)
+from experiments.components import editing
+from experiments.components.common import SPLITS, hardware, write_text
 from jaxdeform.components import run as crun
 from jaxdeform.components.edit import OBJECTIVES
-from jaxdeform.mesh.io import atomic_path, save_mesh
+from jaxdeform.mesh.io import save_mesh
 
-#: data set -> split mode (Sec. 5.1: sequences every 10th, pose sets a random half)
-SPLITS = {"horse-gallop": "every10", "samba": "every10", "cactus": "half", "tube": "every10"}
 TABLE2_METHODS = ("multiscale", "tan", "pca", "pca-xyz", "splocs")
 TABLE4_CONFIGS = ("default", "no-attention", "separate", "no-attention-separate")
 TABLE5_CONFIGS = ("levels1", "default", "levels3")
@@ -187,24 +187,6 @@ def markdown(experiment: str, rows: dict, hardware: str, split: str | None = Non
     return "\n".join(lines)
 
 
-def hardware() -> str:
-    """The CPU, and the accelerator that trained when JAX's default backend is not the CPU."""
-    import jax
-
-    from benchmarks.acap import cpu_info
-
-    dev = jax.devices()[0]
-    if dev.platform == "cpu":
-        return f"{cpu_info()} cores, CPU only"
-    return f"{getattr(dev, 'device_kind', dev.platform)} ({dev.platform}), host {cpu_info()} cores"
-
-
-def _write(path: Path, text: str) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    with atomic_path(path) as tmp:
-        Path(tmp).write_text(text)
-
-
 EXPERIMENTS = {"table2": table2, "table4": table4, "table5": table5}
 
 
@@ -244,17 +226,15 @@ def main(argv=None) -> dict:
         parser.error("--controls takes positive control-point counts.")
     t0 = time.perf_counter()
     if args.experiment == "fig6":
-        from experiments.components import editing
-
         rows = editing.fig6(args, _datasets(args), train_and_evaluate)
     else:
         rows = EXPERIMENTS[args.experiment](args)
     result = {"experiment": args.experiment, "config": args.config, "hardware": hardware(),
               "split": args.split or "protocol", "seconds": round(time.perf_counter() - t0, 1), "rows": rows}
     out = _root(args, args.experiment)
-    _write(out / "results.json", json.dumps(result, indent=2, default=float))
+    write_text(out / "results.json", json.dumps(result, indent=2, default=float))
     if args.experiment != "fig6":
-        _write(out / "results.md", markdown(args.experiment, rows, hardware(), args.split))
+        write_text(out / "results.md", markdown(args.experiment, rows, hardware(), args.split))
     print(f"wrote {out}/results.json" + ("" if args.experiment == "fig6" else " and results.md"))
     return result
 

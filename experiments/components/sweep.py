@@ -66,9 +66,10 @@ def inside_fraction(c: np.ndarray, dist: np.ndarray, d: float) -> float:
     return float(np.median((norms * inside).sum(axis=1) / total))
 
 
-def main(argv=None, extra_config: dict | None = None) -> dict:
-    """``extra_config``: entries added to the result line's configuration (callers that change the model, such as
-    :mod:`experiments.components.reference_variants`)."""
+def main(argv=None, extra_config: dict | None = None, model_options: dict | None = None) -> dict:
+    """``extra_config``: entries added to the result line's configuration; ``model_options``: options of
+    :class:`jaxdeform.components.model.Config` set over the command line's (callers that name a model variant,
+    such as :mod:`experiments.components.reference_variants`)."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--data", default=str(Path(__file__).resolve().parents[2].parent / "shared" / "data" / "horse-gallop"))
     ap.add_argument("--kz", default="10,5")
@@ -109,7 +110,7 @@ def main(argv=None, extra_config: dict | None = None) -> dict:
 
     cfg = model.Config(kz=tuple(int(k) for k in _floats(a.kz)), d=_floats(a.d), lambda_recon=a.lambda_recon,
                        lambda_sparse=a.lambda_sparse, mask=a.mask, latent=a.latent, attention=not a.no_attention,
-                       attention_gradient=a.attention_gradient)
+                       attention_gradient=a.attention_gradient, **(model_options or {}))
     tc = train.TrainConfig(epochs=a.epochs, learning_rate=a.lr, seed=a.seed, joint=not a.separate,
                           decay_rate=a.decay_rate, clip_norm=a.clip_norm, batch=a.batch)
     vertices, faces = crun.load_data(a.data)

@@ -31,13 +31,11 @@ DATASETS = {"horse-poses": (0, 5), "horse-gallop": (0, 24), "cactus": (0, 10)}
 
 
 def dem_bones(frames, faces, bones: int) -> dict:
-    try:
-        from benchmarks.parts_dembones import _import_dem_bones, run_dem_bones, skin
+    try:  # py-dem-bones: the optional `bench` extra
+        from py_dem_bones import DemBones
 
-        _, DemBones = _import_dem_bones()
+        from benchmarks.parts_dembones import run_dem_bones, skin
     except ImportError:
-        DemBones = None
-    if DemBones is None:
         return {"available": False}
     weights, transforms, seconds, _ = run_dem_bones(DemBones, frames, faces, bones=bones, nnz=1, n_iters=30,
                                                     n_init_iters=10, n_trans_iters=5, n_weights_iters=3)

@@ -12,6 +12,22 @@ the sum over blocks of lambda1 L_recon + lambda2 Omega(C) + V(Z) (eq. 2), each b
 
 Parameters of level l are stacked along a leading axis of size n_l = Kz_0 ... Kz_(l-1) (one pytree per level)
 and the blocks of a level run under ``jax.vmap``: no Python loop over blocks.
+
+Three options of :class:`Config` give the block of Tan et al.'s public TF1 code (convMesh, which seed 000 builds
+on) where it differs from this one (:mod:`experiments.components.reference_variants` trains them); their
+defaults are this project's block:
+
+- ``init="normal"``: every weight (both convolutions' W_point and W_neighbor, and C) drawn from
+  N(0, ``init_std``^2), as convMesh's ``tf.random_normal_initializer(stddev=0.02)``; default Glorot-uniform.
+- ``tie_conv=True``: the decoder's convolution uses the encoder's W_point and W_neighbor (its bias its own), as
+  convMesh does and as the paper's Fig. 1 caption reads ("the encoder and decoder share the same trainable
+  parameters"); the parameters then hold no decoder weights of their own (``conv_dec`` has only ``b``).
+- ``decoder_tanh=False``: no tanh on z C, x_hat = tanh(conv_dec(reshape(z C))), as convMesh has it; default
+  tanh(conv_dec(tanh(reshape(z C)))), the paper's "all the layers use the tanh".
+
+Code that decodes parameters without the configuration (:func:`decode_latents` without ``config``,
+:mod:`jaxdeform.components.extract`) decodes with the default block: ``tie_conv`` parameters are refused there
+(they have no decoder weights), ``decoder_tanh=False`` ones are not detected.
 """
 
 from __future__ import annotations
@@ -25,7 +41,8 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from jaxdeform.nn import graph_conv
-from jaxdeform.nn.graph_conv import MU, Rings, ae_forward, ae_forward_error, init_ae_block, masked_blocks_error
+from jaxdeform.nn.graph_conv import (MU, Rings, ae_decode_pre, ae_encode, ae_forward, ae_forward_error, init_ae_block,
+                                     masked_blocks_error, mesh_conv)
 from jaxdeform.nn.losses import group_sparsity, latent_bound
 
 
@@ -53,6 +70,11 @@ class Config:
     # |z| ~ 40-70 before the tanh, AE0 outputs a near-constant shape and the second level carries the
     # deformation (named configuration "latent-tanh" in components/run.py).
     latent: str = "linear"
+    # The block of Tan et al.'s public code, detail by detail (module docstring); the defaults are this project's.
+    init: str = "glorot"  # "glorot": Glorot-uniform weights; "normal": N(0, init_std^2); biases zero either way
+    init_std: float = 0.02  # standard deviation of init="normal" (convMesh's)
+    tie_conv: bool = False  # the decoder's convolution uses the encoder's W_point and W_neighbor
+    decoder_tanh: bool = True  # tanh on the decoder's z C before its convolution
 
     def __post_init__(self):
         if len(self.kz) != len(self.d) or not self.kz:
@@ -63,6 +85,10 @@ class Config:
             raise ValueError(f"mask must be 'step' or 'linear', got {self.mask!r}.")
         if self.latent not in ("linear", "tanh"):
             raise ValueError(f"latent must be 'linear' or 'tanh', got {self.latent!r}.")
+        if self.init not in ("glorot", "normal"):
+            raise ValueError(f"init must be 'glorot' or 'normal', got {self.init!r}.")
+        if not self.init_std > 0:
+            raise ValueError(f"init_std must be positive, got {self.init_std}.")
 
     def sparsity_cutoff(self, level: int):
         """The ``d`` argument of :func:`group_sparsity` for ``level``."""
@@ -84,14 +110,94 @@ class Output(NamedTuple):
     latents: tuple  # per level: (n_l, B, Kz_l)
 
 
+_WEIGHTS = ("W_point", "W_neighbor", "C")
+
+
 def init(key: Array, n_vertices: int, config: Config, dtype=jnp.float32) -> tuple[dict, ...]:
-    """Parameters: one stacked pytree per level (leading axis = blocks of that level)."""
+    """Parameters: one stacked pytree per level (leading axis = blocks of that level).
+
+    ``config.init="normal"``: the Glorot draw's weights redrawn from N(0, init_std^2), one key of
+    ``jax.random.split(key, n)`` per parameter array in pytree order (biases kept at zero). ``config.tie_conv``:
+    the decoders' W_point and W_neighbor left out (drawn, then dropped: the other arrays are those of the untied
+    model)."""
+    first = key
     params = []
     for level, kz in enumerate(config.kz):
         key, sub = jax.random.split(key)
         keys = jax.random.split(sub, config.blocks(level))
         params.append(jax.vmap(lambda k, kz=kz: init_ae_block(k, n_vertices, kz, dtype))(keys))
-    return tuple(params)
+    params = tuple(params)
+    if config.init == "normal":
+        params = _normal_weights(params, first, config.init_std)
+    if config.tie_conv:
+        params = tuple({**p, "conv_dec": {"b": p["conv_dec"]["b"]}} for p in params)
+    return params
+
+
+def _normal_weights(params: tuple, key: Array, std: float) -> tuple:
+    """``params`` with every weight array (W_point, W_neighbor, C) redrawn from N(0, std^2); biases kept."""
+    leaves, tree = jax.tree_util.tree_flatten_with_path(params)
+    keys = jax.random.split(key, len(leaves))
+    out = []
+    for (path, leaf), k in zip(leaves, keys):
+        name = getattr(path[-1], "key", None)
+        if name not in _WEIGHTS + ("b",):
+            raise ValueError(f"unexpected parameter {jax.tree_util.keystr(path)}: only {_WEIGHTS} and biases are known.")
+        out.append((std * jax.random.normal(k, leaf.shape)).astype(leaf.dtype) if name != "b" else leaf)
+    return jax.tree_util.tree_unflatten(tree, out)
+
+
+def _decoder_weights(params: tuple[dict, ...], config: Config | None) -> tuple[dict, ...]:
+    """``params`` as the decoders read them: with ``config.tie_conv`` every block's ``conv_dec`` takes its
+    encoder's W_point and W_neighbor (its bias its own); otherwise ``params`` itself."""
+    if config is not None and config.tie_conv:
+        return tuple({**p, "conv_dec": {**p["conv_dec"], "W_point": p["conv_enc"]["W_point"],
+                                        "W_neighbor": p["conv_enc"]["W_neighbor"]}} for p in params)
+    for p in params:
+        if "W_point" not in p["conv_dec"]:
+            raise ValueError("the parameters hold no decoder convolution weights (a tie_conv model): pass the "
+                             "model's Config.")
+    return params
+
+
+def _flat_tanh(x: Array) -> Array:
+    # as graph_conv's block: tanh over rows of 9V (XLA on CPU vectorizes along the minor axis)
+    return jnp.tanh(x.reshape(x.shape[:-2] + (-1,))).reshape(x.shape)
+
+
+def decode_block(p: dict, z: Float[Array, "b kz"], rings: Rings, config: Config | None = None) -> Float[Array, "b v 9"]:
+    """One block's decoder output from its codes: :func:`jaxdeform.nn.graph_conv.ae_decode`, or, with
+    ``config.decoder_tanh`` False, the same without the tanh on z C. ``p`` holds the decoder's own weights (see
+    :func:`decode_latents` for tied parameters)."""
+    if config is None or config.decoder_tanh:
+        return graph_conv.ae_decode(p, z, rings)
+    return _flat_tanh(mesh_conv(p["conv_dec"], ae_decode_pre(p, z), rings.neighbors, rings.mask, rings.degree))
+
+
+def _masked_blocks(p: dict, x, am, rings: Rings, config: Config) -> tuple:
+    """(z, x_hat, err) of blocks (n, k) on their masked inputs, as :func:`masked_blocks_error` (which it is for
+    the default decoder), the block's decoder that of ``config``; the masks take no gradient."""
+    if config.decoder_tanh:
+        return masked_blocks_error(p, x, am, rings)
+    am = jax.lax.stop_gradient(am)
+    inputs = am[..., None, :, None] * x[:, None]
+    return jax.vmap(jax.vmap(lambda q, xin: _block(q, xin, rings, config, True)))(p, inputs)
+
+
+def _block(p: dict, x: Float[Array, "b v 9"], rings: Rings, config: Config, with_error: bool) -> tuple:
+    """(z, x_hat, err or None) of one block on its input ``x``; err: the summed squared error per shape."""
+    if config.decoder_tanh:  # graph_conv's block
+        if with_error:
+            return ae_forward_error(p, x, rings, config.latent)
+        return ae_forward(p, x, rings, config.latent) + (None,)
+    z = ae_encode(p, x, rings)
+    if config.latent == "tanh":
+        z = jnp.tanh(z)
+    x_hat = decode_block(p, z, rings, config)
+    if not with_error:
+        return z, x_hat, None
+    flat = x_hat.shape[:-2] + (-1,)
+    return z, x_hat, jnp.sum(jnp.square(x_hat.reshape(flat) - x.reshape(flat)), axis=-1)
 
 
 def attention_masks(c: Float[Array, "kz nine_v"]) -> Float[Array, "kz v"]:
@@ -108,7 +214,9 @@ def _levels(params: tuple[dict, ...], x: Float[Array, "b v 9"], rings: Rings, co
 
     With ``with_error``, the last level's blocks run on their masked inputs (:func:`masked_blocks_error`: the
     parents' residuals and attention masks, the inputs not formed) where the masks take no gradient and the
-    latent is linear; that level's inputs are then None."""
+    latent is linear; that level's inputs are then None. ``config.tie_conv``: the
+    decoders read their encoders' convolution weights."""
+    params = _decoder_weights(params, config)
     inputs = x[None]  # (n_0 = 1, B, V, 9)
     parent = None  # (residuals (n_l, B, V, 9), masks (n_l, Kz_l, V)) of the level before, where attention applies
     levels = []
@@ -117,14 +225,11 @@ def _levels(params: tuple[dict, ...], x: Float[Array, "b v 9"], rings: Rings, co
                 and config.latent == "linear"):
             res, am = parent
             split = lambda a: a.reshape(am.shape[:2] + a.shape[1:])  # noqa: E731  (n_l, ...) -> (parents, Kz, ...)
-            outs = masked_blocks_error(jax.tree_util.tree_map(split, p), res, am, rings)
+            outs = _masked_blocks(jax.tree_util.tree_map(split, p), res, am, rings, config)
             z, x_hat, err = (a.reshape((-1,) + a.shape[2:]) for a in outs)
             levels.append((None, z, x_hat, err))
             break
-        if with_error:
-            z, x_hat, err = jax.vmap(lambda q, xin: ae_forward_error(q, xin, rings, config.latent))(p, inputs)
-        else:
-            (z, x_hat), err = jax.vmap(lambda q, xin: ae_forward(q, xin, rings, config.latent))(p, inputs), None
+        z, x_hat, err = jax.vmap(lambda q, xin: _block(q, xin, rings, config, with_error))(p, inputs)
         levels.append((inputs, z, x_hat, err))
         if level + 1 < len(params):
             res = inputs - x_hat  # (n_l, B, V, 9)
@@ -182,14 +287,17 @@ def forward(params: tuple[dict, ...], x: Float[Array, "b v 9"], rings: Rings, di
     return Output(recon, total, terms, tuple(latents))
 
 
-def decode_latents(params: tuple[dict, ...], latents: tuple, rings: Rings) -> Float[Array, "b v 9"]:
+def decode_latents(params: tuple[dict, ...], latents: tuple, rings: Rings,
+                   config: Config | None = None) -> Float[Array, "b v 9"]:
     """Scaled features (B, V, 9) from latent codes: the sum over every block of its decoder output.
 
     ``latents[l]`` has shape (n_l, B, Kz_l), as in :attr:`Output.latents`; a block's output depends on its own
     code only, so components are decoder outputs of one-hot codes and editing optimizes these codes.
+    ``config``: the decoder of that configuration (``tie_conv``, ``decoder_tanh``); None: the default block
+    (ValueError for parameters without decoder weights).
     """
     out = None
-    for p, z in zip(params, latents):
-        x_hat = jnp.sum(jax.vmap(lambda q, zz: graph_conv.ae_decode(q, zz, rings))(p, z), axis=0)
+    for p, z in zip(_decoder_weights(tuple(params), config), latents):
+        x_hat = jnp.sum(jax.vmap(lambda q, zz: decode_block(q, zz, rings, config))(p, z), axis=0)
         out = x_hat if out is None else out + x_hat
     return out
