@@ -47,7 +47,7 @@ wheel-check: $(STAMP)
 	$(WHEEL)/venv/bin/pip install -q $(WHEEL)/dist/jaxdeform-*.whl jax==0.10.1 jaxlib==0.10.1
 	cd $(WHEEL) && venv/bin/python -c "import jax, jaxdeform; print('jaxdeform', jaxdeform.__version__, 'jax', jax.__version__)"
 	cd $(WHEEL) && venv/bin/jaxdeform --help > /dev/null
-	cd $(WHEEL) && venv/bin/jaxdeform acap encode $(abspath ../shared/data/acap-bar) --out bar.npz
+	cd $(WHEEL) && venv/bin/jaxdeform acap encode $(abspath ../shared/data/acap-bar) --reference $(abspath ../shared/data/acap-bar/1.obj) --out bar.npz
 
 clean:
 	rm -rf $(VENV) out .pytest_cache

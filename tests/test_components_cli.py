@@ -260,3 +260,19 @@ def test_split_all_reports_the_whole_data_set(seq_dir, tmp_path):
         assert m["test"][key] == pytest.approx(m["train"][key], rel=1e-9, abs=1e-12)
     # PCA with at least as many components as shapes spans every training feature: eq. 8 vanishes
     assert m["test"]["max_relative_squared_error"] < 1e-8
+
+
+def test_stale_reason_reads_missing_model_fields_as_their_defaults():
+    """A run written before a model option existed is the same run as today's default; another value is not."""
+    import dataclasses
+
+    cfg, tc = run.resolve_config("multiscale", "default", None)
+    full = run._json_config(cfg)
+    record = {"method": "multiscale", "split": {"mode": "every10"}, "feature_turns": "aligned",
+              "feature_scale_quantile": run.SCALE_QUANTILE, "config": full,
+              "train_config": dataclasses.asdict(tc)}
+    assert run.stale_reason(record, "multiscale", "default") is None
+    older = {k: v for k, v in full.items() if k not in ("init", "init_std", "tie_conv", "decoder_tanh")}
+    assert run.stale_reason({**record, "config": older}, "multiscale", "default") is None
+    tied = {**full, "tie_conv": True}
+    assert run.stale_reason({**record, "config": tied}, "multiscale", "default") == "its model configuration differs"

@@ -141,8 +141,8 @@ def stale_reason(record: dict, method: str, name: str, epochs: int | None = None
     """Why a stored run (its run.json ``record``) is not what ``resolve_config(method, name, epochs)`` and this
     code's feature preparation would train now, or None. The epoch count is compared only when ``epochs`` is
     given (a run trained with ``--epochs N`` is reused by a later call without it), the split only when ``split``
-    is given. A run written before a field existed is compared with that field's default (``clip_norm``: None). Linear baselines have no training
-    configuration to compare."""
+    is given. A run written before a field existed (of the model or the training configuration) is compared with
+    that field's default. Linear baselines have no training configuration to compare."""
     if record.get("method") != method:
         return f"it is a {record.get('method')} run, not {method}"
     if split is not None and record.get("split", {}).get("mode") != split:
@@ -155,7 +155,10 @@ def stale_reason(record: dict, method: str, name: str, epochs: int | None = None
             return f"its scaler quantile is {record.get('feature_scale_quantile', 0.0)}, not {SCALE_QUANTILE}"
     if method not in AUTOENCODERS:
         return None
-    if record.get("config") != _json_config(cfg):
+    stored = record.get("config")
+    if isinstance(stored, dict) and cfg is not None:  # fields added after the run was written: their defaults
+        stored = {**_json_config(type(cfg)()), **stored}
+    if stored != _json_config(cfg):
         return "its model configuration differs"
     stored = dataclasses.asdict(train.TrainConfig(**record.get("train_config", {})))
     for key, value in dataclasses.asdict(tc).items():
