@@ -107,8 +107,10 @@ def subdivide(frames: np.ndarray, faces: np.ndarray, min_vertices: int) -> tuple
 def skip_reason(solver: str, n_vertices: int) -> str | None:
     """Why ``solver`` is not benchmarked on a mesh of ``n_vertices`` vertices (None: it is)."""
     if solver == "dense" and n_vertices > reconstruct.DENSE_MAX_VERTICES:
-        return (f"dense solver needs a {n_vertices} x {n_vertices} matrix; benchmarked only up to "
-                f"reconstruct.DENSE_MAX_VERTICES = {reconstruct.DENSE_MAX_VERTICES} vertices")
+        return (
+            f"dense solver needs a {n_vertices} x {n_vertices} matrix; benchmarked only up to "
+            f"reconstruct.DENSE_MAX_VERTICES = {reconstruct.DENSE_MAX_VERTICES} vertices"
+        )
     return None
 
 
@@ -117,7 +119,9 @@ def parse_solvers(text: str) -> list[str]:
     names = [s.strip() for s in text.split(",") if s.strip()]
     unknown = [s for s in names if s not in reconstruct.SOLVERS]
     if unknown or not names:
-        raise ValueError(f"--solvers: expected a comma-separated subset of {','.join(reconstruct.SOLVERS)}, got '{text}'")
+        raise ValueError(
+            f"--solvers: expected a comma-separated subset of {','.join(reconstruct.SOLVERS)}, got '{text}'"
+        )
     return [s for s in reconstruct.SOLVERS if s in names]
 
 
@@ -230,9 +234,18 @@ def merged_info(infos) -> dict:
 # --------------------------------------------------------------------------------------------------
 
 
-def bench_case(case: str, frames: np.ndarray, faces: np.ndarray, dtype, repeats: int, chunk_frames: int = 0,
-               solvers=reconstruct.SOLVERS, cg_frames: int | None = None, cg_repeats: int | None = None,
-               log=print) -> list[dict]:
+def bench_case(
+    case: str,
+    frames: np.ndarray,
+    faces: np.ndarray,
+    dtype,
+    repeats: int,
+    chunk_frames: int = 0,
+    solvers=reconstruct.SOLVERS,
+    cg_frames: int | None = None,
+    cg_repeats: int | None = None,
+    log=print,
+) -> list[dict]:
     """Benchmark one sequence: encodes once, then prepare / decode / bare solve for each of ``solvers``.
 
     Returns one record per solver (a ``skipped`` record for a solver not run on this size).
@@ -249,8 +262,10 @@ def bench_case(case: str, frames: np.ndarray, faces: np.ndarray, dtype, repeats:
         chunk_frames = max(1, CHUNK_VERTEX_FRAMES // v)
     chunks = np.array_split(frames, math.ceil(n / chunk_frames))
     chunk_frames = max(c.shape[0] for c in chunks)
-    log(f"[{case} {dtype.name}] {v} vertices, {faces.shape[0]} faces, {n} frames "
-        f"({len(chunks)} chunk(s) of <= {chunk_frames} frames); solvers {', '.join(solvers)}")
+    log(
+        f"[{case} {dtype.name}] {v} vertices, {faces.shape[0]} faces, {n} frames "
+        f"({len(chunks)} chunk(s) of <= {chunk_frames} frames); solvers {', '.join(solvers)}"
+    )
 
     # Cold set-up, solver-free ("cg" builds no factor): pays JAX's compilation of the reference-frame
     # program for this shape and dtype, so each solver's prepare below is the set-up work alone.
@@ -310,18 +325,58 @@ def bench_case(case: str, frames: np.ndarray, faces: np.ndarray, dtype, repeats:
             log(f"  [{solver}] skipped: {reason}")
             records.append({"case": case, "solver": solver, **shared, "frames": int(n), "skipped": reason})
             continue
-        record, decoded = _bench_solver(case, solver, shared, rest, faces, frames, feats, host_positions, diag,
-                                        bare.key, solve3_ms, bare_factor_s, prepare_cold_s, enc, enc_local, enc_t,
-                                        repeats, cg_frames, cg_repeats, load_before, log)
+        record, decoded = _bench_solver(
+            case,
+            solver,
+            shared,
+            rest,
+            faces,
+            frames,
+            feats,
+            host_positions,
+            diag,
+            bare.key,
+            solve3_ms,
+            bare_factor_s,
+            prepare_cold_s,
+            enc,
+            enc_local,
+            enc_t,
+            repeats,
+            cg_frames,
+            cg_repeats,
+            load_before,
+            log,
+        )
         if solver == "host":
             host_positions = decoded
         records.append(record)
     return records
 
 
-def _bench_solver(case, solver, shared, rest, faces, frames, feats, host_positions, diag, bare_key, solve3_ms,
-                  bare_factor_s, prepare_cold_s, enc, enc_local, enc_t, repeats, cg_frames, cg_repeats, load_before,
-                  log) -> tuple[dict, np.ndarray]:
+def _bench_solver(
+    case,
+    solver,
+    shared,
+    rest,
+    faces,
+    frames,
+    feats,
+    host_positions,
+    diag,
+    bare_key,
+    solve3_ms,
+    bare_factor_s,
+    prepare_cold_s,
+    enc,
+    enc_local,
+    enc_t,
+    repeats,
+    cg_frames,
+    cg_repeats,
+    load_before,
+    log,
+) -> tuple[dict, np.ndarray]:
     """One solver's record, and its decoded positions (host_positions None: this solver is the reference)."""
     n_all = frames.shape[0]
     restore, method_s = method_timer()
@@ -348,25 +403,31 @@ def _bench_solver(case, solver, shared, rest, faces, frames, feats, host_positio
             reconstruct.solve_factor(bare_key, b)
 
     bare_all()  # warm-up
-    log(f"  [{solver}] prepare {prepare_s:.3f} s (solver set-up {factor_s:.3f} s); decoding {n} frame(s), "
-        f"{reps} timed call(s)")
+    log(
+        f"  [{solver}] prepare {prepare_s:.3f} s (solver set-up {factor_s:.3f} s); decoding {n} frame(s), "
+        f"{reps} timed call(s)"
+    )
 
     outs, first, calls, bares = timed_paired(lambda: [a.decode_info(f) for f in f_used], bare_all, reps)
     solve_all_ms = 1e3 * statistics.median(bares)
     dec = summary(first, calls, n, solves=merged_info([i for _, i in outs]))
     dec_ratio = dec["call_ms_median"] / solve_all_ms if solve_all_ms > 0 else None
     dec_paired = statistics.median(c / b for c, b in zip(calls, bares))
-    log(f"  [{solver}] decode        {dec['call_ms_median']:.3f} ms/call, {dec['per_frame_ms_median']:.3f} ms/frame, "
+    log(
+        f"  [{solver}] decode        {dec['call_ms_median']:.3f} ms/call, {dec['per_frame_ms_median']:.3f} ms/frame, "
         f"steps {dec['solves']['steps']}, converged {dec['solves']['converged']}; bare solve {solve_all_ms:.3f} ms, "
-        f"ratio {dec_ratio:.2f} (paired {dec_paired:.2f})")
+        f"ratio {dec_ratio:.2f} (paired {dec_paired:.2f})"
+    )
 
     outs0, first, calls0, bares0 = timed_paired(lambda: [a.decode_info(f, refine=0) for f in f_used], bare_all, reps)
     dec0 = summary(first, calls0, n, solves=merged_info([i for _, i in outs0]))
     solve_all0_ms = 1e3 * statistics.median(bares0)
     dec0_ratio = dec0["call_ms_median"] / solve_all0_ms if solve_all0_ms > 0 else None
     dec0_paired = statistics.median(c / b for c, b in zip(calls0, bares0))
-    log(f"  [{solver}] decode plain  {dec0['call_ms_median']:.3f} ms/call, {dec0['per_frame_ms_median']:.3f} ms/frame "
-        f"(refine=0), steps {dec0['solves']['steps']}; ratio {dec0_ratio:.2f} (paired {dec0_paired:.2f})")
+    log(
+        f"  [{solver}] decode plain  {dec0['call_ms_median']:.3f} ms/call, {dec0['per_frame_ms_median']:.3f} ms/frame "
+        f"(refine=0), steps {dec0['solves']['steps']}; ratio {dec0_ratio:.2f} (paired {dec0_paired:.2f})"
+    )
 
     decoded = np.concatenate([np.asarray(p) for p, _ in outs], axis=0)
     rt = roundtrip_error(frames[:n], decoded, rest)
@@ -376,8 +437,10 @@ def _bench_solver(case, solver, shared, rest, faces, frames, feats, host_positio
         deviation = float(np.max(dev)) / diag
     if decoded.dtype != frames.dtype:
         log(f"  note: decode returned {decoded.dtype} for {frames.dtype.name} input")
-    log(f"  [{solver}] round trip max {rt['max_rel']:.2e}, max deviation from host {_opt('.2e', deviation)} "
-        "(bbox diagonal)")
+    log(
+        f"  [{solver}] round trip max {rt['max_rel']:.2e}, max deviation from host {_opt('.2e', deviation)} "
+        "(bbox diagonal)"
+    )
     record = {
         "case": case,
         "solver": solver,
@@ -408,7 +471,7 @@ def _bench_solver(case, solver, shared, rest, faces, frames, feats, host_positio
         "peak_rss_mb": round(peak_rss_mb(), 1),
         "load_avg_1m": [round(load_before, 2), round(os.getloadavg()[0], 2)],
     }
-    del a
+    a = None  # noqa: F841  (releases the Acap and its host factor before the next solver)
     return record, decoded
 
 
@@ -456,14 +519,19 @@ def format_table(records: list[dict]) -> str:
     comp = ["", "first-call (compile) seconds: local / encode / temporal / decode / plain"]
     for r in records:
         if "skipped" not in r:
-            comp.append(f"  {r['case']:>7} {r['solver']:>6} {r['dtype']:>7}: {r['encode_local']['compile_s']:.2f} / "
-                        f"{r['encode']['compile_s']:.2f} / {r['encode_temporal']['compile_s']:.2f} / "
-                        f"{r['decode']['compile_s']:.2f} / {r['decode_plain']['compile_s']:.2f}")
-    notes = ["", "prep s: acap.prepare(solver=...) after a solver-free cold prepare; setup s: its solver set-up (factor);",
-             "enc/dec/plain: ms per frame (medians); dec call: ms per decode of all N frames (refine=1);",
-             "plain: refine=0; solve: bare cholespy solve of all N frames' right-hand sides (3 per frame), ms;",
-             "dec/sol: dec call / solve; paired: median of the ratios timed back to back; steps/conv: decode_info;",
-             "rt max: round-trip vertex error / bbox diagonal; dev host: max |p - p_host| / bbox diagonal"]
+            comp.append(
+                f"  {r['case']:>7} {r['solver']:>6} {r['dtype']:>7}: {r['encode_local']['compile_s']:.2f} / "
+                f"{r['encode']['compile_s']:.2f} / {r['encode_temporal']['compile_s']:.2f} / "
+                f"{r['decode']['compile_s']:.2f} / {r['decode_plain']['compile_s']:.2f}"
+            )
+    notes = [
+        "",
+        "prep s: acap.prepare(solver=...) after a solver-free cold prepare; setup s: its solver set-up (factor);",
+        "enc/dec/plain: ms per frame (medians); dec call: ms per decode of all N frames (refine=1);",
+        "plain: refine=0; solve: bare cholespy solve of all N frames' right-hand sides (3 per frame), ms;",
+        "dec/sol: dec call / solve; paired: median of the ratios timed back to back; steps/conv: decode_info;",
+        "rt max: round-trip vertex error / bbox diagonal; dev host: max |p - p_host| / bbox diagonal",
+    ]
     return "\n".join(lines + comp + notes)
 
 
@@ -488,22 +556,41 @@ def write_json_atomic(path: Path, payload: dict) -> None:
 
 def parse_args(argv=None) -> argparse.Namespace:
     p = argparse.ArgumentParser(prog="python -m benchmarks.acap", description=__doc__.split("\n\n")[0])
-    p.add_argument("--data", required=True, help="folder (or .npz) of meshes sharing one connectivity; reference = first")
+    p.add_argument(
+        "--data", required=True, help="folder (or .npz) of meshes sharing one connectivity; reference = first"
+    )
     p.add_argument("--json", required=True, help="output JSON path (parent folders are created)")
     p.add_argument("--repeats", type=int, default=5, help="timed calls per measurement (after one first call)")
-    p.add_argument("--solvers", default=",".join(reconstruct.SOLVERS),
-                   help=f"comma-separated reconstruction solvers to benchmark (default: {','.join(reconstruct.SOLVERS)})")
-    p.add_argument("--big-vertices", type=int, default=100_000, help="subdivide the big case to at least this many vertices")
+    p.add_argument(
+        "--solvers",
+        default=",".join(reconstruct.SOLVERS),
+        help=f"comma-separated reconstruction solvers to benchmark (default: {','.join(reconstruct.SOLVERS)})",
+    )
+    p.add_argument(
+        "--big-vertices", type=int, default=100_000, help="subdivide the big case to at least this many vertices"
+    )
     p.add_argument("--big-frames", type=int, default=8, help="frames of the big case (the first ones)")
-    p.add_argument("--big-cg-frames", type=int, default=2,
-                   help="frames decoded by conjugate gradients in the big case (the first ones)")
-    p.add_argument("--big-cg-repeats", type=int, default=1,
-                   help="at most this many timed calls for conjugate gradients in the big case")
+    p.add_argument(
+        "--big-cg-frames",
+        type=int,
+        default=2,
+        help="frames decoded by conjugate gradients in the big case (the first ones)",
+    )
+    p.add_argument(
+        "--big-cg-repeats",
+        type=int,
+        default=1,
+        help="at most this many timed calls for conjugate gradients in the big case",
+    )
     p.add_argument("--skip-big", action="store_true", help="leave out the subdivided big case")
     p.add_argument("--skip-dataset", action="store_true", help="leave out the data set itself (the big case only)")
     p.add_argument("--no-float64", action="store_true", help="float32 only (leave out the float64 runs)")
-    p.add_argument("--chunk-frames", type=int, default=0,
-                   help=f"frames per encode/decode call (0: auto, <= {CHUNK_VERTEX_FRAMES} vertex-frames per call)")
+    p.add_argument(
+        "--chunk-frames",
+        type=int,
+        default=0,
+        help=f"frames per encode/decode call (0: auto, <= {CHUNK_VERTEX_FRAMES} vertex-frames per call)",
+    )
     args = p.parse_args(argv)
     if args.repeats < 1:
         p.error("--repeats must be at least 1")
@@ -534,7 +621,9 @@ def main(argv=None) -> dict:
 def _run(args: argparse.Namespace, argv: list[str]) -> dict:
     frames, faces = load_sequence(args.data)
     print(f"data: {args.data}: {frames.shape[0]} frames, {frames.shape[1]} vertices, {faces.shape[0]} faces")
-    print(f"device: {device_info()['name']}  cpu: {cpu_info()}  jax {jax.__version__}  solvers: {','.join(args.solvers)}")
+    print(
+        f"device: {device_info()['name']}  cpu: {cpu_info()}  jax {jax.__version__}  solvers: {','.join(args.solvers)}"
+    )
     dtypes = [np.float32] if args.no_float64 else [np.float32, np.float64]
 
     records = []
@@ -546,14 +635,27 @@ def _run(args: argparse.Namespace, argv: list[str]) -> dict:
         sub_s = time.perf_counter() - t0
         print(f"big: {levels} Loop level(s) in {sub_s:.1f} s -> {big.shape[1]} vertices, {big_faces.shape[0]} faces")
         for dtype in dtypes:
-            recs = bench_case("big", big, big_faces, dtype, args.repeats, args.chunk_frames, args.solvers,
-                              cg_frames=args.big_cg_frames, cg_repeats=args.big_cg_repeats)
+            recs = bench_case(
+                "big",
+                big,
+                big_faces,
+                dtype,
+                args.repeats,
+                args.chunk_frames,
+                args.solvers,
+                cg_frames=args.big_cg_frames,
+                cg_repeats=args.big_cg_repeats,
+            )
             for rec in recs:
-                rec["subdivision"] = {"levels": levels, "seconds": round(sub_s, 3), "base_vertices": int(frames.shape[1])}
+                rec["subdivision"] = {
+                    "levels": levels,
+                    "seconds": round(sub_s, 3),
+                    "base_vertices": int(frames.shape[1]),
+                }
             records += recs
 
     payload = {
-        "date": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+        "date": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
         "command": "python -m benchmarks.acap " + shlex.join(argv),
         "data": str(args.data),
         "repeats": args.repeats,

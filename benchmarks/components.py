@@ -24,21 +24,20 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
-
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optax
+
+from benchmarks.acap import cpu_info
 from jaxdeform import acap
+from jaxdeform.components import model, train
 from jaxdeform.components import run as crun
-from jaxdeform.components import train
 from jaxdeform.mesh import load_sequence
 from jaxdeform.mesh.io import atomic_path
 from jaxdeform.mesh.topology import build_topology
 from jaxdeform.nn import xla
 from jaxdeform.nn.graph_conv import rings_from_topology
-from jaxdeform.components import model
-from benchmarks.acap import cpu_info
 
 CASES = (("multiscale", "default"), ("multiscale", "levels1"), ("tan", "default"))
 
@@ -70,9 +69,14 @@ def time_step(x, rings, dist, cfg: model.Config, tc: train.TrainConfig, repeats:
 
     compile_s, times, (_, _, _, loss, _) = _timed(threaded, (), repeats)
     med = statistics.median(times)
-    rec = {"compile_s": round(compile_s, 3), "step_ms_median": round(med, 2), "step_ms_min": round(min(times), 2),
-           "epochs": tc.epochs, "projected_training_min": round(tc.epochs * med / 6e4, 2),
-           "loss_finite": bool(np.isfinite(float(loss)))}
+    rec = {
+        "compile_s": round(compile_s, 3),
+        "step_ms_median": round(med, 2),
+        "step_ms_min": round(min(times), 2),
+        "epochs": tc.epochs,
+        "projected_training_min": round(tc.epochs * med / 6e4, 2),
+        "loss_finite": bool(np.isfinite(float(loss))),
+    }
     if loop > 0:  # steps dispatched back to back, as the training loop runs them: wall and process CPU time
         t0, c0 = time.perf_counter(), time.process_time()
         for _ in range(loop):
@@ -106,12 +110,15 @@ def breakdown(x, rings, dist, cfg: model.Config, tc: train.TrainConfig, repeats:
         return sum(jnp.sum(model.level_sparsity(q, dist, cfg, level)) for level, q in enumerate(p))
 
     level0 = dataclasses.replace(cfg, kz=cfg.kz[:1], d=cfg.d[:1])
-    return {"forward_ms": _median_ms(jit(loss), (params,), repeats),
-            "loss_and_gradient_ms": _median_ms(jit(jax.value_and_grad(loss)), (params,), repeats),
-            "adam_ms": _median_ms(jit(adam), (grads, opt_state, params), repeats),
-            "sparsity_and_gradient_ms": _median_ms(jit(jax.value_and_grad(sparsity)), (params,), repeats),
-            "level0_loss_and_gradient_ms": _median_ms(
-                jit(jax.value_and_grad(lambda p: loss(p, level0))), (params[:1],), repeats)}
+    return {
+        "forward_ms": _median_ms(jit(loss), (params,), repeats),
+        "loss_and_gradient_ms": _median_ms(jit(jax.value_and_grad(loss)), (params,), repeats),
+        "adam_ms": _median_ms(jit(adam), (grads, opt_state, params), repeats),
+        "sparsity_and_gradient_ms": _median_ms(jit(jax.value_and_grad(sparsity)), (params,), repeats),
+        "level0_loss_and_gradient_ms": _median_ms(
+            jit(jax.value_and_grad(lambda p: loss(p, level0))), (params[:1],), repeats
+        ),
+    }
 
 
 def main(argv=None) -> dict:
@@ -120,10 +127,18 @@ def main(argv=None) -> dict:
     parser.add_argument("--json", required=True)
     parser.add_argument("--repeats", type=int, default=10)
     parser.add_argument("--cases", nargs="+", default=[f"{m}:{c}" for m, c in CASES], metavar="METHOD:CONFIG")
-    parser.add_argument("--loop", type=int, default=0, metavar="N",
-                        help="also time N steps dispatched back to back, unblocked, as the training loop runs them")
-    parser.add_argument("--breakdown", action="store_true",
-                        help="also time the parts of each multiscale step (forward, gradient, Adam, sparsity, level 0)")
+    parser.add_argument(
+        "--loop",
+        type=int,
+        default=0,
+        metavar="N",
+        help="also time N steps dispatched back to back, unblocked, as the training loop runs them",
+    )
+    parser.add_argument(
+        "--breakdown",
+        action="store_true",
+        help="also time the parts of each multiscale step (forward, gradient, Adam, sparsity, level 0)",
+    )
     args = parser.parse_args(argv)
     vertices, faces = load_sequence(args.data)
     train_idx, _ = crun.split_indices(vertices.shape[0])
@@ -138,17 +153,29 @@ def main(argv=None) -> dict:
     for case in args.cases:
         method, name = case.split(":")
         cfg, tc = crun.resolve_config(method, name)
-        rec = {"method": method, "config": name, "vertices": int(rest.shape[0]), "shapes": int(x.shape[0]),
-               "blocks": [cfg.blocks(level) for level in range(cfg.levels)], "dtype": "float32",
-               "device": jax.devices()[0].platform, "cpu": cpu_info()}
+        rec = {
+            "method": method,
+            "config": name,
+            "vertices": int(rest.shape[0]),
+            "shapes": int(x.shape[0]),
+            "blocks": [cfg.blocks(level) for level in range(cfg.levels)],
+            "dtype": "float32",
+            "device": jax.devices()[0].platform,
+            "cpu": cpu_info(),
+        }
         rec.update(time_step(x, rings, dist, cfg, tc, args.repeats, args.loop))
         if args.breakdown and method == "multiscale":
             rec["breakdown"] = breakdown(x, rings, dist, cfg, tc, args.repeats)
         print(json.dumps(rec), flush=True)
         records.append(rec)
-    payload = {"date": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
-               "command": " ".join(shlex.quote(a) for a in [sys.executable, "-m", "benchmarks.components"] + list(argv or sys.argv[1:])),
-               "geodesics_s": round(geodesics_s, 2), "records": records}
+    payload = {
+        "date": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
+        "command": " ".join(
+            shlex.quote(a) for a in [sys.executable, "-m", "benchmarks.components"] + list(argv or sys.argv[1:])
+        ),
+        "geodesics_s": round(geodesics_s, 2),
+        "records": records,
+    }
     out = Path(args.json)
     out.parent.mkdir(parents=True, exist_ok=True)
     with atomic_path(out) as tmp:

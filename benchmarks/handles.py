@@ -30,12 +30,12 @@ import sys
 import time
 from pathlib import Path
 
+import jax
+import jax.numpy as jnp
 import numpy as np
 import trimesh
 
 import jaxdeform  # noqa: F401  (x64 on; everything here is float32 explicitly)
-import jax
-import jax.numpy as jnp
 from benchmarks.acap import cpu_info, device_info
 from jaxdeform.handles import weights as hw
 from jaxdeform.mesh import load_mesh
@@ -52,8 +52,12 @@ def _load() -> float:
 def _timing(times_s: list[float], compile_s: float) -> dict:
     ms = [1e3 * t for t in times_s]
     med = statistics.median(ms)
-    return {"compile_s": round(compile_s, 4), "ms_median": round(med, 3), "ms_min": round(min(ms), 3),
-            "repeats": len(ms)}
+    return {
+        "compile_s": round(compile_s, 4),
+        "ms_median": round(med, 3),
+        "ms_min": round(min(ms), 3),
+        "repeats": len(ms),
+    }
 
 
 def unit_features(n: int, c: int, seed: int) -> np.ndarray:
@@ -84,8 +88,12 @@ def bench_rebind(Z: np.ndarray, counts: list[int], repeats: int, seed: int) -> l
             host[k].append(time.perf_counter() - t0)
     records = []
     for k in counts:
-        rec = {"handles": k, "bucket": hw.bucket(k), **_timing(dev[k], compile_s[k]),
-               "ms_host_median": round(1e3 * statistics.median(host[k]), 3)}
+        rec = {
+            "handles": k,
+            "bucket": hw.bucket(k),
+            **_timing(dev[k], compile_s[k]),
+            "ms_host_median": round(1e3 * statistics.median(host[k]), 3),
+        }
         print(json.dumps({"rebind": rec}), flush=True)
         records.append(rec)
     return records
@@ -102,8 +110,15 @@ def pose_mesh(min_faces: int) -> tuple[np.ndarray, np.ndarray, int]:
 def _frames(rng, v: np.ndarray, handles: np.ndarray, n: int, rotate: bool) -> list[np.ndarray]:
     out = []
     for _ in range(n):
-        T = [hw.make_transform(v[h], rng.normal(scale=0.05, size=3), rng.normal(size=3) if rotate else None,
-                               float(rng.uniform(-30, 30)) if rotate else 0.0) for h in handles]
+        T = [
+            hw.make_transform(
+                v[h],
+                rng.normal(scale=0.05, size=3),
+                rng.normal(size=3) if rotate else None,
+                float(rng.uniform(-30, 30)) if rotate else 0.0,
+            )
+            for h in handles
+        ]
         out.append(np.asarray(T, dtype=np.float32))
     return out
 
@@ -168,9 +183,17 @@ def bench_pose(min_faces: int, k: int, frames: int, seed: int) -> tuple[dict, li
         "deformer_pou": (lambda T: dfm.deform(handles, T, pou=True), affine),
         "deformer_symmetric": (lambda T: dfm.deform(handles, T, symmetric=True), affine),
     }
-    info = {"vertices": int(v.shape[0]), "faces": int(f.shape[0]), "icosphere_level": level, "handles": k,
-            "dtype": "float32", "mesh_s": round(mesh_s, 2), "mean_weight_support": float(np.mean(np.asarray(W) > 0)),
-            "deformer_setup_and_symmetry_s": round(detect_s, 3), "symmetry_plane": detected.source}
+    info = {
+        "vertices": int(v.shape[0]),
+        "faces": int(f.shape[0]),
+        "icosphere_level": level,
+        "handles": k,
+        "dtype": "float32",
+        "mesh_s": round(mesh_s, 2),
+        "mean_weight_support": float(np.mean(np.asarray(W) > 0)),
+        "deformer_setup_and_symmetry_s": round(detect_s, 3),
+        "symmetry_plane": detected.source,
+    }
     records = _time_interleaved(variants, frames)
     for rec in records:
         print(json.dumps({"pose": rec}), flush=True)
@@ -180,8 +203,10 @@ def bench_pose(min_faces: int, k: int, frames: int, seed: int) -> tuple[dict, li
 def format_table(payload: dict) -> str:
     lines = [f"rebind on {payload['vertices']} vertices x {payload['channels']} channels (ms, median / min)"]
     for r in payload["rebind"]:
-        lines.append(f"  K = {r['handles']:4d} (bucket {r['bucket']:4d}): {r['ms_median']:8.2f} / {r['ms_min']:8.2f}"
-                     f"   compile {r['compile_s']:.3f} s")
+        lines.append(
+            f"  K = {r['handles']:4d} (bucket {r['bucket']:4d}): {r['ms_median']:8.2f} / {r['ms_min']:8.2f}"
+            f"   compile {r['compile_s']:.3f} s"
+        )
     if payload.get("pose"):
         p = payload["pose_mesh"]
         lines.append(f"pose on {p['vertices']} vertices / {p['faces']} faces, {p['handles']} handles (ms, fps)")
@@ -194,7 +219,9 @@ def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("--mesh", required=True, help="mesh for the rebind timing (armadillo: 25k vertices)")
     parser.add_argument("--json", required=True)
-    parser.add_argument("--features", default=None, help=".npy (V, C) features of the mesh's vertices (default: random)")
+    parser.add_argument(
+        "--features", default=None, help=".npy (V, C) features of the mesh's vertices (default: random)"
+    )
     parser.add_argument("--channels", type=int, default=384)
     parser.add_argument("--handles", type=int, nargs="+", default=[1, 10, 100])
     parser.add_argument("--repeats", type=int, default=30)
@@ -215,16 +242,28 @@ def main(argv=None) -> dict:
         Z = unit_features(verts.shape[0], args.channels, args.seed)
     load_before = _load()
     payload = {
-        "date": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
-        "command": " ".join(shlex.quote(a) for a in [sys.executable, "-m", "benchmarks.handles"] + list(argv if argv is not None else sys.argv[1:])),
-        "mesh": str(args.mesh), "vertices": int(verts.shape[0]), "faces": int(faces.shape[0]),
-        "channels": int(Z.shape[1]), "features": args.features or "random unit (seeded)", "dtype": "float32",
-        "jax_version": jax.__version__, "python": sys.version.split()[0], "device": device_info(), "cpu": cpu_info(),
+        "date": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
+        "command": " ".join(
+            shlex.quote(a)
+            for a in [sys.executable, "-m", "benchmarks.handles"] + list(argv if argv is not None else sys.argv[1:])
+        ),
+        "mesh": str(args.mesh),
+        "vertices": int(verts.shape[0]),
+        "faces": int(faces.shape[0]),
+        "channels": int(Z.shape[1]),
+        "features": args.features or "random unit (seeded)",
+        "dtype": "float32",
+        "jax_version": jax.__version__,
+        "python": sys.version.split()[0],
+        "device": device_info(),
+        "cpu": cpu_info(),
     }
     payload["rebind"] = bench_rebind(Z, args.handles, args.repeats, args.seed)
     payload["rebind_ms"] = {str(r["handles"]): r["ms_median"] for r in payload["rebind"]}
     if not args.skip_pose:
-        payload["pose_mesh"], payload["pose"] = bench_pose(args.pose_faces, args.pose_handles, args.pose_frames, args.seed)
+        payload["pose_mesh"], payload["pose"] = bench_pose(
+            args.pose_faces, args.pose_handles, args.pose_frames, args.seed
+        )
         payload["pose_fps"] = {r["variant"]: r["fps_median"] for r in payload["pose"]}
     payload["load_avg_1m"] = [load_before, _load()]
     print(format_table(payload), flush=True)

@@ -30,9 +30,9 @@ import sys
 import time
 from pathlib import Path
 
-import numpy as np
 import jax
 import jax.numpy as jnp
+import numpy as np
 from jax.experimental import sparse as jsparse
 
 from jaxdeform.components import model, train
@@ -108,8 +108,12 @@ def bcoo(x, neighbors, mask, degree):
     return _from_vertex_major(matrix @ _vertex_major(x), b, c)
 
 
-FORMULATIONS = {"gather_autodiff": gather_autodiff, "gather_bvc_custom_jvp": gather_bvc_custom_jvp,
-                "segment_sum": segment_sum, "bcoo": bcoo}
+FORMULATIONS = {
+    "gather_autodiff": gather_autodiff,
+    "gather_bvc_custom_jvp": gather_bvc_custom_jvp,
+    "segment_sum": segment_sum,
+    "bcoo": bcoo,
+}
 
 
 def cpu_model() -> str:
@@ -180,9 +184,14 @@ class _Case:
                 self.times.append(1e3 * (time.perf_counter() - t0))
 
     def record(self) -> dict:
-        return {"case": self.name, "compile_s": round(self.compile_s, 2),
-                "step_ms_median": round(statistics.median(self.times), 1), "step_ms_min": round(min(self.times), 1),
-                "steps_timed": len(self.times), "first_loss": self.loss}
+        return {
+            "case": self.name,
+            "compile_s": round(self.compile_s, 2),
+            "step_ms_median": round(statistics.median(self.times), 1),
+            "step_ms_min": round(min(self.times), 1),
+            "steps_timed": len(self.times),
+            "first_loss": self.loss,
+        }
 
 
 def main(argv=None) -> dict:
@@ -191,8 +200,9 @@ def main(argv=None) -> dict:
     parser.add_argument("--json", required=True)
     parser.add_argument("--repeats", type=int, default=10)
     parser.add_argument("--rounds", type=int, default=2)
-    parser.add_argument("--cases", nargs="+", default=None,
-                        help="cases to time (default: library and every formulation)")
+    parser.add_argument(
+        "--cases", nargs="+", default=None, help="cases to time (default: library and every formulation)"
+    )
     args = parser.parse_args(argv)
     cases = args.cases or ["library", *FORMULATIONS]
     x, rings, dist = load(args.data)
@@ -203,10 +213,17 @@ def main(argv=None) -> dict:
     records = [case.record() for case in runs]
     for rec in records:
         print(json.dumps(rec), flush=True)
-    payload = {"date": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
-               "command": " ".join([sys.executable, "-m", "benchmarks.mesh_conv_xla", *(argv or sys.argv[1:])]),
-               "cpu": cpu_model(), "jax": jax.__version__, "vertices": int(x.shape[1]), "shapes": int(x.shape[0]),
-               "ring_slots": int(rings.neighbors.shape[1]), "dtype": "float32", "records": records}
+    payload = {
+        "date": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
+        "command": " ".join([sys.executable, "-m", "benchmarks.mesh_conv_xla", *(argv or sys.argv[1:])]),
+        "cpu": cpu_model(),
+        "jax": jax.__version__,
+        "vertices": int(x.shape[1]),
+        "shapes": int(x.shape[0]),
+        "ring_slots": int(rings.neighbors.shape[1]),
+        "dtype": "float32",
+        "records": records,
+    }
     out = Path(args.json)
     out.parent.mkdir(parents=True, exist_ok=True)
     tmp = out.with_suffix(".tmp")

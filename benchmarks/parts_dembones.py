@@ -42,8 +42,18 @@ def _import_dem_bones():
     return py_dem_bones, DemBones
 
 
-def run_dem_bones(DemBones, frames: np.ndarray, faces: np.ndarray, *, bones: int, nnz: int, n_iters: int,
-                  n_init_iters: int, n_trans_iters: int, n_weights_iters: int):
+def run_dem_bones(
+    DemBones,
+    frames: np.ndarray,
+    faces: np.ndarray,
+    *,
+    bones: int,
+    nnz: int,
+    n_iters: int,
+    n_init_iters: int,
+    n_trans_iters: int,
+    n_weights_iters: int,
+):
     """Fit Dem Bones; returns (weights (B, V), transforms (T, B, 4, 4) column-vector, seconds, solver)."""
     rest = np.ascontiguousarray(frames[0], dtype=np.float64)
     n_frames, n_vertices = frames.shape[:2]
@@ -84,7 +94,9 @@ def skin(rest: np.ndarray, weights: np.ndarray, transforms: np.ndarray) -> np.nd
 
 def parse_args(argv=None) -> argparse.Namespace:
     p = argparse.ArgumentParser(prog="python -m benchmarks.parts_dembones", description=__doc__.split("\n\n")[0])
-    p.add_argument("--data", required=True, help="folder (or .npz) of meshes sharing one connectivity; rest pose = first")
+    p.add_argument(
+        "--data", required=True, help="folder (or .npz) of meshes sharing one connectivity; rest pose = first"
+    )
     p.add_argument("--bones", type=int, required=True, help="number of bones to ask Dem Bones for")
     p.add_argument("--json", required=True, help="output JSON path (parent folders are created)")
     p.add_argument("--ours", default=None, help="a run-summary JSON to copy under 'ours' in the output")
@@ -101,8 +113,10 @@ def main(argv=None) -> dict:
     args = parse_args(argv)
     py_dem_bones, DemBones = _import_dem_bones()
     if DemBones is None:
-        print("py_dem_bones is not importable: install it with `.venv/bin/pip install py-dem-bones==0.13.1`.",
-              file=sys.stderr)
+        print(
+            "py_dem_bones is not importable: install it with `.venv/bin/pip install py-dem-bones==0.13.1`.",
+            file=sys.stderr,
+        )
         raise SystemExit(2)
     if args.bones < 1:
         raise SystemExit("--bones must be at least 1.")
@@ -122,8 +136,15 @@ def main(argv=None) -> dict:
 
     load_before = os.getloadavg()[0]
     weights, transforms, seconds, solver = run_dem_bones(
-        DemBones, frames, faces, bones=args.bones, nnz=args.nnz, n_iters=args.iters,
-        n_init_iters=args.init_iters, n_trans_iters=args.trans_iters, n_weights_iters=args.weights_iters,
+        DemBones,
+        frames,
+        faces,
+        bones=args.bones,
+        nnz=args.nnz,
+        n_iters=args.iters,
+        n_init_iters=args.init_iters,
+        n_trans_iters=args.trans_iters,
+        n_weights_iters=args.weights_iters,
     )
     recon = skin(frames[0], weights, transforms)
     dist = np.linalg.norm(recon - frames, axis=-1)  # (T, V)
@@ -154,7 +175,7 @@ def main(argv=None) -> dict:
         "weights_sum_max": float(weights.sum(axis=0).max()),
     }
     payload = {
-        "date": _dt.datetime.now(_dt.timezone.utc).isoformat(timespec="seconds"),
+        "date": _dt.datetime.now(_dt.UTC).isoformat(timespec="seconds"),
         "command": "python -m benchmarks.parts_dembones " + shlex.join(argv),
         "data": str(args.data),
         "frames": int(n_frames),

@@ -37,9 +37,22 @@ def _free_port() -> int:
 def spawn(argv: list[str], processes: int, timeout: float) -> int:
     """Run ``processes`` copies of this script on this machine; the worst exit status."""
     coordinator = f"127.0.0.1:{_free_port()}"
-    procs = [subprocess.Popen([sys.executable, __file__, *argv, "--coordinator", coordinator,
-                               "--num-processes", str(processes), "--process-id", str(i)])
-             for i in range(processes)]
+    procs = [
+        subprocess.Popen(
+            [
+                sys.executable,
+                __file__,
+                *argv,
+                "--coordinator",
+                coordinator,
+                "--num-processes",
+                str(processes),
+                "--process-id",
+                str(i),
+            ]
+        )
+        for i in range(processes)
+    ]
     codes = []
     for p in procs:
         try:
@@ -67,8 +80,13 @@ def worker(data: str, frames: int | None, coordinator: str, num_processes: int, 
     from jaxdeform.mesh.io import SEQUENCE_SUFFIXES, natural_key
 
     path = Path(data)
-    files = [path] if path.is_file() else sorted(
-        (f for f in path.iterdir() if f.suffix.lower() in SEQUENCE_SUFFIXES), key=lambda f: natural_key(f.name))
+    files = (
+        [path]
+        if path.is_file()
+        else sorted(
+            (f for f in path.iterdir() if f.suffix.lower() in SEQUENCE_SUFFIXES), key=lambda f: natural_key(f.name)
+        )
+    )
     if len(files) == 1:  # one .npz holding the whole sequence: every process reads it, keeps its block
         everything, faces = load_sequence(files)
         n = len(everything) if frames is None else frames
@@ -97,9 +115,19 @@ def worker(data: str, frames: int | None, coordinator: str, num_processes: int, 
     err = np.array([np.linalg.norm(moved, axis=-1).max() / diag], np.float32)
     errs = multihost_utils.process_allgather(err)
     if process_id == 0:
-        print(json.dumps({"processes": num_processes, "devices": jax.device_count(), "frames": n,
-                          "vertices": int(rest.shape[0]), "features": list(feats.shape),
-                          "round_trip_max_over_diag": [float(e) for e in np.ravel(errs)]}), flush=True)
+        print(
+            json.dumps(
+                {
+                    "processes": num_processes,
+                    "devices": jax.device_count(),
+                    "frames": n,
+                    "vertices": int(rest.shape[0]),
+                    "features": list(feats.shape),
+                    "round_trip_max_over_diag": [float(e) for e in np.ravel(errs)],
+                }
+            ),
+            flush=True,
+        )
     jax.distributed.shutdown()
 
 

@@ -22,8 +22,8 @@ import os
 import re
 import sys
 import tempfile
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -43,8 +43,10 @@ HANDLES = "experiments/handles/results/summary.json"
 
 # Where a JSON names its machine only vaguely, the README's record of the same run says which it was (the
 # summary.json files of seeds 002 and 004 say "x86_64, 2 cores, CPU only").
-CLOTH_HARDWARE = ("accuracy: one run on the 2-core AMD EPYC VM, 2026-11-29; timing stage (`--stages timing`): "
-                  "the 2-core Intel Xeon VM, 2026-11-30")
+CLOTH_HARDWARE = (
+    "accuracy: one run on the 2-core AMD EPYC VM, 2026-11-29; timing stage (`--stages timing`): "
+    "the 2-core Intel Xeon VM, 2026-11-30"
+)
 HANDLES_HARDWARE = "one run on the 2-core AMD EPYC VM, float32"
 
 # The papers' figures (constants of the papers, not measurements of ours)
@@ -60,7 +62,7 @@ def num(x: float | None, sig: int = 3) -> str:
     x = float(x)
     if x == 0:
         return "0"
-    if abs(x) >= 10 ** sig:
+    if abs(x) >= 10**sig:
         return f"{round(x):,}"
     if abs(x) < 1e-3:
         mantissa, exponent = f"{x:.{sig - 1}e}".split("e")
@@ -78,8 +80,7 @@ def load(root: Path, rel: str) -> dict:
 
 
 def table(header: list[str], rows: list[list[str]]) -> list[str]:
-    return (["| " + " | ".join(header) + " |", "|" + "---|" * len(header)]
-            + ["| " + " | ".join(r) + " |" for r in rows])
+    return ["| " + " | ".join(header) + " |", "|" + "---|" * len(header)] + ["| " + " | ".join(r) + " |" for r in rows]
 
 
 def short_hardware(text: str) -> str:
@@ -128,18 +129,40 @@ def acap_table(root: Path) -> str:
     for key, (g, run) in gpu.items():
         c = cpu[key]
         data = Path(run["data"]).name
-        rows.append([data if g["case"] == "dataset" else f"{data}, Loop-subdivided", f"{g['vertices']:,}",
-                     short_dtype(g["dtype"])]
-                    + [slashed([g[k]["per_frame_ms_median"], c[k]["per_frame_ms_median"]])
-                       for k in ("encode_local", "encode", "encode_temporal", "decode", "decode_plain")]
-                    + [slashed([g["cholespy_solve_3rhs_ms"], c["cholespy_solve_3rhs_ms"]]),
-                       " ; ".join(dict.fromkeys(round_trip(r) for r in (g, c)))])  # one pair where both agree
-    head = ["case", "V", "dtype", "encode, local", "encode, spatial", "encode, TS-ACAP", "decode, refine=1",
-            "decode, refine=0", "cholespy solve, 3 rhs", "round trip mean / max (x bbox diag), both devices"]
+        rows.append(
+            [
+                data if g["case"] == "dataset" else f"{data}, Loop-subdivided",
+                f"{g['vertices']:,}",
+                short_dtype(g["dtype"]),
+            ]
+            + [
+                slashed([g[k]["per_frame_ms_median"], c[k]["per_frame_ms_median"]])
+                for k in ("encode_local", "encode", "encode_temporal", "decode", "decode_plain")
+            ]
+            + [
+                slashed([g["cholespy_solve_3rhs_ms"], c["cholespy_solve_3rhs_ms"]]),
+                " ; ".join(dict.fromkeys(round_trip(r) for r in (g, c))),
+            ]
+        )  # one pair where both agree
+    head = [
+        "case",
+        "V",
+        "dtype",
+        "encode, local",
+        "encode, spatial",
+        "encode, TS-ACAP",
+        "decode, refine=1",
+        "decode, refine=0",
+        "cholespy solve, 3 rhs",
+        "round trip mean / max (x bbox diag), both devices",
+    ]
     cpu_name = short_hardware(next(iter(cpu.values()))["cpu"])
-    lines = [f"`python -m benchmarks.acap` {first_sentence} ({link(ACAP)}). Milliseconds per frame, median of "
-             f"{cpu_run['repeats']} warm calls over every frame, each cell {gpu_name} (jax {run['jax_version']}) / "
-             f"{cpu_name} (jax {cpu_run['jax_version']}); the host solver (cholespy) on both.", ""]
+    lines = [
+        f"`python -m benchmarks.acap` {first_sentence} ({link(ACAP)}). Milliseconds per frame, median of "
+        f"{cpu_run['repeats']} warm calls over every frame, each cell {gpu_name} (jax {run['jax_version']}) / "
+        f"{cpu_name} (jax {cpu_run['jax_version']}); the host solver (cholespy) on both.",
+        "",
+    ]
     return "\n".join(lines + table(head, rows))
 
 
@@ -155,19 +178,34 @@ def acap_solvers_table(root: Path) -> str:
             return "-"
         return f"{r['cg_steps']}" + ("" if r["cg_converged"] else " (not converged)")
 
-    cells = (lambda r: num(r["decode"]["call_ms_median"]), lambda r: num(r["cholespy_solve_all_ms"]),
-             lambda r: num(r["decode_over_solve"]), cg_steps, lambda r: num(r["max_dev_from_host"], 2))
+    cells = (
+        lambda r: num(r["decode"]["call_ms_median"]),
+        lambda r: num(r["cholespy_solve_all_ms"]),
+        lambda r: num(r["decode_over_solve"]),
+        cg_steps,
+        lambda r: num(r["max_dev_from_host"], 2),
+    )
     rows = []
     for solver in d["solvers"]:
         rs = [by[(solver, t)] for t in dtypes]
         rows.append([solver] + [" / ".join(cell(r) for r in rs) for cell in cells])
-    head = ["solver", f"decode, {recs[0]['frames']} frames (ms)", "bare cholespy solve, same rhs (ms)",
-            "decode / solve", "CG steps (converged)", "max deviation from host (x bbox diag)"]
+    head = [
+        "solver",
+        f"decode, {recs[0]['frames']} frames (ms)",
+        "bare cholespy solve, same rhs (ms)",
+        "decode / solve",
+        "CG steps (converged)",
+        "max deviation from host (x bbox diag)",
+    ]
     load_text = f", load average {min(loads):g}-{max(loads):g}: compare ratios within the table" if loads else ""
-    lines = [f"{Path(d['data']).name}, {recs[0]['vertices']:,} vertices, {short_hardware(recs[0]['cpu'])} (CPU only, "
-             f"jax {d['jax_version']}, {d['date'][:10]}{load_text}; `python -m benchmarks.acap --skip-big --repeats "
-             f"{d['repeats']}`, {link(ACAP_SOLVERS)}). Each cell " + " / ".join(short_dtype(t) for t in dtypes)
-             + "; decode: the default (one refinement step), all frames in one call.", ""]
+    lines = [
+        f"{Path(d['data']).name}, {recs[0]['vertices']:,} vertices, {short_hardware(recs[0]['cpu'])} (CPU only, "
+        f"jax {d['jax_version']}, {d['date'][:10]}{load_text}; `python -m benchmarks.acap --skip-big --repeats "
+        f"{d['repeats']}`, {link(ACAP_SOLVERS)}). Each cell "
+        + " / ".join(short_dtype(t) for t in dtypes)
+        + "; decode: the default (one refinement step), all frames in one call.",
+        "",
+    ]
     return "\n".join(lines + table(head, rows))
 
 
@@ -183,64 +221,115 @@ def components_table(root: Path) -> str:
         return fixed(v, 4)
 
     def row(table_name, model, tests, eq8, paper, hardware, source):
-        rows.append([table_name, model, slashed([t["erms"] for t in tests], erms),
-                     slashed([t["sted"] for t in tests], sted), slashed(eq8), paper,
-                     f"{short_hardware(hardware)}, {source}"])
+        rows.append(
+            [
+                table_name,
+                model,
+                slashed([t["erms"] for t in tests], erms),
+                slashed([t["sted"] for t in tests], sted),
+                slashed(eq8),
+                paper,
+                f"{short_hardware(hardware)}, {source}",
+            ]
+        )
 
     d4 = t4["rows"]["horse-gallop/default"]["test"]
-    row("2, 4", "multiscale, default (joint, attention)", [d4], [d4["max_relative_squared_error"]],
-        "6.92 / 0.0336", t4["hardware"], link(C_TABLE4))
-    for key, label in (("tan", "Tan et al."), ("pca", "PCA, ACAP features"), ("pca-xyz", "PCA, coordinates"),
-                       ("splocs", "SPLOCS (coordinates)")):
+    row(
+        "2, 4",
+        "multiscale, default (joint, attention)",
+        [d4],
+        [d4["max_relative_squared_error"]],
+        "6.92 / 0.0336",
+        t4["hardware"],
+        link(C_TABLE4),
+    )
+    for key, label in (
+        ("tan", "Tan et al."),
+        ("pca", "PCA, ACAP features"),
+        ("pca-xyz", "PCA, coordinates"),
+        ("splocs", "SPLOCS (coordinates)"),
+    ):
         r = t2["rows"][f"horse-gallop/{key}"]
         paper = "-" if r["paper"] is None else f"{erms(r['paper']['erms'])} / {sted(r['paper']['sted'])}"
         row("2", label, [r["test"]], [None], paper, t2["hardware"], link(C_TABLE2, "JSON*"))
     keys4 = ("separate", "no-attention-separate", "no-attention")
     tests = [t4["rows"][f"horse-gallop/{k}"]["test"] for k in keys4]
-    row("4", "separate, attention / separate, no attention / joint, no attention", tests,
-        [t["max_relative_squared_error"] for t in tests], slashed([PAPER_TABLE4[k] for k in keys4], erms) + " (Erms)",
-        t4["hardware"], link(C_TABLE4))
+    row(
+        "4",
+        "separate, attention / separate, no attention / joint, no attention",
+        tests,
+        [t["max_relative_squared_error"] for t in tests],
+        slashed([PAPER_TABLE4[k] for k in keys4], erms) + " (Erms)",
+        t4["hardware"],
+        link(C_TABLE4),
+    )
     keys5 = ("levels1", "default", "levels3")
     tests = [t5["rows"][f"horse-gallop/{k}"]["test"] for k in keys5]
-    row("5", "one / two (default) / three levels", tests, [t["max_relative_squared_error"] for t in tests],
-        "eq. 8: " + slashed([PAPER_TABLE5[k] for k in keys5]), t5["hardware"], link(C_TABLE5))
+    row(
+        "5",
+        "one / two (default) / three levels",
+        tests,
+        [t["max_relative_squared_error"] for t in tests],
+        "eq. 8: " + slashed([PAPER_TABLE5[k] for k in keys5]),
+        t5["hardware"],
+        link(C_TABLE5),
+    )
     r2, r3 = t5all["rows"]["two"], t5all["rows"]["three"]
-    row("5", f"two / three levels trained on all 48 shapes ({r2['epochs']:,} epochs)",
+    row(
+        "5",
+        f"two / three levels trained on all 48 shapes ({r2['epochs']:,} epochs)",
         [{"erms": r2["erms"], "sted": None}, {"erms": r3["erms"], "sted": None}],
         [r2["max_relative_squared_error"], r3["max_relative_squared_error"]],
         "eq. 8: " + slashed([r2["paper_max_relative_squared_error"], r3["paper_max_relative_squared_error"]]),
-        t5all["hardware"], link(C_TABLE5_ALL))
+        t5all["hardware"],
+        link(C_TABLE5_ALL),
+    )
     r = ft["multiscale_finetuned_3000_rigid_plus1000_generated400_round6"]["evaluate"]["test"]
-    row("2", "multiscale + `components finetune` (3,000 + 6 x 1,000 steps)", [r], [r["max_relative_squared_error"]],
-        "6.92 / 0.0336", ft["hardware"], link(C_FINETUNE))
+    row(
+        "2",
+        "multiscale + `components finetune` (3,000 + 6 x 1,000 steps)",
+        [r],
+        [r["max_relative_squared_error"]],
+        "6.92 / 0.0336",
+        ft["hardware"],
+        link(C_FINETUNE),
+    )
     head = ["paper table", "model", "test Erms", "test STED", "max eq. 8", "paper Erms / STED", "hardware, source"]
     default, b3k = budget["runs"]["default_10000_epochs"], budget["runs"]["base_3000_epochs_plus_finetune_2000"]
     f_ms, f_tan = fig6["rows"]["horse-gallop/multiscale"]["20"], fig6["rows"]["horse-gallop/tan"]["20"]
-    lines = ["horse-gallop: every 10th shape trains (5), the other 43 test; Erms in the paper's units (unit ball, "
-             "x 1000); max eq. 8: the largest relative squared error of the features over the test shapes (over all "
-             "48 where all train). JSON*: transcribed from the run's markdown.", ""]
-    tail = ["", "Default training (`jaxdeform components train`, 10,000 epochs): compile "
-                f"{fixed(default['compile_s'], 1)} s + {fixed(default['train_s'], 1)} s on "
-                f"{short_hardware(budget['hardware'])} ({link(C_BUDGET)}; with the C++ CPU kernels since removed, see "
-                "the notes); 3,000 epochs, then 2,000 steps of `components finetune --rigid`: test Erms "
-                f"{erms(b3k['test']['erms'])} in {num(b3k['compile_and_training_s'])} s. Editing toward 8 unseen "
-                f"shapes with 20 controls (Fig. 6): mean error {num(f_ms['mean_error'])} of the diagonal (multiscale) against "
-                f"{num(f_tan['mean_error'])} (Tan et al.), {short_hardware(fig6['hardware'])} ({link(C_FIG6)})."]
+    lines = [
+        "horse-gallop: every 10th shape trains (5), the other 43 test; Erms in the paper's units (unit ball, "
+        "x 1000); max eq. 8: the largest relative squared error of the features over the test shapes (over all "
+        "48 where all train). JSON*: transcribed from the run's markdown.",
+        "",
+    ]
+    tail = [
+        "",
+        "Default training (`jaxdeform components train`, 10,000 epochs): compile "
+        f"{fixed(default['compile_s'], 1)} s + {fixed(default['train_s'], 1)} s on "
+        f"{short_hardware(budget['hardware'])} ({link(C_BUDGET)}; with the C++ CPU kernels since removed, see "
+        "the notes); 3,000 epochs, then 2,000 steps of `components finetune --rigid`: test Erms "
+        f"{erms(b3k['test']['erms'])} in {num(b3k['compile_and_training_s'])} s. Editing toward 8 unseen "
+        f"shapes with 20 controls (Fig. 6): mean error {num(f_ms['mean_error'])} of the diagonal (multiscale) against "
+        f"{num(f_tan['mean_error'])} (Tan et al.), {short_hardware(fig6['hardware'])} ({link(C_FIG6)}).",
+    ]
     return "\n".join(lines + table(head, rows) + tail)
 
 
 def cloth_table(root: Path) -> str:
     d = load(root, CLOTH)
     sheet, disk = d["datasets"]["sheet"], d["datasets"]["disk"]
-    labels = [("upsampled_coarse", "coarse simulation, Loop-upsampled"),
-              ("ours", "**ours**: DeformTransformer on TS-ACAP (teacher forcing, the paper's)"),
-              ("ours_self_fed", "ours, self-fed in training (`--self-feed 0.5`, the CLI's default)"),
-              ("ours_direct", "ours_direct: the paper's direct coarse-to-fine feature mapping"),
-              ("no_temporal", "no temporal module (per-frame encoder-decoder)"),
-              ("lstm", "LSTM in place of the transformer"),
-              ("acap", "transformer on plain ACAP"),
-              ("coords", "transformer on coordinates"),
-              ("linear_residual", "reference: upsampled coarse + a ridge-regressed linear map")]
+    labels = [
+        ("upsampled_coarse", "coarse simulation, Loop-upsampled"),
+        ("ours", "**ours**: DeformTransformer on TS-ACAP (teacher forcing, the paper's)"),
+        ("ours_self_fed", "ours, self-fed in training (`--self-feed 0.5`, the CLI's default)"),
+        ("ours_direct", "ours_direct: the paper's direct coarse-to-fine feature mapping"),
+        ("no_temporal", "no temporal module (per-frame encoder-decoder)"),
+        ("lstm", "LSTM in place of the transformer"),
+        ("acap", "transformer on plain ACAP"),
+        ("coords", "transformer on coordinates"),
+        ("linear_residual", "reference: upsampled coarse + a ridge-regressed linear map"),
+    ]
 
     def accuracy(rmse: float, sted: float) -> str:
         return f"{fixed(rmse, 4)} / {fixed(sted, 3)}"
@@ -250,23 +339,34 @@ def cloth_table(root: Path) -> str:
 
     def speed(ds: dict) -> str:
         t = ds["timing"]
-        return (f"{fixed(t['ours_total'] * 1e3, 1)} ms / {num(t['fine_simulation'] * 1e3)} ms "
-                f"(**{fixed(t['speedup'], 1)}x**)")
+        return (
+            f"{fixed(t['ours_total'] * 1e3, 1)} ms / {num(t['fine_simulation'] * 1e3)} ms "
+            f"(**{fixed(t['speedup'], 1)}x**)"
+        )
 
     def name(label: str, ds: dict) -> str:
         v, split = ds["data"]["vertices"], ds["data"]["split"]
-        return (f"{label} ({v['coarse']:,} / {v['fine']:,} vertices, {len(split['train'])} / {len(split['test'])} "
-                "train / test sequences)")
+        return (
+            f"{label} ({v['coarse']:,} / {v['fine']:,} vertices, {len(split['train'])} / {len(split['test'])} "
+            "train / test sequences)"
+        )
 
-    rows = [[label, accuracy(sheet["rmse"][m], sheet["sted"][m]), accuracy(disk["rmse"][m], disk["sted"][m])]
-            for m, label in labels]
-    rows.append(["floor: the fine simulation against itself from a start perturbed by 0.1 mm", floor(sheet),
-                 floor(disk)])
-    rows.append(["per frame: ours (coarse simulation to refined fine cloth) / the fine simulation", speed(sheet),
-                 speed(disk)])
+    rows = [
+        [label, accuracy(sheet["rmse"][m], sheet["sted"][m]), accuracy(disk["rmse"][m], disk["sted"][m])]
+        for m, label in labels
+    ]
+    rows.append(
+        ["floor: the fine simulation against itself from a start perturbed by 0.1 mm", floor(sheet), floor(disk)]
+    )
+    rows.append(
+        ["per frame: ours (coarse simulation to refined fine cloth) / the fine simulation", speed(sheet), speed(disk)]
+    )
     head = ["test RMSE (m) / STED", name("SHEET", sheet), name("DISK", disk)]
-    lines = [f"`python -m experiments.cloth.run --datasets sheet disk` (CPU only, float32; {CLOTH_HARDWARE}; the "
-             f"JSON: \"{d['machine']}\"; {link(CLOTH)}).", ""]
+    lines = [
+        f"`python -m experiments.cloth.run --datasets sheet disk` (CPU only, float32; {CLOTH_HARDWARE}; the "
+        f'JSON: "{d["machine"]}"; {link(CLOTH)}).',
+        "",
+    ]
     return "\n".join(lines + table(head, rows))
 
 
@@ -276,16 +376,35 @@ def parts_table(root: Path) -> str:
     for r in d["results"]:
         o, p = r["ours"], r["dem_bones_rigid"]
         pps, its = o["parts_per_stage"], o["iterations"]
-        rows.append([r["dataset"], str(r["shapes"]), f"{pps['coarse']}/{pps['refine']}/{pps['final']}",
-                     f"{its['coarse']}/{its['refine']}/{its['final']}", fixed(o["rmse_over_diagonal"], 5),
-                     fixed(o["seconds"], 1), fixed(p["rmse_over_diagonal"], 5), fixed(p["seconds"], 1),
-                     f"{o['max_joint_gap_over_diagonal']:.0e}".replace("e-0", "e-")])
-    head = ["data", "shapes", "parts (coarse/refined/final)", "AECM iterations (coarse/refine/final)",
-            "ours RMSE / diag", "ours s", "Dem Bones rigid, same bones: RMSE / diag", "Dem Bones s",
-            "max joint gap / diag"]
-    lines = [f"`python -m experiments.parts.run` ({d['hardware']}, {d['date']}; {link(PARTS)}, transcribed from "
-             "that run's table). Dem Bones: py-dem-bones with one influence per vertex, as many bones as our parts.",
-             ""]
+        rows.append(
+            [
+                r["dataset"],
+                str(r["shapes"]),
+                f"{pps['coarse']}/{pps['refine']}/{pps['final']}",
+                f"{its['coarse']}/{its['refine']}/{its['final']}",
+                fixed(o["rmse_over_diagonal"], 5),
+                fixed(o["seconds"], 1),
+                fixed(p["rmse_over_diagonal"], 5),
+                fixed(p["seconds"], 1),
+                f"{o['max_joint_gap_over_diagonal']:.0e}".replace("e-0", "e-"),
+            ]
+        )
+    head = [
+        "data",
+        "shapes",
+        "parts (coarse/refined/final)",
+        "AECM iterations (coarse/refine/final)",
+        "ours RMSE / diag",
+        "ours s",
+        "Dem Bones rigid, same bones: RMSE / diag",
+        "Dem Bones s",
+        "max joint gap / diag",
+    ]
+    lines = [
+        f"`python -m experiments.parts.run` ({d['hardware']}, {d['date']}; {link(PARTS)}, transcribed from "
+        "that run's table). Dem Bones: py-dem-bones with one influence per vertex, as many bones as our parts.",
+        "",
+    ]
     return "\n".join(lines + table(head, rows))
 
 
@@ -297,19 +416,38 @@ def handles_table(root: Path) -> str:
     t = by_faces[at]
     distill = " / ".join(fixed(ds[k], 1) for k in ("render", "features", "field"))
     rows = [
-        [f"distil {dm['name']} ({dm['vertices']:,} vertices), {dm['views']} views at {dm['resolution']}: "
-         "render / features / field / total", f"{distill} / **{fixed(ds['total'], 1)} s**", "-"],
-        ["rebind (weights of a new handle set): " + " / ".join(rb) + " handles",
-         " / ".join(num(v) for v in rb.values()) + " ms", " / ".join(str(PAPER_REBIND_MS[k]) for k in rb) + " ms"],
-        [f"pose, {pose['faces']:,} faces, {pose['handles']} affine handles",
-         f"{fixed(pose['pose_ms'], 1)} ms = {round(pose['fps'])} frames/s", "-"],
-        [f"bind 10 handles at {at:,} faces: DFD / ARAP (libigl) / biharmonic (libigl)",
-         slashed([t["dfd"]["bind"], t["arap"]["bind"], t["biharmonic"]["bind"]]) + " s", "-"],
-        ["symmetry score (eq. 9, detected below 0.1): " + ", ".join(d["symmetry"]),
-         ", ".join(num(min(p["score"] for p in s["planes"]), 2) for s in d["symmetry"].values()), "-"],
+        [
+            f"distil {dm['name']} ({dm['vertices']:,} vertices), {dm['views']} views at {dm['resolution']}: "
+            "render / features / field / total",
+            f"{distill} / **{fixed(ds['total'], 1)} s**",
+            "-",
+        ],
+        [
+            "rebind (weights of a new handle set): " + " / ".join(rb) + " handles",
+            " / ".join(num(v) for v in rb.values()) + " ms",
+            " / ".join(str(PAPER_REBIND_MS[k]) for k in rb) + " ms",
+        ],
+        [
+            f"pose, {pose['faces']:,} faces, {pose['handles']} affine handles",
+            f"{fixed(pose['pose_ms'], 1)} ms = {round(pose['fps'])} frames/s",
+            "-",
+        ],
+        [
+            f"bind 10 handles at {at:,} faces: DFD / ARAP (libigl) / biharmonic (libigl)",
+            slashed([t["dfd"]["bind"], t["arap"]["bind"], t["biharmonic"]["bind"]]) + " s",
+            "-",
+        ],
+        [
+            "symmetry score (eq. 9, detected below 0.1): " + ", ".join(d["symmetry"]),
+            ", ".join(num(min(p["score"] for p in s["planes"]), 2) for s in d["symmetry"].values()),
+            "-",
+        ],
     ]
-    lines = [f"`python -m experiments.handles.run` ({HANDLES_HARDWARE}; the JSON: \"{d['machine']}\"; "
-             f"{link(HANDLES)}). The paper's figures ran on an A40 GPU.", ""]
+    lines = [
+        f'`python -m experiments.handles.run` ({HANDLES_HARDWARE}; the JSON: "{d["machine"]}"; '
+        f"{link(HANDLES)}). The paper's figures ran on an A40 GPU.",
+        "",
+    ]
     return "\n".join(lines + table(["what", "ours", "paper"], rows))
 
 
@@ -348,8 +486,12 @@ def main(argv: list[str] | None = None) -> int:
     p = argparse.ArgumentParser(prog="python -m experiments.report", description=__doc__.split("\n\n")[0])
     p.add_argument("--check", action="store_true", help="compare only; exit 1 if README.md's tables differ")
     p.add_argument("--readme", type=Path, default=ROOT / "README.md")
-    p.add_argument("--results-root", type=Path, default=ROOT,
-                   help="the folder holding benchmarks/results/ and experiments/*/results/ (default: the repository)")
+    p.add_argument(
+        "--results-root",
+        type=Path,
+        default=ROOT,
+        help="the folder holding benchmarks/results/ and experiments/*/results/ (default: the repository)",
+    )
     args = p.parse_args(argv)
     current = args.readme.read_text()
     try:
@@ -361,10 +503,13 @@ def main(argv: list[str] | None = None) -> int:
         if new == current:
             print(f"{args.readme}: the results tables match the JSON.")
             return 0
-        sys.stdout.writelines(difflib.unified_diff(current.splitlines(True), new.splitlines(True),
-                                                   str(args.readme), "from the JSON"))
-        print(f"{args.readme}: the results tables differ from the JSON; run python -m experiments.report.",
-              file=sys.stderr)
+        sys.stdout.writelines(
+            difflib.unified_diff(current.splitlines(True), new.splitlines(True), str(args.readme), "from the JSON")
+        )
+        print(
+            f"{args.readme}: the results tables differ from the JSON; run python -m experiments.report.",
+            file=sys.stderr,
+        )
         return 1
     if new != current:
         fd, tmp = tempfile.mkstemp(dir=args.readme.parent, prefix=".README.", suffix=".tmp")

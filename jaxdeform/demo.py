@@ -57,10 +57,25 @@ def round_trip_errors(original: np.ndarray, decoded: np.ndarray) -> np.ndarray:
 
 
 def format_table(rows: list[dict]) -> str:
-    headers = ["consistency", "max angle (rad)", "mean err / diag", "max err / diag", "encode ms/frame",
-               "decode ms/frame"]
-    cells = [[r["consistency"], f"{r['max_angle_rad']:.4f}", f"{r['mean_error']:.3e}", f"{r['max_error']:.3e}",
-              f"{r['encode_ms_per_frame']:.2f}", f"{r['decode_ms_per_frame']:.2f}"] for r in rows]
+    headers = [
+        "consistency",
+        "max angle (rad)",
+        "mean err / diag",
+        "max err / diag",
+        "encode ms/frame",
+        "decode ms/frame",
+    ]
+    cells = [
+        [
+            r["consistency"],
+            f"{r['max_angle_rad']:.4f}",
+            f"{r['mean_error']:.3e}",
+            f"{r['max_error']:.3e}",
+            f"{r['encode_ms_per_frame']:.2f}",
+            f"{r['decode_ms_per_frame']:.2f}",
+        ]
+        for r in rows
+    ]
     widths = [max(len(h), *(len(c[i]) for c in cells)) for i, h in enumerate(headers)]
 
     def line(items):
@@ -89,14 +104,16 @@ def run(out: Path, n_frames: int = 24) -> dict:
         v, decoded = np.asarray(v), np.asarray(decoded)
         err = round_trip_errors(vertices, decoded)
         decoded_by_mode[mode], v_by_mode[mode], err_by_mode[mode] = decoded, v, err
-        rows.append({
-            "consistency": mode,
-            "max_angle_rad": float(np.linalg.norm(v, axis=-1).max()),
-            "mean_error": float(err.mean()),
-            "max_error": float(err.max()),
-            "encode_ms_per_frame": 1e3 * enc_s / n,
-            "decode_ms_per_frame": 1e3 * dec_s / n,
-        })
+        rows.append(
+            {
+                "consistency": mode,
+                "max_angle_rad": float(np.linalg.norm(v, axis=-1).max()),
+                "mean_error": float(err.mean()),
+                "max_error": float(err.max()),
+                "encode_ms_per_frame": 1e3 * enc_s / n,
+                "decode_ms_per_frame": 1e3 * dec_s / n,
+            }
+        )
     compute_s = time.perf_counter() - t_start
 
     out.mkdir(parents=True, exist_ok=True)
@@ -104,42 +121,79 @@ def run(out: Path, n_frames: int = 24) -> dict:
     last = n - 1
     images = {
         "reference.png": render(rest, faces, camera=auto_camera(rest, **VIEW), width=WIDTH, height=HEIGHT),
-        "deformed.png": render(vertices[last], faces, camera=auto_camera(vertices[last], **VIEW),
-                               width=WIDTH, height=HEIGHT),
+        "deformed.png": render(
+            vertices[last], faces, camera=auto_camera(vertices[last], **VIEW), width=WIDTH, height=HEIGHT
+        ),
         "error.png": render(
-            decoded_by_mode["spatial"][last], faces, camera=auto_camera(decoded_by_mode["spatial"][last], **VIEW),
-            scalar=err_by_mode["spatial"][last], vmin=0.0, width=WIDTH, height=HEIGHT, cmap="viridis",
+            decoded_by_mode["spatial"][last],
+            faces,
+            camera=auto_camera(decoded_by_mode["spatial"][last], **VIEW),
+            scalar=err_by_mode["spatial"][last],
+            vmin=0.0,
+            width=WIDTH,
+            height=HEIGHT,
+            cmap="viridis",
             label="error / bbox diag",
         ),
         "rotation_angle.png": render(
-            vertices[last], faces, camera=auto_camera(vertices[last], **VIEW),
-            scalar=np.linalg.norm(v_by_mode["temporal"][last], axis=-1), vmin=0.0, width=WIDTH, height=HEIGHT,
-            cmap="viridis", label="|v| (rad)",
+            vertices[last],
+            faces,
+            camera=auto_camera(vertices[last], **VIEW),
+            scalar=np.linalg.norm(v_by_mode["temporal"][last], axis=-1),
+            vmin=0.0,
+            width=WIDTH,
+            height=HEIGHT,
+            cmap="viridis",
+            label="|v| (rad)",
         ),
     }
     paths = [save_png(img, out / name) for name, img in images.items()]
     render_s = time.perf_counter() - t0
 
     summary = {
-        "data": {"generator": "bending_tube_sequence", "n_frames": int(n), "n_vertices": int(nv),
-                 "n_faces": int(faces.shape[0])},
+        "data": {
+            "generator": "bending_tube_sequence",
+            "n_frames": int(n),
+            "n_vertices": int(nv),
+            "n_faces": int(faces.shape[0]),
+        },
         "error_normalisation": "per-vertex distance after removing each frame's mean translation, divided by "
-                               "that frame's bounding-box diagonal",
+        "that frame's bounding-box diagonal",
         "decode_refine_steps": DEFAULT_REFINE,
-        "timing": {"repeats": REPEATS, "statistic": "median after one warm-up call", "prepare_s": prepare_s,
-                   "compute_s": compute_s, "render_s": render_s},
-        "images": {"error.png": "spatial consistency, last frame", "rotation_angle.png": "temporal consistency, "
-                   "last frame"},
-        "environment": {"jax": jax.__version__, "backend": jax.default_backend(), "python": platform.python_version(),
-                        "machine": platform.machine()},
+        "timing": {
+            "repeats": REPEATS,
+            "statistic": "median after one warm-up call",
+            "prepare_s": prepare_s,
+            "compute_s": compute_s,
+            "render_s": render_s,
+        },
+        "images": {
+            "error.png": "spatial consistency, last frame",
+            "rotation_angle.png": "temporal consistency, last frame",
+        },
+        "environment": {
+            "jax": jax.__version__,
+            "backend": jax.default_backend(),
+            "python": platform.python_version(),
+            "machine": platform.machine(),
+        },
         "results": rows,
     }
     summary_path = out / "summary.json"
     tmp = summary_path.with_name(f".{summary_path.name}.tmp")
     tmp.write_text(json.dumps(summary, indent=2) + "\n")
     tmp.replace(summary_path)
-    return {"rows": rows, "paths": paths + [summary_path], "n": n, "nv": nv, "nf": faces.shape[0],
-            "prepare_s": prepare_s, "compute_s": compute_s, "render_s": render_s, "total_s": time.perf_counter() - t_start}
+    return {
+        "rows": rows,
+        "paths": paths + [summary_path],
+        "n": n,
+        "nv": nv,
+        "nf": faces.shape[0],
+        "prepare_s": prepare_s,
+        "compute_s": compute_s,
+        "render_s": render_s,
+        "total_s": time.perf_counter() - t_start,
+    }
 
 
 def main(argv: Sequence[str] | None = None) -> int:
@@ -150,11 +204,15 @@ def main(argv: Sequence[str] | None = None) -> int:
     if args.frames < 2:
         parser.error("--frames must be at least 2.")
     res = run(Path(args.out), args.frames)
-    print(f"bending tube: {res['n']} frames, {res['nv']} vertices, {res['nf']} faces "
-          f"(jax {jax.__version__}, {jax.default_backend()}); prepare {res['prepare_s']:.2f} s")
+    print(
+        f"bending tube: {res['n']} frames, {res['nv']} vertices, {res['nf']} faces "
+        f"(jax {jax.__version__}, {jax.default_backend()}); prepare {res['prepare_s']:.2f} s"
+    )
     print(format_table(res["rows"]))
-    print(f"errors: after removing each frame's mean translation, over the frame's bbox diagonal; times: median of "
-          f"{REPEATS} after a warm-up call")
+    print(
+        f"errors: after removing each frame's mean translation, over the frame's bbox diagonal; times: median of "
+        f"{REPEATS} after a warm-up call"
+    )
     print(f"compute {res['compute_s']:.1f} s, render {res['render_s']:.1f} s, total {res['total_s']:.1f} s")
     print(f"wrote {len(res['paths'])} files to {Path(args.out)}/: " + ", ".join(p.name for p in res["paths"]))
     return 0

@@ -94,8 +94,9 @@ def _neighbourhood_edges(edges: np.ndarray, n: int, rings: int) -> sp.csr_matrix
     """(V, E) 0/1 matrix: edges with an end point within ``rings - 1`` hops of each vertex (rings >= 1:
     the edges incident to the vertex and, for rings = 2, those of its one-ring neighbours)."""
     m = edges.shape[0]
-    inc = sp.csr_matrix((np.ones(2 * m), (np.r_[edges[:, 0], edges[:, 1]], np.r_[np.arange(m), np.arange(m)])),
-                        shape=(n, m))
+    inc = sp.csr_matrix(
+        (np.ones(2 * m), (np.r_[edges[:, 0], edges[:, 1]], np.r_[np.arange(m), np.arange(m)])), shape=(n, m)
+    )
     reach = sp.identity(n, format="csr")
     adj = (inc @ inc.T).tocsr()
     for _ in range(rings - 1):
@@ -103,8 +104,7 @@ def _neighbourhood_edges(edges: np.ndarray, n: int, rings: int) -> sp.csr_matrix
     return ((reach @ inc) > 0).astype(np.float64).tocsr()
 
 
-def sted(ref, rec, faces, *, rings: int = 1, fps: float = 30.0, c: float = 1.0,
-         temporal: bool = True) -> dict:
+def sted(ref, rec, faces, *, rings: int = 1, fps: float = 30.0, c: float = 1.0, temporal: bool = True) -> dict:
     """Spatial-temporal edge difference (Vasa and Skala 2011) of ``rec`` against ``ref`` (both (N, V, 3)).
 
     Spatial part: per edge and frame the relative edge-length difference ed = (|e'| - |e|) / |e|; per vertex

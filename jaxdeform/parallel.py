@@ -15,7 +15,8 @@ from __future__ import annotations
 
 import jax
 import numpy as np
-from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
+from jax.sharding import Mesh, NamedSharding
+from jax.sharding import PartitionSpec as P
 
 BATCH = "batch"
 
@@ -47,8 +48,10 @@ def check_divisible(batch: int, mesh: Mesh, axis: str = BATCH, what: str = "batc
     """ValueError unless ``batch`` (the global batch of one step) splits evenly over ``mesh``'s ``axis``."""
     k = axis_size(mesh, axis)
     if batch % k:
-        raise ValueError(f"the {what} of {batch} does not split evenly over the {k} devices of mesh axis "
-                         f"{axis!r}: choose a {what} that is a multiple of {k}, or a mesh whose axis size divides it.")
+        raise ValueError(
+            f"the {what} of {batch} does not split evenly over the {k} devices of mesh axis "
+            f"{axis!r}: choose a {what} that is a multiple of {k}, or a mesh whose axis size divides it."
+        )
 
 
 def replicate(tree, mesh: Mesh):

@@ -26,8 +26,9 @@ def run_script(code: str, *, x64: bool = True, timeout: int = 900, env_extra: di
     if checked:  # the script's imports are checked as the tests' own (jaxtyping's import hook, beartype)
         *packages, checker = checked.split(",")
         code = f"import jaxtyping\njaxtyping.install_import_hook({packages!r}, {checker!r})\n" + code
-    proc = subprocess.run([sys.executable, "-c", code], cwd=ROOT, env=env, capture_output=True, text=True,
-                          timeout=timeout)
+    proc = subprocess.run(
+        [sys.executable, "-c", code], cwd=ROOT, env=env, capture_output=True, text=True, timeout=timeout
+    )
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-6000:]
     assert proc.stdout.strip().endswith("OK"), proc.stdout[-3000:]
     return proc.stdout

@@ -15,7 +15,9 @@ IDENTITY_FEATURE = np.array([0, 0, 0, 1, 0, 0, 1, 0, 1.0])
 def thin_tube(n_around=8, n_along=60, radius=0.05, length=6.0):
     ang = np.linspace(0, 2 * np.pi, n_around, endpoint=False)
     s = np.linspace(0, length, n_along)
-    v = np.stack([np.repeat(s, n_around), np.tile(radius * np.cos(ang), n_along), np.tile(radius * np.sin(ang), n_along)], 1)
+    v = np.stack(
+        [np.repeat(s, n_around), np.tile(radius * np.cos(ang), n_along), np.tile(radius * np.sin(ang), n_along)], 1
+    )
     faces = []
     for i in range(n_along - 1):
         for j in range(n_around):
@@ -38,7 +40,9 @@ def test_identity_gives_identity_features(dtype):
     v, f = thin_tube()
     feats = np.asarray(acap.encode(v.astype(dtype), f, v[None].astype(dtype)))
     assert feats.dtype == dtype
-    np.testing.assert_allclose(feats[0], np.broadcast_to(IDENTITY_FEATURE, feats[0].shape), atol=1e-5 if dtype == np.float32 else 1e-10)
+    np.testing.assert_allclose(
+        feats[0], np.broadcast_to(IDENTITY_FEATURE, feats[0].shape), atol=1e-5 if dtype == np.float32 else 1e-10
+    )
 
 
 def test_rigid_motion_gives_unit_stretch_and_constant_rotation():
@@ -102,8 +106,12 @@ def test_fast_consistency_equals_exact_milp_on_acap_bar(acap_bar):
     phi_fast, o_fast = cons.spatial(axis[None], angle[None], a.graph)
     phi_milp, o_milp = cons.milp_spatial(axis, angle, a.graph)
     s_edge = cons.edge_signs(axis, angle, a.graph.edges[:, 0], a.graph.edges[:, 1])
-    assert cons.orientation_energy(o_fast[0], s_edge, a.graph) == pytest.approx(cons.orientation_energy(o_milp, s_edge, a.graph))
-    assert cons.turn_energy(phi_fast[0], a.graph) == pytest.approx(cons.turn_energy(phi_milp, a.graph), rel=1e-9, abs=1e-9)
+    assert cons.orientation_energy(o_fast[0], s_edge, a.graph) == pytest.approx(
+        cons.orientation_energy(o_milp, s_edge, a.graph)
+    )
+    assert cons.turn_energy(phi_fast[0], a.graph) == pytest.approx(
+        cons.turn_energy(phi_milp, a.graph), rel=1e-9, abs=1e-9
+    )
 
 
 def test_fast_consistency_is_optimal_on_random_small_meshes():
@@ -143,8 +151,9 @@ def test_align_turns_picks_the_nearest_branch_of_the_same_rotation():
     out = np.asarray(cons.align_turns(jnp.asarray(v), jnp.asarray(ref)))
     np.testing.assert_allclose(out, (theta - 2 * np.pi) * w, atol=1e-12)
     # the same rotations
-    np.testing.assert_allclose(np.asarray(exp_rotation(jnp.asarray(out))), np.asarray(exp_rotation(jnp.asarray(v))),
-                               atol=1e-12)
+    np.testing.assert_allclose(
+        np.asarray(exp_rotation(jnp.asarray(out))), np.asarray(exp_rotation(jnp.asarray(v))), atol=1e-12
+    )
     # no other branch is nearer, for random references; aligning again changes nothing
     ref = rng.normal(size=(50, 3)) * 6
     out = np.asarray(cons.align_turns(jnp.asarray(v), jnp.asarray(ref)))
@@ -293,8 +302,18 @@ def test_jit_matches_no_jit_and_no_retracing(acap_bar):
     np.testing.assert_allclose(np.asarray(s_jit), np.asarray(s_eager), atol=1e-10)
     feats = a.encode(verts)
     a.decode(feats)
-    jitted = (_gradients_stage, _polar_stage, _output_stage, *cons.STAGES,
-              _features_cm, _decode_gradients, _edge_stage, _solve_stage, _refit_stage, _defect_stage)
+    jitted = (
+        _gradients_stage,
+        _polar_stage,
+        _output_stage,
+        *cons.STAGES,
+        _features_cm,
+        _decode_gradients,
+        _edge_stage,
+        _solve_stage,
+        _refit_stage,
+        _defect_stage,
+    )
     sizes = [f._cache_size() for f in jitted]
     a.encode(verts + 0.01)
     a.decode(feats * 1.001)
@@ -331,8 +350,15 @@ def test_explicit_jacobian_transpose_equals_autodiff_transpose():
     rng = np.random.default_rng(2)
     b = 4
     e, n_anchor = rec.edge_i.shape[0], rec.anchors.shape[0]
-    zero_args = (jnp.zeros((e, 3, b)), jnp.zeros((n_anchor, 3, b)), rec.sqrt_w, rec.edge_i, rec.edge_j,
-                 rec.anchors, rec.sqrt_a)
+    zero_args = (
+        jnp.zeros((e, 3, b)),
+        jnp.zeros((n_anchor, 3, b)),
+        rec.sqrt_w,
+        rec.edge_i,
+        rec.edge_j,
+        rec.anchors,
+        rec.sqrt_a,
+    )
     y = jnp.zeros((v.shape[0], 3, b))
     r = (jnp.asarray(rng.normal(size=(e, 3, b))), jnp.asarray(rng.normal(size=(n_anchor, 3, b))))
     (auto,) = jax.linear_transpose(lambda y: _residuals(y, zero_args), y)(r)

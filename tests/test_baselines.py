@@ -111,8 +111,7 @@ def test_pca_caps_k_and_keeps_float32():
 def bumps():
     verts, dist, rest = _grid_bumps()
     calls = []
-    model, result = B.fit_splocs_detailed(verts, dist, n_components=10,
-                                          progress=lambda it, e: calls.append((it, e)))
+    model, result = B.fit_splocs_detailed(verts, dist, n_components=10, progress=lambda it, e: calls.append((it, e)))
     return verts, dist, rest, model, result, calls
 
 
@@ -189,8 +188,9 @@ def test_decode_and_project_jit_and_grad(bumps):
     verts, _, _, model, _, _ = bumps
     w = jnp.asarray(np.random.default_rng(0).uniform(-1, 1, size=(2, model.n_components)))
     np.testing.assert_allclose(np.asarray(jax.jit(B.decode)(model, w)), np.asarray(B.decode(model, w)), atol=1e-12)
-    np.testing.assert_allclose(np.asarray(jax.jit(B.project)(model, verts[:3])),
-                               np.asarray(B.project(model, verts[:3])), atol=1e-10)
+    np.testing.assert_allclose(
+        np.asarray(jax.jit(B.project)(model, verts[:3])), np.asarray(B.project(model, verts[:3])), atol=1e-10
+    )
     g = jax.grad(lambda a: jnp.sum(B.decode(model, a)))(w)
     expected = model.scale * np.asarray(model.components).sum(axis=(1, 2))
     np.testing.assert_allclose(np.asarray(g), np.broadcast_to(expected, g.shape), rtol=1e-10)

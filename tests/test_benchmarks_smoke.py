@@ -16,10 +16,32 @@ from jaxdeform.mesh import save_mesh
 
 TIMING_KEYS = {"compile_s", "per_frame_ms_median", "per_frame_ms_min", "call_ms_median"}
 RECORD_KEYS = {
-    "case", "solver", "vertices", "faces", "frames", "dtype", "device", "cpu", "prepare_s", "prepare_cold_s",
-    "solver_setup_s", "encode", "encode_local", "encode_temporal", "decode", "decode_plain", "cholespy_solve_3rhs_ms",
-    "cholespy_solve_all_ms", "cholespy_factor_s", "decode_over_solve", "decode_over_solve_paired",
-    "decode_plain_over_solve", "decode_plain_over_solve_paired", "cg_steps", "cg_converged", "roundtrip",
+    "case",
+    "solver",
+    "vertices",
+    "faces",
+    "frames",
+    "dtype",
+    "device",
+    "cpu",
+    "prepare_s",
+    "prepare_cold_s",
+    "solver_setup_s",
+    "encode",
+    "encode_local",
+    "encode_temporal",
+    "decode",
+    "decode_plain",
+    "cholespy_solve_3rhs_ms",
+    "cholespy_solve_all_ms",
+    "cholespy_factor_s",
+    "decode_over_solve",
+    "decode_over_solve_paired",
+    "decode_plain_over_solve",
+    "decode_plain_over_solve_paired",
+    "cg_steps",
+    "cg_converged",
+    "roundtrip",
     "max_dev_from_host",
 }
 
@@ -44,7 +66,10 @@ def test_benchmark_script_smoke(tmp_path):
 
     records = on_disk["records"]
     assert [(r["case"], r["dtype"], r["solver"]) for r in records] == [
-        ("dataset", "float32", "host"), ("dataset", "float32", "dense"), ("dataset", "float32", "cg")]
+        ("dataset", "float32", "host"),
+        ("dataset", "float32", "dense"),
+        ("dataset", "float32", "cg"),
+    ]
     for r in records:
         assert "skipped" not in r
         assert RECORD_KEYS <= set(r), RECORD_KEYS - set(r)
@@ -90,8 +115,14 @@ def test_benchmark_solver_selection_and_skips():
     assert bench.skip_reason("dense", limit) is None
     assert "DENSE_MAX_VERTICES" in bench.skip_reason("dense", limit + 1)
     assert bench.skip_reason("host", 10 * limit) is None and bench.skip_reason("cg", 10 * limit) is None
-    skipped = {"case": "big", "solver": "dense", "dtype": "float32", "vertices": limit + 1, "frames": 2,
-               "skipped": bench.skip_reason("dense", limit + 1)}
+    skipped = {
+        "case": "big",
+        "solver": "dense",
+        "dtype": "float32",
+        "vertices": limit + 1,
+        "frames": 2,
+        "skipped": bench.skip_reason("dense", limit + 1),
+    }
     assert "skipped" in bench.format_table([skipped])
 
 
@@ -105,8 +136,27 @@ def test_handles_benchmark_smoke(tmp_path):
     mesh = tmp_path / "ico.obj"
     save_mesh(mesh, np.asarray(m.vertices), np.asarray(m.faces))
     out = tmp_path / "bench" / "handles.json"
-    payload = hbench.main(["--mesh", str(mesh), "--json", str(out), "--channels", "8", "--handles", "1", "3",
-                           "--repeats", "2", "--pose-faces", "300", "--pose-handles", "3", "--pose-frames", "2"])
+    payload = hbench.main(
+        [
+            "--mesh",
+            str(mesh),
+            "--json",
+            str(out),
+            "--channels",
+            "8",
+            "--handles",
+            "1",
+            "3",
+            "--repeats",
+            "2",
+            "--pose-faces",
+            "300",
+            "--pose-handles",
+            "3",
+            "--pose-frames",
+            "2",
+        ]
+    )
     on_disk = json.loads(out.read_text())
     assert on_disk == json.loads(json.dumps(payload))
     assert not [p for p in out.parent.iterdir() if p.name != out.name]
@@ -116,8 +166,15 @@ def test_handles_benchmark_smoke(tmp_path):
         assert {"bucket", "compile_s", "ms_median", "ms_min", "ms_host_median"} <= set(r)
         assert 0 <= r["ms_min"] <= r["ms_median"] and r["compile_s"] > 0
     assert on_disk["pose_mesh"]["faces"] >= 300 and on_disk["pose_mesh"]["handles"] == 3
-    assert {r["variant"] for r in on_disk["pose"]} == {"affine", "translation", "pou", "symmetric", "deformer", "deformer_pou",
-                                                     "deformer_symmetric"}
+    assert {r["variant"] for r in on_disk["pose"]} == {
+        "affine",
+        "translation",
+        "pou",
+        "symmetric",
+        "deformer",
+        "deformer_pou",
+        "deformer_symmetric",
+    }
     assert on_disk["pose_mesh"]["symmetry_plane"] == "x"
     assert all(r["fps_median"] > 0 and math.isfinite(r["fps_median"]) for r in on_disk["pose"])
     assert set(on_disk["pose_fps"]) == {r["variant"] for r in on_disk["pose"]}

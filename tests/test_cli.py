@@ -40,8 +40,22 @@ def seq_dir(tmp_path_factory, tube):
 def encoded(tmp_path_factory, seq_dir):
     """Features of the tube, encoded once (temporal consistency) for the tests that read them."""
     out = tmp_path_factory.mktemp("enc") / "f.npz"
-    assert main(["acap", "encode", str(seq_dir), "--reference", str(seq_dir / "frame0.obj"), "--out", str(out),
-                 "--consistency", "temporal"]) == 0
+    assert (
+        main(
+            [
+                "acap",
+                "encode",
+                str(seq_dir),
+                "--reference",
+                str(seq_dir / "frame0.obj"),
+                "--out",
+                str(out),
+                "--consistency",
+                "temporal",
+            ]
+        )
+        == 0
+    )
     return out
 
 
@@ -97,8 +111,9 @@ def test_encode_writes_every_array(encoded, tube, capsys):
 def test_encode_prints_one_summary_line(seq_dir, tmp_path, capsys):
     out = tmp_path / "g.npz"
     files = [str(seq_dir / f"frame{k}.obj") for k in range(N_FRAMES)]
-    rc = main(["acap", "encode", *files, "--reference", files[0], "--out", str(out), "--float32",
-               "--consistency", "spatial"])
+    rc = main(
+        ["acap", "encode", *files, "--reference", files[0], "--out", str(out), "--float32", "--consistency", "spatial"]
+    )
     captured = capsys.readouterr()
     assert rc == 0, captured.err
     lines = captured.out.strip().splitlines()
@@ -133,8 +148,7 @@ def test_decode_from_scaled_with_anchors(encoded, tube, tmp_path, capsys):
     scaled_only = tmp_path / "scaled.npz"
     np.savez(scaled_only, **data)
     out = tmp_path / "dec"
-    assert main(["acap", "decode", str(scaled_only), "--out", str(out), "--anchors", "0", "3",
-                 "--refine", "0"]) == 0
+    assert main(["acap", "decode", str(scaled_only), "--out", str(out), "--anchors", "0", "3", "--refine", "0"]) == 0
     from jaxdeform.mesh.io import load_mesh
 
     v, _ = load_mesh(out / "003.obj")
@@ -172,9 +186,31 @@ def test_render_plain_and_with_scalar(seq_dir, tmp_path, capsys):
     scalar = tmp_path / "s.npy"
     np.save(scalar, np.linspace(0.0, 1.0, NV))
     coloured = tmp_path / "coloured.png"
-    assert main(["render", str(mesh), "--scalar", str(scalar), "--out", str(coloured), "--width", "200",
-                 "--height", "150", "--azimuth", "0", "--elevation", "30", "--cmap", "coolwarm",
-                 "--label", "t"]) == 0
+    assert (
+        main(
+            [
+                "render",
+                str(mesh),
+                "--scalar",
+                str(scalar),
+                "--out",
+                str(coloured),
+                "--width",
+                "200",
+                "--height",
+                "150",
+                "--azimuth",
+                "0",
+                "--elevation",
+                "30",
+                "--cmap",
+                "coolwarm",
+                "--label",
+                "t",
+            ]
+        )
+        == 0
+    )
     with Image.open(coloured) as im:
         assert im.size == (200, 150)
         rgb = np.asarray(im.convert("RGB")).astype(int)
@@ -232,8 +268,20 @@ def bad_inputs(tmp_path, tube):
 
 @pytest.mark.parametrize(
     "case",
-    ["changed_faces", "vertex_count", "nan", "empty", "blank", "unknown_ext", "cut_vertex_block",
-     "cut_vertex_line", "cut_face_line", "not_numeric", "missing", "missing_folder"],
+    [
+        "changed_faces",
+        "vertex_count",
+        "nan",
+        "empty",
+        "blank",
+        "unknown_ext",
+        "cut_vertex_block",
+        "cut_vertex_line",
+        "cut_face_line",
+        "not_numeric",
+        "missing",
+        "missing_folder",
+    ],
 )
 def test_encode_bad_input(bad_inputs, tmp_path, capsys, case):
     cases, good = bad_inputs
@@ -286,9 +334,7 @@ def test_decode_bad_input(encoded, tmp_path, capsys):
         assert_one_line_error(capsys, rc, out)
     rc = main(["acap", "decode", str(encoded), "--out", str(out), "--anchors", str(NV)])
     assert_one_line_error(capsys, rc, out)
-    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(
-        ["junk.npz", "nofeat.npz", "wrongv.npz", "nan.npz"]
-    )
+    assert sorted(p.name for p in tmp_path.iterdir()) == sorted(["junk.npz", "nofeat.npz", "wrongv.npz", "nan.npz"])
 
 
 def test_render_bad_input(seq_dir, tmp_path, capsys):
@@ -302,8 +348,12 @@ def test_render_bad_input(seq_dir, tmp_path, capsys):
     np.save(nan, s)
     text = tmp_path / "text.npy"
     text.write_text("hello")
-    for extra in (["--scalar", str(wrong)], ["--scalar", str(nan)], ["--scalar", str(text)],
-                  ["--scalar", str(tmp_path / "none.npy")]):
+    for extra in (
+        ["--scalar", str(wrong)],
+        ["--scalar", str(nan)],
+        ["--scalar", str(text)],
+        ["--scalar", str(tmp_path / "none.npy")],
+    ):
         rc = main(["render", str(mesh), "--out", str(out), "--width", "64", "--height", "48", *extra])
         assert_one_line_error(capsys, rc, out)
     empty = tmp_path / "empty.obj"
@@ -382,8 +432,13 @@ def test_render_refuses_a_non_finite_angle(seq_dir, tmp_path, capsys):
 
 
 def test_usage_errors_exit_2(capsys):
-    for argv in ([], ["acap"], ["acap", "encode", "x.obj"], ["render"], ["acap", "encode", "a.obj", "--reference",
-                 "a.obj", "--out", "f.npz", "--consistency", "sometimes"]):
+    for argv in (
+        [],
+        ["acap"],
+        ["acap", "encode", "x.obj"],
+        ["render"],
+        ["acap", "encode", "a.obj", "--reference", "a.obj", "--out", "f.npz", "--consistency", "sometimes"],
+    ):
         with pytest.raises(SystemExit) as exc:
             main(argv)
         assert exc.value.code == 2
@@ -415,8 +470,13 @@ def test_help_imports_no_jax_or_numpy_and_names_every_method():
         assert not heavy, sorted(set(m.split(".")[0] for m in heavy))
         print(top.getvalue())
     """)
-    res = subprocess.run([sys.executable, "-c", code], cwd=Path(__file__).resolve().parents[1], capture_output=True,
-                         text=True, timeout=120)
+    res = subprocess.run(
+        [sys.executable, "-c", code],
+        cwd=Path(__file__).resolve().parents[1],
+        capture_output=True,
+        text=True,
+        timeout=120,
+    )
     assert res.returncode == 0, res.stderr
     description = " ".join(res.stdout.split("positional arguments:")[0].split())
     for method in methods:

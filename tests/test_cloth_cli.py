@@ -6,12 +6,12 @@ import json
 
 import numpy as np
 import pytest
+from test_cloth_data import grid  # noqa: E402  (tests/ is on sys.path under pytest)
 
 from jaxdeform.cli import main
 from jaxdeform.cloth import data as cdata
 from jaxdeform.cloth import evaluate as ceval
 from jaxdeform.cloth import obstacles as obst
-from test_cloth_data import grid  # noqa: E402  (tests/ is on sys.path under pytest)
 
 igl = pytest.importorskip("igl")
 
@@ -26,10 +26,16 @@ def pair(k: int, frames: int = 6, n: int = 5):
     cv, cf = grid(n, 0.5)
     fv, ff = igl.loop(cv, cf)
     track = obst.static_track(obst.make(spheres=[((0.25, -0.3, 0.25), 0.2)]), frames)
-    return {"coarse": np.stack([wave(cv, t, k) for t in range(frames)]),
-            "fine": np.stack([wave(fv, t, k) for t in range(frames)]),
-            "coarse_rest": cv, "fine_rest": fv, "coarse_faces": cf, "fine_faces": ff,
-            "obstacles": obst.to_dict(track), "meta": {"kind": "sheet", "index": k, "params": {"thickness": 0.005}}}
+    return {
+        "coarse": np.stack([wave(cv, t, k) for t in range(frames)]),
+        "fine": np.stack([wave(fv, t, k) for t in range(frames)]),
+        "coarse_rest": cv,
+        "fine_rest": fv,
+        "coarse_faces": cf,
+        "fine_faces": ff,
+        "obstacles": obst.to_dict(track),
+        "meta": {"kind": "sheet", "index": k, "params": {"thickness": 0.005}},
+    }
 
 
 def write(root, pairs):
@@ -64,20 +70,27 @@ def test_train_synthesize_evaluate_round_trip(tmp_path, capsys):
         assert {"rmse", "hausdorff", "sted"} <= set(part) and np.isfinite(part["rmse"])
     assert res["upsampled_coarse"]["test"]["rmse"] < 0.01  # Loop of the coarse wave is close to the fine wave
     jt = tmp_path / "ev_train.json"
-    code, out, err = run_cli(["cloth", "evaluate", str(run), "--data", str(data), "--json", str(jt), "--split", "train",
-                              "--quiet"], capsys)
+    code, out, err = run_cli(
+        ["cloth", "evaluate", str(run), "--data", str(data), "--json", str(jt), "--split", "train", "--quiet"], capsys
+    )
     assert code == 0, err
     tr = json.loads(jt.read_text())
     assert set(tr) == {"train", "upsampled_coarse"} and out.startswith("train: rmse")
     ds = cdata.load_dataset(data)
     ups = ceval.Upsampler(ds.coarse_faces, ds.coarse_rest.shape[0], ds.fine_faces)
-    direct = ceval.pool([ceval.sequence_errors(x.fine, ups(x.coarse), ds.fine_faces)
-                         for x in ds.sequences if x.name in rec["split"]["train"]])
+    direct = ceval.pool(
+        [
+            ceval.sequence_errors(x.fine, ups(x.coarse), ds.fine_faces)
+            for x in ds.sequences
+            if x.name in rec["split"]["train"]
+        ]
+    )
     assert tr["upsampled_coarse"]["train"]["frames"] == 12  # the two training sequences, not the test one
     assert tr["upsampled_coarse"]["train"]["rmse"] == pytest.approx(direct["rmse"], rel=1e-6)
     syn = tmp_path / "syn"
-    code, out, err = run_cli(["cloth", "synthesize", str(run), "--coarse", str(data), "--split", "test",
-                              "--out", str(syn)], capsys)
+    code, out, err = run_cli(
+        ["cloth", "synthesize", str(run), "--coarse", str(data), "--split", "test", "--out", str(syn)], capsys
+    )
     assert code == 0, err
     arr = np.load(syn / "seq_002.npz")
     assert arr["vertices"].shape == (6, 81, 3) and np.all(np.isfinite(arr["vertices"]))
@@ -86,16 +99,19 @@ def test_train_synthesize_evaluate_round_trip(tmp_path, capsys):
 def test_train_self_feed_option(tmp_path, capsys):
     data = tmp_path / "data"
     write(data, [pair(k) for k in range(3)])
-    code, _, err = run_cli(["cloth", "train", str(data), "--out", str(tmp_path / "bad"), "--self-feed", "1.5",
-                            "--quiet"], capsys)
+    code, _, err = run_cli(
+        ["cloth", "train", str(data), "--out", str(tmp_path / "bad"), "--self-feed", "1.5", "--quiet"], capsys
+    )
     assert code == 2 and err.count("\n") == 1 and "--self-feed is a probability" in err
     assert not (tmp_path / "bad").exists()
     run = tmp_path / "run"
     code, _, err = run_cli(["cloth", "train", str(data), "--out", str(run), "--steps", "2", "--quiet"], capsys)
     assert code == 0, err
     assert json.loads((run / "run.json").read_text())["train"]["self_feed"] == 0.5  # the CLI's default
-    code, _, err = run_cli(["cloth", "train", str(data), "--out", str(tmp_path / "paper"), "--self-feed", "0",
-                            "--steps", "2", "--quiet"], capsys)
+    code, _, err = run_cli(
+        ["cloth", "train", str(data), "--out", str(tmp_path / "paper"), "--self-feed", "0", "--steps", "2", "--quiet"],
+        capsys,
+    )
     assert code == 0, err
     assert json.loads((tmp_path / "paper" / "run.json").read_text())["train"]["self_feed"] == 0.0
 
@@ -140,8 +156,12 @@ def _damage_data(data, case):
             p["coarse_rest"] = p["coarse_rest"].copy()
             p["coarse_rest"][f[1]] = p["coarse_rest"][f[0]]
     elif case in ("index a list", "sequences not names", "split not lists", "empty train part"):
-        index = {"index a list": [], "sequences not names": {"sequences": [0, 1, 2]},
-                 "split not lists": {"split": ["seq_000.npz"]}, "empty train part": {"split": {"train": [], "test": ["seq_002.npz"]}}}[case]
+        index = {
+            "index a list": [],
+            "sequences not names": {"sequences": [0, 1, 2]},
+            "split not lists": {"split": ["seq_000.npz"]},
+            "empty train part": {"split": {"train": [], "test": ["seq_002.npz"]}},
+        }[case]
     write(data, pairs)
     if case == "text frames":
         with np.load(data / "seq_001.npz") as z:
@@ -153,15 +173,30 @@ def _damage_data(data, case):
         (data / "dataset.json").write_text(json.dumps(rec))
 
 
-@pytest.mark.parametrize("case", ["nan pin positions", "nan obstacle", "missing obstacle field", "short obstacle track",
-                                  "meta not an object", "text frames", "zero-area rest face", "index a list",
-                                  "sequences not names", "split not lists", "empty train part", "negative seed"])
+@pytest.mark.parametrize(
+    "case",
+    [
+        "nan pin positions",
+        "nan obstacle",
+        "missing obstacle field",
+        "short obstacle track",
+        "meta not an object",
+        "text frames",
+        "zero-area rest face",
+        "index a list",
+        "sequences not names",
+        "split not lists",
+        "empty train part",
+        "negative seed",
+    ],
+)
 def test_train_refuses_damaged_data(tmp_path, capsys, case):
     data = tmp_path / "data"
     _damage_data(data, case)
     extra = ["--seed", "-1"] if case == "negative seed" else []
-    code, _, err = run_cli(["cloth", "train", str(data), "--out", str(tmp_path / "run"), "--steps", "2", "--quiet",
-                            *extra], capsys)
+    code, _, err = run_cli(
+        ["cloth", "train", str(data), "--out", str(tmp_path / "run"), "--steps", "2", "--quiet", *extra], capsys
+    )
     assert code == 2 and err.count("\n") == 1 and err.startswith("jaxdeform: error: "), err
     assert "Traceback" not in err and not (tmp_path / "run").exists()
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".run")]
@@ -176,8 +211,9 @@ def test_damaged_runs_and_outputs_over_inputs(tmp_path, capsys):
     assert run_cli(["cloth", "train", str(data), "--out", str(run), "--steps", "2", "--quiet"], capsys)[0] == 0
     kept = {p: p.read_bytes() for p in (run / "run.json", data / "dataset.json")}
     for target in kept:
-        code, _, err = run_cli(["cloth", "evaluate", str(run), "--data", str(data), "--json", str(target), "--quiet"],
-                               capsys)
+        code, _, err = run_cli(
+            ["cloth", "evaluate", str(run), "--data", str(data), "--json", str(target), "--quiet"], capsys
+        )
         assert code == 2 and err.count("\n") == 1 and "--json" in err, err
     assert {p: p.read_bytes() for p in kept} == kept
 
@@ -193,6 +229,7 @@ def test_damaged_runs_and_outputs_over_inputs(tmp_path, capsys):
         def edit(bad):
             rec = json.loads((bad / "run.json").read_text())
             (bad / "run.json").write_text(json.dumps(change(rec)))
+
         return edit
 
     def drop_array(bad):
@@ -200,19 +237,24 @@ def test_damaged_runs_and_outputs_over_inputs(tmp_path, capsys):
             arrays = {k: z[k] for k in z.files if k != "coarse_faces"}
         np.savez(bad / "representation.npz", **arrays)
 
-    runs = {"a list": damaged("r1", record(lambda r: [])),
-            "thickness": damaged("r2", record(lambda r: {**r, "thickness": "thick"})),
-            "coarse_faces": damaged("r3", drop_array),
-            "seq_007": damaged("r4", record(lambda r: {**r, "split": {"train": ["seq_000.npz"], "test": ["seq_007.npz"]}}))}
+    runs = {
+        "a list": damaged("r1", record(lambda r: [])),
+        "thickness": damaged("r2", record(lambda r: {**r, "thickness": "thick"})),
+        "coarse_faces": damaged("r3", drop_array),
+        "seq_007": damaged("r4", record(lambda r: {**r, "split": {"train": ["seq_000.npz"], "test": ["seq_007.npz"]}})),
+    }
     for expected, bad in runs.items():
-        code, _, err = run_cli(["cloth", "evaluate", str(bad), "--data", str(data), "--json", str(tmp_path / "e.json"),
-                                "--quiet"], capsys)
+        code, _, err = run_cli(
+            ["cloth", "evaluate", str(bad), "--data", str(data), "--json", str(tmp_path / "e.json"), "--quiet"], capsys
+        )
         assert code == 2 and err.count("\n") == 1 and (expected in err or "run record" in err), err
     p = pair(5)
     p["obstacles"]["sphere_r"] = np.full_like(p["obstacles"]["sphere_r"], np.nan)
     cdata.write_sequence(tmp_path / "coarse.npz", p)
-    code, _, err = run_cli(["cloth", "synthesize", str(run), "--coarse", str(tmp_path / "coarse.npz"), "--out",
-                            str(tmp_path / "syn")], capsys)
+    code, _, err = run_cli(
+        ["cloth", "synthesize", str(run), "--coarse", str(tmp_path / "coarse.npz"), "--out", str(tmp_path / "syn")],
+        capsys,
+    )
     assert code == 2 and "obs_sphere_r" in err and not (tmp_path / "syn").exists()
     assert not (tmp_path / "e.json").exists()
 
@@ -249,7 +291,8 @@ def test_experiment_test_config_writes_summary(tmp_path):
     assert full["upsampled_coarse"]["test"] == pytest.approx(r["rmse"]["upsampled_coarse"], rel=1e-6)
     assert full["linear_residual"]["test"] == pytest.approx(r["rmse"]["linear_residual"], rel=1e-6)
     assert full["linear_residual"]["train"] == pytest.approx(
-        r["evaluate"]["methods"]["linear_residual"]["train_rmse"], rel=1e-6)
+        r["evaluate"]["methods"]["linear_residual"]["train_rmse"], rel=1e-6
+    )
     assert full["no_temporal"]["test"] == pytest.approx(r["rmse"]["no_temporal"], rel=1e-4)
     assert sg[1]["upsampled_coarse"]["test"] == full["upsampled_coarse"]["test"]
     fl = r["floor"]  # one test scenario re-simulated from a perturbed start: it moved, and only a little
@@ -263,8 +306,12 @@ def test_experiment_test_config_writes_summary(tmp_path):
     # the seed spread reuses the stored seed-0 run (same figure as the experiment's) and trains another draw
     from experiments.cloth import seeds
 
-    assert seeds.main(["--config", "test", "--out", str(tmp_path), "--dataset", "sheet", "--methods", "ours",
-                       "--seeds", "0", "1"]) == 0
+    assert (
+        seeds.main(
+            ["--config", "test", "--out", str(tmp_path), "--dataset", "sheet", "--methods", "ours", "--seeds", "0", "1"]
+        )
+        == 0
+    )
     rec = json.loads((tmp_path / "seeds_sheet.json").read_text())
     assert rec["upsampled_coarse"]["rmse"] == pytest.approx(r["rmse"]["upsampled_coarse"], rel=1e-9)
     assert rec["methods"]["ours"]["0"]["rmse"] == pytest.approx(r["rmse"]["ours"], rel=1e-6)
@@ -273,8 +320,24 @@ def test_experiment_test_config_writes_summary(tmp_path):
         assert per["rmse"] == pytest.approx(np.sqrt(np.mean(np.square(per["rmse_per_sequence"]))), rel=1e-9)
     assert "| ours, 1 |" in (tmp_path / "seeds_sheet.md").read_text()
     # a second invocation adds its methods to the record of the same seeds and test sequences
-    assert seeds.main(["--config", "test", "--out", str(tmp_path), "--dataset", "sheet", "--methods", "no_temporal",
-                       "--seeds", "0", "1"]) == 0
+    assert (
+        seeds.main(
+            [
+                "--config",
+                "test",
+                "--out",
+                str(tmp_path),
+                "--dataset",
+                "sheet",
+                "--methods",
+                "no_temporal",
+                "--seeds",
+                "0",
+                "1",
+            ]
+        )
+        == 0
+    )
     again = json.loads((tmp_path / "seeds_sheet.json").read_text())
     assert set(again["methods"]) == {"ours", "no_temporal"} and again["methods"]["ours"] == rec["methods"]["ours"]
 

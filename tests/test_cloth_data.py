@@ -32,11 +32,16 @@ def pair(t=4, n=5, seed=0, fine_frames=None):
     rng = np.random.default_rng(seed)
     cv, cf = grid(n)
     fv, ff = igl.loop(cv, cf)
-    return {"coarse": cv[None] + 0.01 * rng.standard_normal((t, len(cv), 3)),
-            "fine": fv[None] + 0.01 * rng.standard_normal((fine_frames or t, len(fv), 3)),
-            "coarse_rest": cv, "fine_rest": fv, "coarse_faces": cf, "fine_faces": ff,
-            "obstacles": obst.to_dict(obst.static_track(obst.make(spheres=[((0, 0, 0), 0.2)]), t)),
-            "meta": {"kind": "sheet", "index": seed}}
+    return {
+        "coarse": cv[None] + 0.01 * rng.standard_normal((t, len(cv), 3)),
+        "fine": fv[None] + 0.01 * rng.standard_normal((fine_frames or t, len(fv), 3)),
+        "coarse_rest": cv,
+        "fine_rest": fv,
+        "coarse_faces": cf,
+        "fine_faces": ff,
+        "obstacles": obst.to_dict(obst.static_track(obst.make(spheres=[((0, 0, 0), 0.2)]), t)),
+        "meta": {"kind": "sheet", "index": seed},
+    }
 
 
 def write(tmp_path, pairs):
@@ -252,6 +257,7 @@ def sphere_sdf(c, r):
         d = x - c
         n = np.linalg.norm(d, axis=-1)
         return n - r, d / n[:, None]
+
     return sdf
 
 
@@ -306,8 +312,9 @@ def test_position_term_vanishes_on_the_fine_features_and_has_exact_gradients():
         sc = cfeat.Scaling.fit(kind, [raw])
         x = jnp.asarray(sc.transform(raw))
         rec = None if kind == "coords" else acapf.cached(v, f).reconstructor(pins)
-        pos = ctrain.PositionTarget.build([frames], None, sc.lo, sc.hi, rec, None if rec is None else frames[0][pins],
-                                          edge)
+        pos = ctrain.PositionTarget.build(
+            [frames], None, sc.lo, sc.hi, rec, None if rec is None else frames[0][pins], edge
+        )
         err = float(ctrain.position_error(pos, x, rows))
         assert err < (2.5e-3 if kind == "ts-acap" else 1e-10), (kind, err)  # plain least-squares round trip, edges^2
         d = 0.2 * jax.random.normal(jax.random.PRNGKey(1), x.shape)
@@ -315,7 +322,9 @@ def test_position_term_vanishes_on_the_fine_features_and_has_exact_gradients():
         # implicit differentiation through the anchored solve against central differences
         g = jax.grad(lambda y: ctrain.position_error(pos, y, rows))(x + d)
         h = 1e-2
-        fd = (ctrain.position_error(pos, x + d + h * d, rows) - ctrain.position_error(pos, x + d - h * d, rows)) / (2 * h)
+        fd = (ctrain.position_error(pos, x + d + h * d, rows) - ctrain.position_error(pos, x + d - h * d, rows)) / (
+            2 * h
+        )
         assert float(jnp.sum(g * d)) == pytest.approx(float(fd), rel=2e-2)
     # a residual target adds its base before decoding: base = the features, residual 0 -> the same positions
     raw = cfeat.encode_sequence("ts-acap", v, f, frames)

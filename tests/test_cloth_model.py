@@ -42,8 +42,10 @@ def meshes():
 
 def _random_windows(key, b, w, vc, vf, c):
     k1, k2 = jax.random.split(key)
-    return (jax.random.uniform(k1, (b, w, vc, c), minval=-0.9, maxval=0.9),
-            jax.random.uniform(k2, (b, w, vf, c), minval=-0.9, maxval=0.9))
+    return (
+        jax.random.uniform(k1, (b, w, vc, c), minval=-0.9, maxval=0.9),
+        jax.random.uniform(k2, (b, w, vf, c), minval=-0.9, maxval=0.9),
+    )
 
 
 # ------------------------------------------------------------------------------------------ transformer
@@ -164,7 +166,7 @@ def _check_teacher_forcing(model, coarse):
     prev = np.concatenate([np.zeros_like(fine[:1]), fine[:-1]])  # prev[t] = fine frame t - 1
     for t in range(coarse.shape[0]):
         s = max(t - w + 1, 0)
-        out = predict_windows(model, coarse[None, s:s + w], prev[None, s:s + w])
+        out = predict_windows(model, coarse[None, s : s + w], prev[None, s : s + w])
         np.testing.assert_allclose(out[0, t - s], fine[t], atol=2e-5)
 
 
@@ -173,8 +175,9 @@ def test_teacher_forcing_matches_autoregressive_synthesis(meshes, kind):
     """(The transformer is checked on the trained model, test_synthesis_matches_teacher_forcing_trained.)"""
     tc, tf = meshes
     model = new_model(tc, tf, ModelConfig(kind=kind, **SMALL))
-    _check_teacher_forcing(model, jax.random.uniform(jax.random.PRNGKey(3), (7, tc.n_vertices, 9), minval=-0.9,
-                                                     maxval=0.9))
+    _check_teacher_forcing(
+        model, jax.random.uniform(jax.random.PRNGKey(3), (7, tc.n_vertices, 9), minval=-0.9, maxval=0.9)
+    )
 
 
 @pytest.mark.parametrize("kind", ["transformer", "none"])
@@ -248,8 +251,15 @@ def test_self_feeding_changes_training_only_where_the_model_reads_fine_frames(me
     out = {}
     for kind in ("transformer", "none"):
         for feed in (0.0, 1.0):
-            _, h = train(ModelConfig(kind=kind, **SMALL), TrainConfig(steps=6, batch_size=4, self_feed=feed), tc, tf,
-                         cs, fs, progress=False)
+            _, h = train(
+                ModelConfig(kind=kind, **SMALL),
+                TrainConfig(steps=6, batch_size=4, self_feed=feed),
+                tc,
+                tf,
+                cs,
+                fs,
+                progress=False,
+            )
             out[kind, feed] = h.loss
     assert out["transformer", 0.0][0] == out["transformer", 1.0][0]  # p_0 = 0: the first step is teacher-forced
     assert not np.allclose(out["transformer", 0.0][2:], out["transformer", 1.0][2:])
@@ -317,7 +327,7 @@ def test_synthesis_no_retrace_and_tracks_data(trained):
     assert TRACE_COUNT["synthesize"] - before <= 1
     # autoregressive output is far closer to the paired fine data than an untrained guess (zero features)
     err = np.mean([(o - f) ** 2 for o, f in zip(outs, fs)])
-    base = np.mean([f ** 2 for f in fs])
+    base = np.mean([f**2 for f in fs])
     assert err < 0.25 * base, (err, base)
 
 
@@ -347,6 +357,13 @@ def test_save_load_round_trip(tmp_path, trained):
 def test_ablations_train(meshes, kind):
     tc, tf = meshes
     cs, fs = _paired_data(tc, tf)
-    _, hist = train(ModelConfig(kind=kind, **SMALL), TrainConfig(steps=300, batch_size=8, learning_rate=2e-3),
-                    tc, tf, cs, fs, progress=False)
+    _, hist = train(
+        ModelConfig(kind=kind, **SMALL),
+        TrainConfig(steps=300, batch_size=8, learning_rate=2e-3),
+        tc,
+        tf,
+        cs,
+        fs,
+        progress=False,
+    )
     assert hist.loss[-20:].mean() < hist.loss[:10].mean() / 5

@@ -2,13 +2,11 @@
 
 import numpy as np
 import pytest
+from conftest import grid_mesh
 
 from jaxdeform.cloth import obstacles as O
 from jaxdeform.cloth import scenarios as S
 from jaxdeform.cloth import simulate as sim
-
-from conftest import grid_mesh
-
 
 N = 7  # one mesh size, one obstacle layout and two static configurations keep compilations (the cost) few
 FAR = -100.0
@@ -17,8 +15,12 @@ FAR = -100.0
 def _obs(sphere=None, capsule=None, cylinder=None, ground=O.NO_GROUND):
     """One sphere, capsule and cylinder always (unused ones far below), so every test shares the executable."""
     far = (0.0, FAR, 0.0)
-    return O.make(spheres=[sphere or (far, 0.1)], capsules=[capsule or (far, (0.0, FAR, 1.0), 0.1)],
-                  cylinders=[cylinder or (far, 0.1, 0.1)], ground=ground)
+    return O.make(
+        spheres=[sphere or (far, 0.1)],
+        capsules=[capsule or (far, (0.0, FAR, 1.0), 0.1)],
+        cylinders=[cylinder or (far, 0.1, 0.1)],
+        ground=ground,
+    )
 
 
 def _sheet(n=N, size=0.5, y=1.0):
@@ -28,12 +30,12 @@ def _sheet(n=N, size=0.5, y=1.0):
     return x.astype(np.float32), f
 
 
-QUIET = sim.ClothParams(damping=0.0, drag=0.0, lift=0.0, turbulence=0.0, substeps=4, iterations=2,
-                        self_collision=False)
+QUIET = sim.ClothParams(damping=0.0, drag=0.0, lift=0.0, turbulence=0.0, substeps=4, iterations=2, self_collision=False)
 STD = sim.ClothParams(substeps=10, iterations=2, self_collision=False)
 
 
 # ------------------------------------------------------------------------------------------------ obstacles
+
 
 def test_sdf_sphere_capsule_ground():
     obs = O.make(spheres=[((0, 1, 0), 0.5)], capsules=[((3, 0, 0), (3, 2, 0), 0.25)], ground=-1.0)
@@ -49,14 +51,17 @@ def test_sdf_sphere_capsule_ground():
 
 def test_sdf_capped_cylinder_side_caps_rim_and_inside():
     obs = O.make(cylinders=[((0, 1, 0), 0.5, 1.0)])  # y in [0, 1], radius 0.5
-    pts = np.array([
-        [1.0, 0.5, 0],  # side: 0.5
-        [0.1, 1.3, 0],  # above the top cap: 0.3
-        [0.1, -0.2, 0],  # below the bottom cap: 0.2
-        [0.8, 1.4, 0],  # outside the top rim: distance to the rim circle 0.5
-        [0.4, 0.5, 0],  # inside, nearest the side: -0.1
-        [0.0, 0.95, 0],  # inside, nearest the top: -0.05
-    ], np.float32)
+    pts = np.array(
+        [
+            [1.0, 0.5, 0],  # side: 0.5
+            [0.1, 1.3, 0],  # above the top cap: 0.3
+            [0.1, -0.2, 0],  # below the bottom cap: 0.2
+            [0.8, 1.4, 0],  # outside the top rim: distance to the rim circle 0.5
+            [0.4, 0.5, 0],  # inside, nearest the side: -0.1
+            [0.0, 0.95, 0],  # inside, nearest the top: -0.05
+        ],
+        np.float32,
+    )
     d, n = O.signed_distance(obs, pts)
     np.testing.assert_allclose(d, [0.5, 0.3, 0.2, 0.5, -0.1, -0.05], atol=1e-6)
     np.testing.assert_allclose(n[3], [0.6, 0.8, 0], atol=1e-6)
@@ -72,8 +77,9 @@ def test_sdf_rounded_cylinder_rim_is_a_torus():
     c = np.array([0.4, 0.9, 0.0])  # the rim circle's point above the x axis
     dirs = np.array([[1, 1, 0], [3, 1, 0], [1, 3, 0]], np.float64)
     dirs /= np.linalg.norm(dirs, axis=1, keepdims=True)
-    pts = np.concatenate([[[1.0, 0.5, 0], [0.1, 1.3, 0], [0.4, 0.5, 0], [0.0, 0.95, 0]],
-                          c + 0.25 * dirs, c + 0.05 * dirs]).astype(np.float32)
+    pts = np.concatenate(
+        [[[1.0, 0.5, 0], [0.1, 1.3, 0], [0.4, 0.5, 0], [0.0, 0.95, 0]], c + 0.25 * dirs, c + 0.05 * dirs]
+    ).astype(np.float32)
     d, n = O.signed_distance(obs, pts)
     np.testing.assert_allclose(d, [0.5, 0.3, -0.1, -0.05, 0.15, 0.15, 0.15, -0.05, -0.05, -0.05], atol=1e-6)
     np.testing.assert_allclose(n[4:7], dirs, atol=1e-6)
@@ -92,16 +98,29 @@ def test_sdf_rounded_cylinder_rim_is_a_torus():
 
 
 def test_sdf_normals_are_gradients_and_empty_shapes():
-    obs = O.make(spheres=[((0.3, 1, 0), 0.4)], capsules=[((-1, 0.5, 0), (-1, 0.5, 1), 0.2)],
-                 cylinders=[((1.5, 1, 0.2), 0.5, 1.0), ((-1.2, 2.0, -0.4), 0.4, 0.8, 0.15)], ground=0.0,
-                 dtype=np.float64)
+    obs = O.make(
+        spheres=[((0.3, 1, 0), 0.4)],
+        capsules=[((-1, 0.5, 0), (-1, 0.5, 1), 0.2)],
+        cylinders=[((1.5, 1, 0.2), 0.5, 1.0), ((-1.2, 2.0, -0.4), 0.4, 0.8, 0.15)],
+        ground=0.0,
+        dtype=np.float64,
+    )
     rng = np.random.default_rng(0)
     pts = rng.uniform([-2, -0.5, -1], [3, 2.5, 2], (200, 3))
     with _x64():
         d, n = O.signed_distance(obs, pts)
         eps = 1e-6
-        fd = np.stack([(np.asarray(O.signed_distance(obs, pts + eps * e)[0])
-                        - np.asarray(O.signed_distance(obs, pts - eps * e)[0])) / (2 * eps) for e in np.eye(3)], 1)
+        fd = np.stack(
+            [
+                (
+                    np.asarray(O.signed_distance(obs, pts + eps * e)[0])
+                    - np.asarray(O.signed_distance(obs, pts - eps * e)[0])
+                )
+                / (2 * eps)
+                for e in np.eye(3)
+            ],
+            1,
+        )
     # away from medial surfaces (where the min switches shape) the normal is the gradient
     ok = np.linalg.norm(fd, axis=1) > 0.999
     assert ok.mean() > 0.9
@@ -130,6 +149,7 @@ def _x64():
 
 # ------------------------------------------------------------------------------------------------ physics
 
+
 def test_free_fall_follows_gravity():
     x, f = _sheet()
     m = sim.build_model(x, f)
@@ -144,8 +164,9 @@ def test_free_fall_follows_gravity():
     np.testing.assert_allclose(frames[:, :, 1], np.broadcast_to(exact[:, None], frames.shape[:2]), atol=2e-4)
     t = np.arange(1, T + 1) * QUIET.frame_dt
     assert np.all(np.abs(frames[:, :, 1].mean(1) - (1.0 - g * t * t / 2)) <= g * t * h + 1e-5)
-    np.testing.assert_allclose(frames[:, :, [0, 2]], np.broadcast_to(x[:, [0, 2]], (T,) + x[:, [0, 2]].shape),
-                               atol=1e-5)
+    np.testing.assert_allclose(
+        frames[:, :, [0, 2]], np.broadcast_to(x[:, [0, 2]], (T,) + x[:, [0, 2]].shape), atol=1e-5
+    )
 
 
 def test_hanging_sheet_stays_pinned_and_barely_stretches():
@@ -164,8 +185,11 @@ def test_hanging_sheet_stays_pinned_and_barely_stretches():
 @pytest.mark.parametrize("shape", ["ground", "sphere", "cylinder"])
 def test_dropped_cloth_never_penetrates(shape):
     x, f = _sheet(N, 0.8, 0.5)
-    obs = {"ground": _obs(ground=0.0), "sphere": _obs(sphere=((0.05, 0.2, 0), 0.2), ground=0.0),
-           "cylinder": _obs(cylinder=((0.0, 0.3, 0.0), 0.2, 0.3), ground=0.0)}[shape]
+    obs = {
+        "ground": _obs(ground=0.0),
+        "sphere": _obs(sphere=((0.05, 0.2, 0), 0.2), ground=0.0),
+        "cylinder": _obs(cylinder=((0.0, 0.3, 0.0), 0.2, 0.3), ground=0.0),
+    }[shape]
     m = sim.build_model(x, f)
     track = O.static_track(obs, 30)
     frames = sim.simulate(m, STD, x, None, track, progress=False)
@@ -379,6 +403,7 @@ def test_self_collision_keeps_layers_apart():
 
 
 # ------------------------------------------------------------------------------------------------ scenarios
+
 
 def test_loop_counts_and_original_vertices_first():
     cv, cf, fv, ff = S.meshes("sheet")

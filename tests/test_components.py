@@ -6,11 +6,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import grid_mesh
 
 from jaxdeform.components import model, train
 from jaxdeform.mesh.topology import build_topology
 from jaxdeform.nn.graph_conv import ae_decode, ae_encode, rings_from_topology
-from conftest import grid_mesh
 
 
 def _grid(n=6):
@@ -54,9 +54,17 @@ def _block(p, x, rings, latent):
     return z, ae_decode(p, z, rings)
 
 
-@pytest.mark.parametrize("kz, attention, latent", [((3, 2), True, "linear"), ((3, 2), False, "linear"),
-                                                   ((4,), True, "linear"), ((2, 2, 2), True, "linear"),
-                                                   ((3, 2), True, "tanh"), ((3, 2), False, "tanh")])
+@pytest.mark.parametrize(
+    "kz, attention, latent",
+    [
+        ((3, 2), True, "linear"),
+        ((3, 2), False, "linear"),
+        ((4,), True, "linear"),
+        ((2, 2, 2), True, "linear"),
+        ((3, 2), True, "tanh"),
+        ((3, 2), False, "tanh"),
+    ],
+)
 def test_levels_structure_and_residual_split(setup, kz, attention, latent):
     pts, rings, dist, x = setup
     config = model.Config(kz=kz, d=tuple(0.4 / 2**i for i in range(len(kz))), attention=attention, latent=latent)
@@ -126,8 +134,17 @@ def test_resumed_training_is_bit_identical(setup, tmp_path, joint):
     stop = dataclasses.replace(tc, epochs=tc.epochs)
     ck = tmp_path / "ckpt"
     with pytest.raises(_Interrupt):
-        train.train(x, rings, dist, config, stop, checkpoint_dir=ck, checkpoint_every=10,
-                    log=_interrupt_after(cut - 1), log_every=1)
+        train.train(
+            x,
+            rings,
+            dist,
+            config,
+            stop,
+            checkpoint_dir=ck,
+            checkpoint_every=10,
+            log=_interrupt_after(cut - 1),
+            log_every=1,
+        )
     p_res, h_res = train.train(x, rings, dist, config, tc, checkpoint_dir=ck, checkpoint_every=10, resume=True)
     for a, b in zip(jax.tree_util.tree_leaves(p_full), jax.tree_util.tree_leaves(p_res)):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
@@ -142,8 +159,17 @@ def test_loss_history_is_every_step_loss_in_order(setup, tmp_path, joint):
     config = model.Config(kz=(3, 2), d=(0.5, 0.3))
     tc = train.TrainConfig(epochs=30, batch=16, seed=2, joint=joint)
     logged = {}
-    _, h_ck = train.train(x, rings, dist, config, tc, checkpoint_dir=tmp_path / "ck", checkpoint_every=7,
-                          log=lambda e, loss, terms: logged.__setitem__(e, loss), log_every=1)
+    _, h_ck = train.train(
+        x,
+        rings,
+        dist,
+        config,
+        tc,
+        checkpoint_dir=tmp_path / "ck",
+        checkpoint_every=7,
+        log=lambda e, loss, terms: logged.__setitem__(e, loss),
+        log_every=1,
+    )
     _, h_plain = train.train(x, rings, dist, config, tc)
     n = tc.epochs * (1 if joint else config.levels)
     assert h_ck.shape == (n,) and sorted(logged) == list(range(n))
@@ -159,6 +185,7 @@ def _interrupt_after(epoch):
     def log(e, loss, terms):
         if e >= epoch:
             raise _Interrupt()
+
     return log
 
 
@@ -214,7 +241,7 @@ def test_learning_rate_schedule_and_gradient_clipping():
     rate = train.schedule(tc)
     assert float(rate(0)) == pytest.approx(1e-3)
     assert float(rate(tc.epochs)) == pytest.approx(1e-4, rel=1e-4)
-    assert float(rate(tc.epochs // 2)) == pytest.approx(1e-3 * 0.1 ** 0.5, rel=1e-4)  # exponential, not linear
+    assert float(rate(tc.epochs // 2)) == pytest.approx(1e-3 * 0.1**0.5, rel=1e-4)  # exponential, not linear
 
     params = {"w": jnp.arange(1.0, 5.0)}
     grads = [{"w": jnp.array([0.3, -0.1, 0.2, 0.05])}, {"w": jnp.array([400.0, 900.0, -100.0, 50.0])}]
@@ -280,6 +307,11 @@ def test_model_forward_mode_and_second_order(setup):
 
     loss = lambda a: outputs(a)[0]  # noqa: E731
     grad = jax.grad(loss)
-    hv = jax.jit(jax.grad(lambda a: sum(jnp.vdot(g, t) for g, t in zip(jax.tree_util.tree_leaves(grad(a)),
-                                                                         jax.tree_util.tree_leaves(v)))))((params, x))
+    hv = jax.jit(
+        jax.grad(
+            lambda a: sum(
+                jnp.vdot(g, t) for g, t in zip(jax.tree_util.tree_leaves(grad(a)), jax.tree_util.tree_leaves(v))
+            )
+        )
+    )((params, x))
     close(hv, central(jax.jit(grad), (params, x), v), 1e-6)

@@ -34,8 +34,25 @@ def _one_line_error(capsys, rc):
 @pytest.mark.parametrize("method", ["multiscale", "pca", "splocs"])
 def test_train_evaluate_show(seq_dir, tmp_path, capsys, method):
     out = tmp_path / "run"
-    assert main(["components", "train", str(seq_dir), "--out", str(out), "--method", method, "--config", "test",
-                 "--epochs", "20", "--quiet"]) == 0
+    assert (
+        main(
+            [
+                "components",
+                "train",
+                str(seq_dir),
+                "--out",
+                str(out),
+                "--method",
+                method,
+                "--config",
+                "test",
+                "--epochs",
+                "20",
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     rec = json.loads((out / "run.json").read_text())
     assert rec["split"]["train"] == [0, 10] and len(rec["split"]["test"]) == N_FRAMES - 2
     assert main(["components", "evaluate", str(out), "--data", str(seq_dir), "--json", str(tmp_path / "m.json")]) == 0
@@ -61,30 +78,62 @@ def test_train_evaluate_show(seq_dir, tmp_path, capsys, method):
         from jaxdeform import acap
 
         feats = acap.align_turns(acap.encode(loaded.rest, loaded.faces, shapes), loaded.turns)
-        np.testing.assert_allclose(np.asarray(run.scaled_features(loaded, shapes)),
-                                   np.asarray(loaded.scaler.transform(np.asarray(feats, np.float32))), atol=1e-6)
+        np.testing.assert_allclose(
+            np.asarray(run.scaled_features(loaded, shapes)),
+            np.asarray(loaded.scaler.transform(np.asarray(feats, np.float32))),
+            atol=1e-6,
+        )
     # edit: pull three vertices to a test shape's positions; the control residual falls below the start's
     from jaxdeform.mesh.io import load_mesh
 
     target, _ = load_mesh(seq_dir / "f5.obj")
     idx = [0, 60, 127]
     (tmp_path / "c.json").write_text(json.dumps({"indices": idx, "targets": target[idx].tolist()}))
-    assert main(["components", "edit", str(out), "--controls", str(tmp_path / "c.json"),
-                 "--out", str(tmp_path / "e.obj")]) == 0
+    assert (
+        main(["components", "edit", str(out), "--controls", str(tmp_path / "c.json"), "--out", str(tmp_path / "e.obj")])
+        == 0
+    )
     edited, _ = load_mesh(tmp_path / "e.obj")
     assert edited.shape == loaded.rest.shape and np.all(np.isfinite(edited))
     if method in run.ACAP_METHODS:  # default objective "deformation": the controls are held at their targets
         diag = np.linalg.norm(np.ptp(loaded.rest, axis=0))
         assert np.linalg.norm(edited[idx] - target[idx], axis=1).max() < 1e-3 * diag
     if method == "pca":  # the other objective (one ACAP method suffices: the editor's compile is the cost)
-        assert main(["components", "edit", str(out), "--controls", str(tmp_path / "c.json"), "--objective",
-                     "controls", "--out", str(tmp_path / "e2.obj")]) == 0
+        assert (
+            main(
+                [
+                    "components",
+                    "edit",
+                    str(out),
+                    "--controls",
+                    str(tmp_path / "c.json"),
+                    "--objective",
+                    "controls",
+                    "--out",
+                    str(tmp_path / "e2.obj"),
+                ]
+            )
+            == 0
+        )
         fitted, _ = load_mesh(tmp_path / "e2.obj")
         assert np.all(np.isfinite(fitted)) and not np.allclose(fitted, edited)
     if method == "multiscale":  # two levels: coarse to fine by default, --one-stage edits every code at once
         assert "coarse to fine over 2 levels" in capsys.readouterr().out
-        assert main(["components", "edit", str(out), "--controls", str(tmp_path / "c.json"), "--one-stage",
-                     "--out", str(tmp_path / "e1.obj")]) == 0
+        assert (
+            main(
+                [
+                    "components",
+                    "edit",
+                    str(out),
+                    "--controls",
+                    str(tmp_path / "c.json"),
+                    "--one-stage",
+                    "--out",
+                    str(tmp_path / "e1.obj"),
+                ]
+            )
+            == 0
+        )
         assert "coarse to fine" not in capsys.readouterr().out
         one, _ = load_mesh(tmp_path / "e1.obj")  # three controls: both orders can meet them, so meshes may agree
         assert one.shape == edited.shape and np.all(np.isfinite(one))
@@ -92,8 +141,23 @@ def test_train_evaluate_show(seq_dir, tmp_path, capsys, method):
 
 def test_latent_tanh_config_round_trips(seq_dir, tmp_path):
     out = tmp_path / "run"
-    assert main(["components", "train", str(seq_dir), "--out", str(out), "--config", "test-latent-tanh",
-                 "--epochs", "10", "--quiet"]) == 0
+    assert (
+        main(
+            [
+                "components",
+                "train",
+                str(seq_dir),
+                "--out",
+                str(out),
+                "--config",
+                "test-latent-tanh",
+                "--epochs",
+                "10",
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     loaded = run.load(out)
     assert loaded.config.latent == "tanh" and loaded.config.kz == (3, 2)
     rec = run.reconstruct(loaded, run.load_data(seq_dir)[0][loaded.test_idx])
@@ -130,43 +194,95 @@ def test_bad_names_and_mismatched_data(seq_dir, tmp_path, capsys):
     out = tmp_path / "run"
     line = _one_line_error(capsys, main(["components", "train", str(seq_dir), "--out", str(out), "--config", "huge"]))
     assert "no config 'huge'" in line and not out.exists()
-    line = _one_line_error(capsys, main(["components", "train", str(seq_dir), "--out", str(out), "--scale-quantile",
-                                         "0.5"]))
+    line = _one_line_error(
+        capsys, main(["components", "train", str(seq_dir), "--out", str(out), "--scale-quantile", "0.5"])
+    )
     assert "--scale-quantile" in line and not out.exists()
     _one_line_error(capsys, main(["components", "evaluate", str(tmp_path), "--data", str(seq_dir)]))
-    assert main(["components", "train", str(seq_dir), "--out", str(out), "--method", "pca", "--config", "test",
-                 "--quiet"]) == 0
+    assert (
+        main(["components", "train", str(seq_dir), "--out", str(out), "--method", "pca", "--config", "test", "--quiet"])
+        == 0
+    )
     capsys.readouterr()
-    line = _one_line_error(capsys, main(["components", "evaluate", str(out), "--data", str(seq_dir / "f0.obj"),
-                                         str(seq_dir / "f1.obj")]))
+    line = _one_line_error(
+        capsys, main(["components", "evaluate", str(out), "--data", str(seq_dir / "f0.obj"), str(seq_dir / "f1.obj")])
+    )
     assert "same data" in line
 
 
 def test_edit_bad_controls(seq_dir, tmp_path, capsys):
     out = tmp_path / "run"
-    assert main(["components", "train", str(seq_dir), "--out", str(out), "--method", "pca-xyz", "--config", "test",
-                 "--quiet"]) == 0
+    assert (
+        main(
+            [
+                "components",
+                "train",
+                str(seq_dir),
+                "--out",
+                str(out),
+                "--method",
+                "pca-xyz",
+                "--config",
+                "test",
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     capsys.readouterr()
     (tmp_path / "bad.json").write_text(json.dumps({"indices": [0, 9999], "targets": [[0, 0, 0], [1, 1, 1]]}))
-    _one_line_error(capsys, main(["components", "edit", str(out), "--controls", str(tmp_path / "bad.json"),
-                                  "--out", str(tmp_path / "e.obj")]))
+    _one_line_error(
+        capsys,
+        main(
+            ["components", "edit", str(out), "--controls", str(tmp_path / "bad.json"), "--out", str(tmp_path / "e.obj")]
+        ),
+    )
     (tmp_path / "bad.txt").write_text("0 1 2\n")
-    _one_line_error(capsys, main(["components", "edit", str(out), "--controls", str(tmp_path / "bad.txt"),
-                                  "--out", str(tmp_path / "e.obj")]))
+    _one_line_error(
+        capsys,
+        main(
+            ["components", "edit", str(out), "--controls", str(tmp_path / "bad.txt"), "--out", str(tmp_path / "e.obj")]
+        ),
+    )
     # not vertex numbers: a string, a JSON true (numpy would read it as 1), a float beyond int64, an empty file
     for k, indices in enumerate((["a"], [True], [1e20])):
         (tmp_path / f"bad{k}.json").write_text(json.dumps({"indices": indices, "targets": [[0, 0, 0]]}))
-        line = _one_line_error(capsys, main(["components", "edit", str(out), "--controls",
-                                             str(tmp_path / f"bad{k}.json"), "--out", str(tmp_path / "e.obj")]))
+        line = _one_line_error(
+            capsys,
+            main(
+                [
+                    "components",
+                    "edit",
+                    str(out),
+                    "--controls",
+                    str(tmp_path / f"bad{k}.json"),
+                    "--out",
+                    str(tmp_path / "e.obj"),
+                ]
+            ),
+        )
         assert "indices" in line, line
     (tmp_path / "empty.txt").write_text("")
-    line = _one_line_error(capsys, main(["components", "edit", str(out), "--controls", str(tmp_path / "empty.txt"),
-                                         "--out", str(tmp_path / "e.obj")]))
+    line = _one_line_error(
+        capsys,
+        main(
+            [
+                "components",
+                "edit",
+                str(out),
+                "--controls",
+                str(tmp_path / "empty.txt"),
+                "--out",
+                str(tmp_path / "e.obj"),
+            ]
+        ),
+    )
     assert "M >= 1" in line
     assert not (tmp_path / "e.obj").exists()
     # evaluate must not write its JSON over the run's own record; the run still loads afterwards
-    line = _one_line_error(capsys, main(["components", "evaluate", str(out), "--data", str(seq_dir), "--json",
-                                         str(out / "run.json")]))
+    line = _one_line_error(
+        capsys, main(["components", "evaluate", str(out), "--data", str(seq_dir), "--json", str(out / "run.json")])
+    )
     assert "would replace" in line and run.load(out).method == "pca-xyz"
     # ... but metrics written into the run folder may be written again
     for _ in range(2):
@@ -183,12 +299,15 @@ def test_train_refuses_to_replace_its_data(seq_dir, tmp_path, capsys):
     data = tmp_path / "data"
     shutil.copytree(seq_dir, data)
     for out in (data, tmp_path):  # the data folder itself, or a folder holding it, with --force
-        line = _one_line_error(capsys, main(["components", "train", str(data), "--out", str(out), "--force",
-                                             "--method", "pca", "--quiet"]))
+        line = _one_line_error(
+            capsys, main(["components", "train", str(data), "--out", str(out), "--force", "--method", "pca", "--quiet"])
+        )
         assert "would replace the input" in line
     assert len(list(data.glob("*.obj"))) == N_FRAMES
-    line = _one_line_error(capsys, main(["components", "train", str(data), "--out", str(tmp_path / "r"), "--split",
-                                         "half", "--split-seed", "-1"]))
+    line = _one_line_error(
+        capsys,
+        main(["components", "train", str(data), "--out", str(tmp_path / "r"), "--split", "half", "--split-seed", "-1"]),
+    )
     assert "--split-seed" in line and not (tmp_path / "r").exists()
 
 
@@ -213,11 +332,29 @@ def test_train_refuses_degenerate_meshes(tmp_path, capsys):
 
 def test_unreadable_run_records(seq_dir, tmp_path, capsys):
     out = tmp_path / "run"
-    assert main(["components", "train", str(seq_dir), "--out", str(out), "--method", "pca-xyz", "--config", "test",
-                 "--quiet"]) == 0
+    assert (
+        main(
+            [
+                "components",
+                "train",
+                str(seq_dir),
+                "--out",
+                str(out),
+                "--method",
+                "pca-xyz",
+                "--config",
+                "test",
+                "--quiet",
+            ]
+        )
+        == 0
+    )
     capsys.readouterr()
-    for text, expected in (("", "not a readable run record"), ('{"data": "x"}', "lacks method"),
-                           ("[1, 2]", "not a components run record")):
+    for text, expected in (
+        ("", "not a readable run record"),
+        ('{"data": "x"}', "lacks method"),
+        ("[1, 2]", "not a components run record"),
+    ):
         (out / "run.json").write_text(text)
         line = _one_line_error(capsys, main(["components", "evaluate", str(out), "--data", str(seq_dir)]))
         assert expected in line and "run.json" in line, line
@@ -239,8 +376,12 @@ def test_split_indices():
 
 def test_stale_reason_compares_the_split():
     """A run trained on one split is not reused for another (experiments' --split)."""
-    record = {"method": "pca", "split": {"mode": "every10"}, "feature_turns": "aligned",
-              "feature_scale_quantile": run.SCALE_QUANTILE}
+    record = {
+        "method": "pca",
+        "split": {"mode": "every10"},
+        "feature_turns": "aligned",
+        "feature_scale_quantile": run.SCALE_QUANTILE,
+    }
     assert run.stale_reason(record, "pca", "default") is None
     assert run.stale_reason(record, "pca", "default", split="every10") is None
     assert "every10 split, not all" in run.stale_reason(record, "pca", "default", split="all")
@@ -249,8 +390,10 @@ def test_stale_reason_compares_the_split():
 def test_split_all_reports_the_whole_data_set(seq_dir, tmp_path):
     """--split all: every shape trains, and the "test" metrics are the whole data set's, hence the train ones."""
     out = tmp_path / "run"
-    assert main(["components", "train", str(seq_dir), "--out", str(out), "--method", "pca", "--split", "all",
-                 "--quiet"]) == 0
+    assert (
+        main(["components", "train", str(seq_dir), "--out", str(out), "--method", "pca", "--split", "all", "--quiet"])
+        == 0
+    )
     rec = json.loads((out / "run.json").read_text())
     assert rec["split"]["mode"] == "all" and rec["split"]["train"] == rec["split"]["test"] == list(range(N_FRAMES))
     assert main(["components", "evaluate", str(out), "--data", str(seq_dir), "--json", str(tmp_path / "m.json")]) == 0
@@ -268,9 +411,14 @@ def test_stale_reason_reads_missing_model_fields_as_their_defaults():
 
     cfg, tc = run.resolve_config("multiscale", "default", None)
     full = run._json_config(cfg)
-    record = {"method": "multiscale", "split": {"mode": "every10"}, "feature_turns": "aligned",
-              "feature_scale_quantile": run.SCALE_QUANTILE, "config": full,
-              "train_config": dataclasses.asdict(tc)}
+    record = {
+        "method": "multiscale",
+        "split": {"mode": "every10"},
+        "feature_turns": "aligned",
+        "feature_scale_quantile": run.SCALE_QUANTILE,
+        "config": full,
+        "train_config": dataclasses.asdict(tc),
+    }
     assert run.stale_reason(record, "multiscale", "default") is None
     older = {k: v for k, v in full.items() if k not in ("init", "init_std", "tie_conv", "decoder_tanh")}
     assert run.stale_reason({**record, "config": older}, "multiscale", "default") is None

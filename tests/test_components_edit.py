@@ -158,7 +158,10 @@ def test_deformation_energy_analytic(case64):
     # same anchor, is not better
     feats = jnp.stack([decode(jnp.asarray([0.6, 0.4])), rest_features])
     plain, refined = ac.decode(feats, refine=0), ac.decode(feats, refine=1)
-    e_plain, e_refined = np.asarray(ac.deformation_energy(feats, plain)), np.asarray(ac.deformation_energy(feats, refined))
+    e_plain, e_refined = (
+        np.asarray(ac.deformation_energy(feats, plain)),
+        np.asarray(ac.deformation_energy(feats, refined)),
+    )
     assert e_plain.shape == (2,) and np.all(e_plain <= e_refined + 1e-15) and e_plain[0] > 0
 
 
@@ -169,8 +172,18 @@ def test_deformation_objective_holds_controls_and_recovers_weights(case64, metho
     gt = ground_truth(ac, decode, w_true, refine=0)
     controls = np.asarray(E.furthest_point_sampling(v, 6))
     diag = E.bounding_box_diagonal(v)
-    res = E.edit(decode, jnp.zeros(2), ac, None, controls, gt[controls], objective="deformation", method=method,
-                 steps=steps, learning_rate=0.02)
+    res = E.edit(
+        decode,
+        jnp.zeros(2),
+        ac,
+        None,
+        controls,
+        gt[controls],
+        objective="deformation",
+        method=method,
+        steps=steps,
+        learning_rate=0.02,
+    )
     # the controls are anchors of the reconstruction (met up to the anchors' finite weight), translation included
     assert float(res.control_error) < 1e-5 * diag
     np.testing.assert_allclose(np.asarray(res.translation), 0.0)
@@ -213,18 +226,22 @@ def test_cli_edit_defaults_follow_the_library():
     assert args.steps == E.DEFAULT_STEPS
     assert args.objective in E.OBJECTIVES
     for objective in E.OBJECTIVES:  # every library objective is offered; an unknown one is refused
-        assert parser.parse_args(["components", "edit", "RUN", "--controls", "c.json", "--out", "e.obj",
-                                  "--objective", objective]).objective == objective
+        assert (
+            parser.parse_args(
+                ["components", "edit", "RUN", "--controls", "c.json", "--out", "e.obj", "--objective", objective]
+            ).objective
+            == objective
+        )
     with pytest.raises(SystemExit):
-        parser.parse_args(["components", "edit", "RUN", "--controls", "c.json", "--out", "e.obj",
-                           "--objective", "energy"])
+        parser.parse_args(
+            ["components", "edit", "RUN", "--controls", "c.json", "--out", "e.obj", "--objective", "energy"]
+        )
 
 
 def test_more_controls_do_not_increase_error(case64):
     v, f, ac, decode = case64
     gt = ground_truth(ac, decode, [1.3, -0.7], refine=0)
-    errors = [E.edit_error(decode, jnp.zeros(2), ac, None, gt, n, refine=0, method="lm").mean_error
-              for n in (1, 3, 9)]
+    errors = [E.edit_error(decode, jnp.zeros(2), ac, None, gt, n, refine=0, method="lm").mean_error for n in (1, 3, 9)]
     # one control fixes only the translation: the edit stays at the rest shape
     assert errors[0] > 0.1
     assert max(errors[1:]) < 1e-5
@@ -238,8 +255,9 @@ def test_second_call_does_not_retrace(case64):
     gt_b = ground_truth(ac, decode, [0.9, -0.3], refine=0)
     E.edit(decode, jnp.zeros(2), ac, None, controls, gt_a[controls], refine=0, method="lm")
     size = E._edit_jit._cache_size()
-    res = E.edit(decode, jnp.asarray([0.1, 0.1]), ac, None, controls[::-1].copy(), gt_b[controls[::-1]], refine=0,
-                 method="lm")
+    res = E.edit(
+        decode, jnp.asarray([0.1, 0.1]), ac, None, controls[::-1].copy(), gt_b[controls[::-1]], refine=0, method="lm"
+    )
     assert E._edit_jit._cache_size() == size
     np.testing.assert_allclose(np.asarray(res.latent), [0.9, -0.3], atol=1e-4)
 
@@ -304,8 +322,9 @@ def test_staged_edit_is_a_coarse_edit_then_a_full_edit(case64, method, steps, at
     compiled = E._edit_jit._cache_size()
     staged = E.edit(decode, w_start, ac, None, controls, gt[controls], stages=(1, 2), **kw)
     assert E._edit_jit._cache_size() == compiled  # the mask is traced: no new compile for the stages
-    coarse = E.edit(lambda u: decode(jnp.concatenate([u, w_start[1:]])), w_start[:1], ac, None, controls,
-                    gt[controls], **kw)
+    coarse = E.edit(
+        lambda u: decode(jnp.concatenate([u, w_start[1:]])), w_start[:1], ac, None, controls, gt[controls], **kw
+    )
     assert float(coarse.control_error) > 1e-3  # latent 0 alone cannot meet a twisted target
     w1 = jnp.concatenate([coarse.latent, w_start[1:]])
     full = E.edit(decode, w1, ac, None, controls, gt[controls], **kw)
@@ -322,8 +341,7 @@ def test_staged_edit_regularizes_toward_latent0(case64):
     gt = ground_truth(ac, decode, np.array([0.6, 0.4]), refine=1)
     controls = np.asarray(E.furthest_point_sampling(v, 6))
     reg = 1e-2
-    res = E.edit(decode, jnp.zeros(2), ac, None, controls, gt[controls], method="lm", regularization=reg,
-                 stages=(1, 2))
+    res = E.edit(decode, jnp.zeros(2), ac, None, controls, gt[controls], method="lm", regularization=reg, stages=(1, 2))
     r = np.asarray(res.positions)[controls] - gt[controls]
     expected = np.sum(r**2) + reg * np.sum(np.asarray(res.latent) ** 2)
     assert float(res.objective) == pytest.approx(expected, rel=1e-6)
@@ -338,8 +356,7 @@ def test_edit_positions_linear_model_and_protocol(case64):
         return rest + jnp.tensordot(w, comps, 1)
 
     gt = np.asarray(decode_positions(jnp.asarray([0.7, -0.4]))) + SHIFT
-    rep = E.edit_error(decode_positions, jnp.zeros(2), v, None, gt, 5, space="positions", start=3,
-                       regularization=0.0)
+    rep = E.edit_error(decode_positions, jnp.zeros(2), v, None, gt, 5, space="positions", start=3, regularization=0.0)
     np.testing.assert_array_equal(rep.controls, np.asarray(E.furthest_point_sampling(v, 5, 3)))
     np.testing.assert_allclose(np.asarray(rep.result.latent), [0.7, -0.4], atol=1e-5)
     assert rep.diagonal == pytest.approx(np.linalg.norm(v.max(0) - v.min(0)))
@@ -351,8 +368,7 @@ def test_edit_positions_linear_model_and_protocol(case64):
     c = rep.controls
     res = E.edit_positions(decode_positions, jnp.zeros(2), c, gt[c], free_translation=False)
     assert float(res.control_error) > 0.1 and not np.any(np.asarray(res.translation))
-    res = E.edit_positions(decode_positions, jnp.zeros(2), c, gt[c] - SHIFT, free_translation=False,
-                           regularization=0.0)
+    res = E.edit_positions(decode_positions, jnp.zeros(2), c, gt[c] - SHIFT, free_translation=False, regularization=0.0)
     assert float(res.control_error) < 1e-6
 
 
@@ -363,8 +379,15 @@ def test_edit_positions_float32_every_method(case64, method, steps):
     decode_positions = lambda w: jnp.asarray(v) + jnp.tensordot(w, comps, 1)  # noqa: E731
     gt = np.asarray(decode_positions(jnp.asarray([0.5, 0.3], jnp.float32))) + SHIFT.astype(np.float32)
     controls = np.asarray(E.furthest_point_sampling(v, 6))
-    res = E.edit_positions(decode_positions, jnp.zeros(2, jnp.float32), controls, gt[controls], method=method,
-                           steps=steps, learning_rate=0.02)
+    res = E.edit_positions(
+        decode_positions,
+        jnp.zeros(2, jnp.float32),
+        controls,
+        gt[controls],
+        method=method,
+        steps=steps,
+        learning_rate=0.02,
+    )
     assert res.positions.dtype == jnp.float32 and res.latent.dtype == jnp.float32
     np.testing.assert_allclose(np.asarray(res.latent), [0.5, 0.3], atol=1e-3)
     assert int(res.steps) <= steps and (method != "adam" or int(res.steps) == steps)
@@ -376,8 +399,15 @@ def test_edit_positions_more_latents_than_control_rows(case64):
     decode_positions = lambda w: jnp.asarray(v) + jnp.tensordot(w, comps, 1)  # noqa: E731
     target = np.asarray(decode_positions(jnp.asarray([0.3, -0.2, 0.1, 0.0, 0.5])))[[10]]
     for method in ("bfgs", "lm"):  # 5 latents, 3 residual rows: the reverse-mode Jacobian branch
-        res = E.edit_positions(decode_positions, jnp.zeros(5), np.array([10]), target, free_translation=False,
-                               method=method, regularization=1e-8)
+        res = E.edit_positions(
+            decode_positions,
+            jnp.zeros(5),
+            np.array([10]),
+            target,
+            free_translation=False,
+            method=method,
+            regularization=1e-8,
+        )
         assert float(res.control_error) < 1e-5
 
 

@@ -30,8 +30,21 @@ def test_experiment_test_config(tmp_path, experiment, rows):
 
 
 def test_experiment_runs_subset(tmp_path):
-    result = exp.main(["table4", "--config", "test", "--out", str(tmp_path), "--epochs", "2", "--runs", "separate",
-                       "no-attention", "--no-figures"])
+    result = exp.main(
+        [
+            "table4",
+            "--config",
+            "test",
+            "--out",
+            str(tmp_path),
+            "--epochs",
+            "2",
+            "--runs",
+            "separate",
+            "no-attention",
+            "--no-figures",
+        ]
+    )
     assert set(result["rows"]) == {"tube/separate", "tube/no-attention"}
     runs = tmp_path / "table4" / "tube"
     assert sorted(p.name for p in runs.iterdir()) == ["no-attention", "separate"]
@@ -71,8 +84,19 @@ def test_runs_of_another_configuration_are_not_reused(tmp_path):
     """A run whose run.json holds another training configuration than the named one trains now (say an older
     learning-rate decay) is left out by --trained-only and retrained otherwise; a field added since (clip_norm)
     is compared with its default, so its absence alone does not make a run stale."""
-    args = ["table4", "--config", "test", "--out", str(tmp_path), "--epochs", "2", "--runs", "separate", "no-attention",
-            "--no-figures"]
+    args = [
+        "table4",
+        "--config",
+        "test",
+        "--out",
+        str(tmp_path),
+        "--epochs",
+        "2",
+        "--runs",
+        "separate",
+        "no-attention",
+        "--no-figures",
+    ]
     first = exp.main(args)
     runs = tmp_path / "table4" / "tube"
     for name, decay in (("separate", 0.96), ("no-attention", None)):
@@ -81,10 +105,24 @@ def test_runs_of_another_configuration_are_not_reused(tmp_path):
         if decay is not None:
             record["train_config"]["decay_rate"] = decay
         (runs / name / "run.json").write_text(json.dumps(record))
-    kept = exp.main(["table4", "--config", "test", "--out", str(tmp_path), "--runs", "separate", "no-attention",
-                     "--trained-only", "--no-figures"])
+    kept = exp.main(
+        [
+            "table4",
+            "--config",
+            "test",
+            "--out",
+            str(tmp_path),
+            "--runs",
+            "separate",
+            "no-attention",
+            "--trained-only",
+            "--no-figures",
+        ]
+    )
     assert set(kept["rows"]) == {"tube/no-attention"}
-    assert kept["rows"]["tube/no-attention"]["test"]["erms"] == pytest.approx(first["rows"]["tube/no-attention"]["test"]["erms"])
+    assert kept["rows"]["tube/no-attention"]["test"]["erms"] == pytest.approx(
+        first["rows"]["tube/no-attention"]["test"]["erms"]
+    )
     again = exp.main(args)
     assert set(again["rows"]) == {"tube/separate", "tube/no-attention"}
     retrained = json.loads((runs / "separate" / "run.json").read_text())
@@ -93,8 +131,9 @@ def test_runs_of_another_configuration_are_not_reused(tmp_path):
 
 
 def test_fig6_test_config(tmp_path):
-    result = exp.main(["fig6", "--config", "test", "--out", str(tmp_path), "--epochs", "3", "--methods", "multiscale",
-                       "pca-xyz"])
+    result = exp.main(
+        ["fig6", "--config", "test", "--out", str(tmp_path), "--epochs", "3", "--methods", "multiscale", "pca-xyz"]
+    )
     rows = result["rows"]
     # the two-level model edits coarse to fine (its level-0 code count, then all), with the one-stage ablation
     assert set(rows) == {"tube/multiscale", "tube/multiscale (one stage)", "tube/pca-xyz"}
@@ -107,8 +146,22 @@ def test_fig6_test_config(tmp_path):
             assert len(v["iterations"]) == len(v["shapes"]) and 0 <= v["converged"] <= len(v["shapes"])
     assert (tmp_path / "fig6" / "fig6.png").is_file() and (tmp_path / "fig6" / "results.md").is_file()
     # a subset of the control counts, without the one-stage ablation row
-    sub = exp.main(["fig6", "--config", "test", "--out", str(tmp_path), "--epochs", "3", "--methods", "multiscale",
-                    "--controls", "4", "--skip-one-stage"])["rows"]
+    sub = exp.main(
+        [
+            "fig6",
+            "--config",
+            "test",
+            "--out",
+            str(tmp_path),
+            "--epochs",
+            "3",
+            "--methods",
+            "multiscale",
+            "--controls",
+            "4",
+            "--skip-one-stage",
+        ]
+    )["rows"]
     assert set(sub) == {"tube/multiscale"} and set(sub["tube/multiscale"]) == {"4"}
     with pytest.raises(SystemExit):
         exp.main(["fig6", "--config", "test", "--out", str(tmp_path), "--controls", "0"])
@@ -123,8 +176,22 @@ def test_training_benchmark_smoke(tmp_path):
     for k, v in enumerate(verts):
         save_mesh(tmp_path / "tube" / f"f{k:02d}.obj", v, faces)
     out = tmp_path / "b.json"
-    payload = bench.main(["--data", str(tmp_path / "tube"), "--json", str(out), "--repeats", "2",
-                          "--cases", "multiscale:test", "tan:test", "--breakdown", "--loop", "3"])
+    payload = bench.main(
+        [
+            "--data",
+            str(tmp_path / "tube"),
+            "--json",
+            str(out),
+            "--repeats",
+            "2",
+            "--cases",
+            "multiscale:test",
+            "tan:test",
+            "--breakdown",
+            "--loop",
+            "3",
+        ]
+    )
     assert json.loads(out.read_text()) == json.loads(json.dumps(payload))
     for rec in payload["records"]:
         assert {"compile_s", "step_ms_median", "step_ms_min", "projected_training_min"} <= set(rec)
@@ -132,8 +199,13 @@ def test_training_benchmark_smoke(tmp_path):
         assert ("breakdown" in rec) == (rec["method"] == "multiscale")  # the parts of the multiscale step only
         assert rec["loop_steps"] == 3 and rec["loop_ms_per_step"] > 0 and rec["loop_cpu_ms_per_step"] > 0
     parts = payload["records"][0]["breakdown"]
-    assert set(parts) == {"forward_ms", "loss_and_gradient_ms", "adam_ms", "sparsity_and_gradient_ms",
-                          "level0_loss_and_gradient_ms"}
+    assert set(parts) == {
+        "forward_ms",
+        "loss_and_gradient_ms",
+        "adam_ms",
+        "sparsity_and_gradient_ms",
+        "level0_loss_and_gradient_ms",
+    }
     assert all(v > 0 for v in parts.values())
 
 
@@ -145,7 +217,7 @@ def test_sweep_inside_fraction_analytic():
     c[0, :9] = 1.0  # all of component 0 at vertex 0: perfectly localized
     c[1, :] = 0.5  # component 1 spread out, largest at vertex 0 (its centre); vertices 0 and 1 lie within 0.3
     c[1, :9] = 0.6
-    per = [inside_fraction(c[k:k + 1], dist, 0.3) for k in range(2)]
+    per = [inside_fraction(c[k : k + 1], dist, 0.3) for k in range(2)]
     norms1 = np.array([0.6, 0.5, 0.5, 0.5]) * 3.0
     assert per[0] == pytest.approx(1.0)
     assert per[1] == pytest.approx(norms1[:2].sum() / norms1.sum())
@@ -161,8 +233,22 @@ def test_sweep_runs_on_a_tube(tmp_path):
     for k, v in enumerate(verts):
         save_mesh(tmp_path / "tube" / f"f{k:02d}.obj", v, faces)
     out = tmp_path / "s.jsonl"
-    res = sweep.main(["--data", str(tmp_path / "tube"), "--kz", "3,2", "--epochs", "150", "--jsonl", str(out),
-                      "--decay-rate", "0.5", "--clip-norm", "2"])
+    res = sweep.main(
+        [
+            "--data",
+            str(tmp_path / "tube"),
+            "--kz",
+            "3,2",
+            "--epochs",
+            "150",
+            "--jsonl",
+            str(out),
+            "--decay-rate",
+            "0.5",
+            "--clip-norm",
+            "2",
+        ]
+    )
     assert json.loads(out.read_text()) == json.loads(json.dumps(res))
     assert res["config"]["turns"] == "aligned" and res["config"]["scale_quantile"] == crun.SCALE_QUANTILE
     assert res["config"]["decay_rate"] == 0.5 and res["config"]["clip_norm"] == 2.0
@@ -176,17 +262,48 @@ def test_sweep_runs_on_a_tube(tmp_path):
     assert len(res["inside_fraction"]) == 2 and all(0 <= f <= 1 for f in res["inside_fraction"])
     # eq. 8 per shape, its maximum and mean; with every shape training the test keys repeat the train ones
     assert 0 <= res["train_mean_rse"] <= res["train_max_rse"] and 0 <= res["test_mean_rse"] <= res["test_max_rse"]
-    res_all = sweep.main(["--data", str(tmp_path / "tube"), "--kz", "3,2", "--epochs", "100", "--split", "all",
-                          "--eval-every", "50", "--curve", "features", "--jsonl", str(tmp_path / "all.jsonl")])
+    res_all = sweep.main(
+        [
+            "--data",
+            str(tmp_path / "tube"),
+            "--kz",
+            "3,2",
+            "--epochs",
+            "100",
+            "--split",
+            "all",
+            "--eval-every",
+            "50",
+            "--curve",
+            "features",
+            "--jsonl",
+            str(tmp_path / "all.jsonl"),
+        ]
+    )
     assert res_all["train_shapes"] == res_all["test_shapes"] == 12 and res_all["split"] == "all"
     assert res_all["config"]["augment"] == 0 and "mix_sigma" not in res_all["config"]
-    res_aug = sweep.main(["--data", str(tmp_path / "tube"), "--kz", "3,2", "--epochs", "20", "--augment", "6",
-                          "--batch", "4", "--mix-regions", "1,2"])
+    res_aug = sweep.main(
+        [
+            "--data",
+            str(tmp_path / "tube"),
+            "--kz",
+            "3,2",
+            "--epochs",
+            "20",
+            "--augment",
+            "6",
+            "--batch",
+            "4",
+            "--mix-regions",
+            "1,2",
+        ]
+    )
     assert res_aug["config"]["augment"] == 6 and res_aug["config"]["batch"] == 4
     assert res_aug["config"]["mix_regions"] == "1,2" and res_aug["train_shapes"] == 2  # errors of the real shapes
     assert np.isfinite(res_aug["test_erms"])
     # a reference variant: the sweep with the variant's model options, named in the result line
     from experiments.components import reference_variants as rv
+
     res_tie = rv.main(["--variant", "init-tie", "--data", str(tmp_path / "tube"), "--kz", "3,2", "--epochs", "2"])
     assert res_tie["config"]["variant"] == "init-tie" and res_tie["config"]["tie_conv"] is True
     assert res_tie["config"]["init"] == "normal" and res_tie["config"]["decoder_tanh"] is True
@@ -197,6 +314,7 @@ def test_sweep_runs_on_a_tube(tmp_path):
     assert res_all["curve"][-1]["train_max_rse"] == pytest.approx(res_all["train_max_rse"], rel=1e-5)
     # the learning-curve table and figure of Table 5 from that line
     from experiments.components import curves
+
     rows = curves.main([f"two={tmp_path / 'all.jsonl'}", "--out", str(tmp_path / "curves")])
     assert rows["two"]["levels"] == 2 and rows["two"]["paper_max_relative_squared_error"] == curves.PAPER[2]
     assert [p["max_rse"] for p in rows["two"]["curve"]] == [p["train_max_rse"] for p in res_all["curve"]]
@@ -204,7 +322,9 @@ def test_sweep_runs_on_a_tube(tmp_path):
     assert f"| 100 | {res_all['curve'][-1]['train_max_rse']:.4g} |" in md
     assert json.loads((tmp_path / "curves" / "results.json").read_text())["rows"]["two"]["epochs"] == 100
     from PIL import Image
+
     from experiments import charts
+
     assert Image.open(tmp_path / "curves" / "curves.png").size == charts.SIZE
     with pytest.raises(SystemExit, match="LABEL=FILE"):
         curves.main([str(tmp_path / "all.jsonl"), "--out", str(tmp_path / "c2")])
@@ -231,11 +351,20 @@ def test_table5_script_on_a_tube(tmp_path):
     shim = bindir / "python3"  # the script calls python3: make it this interpreter
     shim.write_text(f'#!/bin/sh\nexec "{sys.executable}" "$@"\n')
     shim.chmod(0o755)
-    env = {**os.environ, "PATH": f"{bindir}{os.pathsep}{os.environ['PATH']}",
-           "PYTHONPATH": str(Path(__file__).resolve().parents[1])}
+    env = {
+        **os.environ,
+        "PATH": f"{bindir}{os.pathsep}{os.environ['PATH']}",
+        "PYTHONPATH": str(Path(__file__).resolve().parents[1]),
+    }
     out = tmp_path / "t5"
-    proc = subprocess.run(["bash", "experiments/components/table5_all.sh", str(data), str(out), "250", "0", "test host"],
-                          cwd=Path(__file__).resolve().parents[1], env=env, capture_output=True, text=True, timeout=600)
+    proc = subprocess.run(
+        ["bash", "experiments/components/table5_all.sh", str(data), str(out), "250", "0", "test host"],
+        cwd=Path(__file__).resolve().parents[1],
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=600,
+    )
     assert proc.returncode == 0, proc.stderr
     assert "two: exit 0" in proc.stdout and "three: exit 0" in proc.stdout
     res = json.loads((out / "results.json").read_text())
@@ -252,7 +381,8 @@ def test_ceiling_on_the_tube(tmp_path):
     coordinates baseline's reconstruction, and it writes its tables."""
     from experiments.components import ceiling
     from jaxdeform import metrics
-    from jaxdeform.components import baselines, run as crun
+    from jaxdeform.components import baselines
+    from jaxdeform.components import run as crun
 
     data = exp.synthetic_tube(tmp_path)
     result = ceiling.main(["--data", str(data), "--regions", "1,4", "--out", str(tmp_path / "ceiling")])
@@ -371,8 +501,26 @@ def test_chain_scores_each_stage_and_resumes(tmp_path, capsys):
 
     data = synthetic_tube(tmp_path)
     out = tmp_path / "chain"
-    argv = [str(data), "--out", str(out), "--config", "test", "--epochs", "3", "--first-steps", "2", "--rounds", "1",
-            "--round-steps", "1", "--generated", "2", "--mixes", "3", "--quiet"]
+    argv = [
+        str(data),
+        "--out",
+        str(out),
+        "--config",
+        "test",
+        "--epochs",
+        "3",
+        "--first-steps",
+        "2",
+        "--rounds",
+        "1",
+        "--round-steps",
+        "1",
+        "--generated",
+        "2",
+        "--mixes",
+        "3",
+        "--quiet",
+    ]
     results = chain.main(argv)
     assert list(results["stages"]) == ["base", "rigid", "round1"]
     prev = out / "base"
@@ -384,7 +532,9 @@ def test_chain_scores_each_stage_and_resumes(tmp_path, capsys):
     again = crun.evaluate(crun.load(out / "round1"), data)  # the protocol's own scores
     for part in ("train", "test"):
         got = results["stages"]["round1"]["evaluate"][part]
-        assert {k: v for k, v in got.items() if k != "seconds"} == {k: v for k, v in again[part].items() if k != "seconds"}
+        assert {k: v for k, v in got.items() if k != "seconds"} == {
+            k: v for k, v in again[part].items() if k != "seconds"
+        }
     md = (out / "results.md").read_text()
     assert md.count("\n| ") == 1 + 3 and "| round1 |" in md
     assert json.loads((out / "results.json").read_text()) == results
@@ -426,8 +576,9 @@ def test_reference_variants_are_model_options():
     dist = jnp.zeros((n, n), jnp.float32)
     key = jax.random.PRNGKey(0)
     x = jax.random.uniform(jax.random.PRNGKey(1), (2, n, 9), minval=-0.9, maxval=0.9)
-    assert rv.variant_config(base, "init-tie") == dataclasses.replace(base, init="normal", init_std=rv.TAN_STD,
-                                                                      tie_conv=True)
+    assert rv.variant_config(base, "init-tie") == dataclasses.replace(
+        base, init="normal", init_std=rv.TAN_STD, tie_conv=True
+    )
     assert rv.variant_config(base, "linear-fc") == dataclasses.replace(base, decoder_tanh=False)
     with pytest.raises(ValueError, match="variant"):
         rv.variant_config(base, "nope")
@@ -453,23 +604,37 @@ def test_reference_variants_are_model_options():
     for p, q in zip(tied, plain):  # the other arrays are the untied model's
         np.testing.assert_array_equal(p["C"], q["C"])
         np.testing.assert_array_equal(p["conv_enc"]["W_point"], q["conv_enc"]["W_point"])
-    untied = tuple({**p, "conv_dec": {**p["conv_dec"], "W_point": p["conv_enc"]["W_point"],
-                                      "W_neighbor": p["conv_enc"]["W_neighbor"]}} for p in tied)
-    np.testing.assert_allclose(train.reconstruct(tied, x, rings, tie), train.reconstruct(untied, x, rings, base),
-                               rtol=1e-6, atol=1e-7)
+    untied = tuple(
+        {
+            **p,
+            "conv_dec": {
+                **p["conv_dec"],
+                "W_point": p["conv_enc"]["W_point"],
+                "W_neighbor": p["conv_enc"]["W_neighbor"],
+            },
+        }
+        for p in tied
+    )
+    np.testing.assert_allclose(
+        train.reconstruct(tied, x, rings, tie), train.reconstruct(untied, x, rings, base), rtol=1e-6, atol=1e-7
+    )
     loss = lambda q, cfg: model.forward(q, x, rings, dist, cfg).loss  # noqa: E731  (the training path)
     assert loss(tied, tie) == pytest.approx(float(loss(untied, base)), rel=1e-6)
     g_tied, g_untied = jax.grad(lambda q: loss(q, tie))(tied), jax.grad(lambda q: loss(q, base))(untied)
     for level in (0, 1):  # the encoder's weights get the gradient of both uses
         for w in ("W_point", "W_neighbor"):
-            np.testing.assert_allclose(g_tied[level]["conv_enc"][w],
-                                       g_untied[level]["conv_enc"][w] + g_untied[level]["conv_dec"][w],
-                                       rtol=1e-4, atol=1e-6)
+            np.testing.assert_allclose(
+                g_tied[level]["conv_enc"][w],
+                g_untied[level]["conv_enc"][w] + g_untied[level]["conv_dec"][w],
+                rtol=1e-4,
+                atol=1e-6,
+            )
     out = model.forward(tied, x, rings, dist, tie)
     with pytest.raises(ValueError, match="tie_conv"):
         model.decode_latents(tied, out.latents, rings)  # no configuration: no decoder weights to read
-    np.testing.assert_allclose(model.decode_latents(tied, out.latents, rings, tie), out.reconstruction,
-                               rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(
+        model.decode_latents(tied, out.latents, rings, tie), out.reconstruction, rtol=1e-5, atol=1e-6
+    )
     trained, history = train.train(x[:1], rings, dist, tie, train.TrainConfig(epochs=2))
     assert all(set(p["conv_dec"]) == {"b"} for p in trained) and np.all(np.isfinite(history))
 
@@ -477,12 +642,14 @@ def test_reference_variants_are_model_options():
     linear = rv.variant_config(base, "linear-fc")
     p0 = jax.tree_util.tree_map(lambda a: a[0], plain[0])
     z = graph_conv.ae_encode(p0, x, rings)
-    conv = graph_conv.mesh_conv(p0["conv_dec"], graph_conv.ae_decode_pre(p0, z), rings.neighbors, rings.mask,
-                                rings.degree)
+    conv = graph_conv.mesh_conv(
+        p0["conv_dec"], graph_conv.ae_decode_pre(p0, z), rings.neighbors, rings.mask, rings.degree
+    )
     np.testing.assert_allclose(model.decode_block(p0, z, rings, linear), np.tanh(conv), rtol=1e-5, atol=1e-6)
     np.testing.assert_array_equal(model.decode_block(p0, z, rings), graph_conv.ae_decode(p0, z, rings))
     out = model.forward(plain, x, rings, dist, linear)  # the last level on its masked inputs
     np.testing.assert_allclose(out.reconstruction, model.reconstruction(plain, x, rings, linear), rtol=1e-5, atol=1e-6)
-    np.testing.assert_allclose(model.decode_latents(plain, out.latents, rings, linear), out.reconstruction,
-                               rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(
+        model.decode_latents(plain, out.latents, rings, linear), out.reconstruction, rtol=1e-5, atol=1e-6
+    )
     assert not np.allclose(out.reconstruction, model.forward(plain, x, rings, dist, base).reconstruction)

@@ -4,6 +4,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import grid_mesh
 from PIL import Image
 
 from jaxdeform.acap import Scaler
@@ -12,7 +13,6 @@ from jaxdeform.errors import ConnectivityError, DegenerateMeshError
 from jaxdeform.mesh.render import auto_camera
 from jaxdeform.mesh.topology import build_topology
 from jaxdeform.nn.graph_conv import rings_from_topology
-from conftest import grid_mesh
 
 
 def _grid(n=6):
@@ -32,8 +32,11 @@ def _random_params(config, n_vertices, seed=0):
     rng = np.random.default_rng(seed)
 
     def conv(n):
-        return {"W_point": rng.normal(scale=0.3, size=(n, 9, 9)), "W_neighbor": rng.normal(scale=0.3, size=(n, 9, 9)),
-                "b": rng.normal(scale=0.1, size=(n, 9))}
+        return {
+            "W_point": rng.normal(scale=0.3, size=(n, 9, 9)),
+            "W_neighbor": rng.normal(scale=0.3, size=(n, 9, 9)),
+            "b": rng.normal(scale=0.1, size=(n, 9)),
+        }
 
     params = []
     for level, kz in enumerate(config.kz):
@@ -103,7 +106,7 @@ def test_latent_extremes_follow_tan_et_al(setup):
         for i, (b, k) in enumerate(zip(cs.block[sel], cs.index[sel])):
             other = hi[i] if mag[i] == lo[i] else lo[i]
             alt = np.asarray(extract.block_components(params, rings, lv, int(b), other))[k]
-            assert np.sum(cs.values[sel][i] ** 2) >= np.sum(alt ** 2) - 1e-12
+            assert np.sum(cs.values[sel][i] ** 2) >= np.sum(alt**2) - 1e-12
     # with a reference shape: its code is the base, one entry replaced
     ref = extract.all_components(params, rings, config, latents=latents, reference=4)
     base = np.asarray(latents[1][2, 4])
@@ -244,12 +247,46 @@ def test_component_meshes(setup):
 
 
 def _icosphere(subdiv=2):
-    t = (1 + 5 ** 0.5) / 2
-    v = np.array([[-1, t, 0], [1, t, 0], [-1, -t, 0], [1, -t, 0], [0, -1, t], [0, 1, t], [0, -1, -t], [0, 1, -t],
-                  [t, 0, -1], [t, 0, 1], [-t, 0, -1], [-t, 0, 1]], float)
-    f = [[0, 11, 5], [0, 5, 1], [0, 1, 7], [0, 7, 10], [0, 10, 11], [1, 5, 9], [5, 11, 4], [11, 10, 2], [10, 7, 6],
-         [7, 1, 8], [3, 9, 4], [3, 4, 2], [3, 2, 6], [3, 6, 8], [3, 8, 9], [4, 9, 5], [2, 4, 11], [6, 2, 10],
-         [8, 6, 7], [9, 8, 1]]
+    t = (1 + 5**0.5) / 2
+    v = np.array(
+        [
+            [-1, t, 0],
+            [1, t, 0],
+            [-1, -t, 0],
+            [1, -t, 0],
+            [0, -1, t],
+            [0, 1, t],
+            [0, -1, -t],
+            [0, 1, -t],
+            [t, 0, -1],
+            [t, 0, 1],
+            [-t, 0, -1],
+            [-t, 0, 1],
+        ],
+        float,
+    )
+    f = [
+        [0, 11, 5],
+        [0, 5, 1],
+        [0, 1, 7],
+        [0, 7, 10],
+        [0, 10, 11],
+        [1, 5, 9],
+        [5, 11, 4],
+        [11, 10, 2],
+        [10, 7, 6],
+        [7, 1, 8],
+        [3, 9, 4],
+        [3, 4, 2],
+        [3, 2, 6],
+        [3, 6, 8],
+        [3, 8, 9],
+        [4, 9, 5],
+        [2, 4, 11],
+        [6, 2, 10],
+        [8, 6, 7],
+        [9, 8, 1],
+    ]
     verts, faces = list(v / np.linalg.norm(v, axis=1, keepdims=True)), np.array(f)
     for _ in range(subdiv):
         cache, new = {}, []
@@ -281,8 +318,17 @@ def test_components_figure_writes_png(tmp_path, sphere_set):
     meshes = extract.component_meshes(cs, v, f)
     strength = np.asarray(extract.vertex_strength(cs.values))
     path = tmp_path / "out" / "components.png"
-    img = figures.components_figure(meshes, f, strength, path, groups=["AE0", "AE0", "AE1", "AE3"],
-                                    rows=["AE0", "AE1", "AE2", "AE3"], panel=64, max_columns=3, title="components")
+    img = figures.components_figure(
+        meshes,
+        f,
+        strength,
+        path,
+        groups=["AE0", "AE0", "AE1", "AE3"],
+        rows=["AE0", "AE1", "AE2", "AE3"],
+        panel=64,
+        max_columns=3,
+        title="components",
+    )
     with Image.open(path) as im:
         assert im.format == "PNG" and im.size == (img.shape[1], img.shape[0]) and im.mode == "RGB"
     assert img.shape[1] >= 2 * 64 and img.shape[0] >= 4 * 64  # two columns, four rows (AE2 empty)

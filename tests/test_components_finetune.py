@@ -155,8 +155,27 @@ def test_finetune_lowers_the_position_term_and_writes_a_run(tube_run, tmp_path, 
     data, src = tube_run
     before = (src / "run.json").read_text()
     out = tmp_path / "tuned"
-    code, text, err = run_cli(["components", "finetune", str(src), "--out", str(out), "--mixes", "0", "--steps", "25",
-                               "--batch", "8", "--lr", "1e-3", "--position-weight", "1e3", "--quiet"], capsys)
+    code, text, err = run_cli(
+        [
+            "components",
+            "finetune",
+            str(src),
+            "--out",
+            str(out),
+            "--mixes",
+            "0",
+            "--steps",
+            "25",
+            "--batch",
+            "8",
+            "--lr",
+            "1e-3",
+            "--position-weight",
+            "1e3",
+            "--quiet",
+        ],
+        capsys,
+    )
     assert code == 0, err
     assert "fine-tuned" in text and str(out) in text
     tuned = crun.load(out)
@@ -165,16 +184,37 @@ def test_finetune_lowers_the_position_term_and_writes_a_run(tube_run, tmp_path, 
     assert rec["last_terms"][1] < 0.5 * rec["first_terms"][1]
     assert (src / "run.json").read_text() == before
     original = crun.load(src)
-    assert any(not np.array_equal(np.asarray(a), np.asarray(b))
-               for a, b in zip(jax.tree_util.tree_leaves(tuned.params), jax.tree_util.tree_leaves(original.params)))
+    assert any(
+        not np.array_equal(np.asarray(a), np.asarray(b))
+        for a, b in zip(jax.tree_util.tree_leaves(tuned.params), jax.tree_util.tree_leaves(original.params))
+    )
     result = crun.evaluate(tuned, data)
     assert np.isfinite(result["test"]["erms"]) and np.isfinite(result["train"]["erms"])
     codes = np.load(out / "codes.npz")
     assert sorted(codes.files) == ["level0", "level1"]
     # with mixes (and the data named): a short run still writes a loadable run
-    code, _, err = run_cli(["components", "finetune", str(src), "--out", str(tmp_path / "mixed"), "--data", str(data),
-                            "--mixes", "6", "--generated", "3", "--rigid", "--steps", "2", "--batch", "3", "--quiet"],
-                           capsys)
+    code, _, err = run_cli(
+        [
+            "components",
+            "finetune",
+            str(src),
+            "--out",
+            str(tmp_path / "mixed"),
+            "--data",
+            str(data),
+            "--mixes",
+            "6",
+            "--generated",
+            "3",
+            "--rigid",
+            "--steps",
+            "2",
+            "--batch",
+            "3",
+            "--quiet",
+        ],
+        capsys,
+    )
     assert code == 0, err
     mixed = json.loads((tmp_path / "mixed" / "run.json").read_text())["finetune"]
     assert mixed["mixes"] == 6 and mixed["generated"] == 3 and mixed["rigid"] is True
@@ -192,17 +232,20 @@ def test_finetune_schedule():
     assert all(float(s(k + 1)) < float(s(k)) for k in range(100))
 
 
-@pytest.mark.parametrize("extra, message", [
-    (["--steps", "0"], "--steps and --batch must be positive"),
-    (["--mixes", "-1"], "--mixes and --generated must be non-negative"),
-    (["--generated", "-3"], "--mixes and --generated must be non-negative"),
-    (["--code-noise", "inf"], "--code-noise must be a non-negative"),
-    (["--position-weight", "nan"], "--position-weight must be a non-negative"),
-    (["--lr", "0"], "--lr must be a positive"),
-    (["--lr-final", "1e-3"], "--lr-final must be a positive number no larger than --lr"),
-    (["--lr-final", "0"], "--lr-final must be a positive number"),
-    (["--seed", "-2"], "--seed must be a non-negative"),
-])
+@pytest.mark.parametrize(
+    "extra, message",
+    [
+        (["--steps", "0"], "--steps and --batch must be positive"),
+        (["--mixes", "-1"], "--mixes and --generated must be non-negative"),
+        (["--generated", "-3"], "--mixes and --generated must be non-negative"),
+        (["--code-noise", "inf"], "--code-noise must be a non-negative"),
+        (["--position-weight", "nan"], "--position-weight must be a non-negative"),
+        (["--lr", "0"], "--lr must be a positive"),
+        (["--lr-final", "1e-3"], "--lr-final must be a positive number no larger than --lr"),
+        (["--lr-final", "0"], "--lr-final must be a positive number"),
+        (["--seed", "-2"], "--seed must be a non-negative"),
+    ],
+)
 def test_finetune_refuses_bad_options(tmp_path, capsys, extra, message):
     code, _, err = run_cli(["components", "finetune", str(tmp_path), "--out", str(tmp_path / "o")] + extra, capsys)
     assert code == 2 and err.count("\n") == 1 and message in err

@@ -41,7 +41,8 @@ def test_every_experiment_module_imports_alone():
     that each is imported with no other experiment loaded, as ``python -c "import M"`` would (the library and
     third-party packages, which import no experiment, stay loaded: seconds, not an interpreter start per module)."""
     assert "experiments.components.editing" in MODULES and "experiments.charts" in MODULES
-    run_script(f"""
+    run_script(
+        f"""
         import importlib, sys, traceback
         failed = []
         for name in {sorted(MODULES)!r}:
@@ -53,7 +54,9 @@ def test_every_experiment_module_imports_alone():
                 failed.append(name + ": " + traceback.format_exc())
         assert not failed, "\\n".join(failed)
         print("OK")
-    """, timeout=600)
+    """,
+        timeout=600,
+    )
 
 
 def test_no_import_cycle_among_experiments():
@@ -73,7 +76,7 @@ def test_no_import_cycle_among_experiments():
     def visit(node, stack):
         for dep in sorted(graph[node]):
             if dep in stack:
-                cycles.append(stack[stack.index(dep):] + [dep])
+                cycles.append(stack[stack.index(dep) :] + [dep])
             elif dep not in done:
                 visit(dep, stack + [dep])
         done.add(node)
@@ -105,7 +108,12 @@ def test_no_private_name_of_another_module():
                     if _is_module(f"{node.module}.{a.name}"):
                         modules[a.asname or a.name] = f"{node.module}.{a.name}"
         for node in ast.walk(tree):
-            if (isinstance(node, ast.Attribute) and isinstance(node.value, ast.Name) and node.value.id in modules
-                    and node.attr.startswith("_") and not node.attr.startswith("__")):
+            if (
+                isinstance(node, ast.Attribute)
+                and isinstance(node.value, ast.Name)
+                and node.value.id in modules
+                and node.attr.startswith("_")
+                and not node.attr.startswith("__")
+            ):
                 found.append(f"{name}:{node.lineno}: {modules[node.value.id]}.{node.attr}")
     assert not found, found

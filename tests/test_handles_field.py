@@ -128,8 +128,9 @@ def test_distill_analytic_features(analytic_views):
     v, f, centre, cov, patch = analytic_views
     cfg = FieldConfig(steps=300, batch_size=512, seed=3, jitter=0.0)  # plain eq. (3), on the surface only
     before = fieldmod.TRACE_COUNT["train_step"]
-    fld, hist = distill(cov.points, cov.view, cov.pixel_yx, patch, (48, 48), cfg, progress=False,
-                        bbox=(v.min(axis=0), v.max(axis=0)))
+    fld, hist = distill(
+        cov.points, cov.view, cov.pixel_yx, patch, (48, 48), cfg, progress=False, bbox=(v.min(axis=0), v.max(axis=0))
+    )
     assert fieldmod.TRACE_COUNT["train_step"] - before <= 1  # one trace for all 300 steps
     assert hist.loss.shape == (300,) and hist.seconds > 0
     assert hist.loss[:10].mean() > 0.3 and hist.loss[-50:].mean() < 0.01
@@ -150,9 +151,18 @@ def test_jitter_is_checked_and_changes_only_the_samples(analytic_views):
     v, f, centre, cov, patch = analytic_views
     with pytest.raises(ValueError, match="jitter"):
         FieldConfig(jitter=-0.1)
-    runs = {j: distill(cov.points, cov.view, cov.pixel_yx, patch, (48, 48),
-                       FieldConfig(hidden=32, steps=5, batch_size=256, seed=2, jitter=j), progress=False)[1].loss
-            for j in (0.0, 0.0, 0.05)}
+    runs = {
+        j: distill(
+            cov.points,
+            cov.view,
+            cov.pixel_yx,
+            patch,
+            (48, 48),
+            FieldConfig(hidden=32, steps=5, batch_size=256, seed=2, jitter=j),
+            progress=False,
+        )[1].loss
+        for j in (0.0, 0.0, 0.05)
+    }
     assert runs[0.0][0] == pytest.approx(runs[0.05][0], rel=0.2)  # step 0: same draws, slightly moved points
     assert not np.array_equal(runs[0.0], runs[0.05])
 
@@ -166,8 +176,15 @@ def test_distill_deterministic_and_compiled_once(analytic_views):
     assert fieldmod.TRACE_COUNT["train_step"] == before  # same shapes and configuration: no new trace
     np.testing.assert_array_equal(ha.loss, hb.loss)
     np.testing.assert_array_equal(evaluate_field(a, v), evaluate_field(b, v))
-    c, _ = distill(cov.points, cov.view, cov.pixel_yx, patch, (48, 48), FieldConfig(hidden=32, steps=20,
-                   batch_size=256, seed=12), progress=False)
+    c, _ = distill(
+        cov.points,
+        cov.view,
+        cov.pixel_yx,
+        patch,
+        (48, 48),
+        FieldConfig(hidden=32, steps=20, batch_size=256, seed=12),
+        progress=False,
+    )
     assert np.abs(evaluate_field(c, v) - evaluate_field(a, v)).max() > 1e-3
     with pytest.raises(ValueError, match="view_idx"):
         distill(cov.points, cov.view + 24, cov.pixel_yx, patch, (48, 48), cfg, progress=False)

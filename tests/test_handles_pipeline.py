@@ -4,13 +4,12 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
+from conftest import data_dir
 
 from jaxdeform.data.synthetic import twisted_bar
 from jaxdeform.errors import DegenerateMeshError
 from jaxdeform.handles import field as fieldmod
 from jaxdeform.handles.pipeline import DistillConfig, check_mesh, distill_mesh
-
-from conftest import data_dir
 
 
 class PoolBackbone:
@@ -39,8 +38,12 @@ class PoolBackbone:
 
 
 def _config(mirror: str) -> DistillConfig:
-    return DistillConfig(n_views=4, resolution=56, mirror=mirror,
-                         field=fieldmod.FieldConfig(steps=20, batch_size=64, hidden=16, layers=2))
+    return DistillConfig(
+        n_views=4,
+        resolution=56,
+        mirror=mirror,
+        field=fieldmod.FieldConfig(steps=20, batch_size=64, hidden=16, layers=2),
+    )
 
 
 def _colored_bar():
@@ -72,8 +75,12 @@ def test_mirror_augmentation_changes_only_non_equivariant_features():
     # a backbone that encodes the image column: mirrored views get the column reversed, so the fields differ
     assert np.max(np.abs(fields[True, "none"] - fields[True, "alternate"])) > 1e-3
     # one that encodes the image row is mirror-equivariant under a left-right flip (not under an up-down one)
-    rows = [fieldmod.evaluate_field(distill_mesh(v, f, config=_config(m), backbone=PoolBackbone(False, row=True),
-                                                 progress=False).field, v) for m in ("none", "alternate")]
+    rows = [
+        fieldmod.evaluate_field(
+            distill_mesh(v, f, config=_config(m), backbone=PoolBackbone(False, row=True), progress=False).field, v
+        )
+        for m in ("none", "alternate")
+    ]
     np.testing.assert_allclose(rows[0], rows[1], atol=1e-5)
 
 
@@ -115,8 +122,26 @@ def test_cli_deform_moves_the_handle_and_show_writes_a_png(bar_files, tmp_path):
 
     v, f, mesh, field = bar_files
     out = tmp_path / "moved.obj"
-    assert main(["handles", "deform", str(mesh), "--field", str(field), "--handle", "5", "--translate", "0", "0.5",
-                 "0", "--out", str(out)]) == 0
+    assert (
+        main(
+            [
+                "handles",
+                "deform",
+                str(mesh),
+                "--field",
+                str(field),
+                "--handle",
+                "5",
+                "--translate",
+                "0",
+                "0.5",
+                "0",
+                "--out",
+                str(out),
+            ]
+        )
+        == 0
+    )
     moved, faces = load_mesh(out)
     np.testing.assert_allclose(moved[5] - v[5], [0, 0.5, 0], atol=1e-5)  # the handle's own weight is 1
     np.testing.assert_array_equal(faces, f)
@@ -127,9 +152,26 @@ def test_cli_deform_moves_the_handle_and_show_writes_a_png(bar_files, tmp_path):
     assert Image.open(png).size == (640, 480)
 
 
-@pytest.mark.parametrize("case", ["handle", "anchor", "field-size", "field-faces", "no-faces", "rotate-axis",
-                                  "nan-translate", "inf-rotate", "anchor-is-handle", "npy-field", "field-count-null",
-                                  "repeated-vertex-face", "out-is-the-mesh", "out-is-the-field", "out-format"])
+@pytest.mark.parametrize(
+    "case",
+    [
+        "handle",
+        "anchor",
+        "field-size",
+        "field-faces",
+        "no-faces",
+        "rotate-axis",
+        "nan-translate",
+        "inf-rotate",
+        "anchor-is-handle",
+        "npy-field",
+        "field-count-null",
+        "repeated-vertex-face",
+        "out-is-the-mesh",
+        "out-is-the-field",
+        "out-format",
+    ],
+)
 def test_cli_bad_input_exits_2_with_one_sentence_and_writes_nothing(bar_files, tmp_path, capsys, case):
     from jaxdeform.cli import main
 
@@ -158,8 +200,11 @@ def test_cli_bad_input_exits_2_with_one_sentence_and_writes_nothing(bar_files, t
     elif case == "rotate-axis":
         args += ["--rotate", "w", "30"]
     elif case == "field-count-null":
-        fieldmod.save_field(field, fieldmod.new_field(8, v.min(0), v.max(0), fieldmod.FieldConfig(hidden=16, layers=2)),
-                            {"n_vertices": None, "n_faces": f.shape[0], "backbone": "test"})
+        fieldmod.save_field(
+            field,
+            fieldmod.new_field(8, v.min(0), v.max(0), fieldmod.FieldConfig(hidden=16, layers=2)),
+            {"n_vertices": None, "n_faces": f.shape[0], "backbone": "test"},
+        )
     elif case == "repeated-vertex-face":
         bad = f.copy()
         bad[3, 1] = bad[3, 0]
@@ -219,8 +264,21 @@ def test_cli_remap_applies_a_field_to_another_mesh_of_the_shape(bar_files, tmp_p
     fine = tmp_path / "fine.obj"
     save_mesh(fine, vs, fs)
     out = tmp_path / "fine-moved.obj"
-    args = ["handles", "deform", str(fine), "--field", str(field), "--handle", "7", "--translate", "0.2", "0", "0",
-            "--out", str(out)]
+    args = [
+        "handles",
+        "deform",
+        str(fine),
+        "--field",
+        str(field),
+        "--handle",
+        "7",
+        "--translate",
+        "0.2",
+        "0",
+        "0",
+        "--out",
+        str(out),
+    ]
     assert main(args) == 2 and not out.exists()  # a different vertex count needs --remap
     assert main(args + ["--remap"]) == 0
     moved, _ = load_mesh(out)

@@ -20,16 +20,23 @@ import urllib.request
 
 import numpy as np
 import pytest
+from conftest import DATA
 from PIL import Image
 
 from jaxdeform.handles.server import WEIGHT_COLORMAP, WEIGHT_RANGE, decode_vertices, loopback_host, serve
 from jaxdeform.handles.weights import Deformer
 from jaxdeform.mesh.render import Camera, cast_rays, render
-from conftest import DATA
 
 CHROMIUM = "/usr/bin/chromium"
-CHROMIUM_ARGS = ["--no-sandbox", "--disable-gpu", "--disable-background-networking", "--disable-component-update",
-                 "--disable-sync", "--no-first-run", "--disable-quic"]
+CHROMIUM_ARGS = [
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+    "--no-first-run",
+    "--disable-quic",
+]
 
 
 # ---------------------------------------------------------------------------------------------- fixtures
@@ -151,8 +158,14 @@ def served_vertices(srv) -> tuple[dict, np.ndarray]:
 def expected(deformer: Deformer, state) -> np.ndarray:
     a = state["deform_args"]
     anchors = np.asarray(a["anchors"], dtype=np.int64) if a["anchors"] else ()
-    out = deformer.deform(np.asarray(a["handles"], dtype=np.int64), np.asarray(a["transforms"]), anchors=anchors,
-                          locality=a["locality"], symmetric=a["symmetric"], pou=a["pou"])
+    out = deformer.deform(
+        np.asarray(a["handles"], dtype=np.int64),
+        np.asarray(a["transforms"]),
+        anchors=anchors,
+        locality=a["locality"],
+        symmetric=a["symmetric"],
+        pou=a["pou"],
+    )
     return np.asarray(out, dtype=np.float64)
 
 
@@ -177,7 +190,7 @@ def test_pick_is_the_ray_cast_of_the_displayed_image(fresh, mesh):
     hits = cast_rays(v, f, camera_of(st), w, h)  # nothing deformed yet: the rest mesh is displayed
     x, y = info["covered_pixel"]
     i, j = int(y), int(x)
-    assert hits.hit[max(i - 3, 0):i + 4, max(j - 3, 0):j + 4].all()  # an interior covered pixel, as promised
+    assert hits.hit[max(i - 3, 0) : i + 4, max(j - 3, 0) : j + 4].all()  # an interior covered pixel, as promised
     r = post(fresh, "/api/pick", {"x": x, "y": y, "action": "query"})
     assert r["hit"] and r["triangle"] == hits.triangle[i, j]
     corners = f[r["triangle"]]
@@ -242,8 +255,11 @@ def test_rotate_anchor_locality_pou_options_match_the_deformer(fresh, mesh, defo
     assert deformer.weights([hv, second], anchors=[far]).sum(axis=1).max() > 1.05
     post(fresh, "/api/anchor", {"action": "toggle", "vertex": far})
     post(fresh, "/api/handle", {"action": "add", "vertex": second})
-    post(fresh, "/api/handle", {"action": "transform", "handle": 1, "transform": [[1, 0, 0, 0.1], [0, 1, 0, 0.2],
-                                                                                   [0, 0, 1, -0.1]]})
+    post(
+        fresh,
+        "/api/handle",
+        {"action": "transform", "handle": 1, "transform": [[1, 0, 0, 0.1], [0, 1, 0, 0.2], [0, 0, 1, -0.1]]},
+    )
     previous = None
     # (partition of unity only changes vertices whose weights sum above 1, so it is switched on without locality)
     for options in ({}, {"pou": True}, {"locality": True, "lambda": 3.0}, {"locality": False, "pou": False}):
@@ -271,8 +287,18 @@ def test_image_is_the_render_of_the_reported_state(fresh, mesh, deformer):
     weight = np.asarray(deformer.weights(np.asarray(st["handles"])))[:, 0]
     for scale in (1, 2):
         img = image_of(get(fresh, f"/api/image.png?scale={scale}"))
-        ref = render(got, f, camera=camera_of(st), width=w // scale, height=h // scale, scalar=weight,
-                     cmap=WEIGHT_COLORMAP, vmin=WEIGHT_RANGE[0], vmax=WEIGHT_RANGE[1], colorbar=False)
+        ref = render(
+            got,
+            f,
+            camera=camera_of(st),
+            width=w // scale,
+            height=h // scale,
+            scalar=weight,
+            cmap=WEIGHT_COLORMAP,
+            vmin=WEIGHT_RANGE[0],
+            vmax=WEIGHT_RANGE[1],
+            colorbar=False,
+        )
         np.testing.assert_array_equal(img, ref)
         jpeg = image_of(get(fresh, f"/api/image.jpg?scale={scale}"))  # the drag frames: lossy, same picture
         assert jpeg.shape == ref.shape and np.abs(jpeg.astype(float) - ref).mean() < 3.0
@@ -373,8 +399,11 @@ def test_symmetric_deformation_with_a_field():
         assert info["symmetry_available"] and info["field_given"]
         hv = int(np.argmax(v[:, 0]))  # the tip on the +x side
         post(srv, "/api/handle", {"action": "add", "vertex": hv})
-        post(srv, "/api/handle", {"action": "transform", "handle": 0,
-                                  "transform": [[1, 0, 0, 0.3], [0, 1, 0, 0.1], [0, 0, 1, 0.0]]})
+        post(
+            srv,
+            "/api/handle",
+            {"action": "transform", "handle": 0, "transform": [[1, 0, 0, 0.3], [0, 1, 0, 0.1], [0, 0, 1, 0.0]]},
+        )
         _, plain = served_vertices(srv)
         post(srv, "/api/options", {"symmetric": True})
         st, sym = served_vertices(srv)

@@ -14,12 +14,11 @@ import math
 import numpy as np
 import pytest
 from PIL import Image
+from test_handles_server import check_one_sentence, ellipsoid, smooth_features
 
 from jaxdeform.handles.session import EditSession
 from jaxdeform.handles.viewport import WEIGHT_COLORMAP, WEIGHT_RANGE
-from jaxdeform.handles.weights import Deformer
 from jaxdeform.mesh.render import render
-from test_handles_server import check_one_sentence, ellipsoid, smooth_features
 
 WIDTH, HEIGHT = 96, 64
 PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
@@ -62,8 +61,17 @@ def expected(session: EditSession) -> np.ndarray:
         return session.rest
     d = session.deformer
     anchors = np.asarray(a["anchors"], dtype=np.int64) if a["anchors"] else ()
-    return np.asarray(d.deform(np.asarray(a["handles"]), np.asarray(a["transforms"]), anchors=anchors,
-                               locality=a["locality"], symmetric=a["symmetric"], pou=a["pou"]), dtype=np.float64)
+    return np.asarray(
+        d.deform(
+            np.asarray(a["handles"]),
+            np.asarray(a["transforms"]),
+            anchors=anchors,
+            locality=a["locality"],
+            symmetric=a["symmetric"],
+            pou=a["pou"],
+        ),
+        dtype=np.float64,
+    )
 
 
 def deformed(session: EditSession) -> np.ndarray:
@@ -125,8 +133,11 @@ def test_resets_restore_the_rest_mesh(session, mesh, picks):
     session.toggle_anchor(a)
     session.add_handle(h)
     session.set_options(locality=True, lam=3.0, pou=True)
-    for undo in (lambda: session.reset_handle(), lambda: session.reset("transforms"),
-                 lambda: session.set_transform(0, np.eye(3, 4))):
+    for undo in (
+        lambda: session.reset_handle(),
+        lambda: session.reset("transforms"),
+        lambda: session.set_transform(0, np.eye(3, 4)),
+    ):
         session.translate_handle([0.2, 0.1, 0.0])
         assert np.abs(deformed(session) - v).max() > 0.1
         undo()
@@ -141,8 +152,13 @@ def test_resets_restore_the_rest_mesh(session, mesh, picks):
     session.reset("all")
     np.testing.assert_array_equal(deformed(session), v)
     assert (session.handles, session.anchors, session.selected) == ([], [], None)
-    assert session.options.as_json() == {"locality": False, "lambda": 2.0, "symmetric": False, "pou": False,
-                                         "show_weights": True}
+    assert session.options.as_json() == {
+        "locality": False,
+        "lambda": 2.0,
+        "symmetric": False,
+        "pou": False,
+        "show_weights": True,
+    }
 
 
 def test_options_change_the_deformation_as_the_deformer_does(session, mesh, picks):
@@ -153,8 +169,12 @@ def test_options_change_the_deformation_as_the_deformer_does(session, mesh, pick
     version = session.version
     previous = deformed(session)
     # (one handle's weights sum to at most 1, so partition of unity leaves its deformation as it is)
-    for options, changes in (({"locality": True, "lam": 3.0}, True), ({"lam": 6.0}, True), ({"pou": True}, False),
-                             ({"locality": False}, True)):
+    for options, changes in (
+        ({"locality": True, "lam": 3.0}, True),
+        ({"lam": 6.0}, True),
+        ({"pou": True}, False),
+        ({"locality": False}, True),
+    ):
         assert session.set_options(**options)["lambda"] == session.options.lam
         got = deformed(session)
         np.testing.assert_allclose(got, expected(session), atol=1e-6)
@@ -221,8 +241,11 @@ def test_bad_requests_raise_one_sentence_and_change_nothing(session, picks, case
 
 
 def test_nothing_selected_is_refused(session):
-    for call in (lambda: session.translate_handle([0.1, 0, 0]), lambda: session.drag("rotate", (0, 0), (1, 1)),
-                 lambda: session.reset_handle()):
+    for call in (
+        lambda: session.translate_handle([0.1, 0, 0]),
+        lambda: session.drag("rotate", (0, 0), (1, 1)),
+        lambda: session.reset_handle(),
+    ):
         with pytest.raises(ValueError, match="no handle is selected") as info:
             call()
         check_one_sentence(str(info.value))
@@ -263,9 +286,18 @@ def test_frames_are_png_images_of_the_requested_size(session, mesh, picks):
     session.translate_handle([0.3, 0.0, 0.0])
     version2, png2 = session.image_bytes()
     assert version2 > version and png2 != png
-    ref = render(deformed(session), f, camera=session.view.camera, width=WIDTH, height=HEIGHT,
-                 scalar=session.selected_weights(), cmap=WEIGHT_COLORMAP, vmin=WEIGHT_RANGE[0], vmax=WEIGHT_RANGE[1],
-                 colorbar=False)
+    ref = render(
+        deformed(session),
+        f,
+        camera=session.view.camera,
+        width=WIDTH,
+        height=HEIGHT,
+        scalar=session.selected_weights(),
+        cmap=WEIGHT_COLORMAP,
+        vmin=WEIGHT_RANGE[0],
+        vmax=WEIGHT_RANGE[1],
+        colorbar=False,
+    )
     np.testing.assert_array_equal(session.image(), ref)
 
 

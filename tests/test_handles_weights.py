@@ -1,13 +1,13 @@
 """DFD weights, anchors, locality, blending (eqs. 1, 10), symmetry (eq. 9): identities and direct NumPy references."""
 
+import jax.numpy as jnp
 import numpy as np
 import pytest
+from conftest import grid_mesh
 from jax.test_util import check_grads
 
-import jax.numpy as jnp
 from jaxdeform.handles import weights as hw
 from jaxdeform.mesh.geodesic import HeatGeodesics
-from conftest import grid_mesh
 
 
 def unit(x):
@@ -200,7 +200,9 @@ def test_blend_gradients_match_finite_differences(cloud, pou):
     plane = hw.Plane(np.array([1.0, 0.0, 0.0]), 0.05)
 
     def loss(T):
-        return jnp.sum(jnp.sin(hw.blend(v, W, T, pou=pou))) + jnp.sum(jnp.cos(hw.symmetric_blend(v, W, T, v[[5, 17, 250]], plane, pou=pou)))
+        return jnp.sum(jnp.sin(hw.blend(v, W, T, pou=pou))) + jnp.sum(
+            jnp.cos(hw.symmetric_blend(v, W, T, v[[5, 17, 250]], plane, pou=pou))
+        )
 
     check_grads(loss, (jnp.asarray(T),), order=1, modes=("rev",), atol=1e-6, rtol=1e-6)
 
@@ -251,7 +253,12 @@ def x_symmetric_shape(rotate=None):
 
 
 def twisted_bar(twist_deg):
-    u, w, z = (a.ravel() for a in np.meshgrid(np.linspace(-0.5, 0.5, 9), np.linspace(-0.15, 0.15, 5), np.linspace(-2, 2, 41), indexing="ij"))
+    u, w, z = (
+        a.ravel()
+        for a in np.meshgrid(
+            np.linspace(-0.5, 0.5, 9), np.linspace(-0.15, 0.15, 5), np.linspace(-2, 2, 41), indexing="ij"
+        )
+    )
     k = np.deg2rad(twist_deg) / 4.0
     pts = np.c_[np.cos(k * z) * u - np.sin(k * z) * w, np.sin(k * z) * u + np.cos(k * z) * w, z]
 
@@ -301,7 +308,9 @@ def test_reflections_are_involutions():
     SDS = hw.reflect_transform(plane, D)
     np.testing.assert_allclose(hw.reflect_transform(plane, SDS), D, atol=1e-12)
     # S D S maps mirror images to mirror images
-    np.testing.assert_allclose(apply_np(SDS, hw.reflect_points(plane, p)), hw.reflect_points(plane, apply_np(D, p)), atol=1e-12)
+    np.testing.assert_allclose(
+        apply_np(SDS, hw.reflect_points(plane, p)), hw.reflect_points(plane, apply_np(D, p)), atol=1e-12
+    )
 
 
 def test_symmetric_blend_matches_equation_9(cloud):
@@ -361,8 +370,9 @@ def test_deformer_composes_the_public_functions():
         W = dfm.weights(h, anchors=a, locality=2.0)
         T = random_affine(rng, len(h))
         for pou in (False, True):
-            np.testing.assert_allclose(dfm.deform(h, T, anchors=a, locality=2.0, pou=pou),
-                                       np.asarray(hw.blend(v, W, T, pou=pou)), atol=1e-12)
+            np.testing.assert_allclose(
+                dfm.deform(h, T, anchors=a, locality=2.0, pou=pou), np.asarray(hw.blend(v, W, T, pou=pou)), atol=1e-12
+            )
     with pytest.raises(hw.NoSymmetryError):
         dfm.deform(h, T, symmetric=True)
     assert dfm.symmetry_plane() is None

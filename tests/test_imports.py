@@ -63,7 +63,7 @@ def third_party_imports() -> list[str]:
 
 # Run by one fresh interpreter: argv[1] is a JSON list of the modules to import, argv[2] of those to preload,
 # argv[3] a folder for the children's output. Prints one JSON object {module: error text} of the failures.
-_IMPORTER = textwrap.dedent(r'''
+_IMPORTER = textwrap.dedent(r"""
     import importlib, json, os, sys, traceback
 
     modules, preload, logs = json.loads(sys.argv[1]), json.loads(sys.argv[2]), sys.argv[3]
@@ -115,7 +115,7 @@ _IMPORTER = textwrap.dedent(r'''
             with open(log) as fh:
                 failures[name] = f"exit code {code}:\n" + fh.read()[-4000:]
     print(json.dumps(failures))
-''').replace("WORKERS", str(WORKERS))
+""").replace("WORKERS", str(WORKERS))
 
 
 def test_every_module_imports_on_its_own(tmp_path):
@@ -123,12 +123,16 @@ def test_every_module_imports_on_its_own(tmp_path):
     assert "jaxdeform" in modules and "jaxdeform.mesh.render" in modules and len(modules) > 40
     proc = subprocess.run(
         [sys.executable, "-c", _IMPORTER, json.dumps(modules), json.dumps(third_party_imports()), str(tmp_path)],
-        cwd=ROOT, capture_output=True, text=True, timeout=900,
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=900,
     )
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-6000:]
     failures = json.loads(proc.stdout.strip().splitlines()[-1])
     assert not failures, "modules that fail to import on their own:\n\n" + "\n\n".join(
-        f"--- {name}: {text}" for name, text in failures.items())
+        f"--- {name}: {text}" for name, text in failures.items()
+    )
 
 
 def long_functions(limit: int = MAX_LINES) -> list[tuple[str, int, str, int]]:
@@ -154,7 +158,8 @@ def long_functions(limit: int = MAX_LINES) -> list[tuple[str, int, str, int]]:
 def test_no_function_is_over_80_lines():
     long = long_functions()
     assert not long, f"functions over {MAX_LINES} lines (split them into helpers):\n" + "\n".join(
-        f"  {path}:{line} {name}: {length} lines" for path, line, name, length in long)
+        f"  {path}:{line} {name}: {length} lines" for path, line, name, length in long
+    )
 
 
 def test_the_length_check_sees_functions_and_methods():

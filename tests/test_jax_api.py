@@ -9,8 +9,10 @@ from __future__ import annotations
 
 from fresh_process import run_script
 
+
 def test_import_changes_no_jax_setting_and_float32_decodes_to_float32():
-    run_script("""
+    run_script(
+        """
         import jax
         before = (jax.config.jax_enable_x64, jax.config.jax_default_matmul_precision, os.environ.get("XLA_FLAGS"))
         import jaxdeform, jaxdeform.mesh, jaxdeform.acap, jaxdeform.nn.graph_conv, jaxdeform.nn.transformer
@@ -28,7 +30,9 @@ def test_import_changes_no_jax_setting_and_float32_decodes_to_float32():
             p = a.decode(feats, refine=refine)
             assert p.dtype == np.float32, (refine, p.dtype)
         print("OK")
-    """.replace("import jax\n", "import os, jax\n", 1), x64=False)
+    """.replace("import jax\n", "import os, jax\n", 1),
+        x64=False,
+    )
 
 
 def test_float32_in_float32_out_with_x64_enabled():

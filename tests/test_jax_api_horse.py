@@ -8,7 +8,6 @@ Each test runs a small script in a subprocess (``fresh_process.run_script``); th
 from __future__ import annotations
 
 import pytest
-
 from conftest import data_dir
 from fresh_process import run_script
 

@@ -12,7 +12,6 @@ import subprocess
 import sys
 
 import pytest
-
 from conftest import data_dir
 from fresh_process import ROOT, run_script
 
@@ -41,31 +40,50 @@ SHARDED_ACAP = """
 
 @pytest.mark.slow
 def test_sharded_encode_decode_equal_one_device():
-    run_script(SHARDED_ACAP.format(data=str(data_dir("horse-gallop"))),
-               env_extra={"XLA_FLAGS": "--xla_force_host_platform_device_count=4"})
+    run_script(
+        SHARDED_ACAP.format(data=str(data_dir("horse-gallop"))),
+        env_extra={"XLA_FLAGS": "--xla_force_host_platform_device_count=4"},
+    )
 
 
 def _readme_example() -> str:
     text = (ROOT / "README.md").read_text()
     start = text.index("<!-- jax-api-example -->")
-    block = text[text.index("```python\n", start) + len("```python\n"):]
-    return block[:block.index("```")]
+    block = text[text.index("```python\n", start) + len("```python\n") :]
+    return block[: block.index("```")]
 
 
 @pytest.mark.slow
 def test_readme_jax_example_runs_verbatim():
     """The README's jit / vmap / grad / jvp / sharded example, exactly as printed, in a fresh process (4 devices)."""
     data_dir("horse-gallop")  # skips with its reason when the data is absent
-    run_script(_readme_example() + '\nprint("OK")\n', x64=False,
-               env_extra={"XLA_FLAGS": "--xla_force_host_platform_device_count=4"})
+    run_script(
+        _readme_example() + '\nprint("OK")\n',
+        x64=False,
+        env_extra={"XLA_FLAGS": "--xla_force_host_platform_device_count=4"},
+    )
 
 
 @pytest.mark.slow
 def test_multihost_example_runs_two_processes():
     """examples/multihost_acap.py: two processes on this machine (gloo collectives), each with its own frames."""
-    proc = subprocess.run([sys.executable, str(ROOT / "examples" / "multihost_acap.py"), str(data_dir("cactus")),
-                           "--processes", "2", "--frames", "4", "--timeout", "600"],
-                          cwd=ROOT, capture_output=True, text=True, timeout=660)
+    proc = subprocess.run(
+        [
+            sys.executable,
+            str(ROOT / "examples" / "multihost_acap.py"),
+            str(data_dir("cactus")),
+            "--processes",
+            "2",
+            "--frames",
+            "4",
+            "--timeout",
+            "600",
+        ],
+        cwd=ROOT,
+        capture_output=True,
+        text=True,
+        timeout=660,
+    )
     assert proc.returncode == 0, proc.stdout[-2000:] + proc.stderr[-4000:]
     report = json.loads(proc.stdout.strip().splitlines()[-1])
     assert report["processes"] == 2 and report["devices"] == 2 and report["features"][0] == 4

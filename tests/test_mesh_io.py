@@ -75,8 +75,9 @@ def test_unknown_extension_and_missing_file(tmp_path):
         io.load_mesh(tmp_path / "missing.obj")
 
 
-@pytest.mark.parametrize("text, match", [("OFF\n4 2 0\n0 0 0\n1 0 0\n", "truncated"),
-                                         ("# only a comment\n# and another\n", "only comments")])
+@pytest.mark.parametrize(
+    "text, match", [("OFF\n4 2 0\n0 0 0\n1 0 0\n", "truncated"), ("# only a comment\n# and another\n", "only comments")]
+)
 def test_bad_off(tmp_path, text, match):
     p = tmp_path / "t.off"
     p.write_text(text)
@@ -95,9 +96,13 @@ def test_failed_write_leaves_nothing(tmp_path):
 
 def test_truncated_ascii_ply(tmp_path):
     """trimesh reads a cut ASCII body without complaint; the header's counts catch it."""
-    header = ("ply\nformat ascii 1.0\nelement vertex 4\nproperty float x\nproperty float y\nproperty float z\n"
-              "element face 2\nproperty list uchar int vertex_indices\nend_header\n")
-    body = "".join(" ".join(map(str, v)) + "\n" for v in TRI) + "".join("3 " + " ".join(map(str, f)) + "\n" for f in FACES)
+    header = (
+        "ply\nformat ascii 1.0\nelement vertex 4\nproperty float x\nproperty float y\nproperty float z\n"
+        "element face 2\nproperty list uchar int vertex_indices\nend_header\n"
+    )
+    body = "".join(" ".join(map(str, v)) + "\n" for v in TRI) + "".join(
+        "3 " + " ".join(map(str, f)) + "\n" for f in FACES
+    )
     whole, cut = tmp_path / "m.ply", tmp_path / "cut.ply"
     whole.write_text(header + body)
     cut.write_text(header + "".join(body.splitlines(keepends=True)[:-1]))  # the last face line dropped

@@ -42,7 +42,8 @@ def test_erms_per_shape_splits_the_sequence_erms():
     assert np.sqrt(np.mean(per**2)) == pytest.approx(metrics.erms(ref, rec), rel=1e-12)
     # a shape alone: the same as the sequence measure of that one shape without normalization
     assert metrics.erms_per_shape(ref, rec, normalize=False)[2] == pytest.approx(
-        metrics.erms(ref[2:3], rec[2:3], normalize=False), rel=1e-12)
+        metrics.erms(ref[2:3], rec[2:3], normalize=False), rel=1e-12
+    )
 
 
 def test_erms_scales_into_the_unit_ball():

@@ -71,8 +71,12 @@ def grid_dist(n: int = 4) -> np.ndarray:
 def test_mesh_conv_matches_dense_reference(grid):
     faces, _, rings = grid
     rng = np.random.default_rng(0)
-    params = {k: jnp.asarray(v) for k, v in dict(
-        W_point=rng.normal(size=(5, 7)), W_neighbor=rng.normal(size=(5, 7)), b=rng.normal(size=7)).items()}
+    params = {
+        k: jnp.asarray(v)
+        for k, v in dict(
+            W_point=rng.normal(size=(5, 7)), W_neighbor=rng.normal(size=(5, 7)), b=rng.normal(size=7)
+        ).items()
+    }
     x = rng.normal(size=(3, 16, 5))
     y = mesh_conv(params, jnp.asarray(x), *rings)
     assert y.dtype == jnp.float64 and y.shape == (3, 16, 7)
@@ -168,7 +172,9 @@ def test_group_sparsity_linear_mask_of_tan_et_al():
     d01, d03 = float(dist[0, 1]), float(dist[0, 3])
     assert 0.2 < d01 < 0.4 and d03 > 0.4
     expected = 0.5 * (d01 - 0.2) / 0.2 + 2.0 * 1.0
-    got = float(jax.jit(lambda c, dd: raw_group_sparsity(c, dd, (0.2, 0.4), "linear"))(jnp.asarray(C.reshape(1, -1)), dist))
+    got = float(
+        jax.jit(lambda c, dd: raw_group_sparsity(c, dd, (0.2, 0.4), "linear"))(jnp.asarray(C.reshape(1, -1)), dist)
+    )
     assert got == pytest.approx(expected, rel=1e-9)
     lam = np.asarray(geodesic_linear_mask(dist, jnp.array([0]), 0.2, 0.4))
     assert lam.min() == 0.0 and lam.max() == 1.0 and lam[0, 0] == 0.0
@@ -289,6 +295,7 @@ def test_decoder_error_matches_the_squared_difference(dtype):
         def loss(p, x):
             z, xh, err = jax.vmap(block)(p, x)
             return jnp.sum(err * jnp.arange(1, 8)) + jnp.sum(jnp.sin(xh) * x) + jnp.sum(jnp.cos(z))
+
         return jax.jit(jax.value_and_grad(loss, argnums=(0, 1)))
 
     (v1, g1), (v2, g2) = make(lambda q, xx: ae_forward_error(q, xx, rings))(p, x), make(reference)(p, x)
@@ -319,6 +326,7 @@ def test_masked_blocks_match_the_blocks_on_their_inputs(dtype):
         def loss(p, x):
             z, xh, err = blocks(p, x)
             return jnp.sum(err * jnp.arange(1, 5)) + 0.3 * jnp.sum(jnp.sin(xh)) + jnp.sum(jnp.cos(z))
+
         return jax.jit(jax.value_and_grad(loss, argnums=(0, 1)))
 
     (v1, g1) = make(lambda p, x: masked_blocks_error(p, x, am, rings))(p, x)
@@ -337,7 +345,8 @@ def test_masked_blocks_jacobian_under_vmap():
     n = 5
     rings = rings_from_topology(build_topology(grid_faces(n), n * n))
     p = jax.vmap(jax.vmap(lambda k: init_ae_block(k, n * n, 3, jnp.float64)))(
-        jax.random.split(jax.random.PRNGKey(3), 4).reshape(1, 4, -1))
+        jax.random.split(jax.random.PRNGKey(3), 4).reshape(1, 4, -1)
+    )
     x = jax.random.uniform(jax.random.PRNGKey(4), (1, 2, n * n, 9), jnp.float64, -0.9, 0.9)
     am = jax.random.uniform(jax.random.PRNGKey(5), (1, 4, n * n), jnp.float64)
 
@@ -411,10 +420,15 @@ def _hessian_vector_check(loss, x, v, rtol):
     """grad of <grad loss, v> (reverse over reverse: H v) against central differences of the gradient along v,
     and grad of |grad loss|^2 finite."""
     grad = jax.grad(loss)
-    hv = jax.jit(jax.grad(lambda a: sum(jnp.vdot(g, t) for g, t in zip(jax.tree_util.tree_leaves(grad(a)),
-                                                                         jax.tree_util.tree_leaves(v)))))(x)
+    hv = jax.jit(
+        jax.grad(
+            lambda a: sum(
+                jnp.vdot(g, t) for g, t in zip(jax.tree_util.tree_leaves(grad(a)), jax.tree_util.tree_leaves(v))
+            )
+        )
+    )(x)
     _assert_close(hv, _central_difference(jax.jit(grad), x, v), rtol)
-    gg = jax.jit(jax.grad(lambda a: sum(jnp.sum(g ** 2) for g in jax.tree_util.tree_leaves(grad(a)))))(x)
+    gg = jax.jit(jax.grad(lambda a: sum(jnp.sum(g**2) for g in jax.tree_util.tree_leaves(grad(a)))))(x)
     assert all(np.all(np.isfinite(np.asarray(a))) for a in jax.tree_util.tree_leaves(gg))
 
 
@@ -434,7 +448,8 @@ def test_second_order_through_the_autoencoder_block(grid):
 
     _, _, rings = grid
     p = jax.vmap(jax.vmap(lambda k: init_ae_block(k, 16, 3, jnp.float64)))(
-        jax.random.split(jax.random.PRNGKey(6), 2).reshape(1, 2, -1))
+        jax.random.split(jax.random.PRNGKey(6), 2).reshape(1, 2, -1)
+    )
     x = jax.random.uniform(jax.random.PRNGKey(7), (1, 2, 16, 9), jnp.float64, -0.9, 0.9)
     am = jax.random.uniform(jax.random.PRNGKey(8), (1, 2, 16), jnp.float64)
 

@@ -5,8 +5,8 @@ import json
 import jax.numpy as jnp
 import numpy as np
 import pytest
-
 from conftest import data_dir
+
 from jaxdeform.cli import main
 from jaxdeform.mesh.io import save_mesh
 from jaxdeform.mesh.topology import unique_edges
@@ -131,8 +131,10 @@ def test_cli_parts_fit_show_interpolate(tmp_path):
     assert main(["parts", "show", str(run), "--out", str(tmp_path / "show")]) == 0
     assert (tmp_path / "show" / "segmentation.png").stat().st_size > 0
     out = tmp_path / "interp"
-    assert main(["parts", "interpolate", str(run), "--source", "0", "--target", "2", "--steps", "4",
-                 "--out", str(out)]) == 0
+    assert (
+        main(["parts", "interpolate", str(run), "--source", "0", "--target", "2", "--steps", "4", "--out", str(out)])
+        == 0
+    )
     assert len(list(out.glob("*.obj"))) == 4 and (out / "strip.png").is_file()
     gaps = json.loads((out / "gaps.json").read_text())
     assert gaps["max_gap_over_diagonal"] <= 1e-2
@@ -172,13 +174,27 @@ def test_experiment_runs_on_a_small_config(tmp_path):
     assert (tmp_path / "out" / "results.md").read_text().startswith("| data |")
 
 
-@pytest.mark.parametrize("damage", ["truncated", "missing array", "float labels", "faces out of range",
-                                    "nan vertices", "summary not an object"])
+@pytest.mark.parametrize(
+    "damage",
+    ["truncated", "missing array", "float labels", "faces out of range", "nan vertices", "summary not an object"],
+)
 def test_cli_parts_show_on_a_damaged_run(tmp_path, capsys, damage):
     shapes, faces, _ = _two_rigid_parts(m=3)
     run = tmp_path / "run"
-    assert main(["parts", "fit", str(_write_shapes(tmp_path / "data", shapes, faces)), "--out", str(run),
-                 "--initial-parts", "2"]) == 0
+    assert (
+        main(
+            [
+                "parts",
+                "fit",
+                str(_write_shapes(tmp_path / "data", shapes, faces)),
+                "--out",
+                str(run),
+                "--initial-parts",
+                "2",
+            ]
+        )
+        == 0
+    )
     model = run / "model.npz"
     if damage == "truncated":
         model.write_bytes(model.read_bytes()[:200])
@@ -199,8 +215,10 @@ def test_cli_parts_show_on_a_damaged_run(tmp_path, capsys, damage):
             arrays["vertices"][1, 2, 0] = np.nan
         np.savez(model, **arrays)
     capsys.readouterr()
-    for argv in (["show", str(run), "--out", str(tmp_path / "show")],
-                 ["interpolate", str(run), "--source", "0", "--target", "1", "--steps", "2", "--out", str(tmp_path / "show")]):
+    for argv in (
+        ["show", str(run), "--out", str(tmp_path / "show")],
+        ["interpolate", str(run), "--source", "0", "--target", "1", "--steps", "2", "--out", str(tmp_path / "show")],
+    ):
         assert main(["parts", *argv]) == 2
         err = capsys.readouterr().err.strip().splitlines()
         assert len(err) == 1 and ("summary.json" if damage.startswith("summary") else "model.npz") in err[0], err

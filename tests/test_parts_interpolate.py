@@ -5,8 +5,8 @@ import numpy as np
 import pytest
 
 from jaxdeform.parts.interpolate import (
-    bfs_tree,
     between_faces,
+    bfs_tree,
     contact_gaps,
     interpolate,
     joint_points,
@@ -36,7 +36,9 @@ def angle_by_trace(r):
 def test_quaternion_round_trip_all_pivots():
     rng = np.random.default_rng(0)
     axes = rng.normal(size=(60, 3))
-    angles = np.concatenate([rng.uniform(0, np.pi, 50), [0.0, 1e-9, np.pi, np.pi - 1e-7, np.pi, np.pi, 2.0, 3.0, 0.5, 1.0]])
+    angles = np.concatenate(
+        [rng.uniform(0, np.pi, 50), [0.0, 1e-9, np.pi, np.pi - 1e-7, np.pi, np.pi, 2.0, 3.0, 0.5, 1.0]]
+    )
     axes[-5:-2] = np.eye(3)  # half turns about the coordinate axes: the x / y / z pivots
     r = np.stack([rot(a, t) for a, t in zip(axes, angles)])
     q = quat_from_matrix(r)
@@ -45,7 +47,9 @@ def test_quaternion_round_trip_all_pivots():
     np.testing.assert_allclose(matrix_from_quat(q), r, atol=1e-12)
     np.testing.assert_allclose(rotation_angle(r), angles, atol=1e-7)
     # analytic: 90 degrees about z is (cos 45, 0, 0, sin 45)
-    np.testing.assert_allclose(quat_from_matrix(rot([0, 0, 1], np.pi / 2)), [np.sqrt(0.5), 0, 0, np.sqrt(0.5)], atol=1e-15)
+    np.testing.assert_allclose(
+        quat_from_matrix(rot([0, 0, 1], np.pi / 2)), [np.sqrt(0.5), 0, 0, np.sqrt(0.5)], atol=1e-15
+    )
 
 
 def test_slerp_analytic_endpoints_midpoint_shortest_arc():
@@ -74,7 +78,9 @@ def test_slerp_analytic_endpoints_midpoint_shortest_arc():
     qs = quat_from_matrix(np.stack([rot([0, 1, 0], 1.2), rot([1, 1, 0], 2.5)]))
     out = slerp(np.stack([q0, q0]), qs, np.linspace(0, 1, 5)[:, None])
     assert out.shape == (5, 2, 4)
-    np.testing.assert_allclose(rotation_angle(matrix_from_quat(out)), np.linspace(0, 1, 5)[:, None] * [1.2, 2.5], atol=1e-12)
+    np.testing.assert_allclose(
+        rotation_angle(matrix_from_quat(out)), np.linspace(0, 1, 5)[:, None] * [1.2, 2.5], atol=1e-12
+    )
 
 
 # ------------------------------------------------------------------------------------------ synthetic chain
@@ -116,8 +122,14 @@ def chain():
     rest, faces, labels = tube()
     poses = [
         ([np.eye(3)] * 3, [0.0, 0, 0]),
-        ([rot([0, 0, 1], np.radians(20)), rot([0, 1, 0], np.radians(50)), rot([0, 0, 1], np.radians(70))], [0.2, 0.1, 0.0]),
-        ([rot([1, 0, 0], np.radians(-10)), rot([1, 1, 0], np.radians(-60)), rot([0, 1, 1], np.radians(45))], [-0.1, 0.3, 0.2]),
+        (
+            [rot([0, 0, 1], np.radians(20)), rot([0, 1, 0], np.radians(50)), rot([0, 0, 1], np.radians(70))],
+            [0.2, 0.1, 0.0],
+        ),
+        (
+            [rot([1, 0, 0], np.radians(-10)), rot([1, 1, 0], np.radians(-60)), rot([0, 1, 1], np.radians(45))],
+            [-0.1, 0.3, 0.2],
+        ),
     ]
     rs, ts, verts = zip(*(chain_pose(rest, labels, lr, b) for lr, b in poses))
     rot_km = np.stack(rs, axis=1)  # (K, M, 3, 3)
@@ -140,7 +152,9 @@ def bbox_diag(verts):
 
 def test_chain_construction_and_graph(chain):
     params, labels, rest, faces, verts = chain
-    np.testing.assert_allclose(np.asarray(reconstruct(params, jnp.asarray(labels), jnp.asarray(rest))), verts, atol=1e-12)
+    np.testing.assert_allclose(
+        np.asarray(reconstruct(params, jnp.asarray(labels), jnp.asarray(rest))), verts, atol=1e-12
+    )
     assert part_adjacency(faces, labels, 3) == [{1}, {0, 2}, {1}]
     nb = between_faces(faces, labels)
     assert nb.sum() == 2 * 2 * 12  # two bands of 12 quads
@@ -175,7 +189,9 @@ def test_chain_interpolation(chain, source, target):
     np.testing.assert_allclose(h @ h, rk[root, source].T @ rk[root, target], atol=1e-12)
     assert np.isclose(angle_by_trace(h), angles[root] / 2, atol=1e-9)
     # ... and the root's translation is linear, the vertices of the root are posed rigidly by (R(t), t(t))
-    np.testing.assert_allclose(path.trans[2, root], 0.5 * (np.asarray(params.mu)[root, source] + np.asarray(params.mu)[root, target]))
+    np.testing.assert_allclose(
+        path.trans[2, root], 0.5 * (np.asarray(params.mu)[root, source] + np.asarray(params.mu)[root, target])
+    )
     sel = labels == root
     np.testing.assert_allclose(out[2, sel], rest[sel] @ path.rot[2, root].T + path.trans[2, root], atol=1e-12)
 

@@ -34,7 +34,12 @@ def test_inverse_and_determinant():
 @pytest.mark.parametrize("dtype, tol", [(np.float64, 1e-9), (np.float32, 2e-4)])
 def test_polar_matches_svd_reference(dtype, tol):
     rng = np.random.default_rng(1)
-    t = np.stack([rot(rng.normal(size=3), rng.uniform(0, np.pi)) @ (np.eye(3) + 0.3 * rng.normal(size=(3, 3))) for _ in range(200)])
+    t = np.stack(
+        [
+            rot(rng.normal(size=3), rng.uniform(0, np.pi)) @ (np.eye(3) + 0.3 * rng.normal(size=(3, 3)))
+            for _ in range(200)
+        ]
+    )
     r, s = polar(jnp.asarray(t.astype(dtype)))
     for k in range(0, 200, 7):
         rr, ss = official_polar(t[k])
@@ -57,7 +62,9 @@ def test_polar_reflection_follows_official_convention():
 def test_polar_reflections_few_or_many(n_reflected):
     """Both reflection paths (gathered when few, whole batch when many) match the SVD reference."""
     rng = np.random.default_rng(5)
-    t = np.stack([rot(rng.normal(size=3), rng.uniform(0, np.pi)) @ np.diag(rng.uniform(0.5, 2.0, 3)) for _ in range(64)])
+    t = np.stack(
+        [rot(rng.normal(size=3), rng.uniform(0, np.pi)) @ np.diag(rng.uniform(0.5, 2.0, 3)) for _ in range(64)]
+    )
     t[:n_reflected] = t[:n_reflected] @ np.diag([1.0, -1.0, 1.0])
     r, s = polar(jnp.asarray(t))
     for k in range(64):
@@ -96,7 +103,9 @@ def test_known_log():
 def test_exp_of_large_angles():
     # consistent angles run past 2 pi: exp must still be the rotation about the axis
     for ang in (4.0, 2 * np.pi + 0.3, 9.0):
-        np.testing.assert_allclose(np.asarray(exp_rotation(jnp.asarray([ang, 0.0, 0.0]))), rot([1, 0, 0], ang), atol=1e-10)
+        np.testing.assert_allclose(
+            np.asarray(exp_rotation(jnp.asarray([ang, 0.0, 0.0]))), rot([1, 0, 0], ang), atol=1e-10
+        )
 
 
 @pytest.mark.parametrize("angle", [0.0, np.pi])

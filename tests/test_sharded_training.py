@@ -23,8 +23,14 @@ def run_script(code: str, *, x64: bool = True, timeout: int = 300) -> str:
     if x64:
         env["JAX_ENABLE_X64"] = "1"
     env.update(DEVICES)
-    proc = subprocess.run([sys.executable, "-c", textwrap.dedent(code)], cwd=ROOT, env=env, capture_output=True,
-                          text=True, timeout=timeout)
+    proc = subprocess.run(
+        [sys.executable, "-c", textwrap.dedent(code)],
+        cwd=ROOT,
+        env=env,
+        capture_output=True,
+        text=True,
+        timeout=timeout,
+    )
     assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-6000:]
     assert proc.stdout.strip().endswith("OK"), proc.stdout[-3000:]
     return proc.stdout

@@ -99,10 +99,27 @@ class Settings:
 
 def settings(config: str) -> Settings:
     if config == "test":
-        return Settings(sequences={"sheet": 3, "disk": 3}, frames=8, steps=5, batch=4, figure_frames=1, size=96,
-                        timing_frames=8, levels=1, floor_sequences=1)
+        return Settings(
+            sequences={"sheet": 3, "disk": 3},
+            frames=8,
+            steps=5,
+            batch=4,
+            figure_frames=1,
+            size=96,
+            timing_frames=8,
+            levels=1,
+            floor_sequences=1,
+        )
     # SHEET: 40 x 100 frames, the paper's 4,000; DISK: 20 x 100, the paper's 2,000 (16 / 4 sequences: its 1,600 / 400)
-    return Settings(sequences={"sheet": 40, "disk": 20}, frames=100, steps=1000, batch=8, figure_frames=3, size=320, timing_frames=30)
+    return Settings(
+        sequences={"sheet": 40, "disk": 20},
+        frames=100,
+        steps=1000,
+        batch=8,
+        figure_frames=3,
+        size=320,
+        timing_frames=30,
+    )
 
 
 def upsampler(ds) -> ceval.Upsampler:
@@ -115,8 +132,14 @@ def _scenario_of(ds, x, n_frames: int):
     from jaxdeform.cloth import scenarios
 
     meta = x.meta
-    return scenarios.scenario(ds.scenario, int(meta["index"]), seed=int(meta.get("seed", 0)), n_frames=n_frames,
-                              n_sequences=len(ds.sequences), levels=int(meta.get("levels", 3)))
+    return scenarios.scenario(
+        ds.scenario,
+        int(meta["index"]),
+        seed=int(meta.get("seed", 0)),
+        n_frames=n_frames,
+        n_sequences=len(ds.sequences),
+        levels=int(meta.get("levels", 3)),
+    )
 
 
 def stage_data(out: Path, kind: str, s: Settings, force: bool) -> dict:
@@ -127,8 +150,9 @@ def stage_data(out: Path, kind: str, s: Settings, force: bool) -> dict:
         if len(names) == s.sequences[kind]:
             from jaxdeform.cloth import scenarios
 
-            sc = scenarios.scenario(kind, 0, n_frames=s.frames or scenarios.N_FRAMES, n_sequences=len(names),
-                                    levels=s.levels)
+            sc = scenarios.scenario(
+                kind, 0, n_frames=s.frames or scenarios.N_FRAMES, n_sequences=len(names), levels=s.levels
+            )
             if crun.holds_scenario(root / names[0], sc.meta):
                 return record
             # the scenes changed since (e.g. DISK's rounded table rims): generate() simulates what no longer matches
@@ -143,8 +167,9 @@ def stage_data(out: Path, kind: str, s: Settings, force: bool) -> dict:
 
 def _features(ds, kind, residual, cache):
     if (kind, residual) not in cache:
-        cache[kind, residual] = cfeat.fit_representation(kind, ds, [x.name for x in ds.subset("train")],
-                                                         progress=True, residual=residual)
+        cache[kind, residual] = cfeat.fit_representation(
+            kind, ds, [x.name for x in ds.subset("train")], progress=True, residual=residual
+        )
     return cache[kind, residual]
 
 
@@ -155,11 +180,15 @@ def train_method(ds, name: str, s: Settings, cache: dict, seed: int = 0, progres
     from jaxdeform.cloth.train import TrainConfig
 
     model_kind, rep_kind, residual, *extra = METHODS[name]
-    skip, weight, feed = tuple(extra) + (False, 0.0, 0.0)[len(extra):]
-    return crun.train_run(ds, representation=rep_kind, model_cfg=ModelConfig(kind=model_kind, skip=skip, seed=seed),
-                          train_cfg=TrainConfig(steps=s.steps, batch_size=s.batch, position_weight=weight,
-                                                self_feed=feed, seed=seed),
-                          features=_features(ds, rep_kind, residual, cache), progress=progress)
+    skip, weight, feed = tuple(extra) + (False, 0.0, 0.0)[len(extra) :]
+    return crun.train_run(
+        ds,
+        representation=rep_kind,
+        model_cfg=ModelConfig(kind=model_kind, skip=skip, seed=seed),
+        train_cfg=TrainConfig(steps=s.steps, batch_size=s.batch, position_weight=weight, self_feed=feed, seed=seed),
+        features=_features(ds, rep_kind, residual, cache),
+        progress=progress,
+    )
 
 
 def method_errors(run, test, faces) -> list[dict]:
@@ -188,8 +217,9 @@ def stage_train(out: Path, ds, s: Settings, force: bool, cache: dict) -> dict:
 def stage_evaluate(out: Path, ds, cache: dict) -> dict:
     test = ds.subset("test")
     ups = upsampler(ds)
-    methods = {"upsampled_coarse": ceval.pool([ceval.sequence_errors(x.fine, ups(x.coarse), ds.fine_faces)
-                                               for x in test])}
+    methods = {
+        "upsampled_coarse": ceval.pool([ceval.sequence_errors(x.fine, ups(x.coarse), ds.fine_faces) for x in test])
+    }
     for name in METHODS:
         methods[name] = ceval.pool(method_errors(crun.load_run(out / "runs" / ds.scenario / name), test, ds.fine_faces))
         print(f"{ds.scenario} {name}: rmse {methods[name]['rmse']:.5f} sted {methods[name]['sted']:.4f}", flush=True)
@@ -204,8 +234,11 @@ def stage_linear(ds, r: dict) -> None:
     m = ceval.pool([ceval.sequence_errors(x.fine, ref(x.coarse), ds.fine_faces) for x in ds.subset("test")])
     m["ridge_lambda"] = ref.lam
     m["train_rmse"] = ceval.pooled_rmse((x.fine, ref(x.coarse)) for x in train)
-    print(f"{ds.scenario} linear_residual: rmse {m['rmse']:.5f} sted {m['sted']:.4f} "
-          f"(training sequences: {m['train_rmse']:.5f})", flush=True)
+    print(
+        f"{ds.scenario} linear_residual: rmse {m['rmse']:.5f} sted {m['sted']:.4f} "
+        f"(training sequences: {m['train_rmse']:.5f})",
+        flush=True,
+    )
     r.setdefault("evaluate", {}).setdefault("methods", {})["linear_residual"] = m
     for key in ("rmse", "hausdorff", "sted"):
         r.setdefault(key, {})["linear_residual"] = m[key]
@@ -220,12 +253,19 @@ def stage_scale(ds) -> dict:
         low = high = count = 0.0
         for x in ds.subset(part):
             lo, hi = ceval.coarse_level_split(ups, x.fine.astype(np.float64) - ups(x.coarse))
-            low, high, count = low + np.sum(lo ** 2), high + np.sum(hi ** 2), count + x.fine.shape[0] * x.fine.shape[1]
-        out[part] = {"rmse": float(np.sqrt((low + high) / count)), "coarse_scale_rmse": float(np.sqrt(low / count)),
-                     "finer_rmse": float(np.sqrt(high / count)), "coarse_scale_share": float(low / (low + high))}
-        print(f"{ds.scenario} {part}: upsampled coarse error {out[part]['rmse']:.5f} m = coarse scale "
-              f"{out[part]['coarse_scale_rmse']:.5f} + finer {out[part]['finer_rmse']:.5f} "
-              f"({100 * out[part]['coarse_scale_share']:.1f}% of the squared error at the coarse scale)", flush=True)
+            low, high, count = low + np.sum(lo**2), high + np.sum(hi**2), count + x.fine.shape[0] * x.fine.shape[1]
+        out[part] = {
+            "rmse": float(np.sqrt((low + high) / count)),
+            "coarse_scale_rmse": float(np.sqrt(low / count)),
+            "finer_rmse": float(np.sqrt(high / count)),
+            "coarse_scale_share": float(low / (low + high)),
+        }
+        print(
+            f"{ds.scenario} {part}: upsampled coarse error {out[part]['rmse']:.5f} m = coarse scale "
+            f"{out[part]['coarse_scale_rmse']:.5f} + finer {out[part]['finer_rmse']:.5f} "
+            f"({100 * out[part]['coarse_scale_share']:.1f}% of the squared error at the coarse scale)",
+            flush=True,
+        )
     return out
 
 
@@ -249,26 +289,37 @@ def stage_scaling(out: Path, ds, s: Settings) -> list[dict]:
         else:
             sub = dataclasses.replace(ds, split={"train": [x.name for x in part], "test": [x.name for x in test]})
             run = train_method(sub, "no_temporal", s, {}, progress=False)
-        row = {"every": every, "train_sequences": len(part),
-               "upsampled_coarse": {"test": ups_test,
-                                    "train": ceval.pooled_rmse((x.fine, ups(x.coarse)) for x in part)},
-               "linear_residual": {"test": ceval.pooled_rmse((x.fine, ref(x.coarse)) for x in test),
-                                   "train": ceval.pooled_rmse((x.fine, ref(x.coarse)) for x in part),
-                                   "ridge_lambda": ref.lam}}
-        row["no_temporal"] = {p: ceval.pool(method_errors(run, xs, ds.fine_faces))["rmse"]
-                              for p, xs in (("test", test), ("train", part))}
-        print(f"{ds.scenario} scaling, {len(part)} training sequences: linear {row['linear_residual']['test']:.5f} "
-              f"(train {row['linear_residual']['train']:.5f}), per-frame {row['no_temporal']['test']:.5f} "
-              f"(train {row['no_temporal']['train']:.5f}), upsampled coarse {row['upsampled_coarse']['test']:.5f}",
-              flush=True)
+        row = {
+            "every": every,
+            "train_sequences": len(part),
+            "upsampled_coarse": {"test": ups_test, "train": ceval.pooled_rmse((x.fine, ups(x.coarse)) for x in part)},
+            "linear_residual": {
+                "test": ceval.pooled_rmse((x.fine, ref(x.coarse)) for x in test),
+                "train": ceval.pooled_rmse((x.fine, ref(x.coarse)) for x in part),
+                "ridge_lambda": ref.lam,
+            },
+        }
+        row["no_temporal"] = {
+            p: ceval.pool(method_errors(run, xs, ds.fine_faces))["rmse"] for p, xs in (("test", test), ("train", part))
+        }
+        print(
+            f"{ds.scenario} scaling, {len(part)} training sequences: linear {row['linear_residual']['test']:.5f} "
+            f"(train {row['linear_residual']['train']:.5f}), per-frame {row['no_temporal']['test']:.5f} "
+            f"(train {row['no_temporal']['train']:.5f}), upsampled coarse {row['upsampled_coarse']['test']:.5f}",
+            flush=True,
+        )
         rows.append(row)
     return rows
 
 
 def stage_jumps(ds) -> dict:
     """Frame-to-frame changes of the fine TS-ACAP and ACAP features over every sequence of the dataset."""
-    return {kind: cfeat.frame_change_stats([cfeat.encode_sequence(kind, ds.fine_rest, ds.fine_faces, x.fine)
-                                            for x in ds.sequences]) for kind in ("ts-acap", "acap")}
+    return {
+        kind: cfeat.frame_change_stats(
+            [cfeat.encode_sequence(kind, ds.fine_rest, ds.fine_faces, x.fine) for x in ds.sequences]
+        )
+        for kind in ("ts-acap", "acap")
+    }
 
 
 def stage_timing(out: Path, ds, s: Settings) -> dict:
@@ -285,10 +336,19 @@ def stage_timing(out: Path, ds, s: Settings) -> dict:
     coarse_sim = float(pair["coarse_seconds_per_frame"])
     fine_sim = float(pair["fine_seconds_per_frame"])
     ours = coarse_sim + t["extraction"] + t["synthesis"] + t["reconstruction"] + t["refinement"]
-    return {"coarse_simulation": coarse_sim, "extraction": t["extraction"], "synthesis": t["synthesis"],
-            "reconstruction": t["reconstruction"], "refinement": t["refinement"], "ours_total": ours,
-            "fine_simulation": fine_sim, "speedup": fine_sim / ours, "refined_frames": t["refined_frames"],
-            "frames": int(coarse.shape[0]), "scenario": sc.meta.get("index")}
+    return {
+        "coarse_simulation": coarse_sim,
+        "extraction": t["extraction"],
+        "synthesis": t["synthesis"],
+        "reconstruction": t["reconstruction"],
+        "refinement": t["refinement"],
+        "ours_total": ours,
+        "fine_simulation": fine_sim,
+        "speedup": fine_sim / ours,
+        "refined_frames": t["refined_frames"],
+        "frames": int(coarse.shape[0]),
+        "scenario": sc.meta.get("index"),
+    }
 
 
 def stage_floor(ds, s: Settings) -> dict:
@@ -302,14 +362,29 @@ def stage_floor(ds, s: Settings) -> dict:
         again_e = ceval.sequence_errors(x.fine, again, ds.fine_faces)
         up_e = ceval.sequence_errors(x.fine, ups(x.coarse), ds.fine_faces)
         errors.append((again_e, up_e))
-        per.append({"sequence": x.name, "perturbed_fine": again_e["rmse"], "upsampled_coarse": up_e["rmse"],
-                    "perturbed_fine_sted": again_e["sted"], "upsampled_coarse_sted": up_e["sted"]})
-        print(f"{ds.scenario} floor {x.name}: perturbed fine {again_e['rmse']:.5f} (STED {again_e['sted']:.4f}), "
-              f"upsampled coarse {up_e['rmse']:.5f} (STED {up_e['sted']:.4f})", flush=True)
+        per.append(
+            {
+                "sequence": x.name,
+                "perturbed_fine": again_e["rmse"],
+                "upsampled_coarse": up_e["rmse"],
+                "perturbed_fine_sted": again_e["sted"],
+                "upsampled_coarse_sted": up_e["sted"],
+            }
+        )
+        print(
+            f"{ds.scenario} floor {x.name}: perturbed fine {again_e['rmse']:.5f} (STED {again_e['sted']:.4f}), "
+            f"upsampled coarse {up_e['rmse']:.5f} (STED {up_e['sted']:.4f})",
+            flush=True,
+        )
     again_p, up_p = (ceval.pool([e[k] for e in errors]) for k in (0, 1))
-    return {"perturbation_m": FLOOR_PERTURBATION, "sequences": per, "perturbed_fine_rmse": again_p["rmse"],
-            "upsampled_coarse_rmse": up_p["rmse"], "perturbed_fine_sted": again_p["sted"],
-            "upsampled_coarse_sted": up_p["sted"]}
+    return {
+        "perturbation_m": FLOOR_PERTURBATION,
+        "sequences": per,
+        "perturbed_fine_rmse": again_p["rmse"],
+        "upsampled_coarse_rmse": up_p["rmse"],
+        "perturbed_fine_sted": again_p["sted"],
+        "upsampled_coarse_sted": up_p["sted"],
+    }
 
 
 def stage_figures(out: Path, ds, s: Settings) -> list[str]:
@@ -333,8 +408,21 @@ def stage_figures(out: Path, ds, s: Settings) -> list[str]:
             caption(render(coarse_up[t], f, camera=cam, width=size, height=size, colorbar=False), "coarse (upsampled)"),
             caption(render(fine[t], f, camera=cam, width=size, height=size, colorbar=False), "ours"),
             caption(render(x.fine[t], f, camera=cam, width=size, height=size, colorbar=False), "fine simulation"),
-            caption(render(fine[t], f, scalar=err, camera=cam, width=size + 90, height=size, vmin=0.0, vmax=vmax,
-                           cmap="viridis", label="m"), "error of ours"),
+            caption(
+                render(
+                    fine[t],
+                    f,
+                    scalar=err,
+                    camera=cam,
+                    width=size + 90,
+                    height=size,
+                    vmin=0.0,
+                    vmax=vmax,
+                    cmap="viridis",
+                    label="m",
+                ),
+                "error of ours",
+            ),
         ]
         path = out / f"strip_{ds.scenario}_{x.name.removesuffix('.npz')}_f{t:03d}.png"
         save_png(hstack(panels), path)
@@ -344,8 +432,9 @@ def stage_figures(out: Path, ds, s: Settings) -> list[str]:
 
 def _table(head: list[str], rows: list[list[str]]) -> list[str]:
     """Markdown table lines (header, rule, rows) and a blank line."""
-    return (["| " + " | ".join(head) + " |", "|" + "---|" * len(head)] + ["| " + " | ".join(r) + " |" for r in rows]
-            + [""])
+    return (
+        ["| " + " | ".join(head) + " |", "|" + "---|" * len(head)] + ["| " + " | ".join(r) + " |" for r in rows] + [""]
+    )
 
 
 def _tested_at(samples_per_edge: int) -> str:
@@ -362,50 +451,103 @@ def markdown(summary: dict) -> str:
         if d:
             v = d.get("vertices", {})
             pen = d.get("penetration", {})
-            lines += [f"{len(d.get('sequences', []))} sequences x {d.get('frames_per_sequence')} frames; coarse "
-                      f"{v.get('coarse')} / fine {v.get('fine')} vertices; max obstacle penetration "
-                      f"{100 * pen.get('coarse_max_over_edge', float('nan')):.3f}% (coarse) / "
-                      f"{100 * pen.get('fine_max_over_edge', float('nan')):.3f}% (fine) of the mean edge length, "
-                      f"{_tested_at(pen.get('samples_per_edge', 0))}.", ""]
+            lines += [
+                f"{len(d.get('sequences', []))} sequences x {d.get('frames_per_sequence')} frames; coarse "
+                f"{v.get('coarse')} / fine {v.get('fine')} vertices; max obstacle penetration "
+                f"{100 * pen.get('coarse_max_over_edge', float('nan')):.3f}% (coarse) / "
+                f"{100 * pen.get('fine_max_over_edge', float('nan')):.3f}% (fine) of the mean edge length, "
+                f"{_tested_at(pen.get('samples_per_edge', 0))}.",
+                "",
+            ]
         ev = r.get("evaluate")
         if ev:
-            lines += _table(["method", "RMSE (m)", "Hausdorff (m)", "STED"],
-                            [[name, f"{m['rmse']:.5f}", f"{m['hausdorff']:.5f}", f"{m['sted']:.4f}"]
-                             for name, m in ev["methods"].items()])
+            lines += _table(
+                ["method", "RMSE (m)", "Hausdorff (m)", "STED"],
+                [
+                    [name, f"{m['rmse']:.5f}", f"{m['hausdorff']:.5f}", f"{m['sted']:.4f}"]
+                    for name, m in ev["methods"].items()
+                ],
+            )
         j = r.get("jumps")
         if j:
-            lines += _table(["fine features", "largest frame-to-frame change", "99.9th pct", "99th pct",
-                             "changes above pi"],
-                            [[kind, f"{st['max']:.2f}", f"{st['p99_9']:.3f}", f"{st['p99']:.3f}",
-                              f"{100 * st['fraction_above_pi']:.3f}% of {st['count']:,}"] for kind, st in j.items()])
+            lines += _table(
+                ["fine features", "largest frame-to-frame change", "99.9th pct", "99th pct", "changes above pi"],
+                [
+                    [
+                        kind,
+                        f"{st['max']:.2f}",
+                        f"{st['p99_9']:.3f}",
+                        f"{st['p99']:.3f}",
+                        f"{100 * st['fraction_above_pi']:.3f}% of {st['count']:,}",
+                    ]
+                    for kind, st in j.items()
+                ],
+            )
         sc = r.get("scale")
         if sc:
-            lines += _table(["upsampled coarse error", "RMSE (m)", "at the coarse mesh's scale", "finer",
-                             "share at the coarse scale"],
-                            [[f"{part} sequences", f"{e['rmse']:.5f}", f"{e['coarse_scale_rmse']:.5f}",
-                              f"{e['finer_rmse']:.5f}", f"{100 * e['coarse_scale_share']:.1f}%"] for part, e in sc.items()])
+            lines += _table(
+                [
+                    "upsampled coarse error",
+                    "RMSE (m)",
+                    "at the coarse mesh's scale",
+                    "finer",
+                    "share at the coarse scale",
+                ],
+                [
+                    [
+                        f"{part} sequences",
+                        f"{e['rmse']:.5f}",
+                        f"{e['coarse_scale_rmse']:.5f}",
+                        f"{e['finer_rmse']:.5f}",
+                        f"{100 * e['coarse_scale_share']:.1f}%",
+                    ]
+                    for part, e in sc.items()
+                ],
+            )
         sg = r.get("scaling")
         if sg:
-            lines += _table(["training sequences", "upsampled coarse: test / train RMSE (m)", "linear reference",
-                             "per-frame model"],
-                            [[str(g["train_sequences"])] + [f"{g[k]['test']:.5f} / {g[k]['train']:.5f}" for k in
-                                                            ("upsampled_coarse", "linear_residual", "no_temporal")]
-                             for g in sg])
+            lines += _table(
+                [
+                    "training sequences",
+                    "upsampled coarse: test / train RMSE (m)",
+                    "linear reference",
+                    "per-frame model",
+                ],
+                [
+                    [str(g["train_sequences"])]
+                    + [
+                        f"{g[k]['test']:.5f} / {g[k]['train']:.5f}"
+                        for k in ("upsampled_coarse", "linear_residual", "no_temporal")
+                    ]
+                    for g in sg
+                ],
+            )
         fl = r.get("floor")
         if fl:
-            lines += [f"Fine simulation against itself from a start perturbed by {fl['perturbation_m'] * 1e3:.1f} mm: "
-                      f"RMSE {fl['perturbed_fine_rmse']:.5f} m over {len(fl['sequences'])} test sequences, where the "
-                      f"upsampled coarse cloth is {fl['upsampled_coarse_rmse']:.5f} m from it"
-                      + (f"; STED {fl['perturbed_fine_sted']:.4f} (upsampled coarse {fl['upsampled_coarse_sted']:.4f})"
-                         if "perturbed_fine_sted" in fl else "") + ".", ""]
+            lines += [
+                f"Fine simulation against itself from a start perturbed by {fl['perturbation_m'] * 1e3:.1f} mm: "
+                f"RMSE {fl['perturbed_fine_rmse']:.5f} m over {len(fl['sequences'])} test sequences, where the "
+                f"upsampled coarse cloth is {fl['upsampled_coarse_rmse']:.5f} m from it"
+                + (
+                    f"; STED {fl['perturbed_fine_sted']:.4f} (upsampled coarse {fl['upsampled_coarse_sted']:.4f})"
+                    if "perturbed_fine_sted" in fl
+                    else ""
+                )
+                + ".",
+                "",
+            ]
         tm = r.get("timing")
         if tm:
-            lines += ["| coarse sim | TS-ACAP extraction | synthesis | reconstruction | refinement | ours total | "
-                      "fine sim | speedup |", "|---|---|---|---|---|---|---|---|",
-                      f"| {tm['coarse_simulation'] * 1e3:.1f} ms | {tm['extraction'] * 1e3:.1f} ms | "
-                      f"{tm['synthesis'] * 1e3:.1f} ms | {tm['reconstruction'] * 1e3:.1f} ms | "
-                      f"{tm['refinement'] * 1e3:.1f} ms | {tm['ours_total'] * 1e3:.1f} ms | "
-                      f"{tm['fine_simulation'] * 1e3:.1f} ms | {tm['speedup']:.1f}x |", ""]
+            lines += [
+                "| coarse sim | TS-ACAP extraction | synthesis | reconstruction | refinement | ours total | "
+                "fine sim | speedup |",
+                "|---|---|---|---|---|---|---|---|",
+                f"| {tm['coarse_simulation'] * 1e3:.1f} ms | {tm['extraction'] * 1e3:.1f} ms | "
+                f"{tm['synthesis'] * 1e3:.1f} ms | {tm['reconstruction'] * 1e3:.1f} ms | "
+                f"{tm['refinement'] * 1e3:.1f} ms | {tm['ours_total'] * 1e3:.1f} ms | "
+                f"{tm['fine_simulation'] * 1e3:.1f} ms | {tm['speedup']:.1f}x |",
+                "",
+            ]
     return "\n".join(lines) + "\n"
 
 
@@ -432,8 +574,11 @@ def main(argv=None) -> int:
     ap.add_argument("--force", action="store_true", help="redo cached data and runs")
     args = ap.parse_args(argv)
     root = Path(__file__).resolve().parent
-    out = Path(args.out) if args.out else (root / "results" if args.config == "default"
-                                          else Path("out/experiments/cloth-test"))
+    out = (
+        Path(args.out)
+        if args.out
+        else (root / "results" if args.config == "default" else Path("out/experiments/cloth-test"))
+    )
     out.mkdir(parents=True, exist_ok=True)
     s = settings(args.config)
     path = out / "summary.json"

@@ -57,30 +57,48 @@ def evaluate(run, test, faces) -> dict:
 def markdown(record: dict) -> str:
     seeds = record["seeds"]
     names = record["test_sequences"]
-    lines = [f"# Seed spread on {record['dataset']} ({len(names)} test sequences: {', '.join(names)})", "",
-             "Pooled test RMSE (m) / STED per training seed; the upsampled coarse cloth needs no training.", "",
-             "| method | " + " | ".join(f"seed {s}" for s in seeds) + " | mean RMSE | RMSE / upsampled coarse |",
-             "|---|" + "---|" * (len(seeds) + 2)]
+    lines = [
+        f"# Seed spread on {record['dataset']} ({len(names)} test sequences: {', '.join(names)})",
+        "",
+        "Pooled test RMSE (m) / STED per training seed; the upsampled coarse cloth needs no training.",
+        "",
+        "| method | " + " | ".join(f"seed {s}" for s in seeds) + " | mean RMSE | RMSE / upsampled coarse |",
+        "|---|" + "---|" * (len(seeds) + 2),
+    ]
     base = record["upsampled_coarse"]["rmse"]
-    lines.append(f"| upsampled_coarse | {base:.4f} / {record['upsampled_coarse']['sted']:.4f}" + " |" * len(seeds)
-                 + f" {base:.4f} | 1.00x |")
+    lines.append(
+        f"| upsampled_coarse | {base:.4f} / {record['upsampled_coarse']['sted']:.4f}"
+        + " |" * len(seeds)
+        + f" {base:.4f} | 1.00x |"
+    )
     for name, per_seed in record["methods"].items():
         cells = [f"{per_seed[str(s)]['rmse']:.4f} / {per_seed[str(s)]['sted']:.4f}" for s in seeds]
         mean = float(np.mean([per_seed[str(s)]["rmse"] for s in seeds]))
         lines.append(f"| {name} | " + " | ".join(cells) + f" | {mean:.4f} | {mean / base:.2f}x |")
-    lines += ["", "RMSE (m) of each test sequence:", "",
-              "| method, seed | " + " | ".join(names) + " |", "|---|" + "---|" * len(names),
-              "| upsampled_coarse | " + " | ".join(f"{v:.4f}" for v in record["upsampled_coarse"]["rmse_per_sequence"]) + " |"]
+    lines += [
+        "",
+        "RMSE (m) of each test sequence:",
+        "",
+        "| method, seed | " + " | ".join(names) + " |",
+        "|---|" + "---|" * len(names),
+        "| upsampled_coarse | "
+        + " | ".join(f"{v:.4f}" for v in record["upsampled_coarse"]["rmse_per_sequence"])
+        + " |",
+    ]
     for name, per_seed in record["methods"].items():
         for s in seeds:
-            lines.append(f"| {name}, {s} | " + " | ".join(f"{v:.4f}" for v in per_seed[str(s)]["rmse_per_sequence"]) + " |")
+            lines.append(
+                f"| {name}, {s} | " + " | ".join(f"{v:.4f}" for v in per_seed[str(s)]["rmse_per_sequence"]) + " |"
+            )
     return "\n".join(lines) + "\n"
 
 
 def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--dataset", choices=("sheet", "disk"), default="disk")
-    ap.add_argument("--methods", nargs="+", choices=list(xrun.METHODS), default=["ours", "acap", "coords", "no_temporal"])
+    ap.add_argument(
+        "--methods", nargs="+", choices=list(xrun.METHODS), default=["ours", "acap", "coords", "no_temporal"]
+    )
     ap.add_argument("--seeds", nargs="+", type=int, default=[0, 1, 2])
     ap.add_argument("--config", choices=("default", "test"), default="default")
     ap.add_argument("--out", default=str(Path(__file__).resolve().parent / "results"))
@@ -88,18 +106,27 @@ def main(argv=None) -> int:
     out = Path(args.out)
     root = out / "data" / args.dataset
     if not (root / "dataset.json").is_file():
-        raise SystemExit(f"no {args.dataset} dataset in {root}: run `python -m experiments.cloth.run --datasets "
-                         f"{args.dataset} --stages data` first.")
+        raise SystemExit(
+            f"no {args.dataset} dataset in {root}: run `python -m experiments.cloth.run --datasets "
+            f"{args.dataset} --stages data` first."
+        )
     s = xrun.settings(args.config)
     ds = cdata.load_dataset(root)
     test = ds.subset("test")
     ups = xrun.upsampler(ds)
     base = [ceval.sequence_errors(x.fine, ups(x.coarse), ds.fine_faces) for x in test]
     pooled = ceval.pool(base)
-    record = {"dataset": args.dataset, "seeds": args.seeds, "test_sequences": [x.name for x in test],
-              "upsampled_coarse": {"rmse": pooled["rmse"], "sted": pooled["sted"],
-                                   "rmse_per_sequence": [r["rmse"] for r in base]},
-              "methods": {}}
+    record = {
+        "dataset": args.dataset,
+        "seeds": args.seeds,
+        "test_sequences": [x.name for x in test],
+        "upsampled_coarse": {
+            "rmse": pooled["rmse"],
+            "sted": pooled["sted"],
+            "rmse_per_sequence": [r["rmse"] for r in base],
+        },
+        "methods": {},
+    }
     old_path = out / f"seeds_{args.dataset}.json"
     if old_path.is_file():
         old = json.loads(old_path.read_text())
@@ -111,8 +138,11 @@ def main(argv=None) -> int:
         for seed in args.seeds:
             r = evaluate(train_seed(out, ds, name, seed, s, cache), test, ds.fine_faces)
             record["methods"][name][str(seed)] = r
-            print(f"{args.dataset} {name} seed {seed}: rmse {r['rmse']:.5f} sted {r['sted']:.4f} per sequence "
-                  + " ".join(f"{v:.4f}" for v in r["rmse_per_sequence"]), flush=True)
+            print(
+                f"{args.dataset} {name} seed {seed}: rmse {r['rmse']:.5f} sted {r['sted']:.4f} per sequence "
+                + " ".join(f"{v:.4f}" for v in r["rmse_per_sequence"]),
+                flush=True,
+            )
     with atomic_path(out / f"seeds_{args.dataset}.json") as tmp:
         tmp.write_text(json.dumps(record, indent=1) + "\n")
     with atomic_path(out / f"seeds_{args.dataset}.md") as tmp:

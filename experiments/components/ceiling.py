@@ -26,15 +26,15 @@ import argparse
 import json
 from pathlib import Path
 
+import jax.numpy as jnp
 import numpy as np
 
 import jaxdeform  # noqa: F401  (x64)
-import jax.numpy as jnp
+from experiments.components.common import SPLITS
 from jaxdeform import acap
 from jaxdeform.components import baselines
 from jaxdeform.components import run as crun
 from jaxdeform.mesh.io import atomic_path
-from experiments.components.common import SPLITS
 
 DEFAULT_DATA = Path(__file__).resolve().parents[2].parent / "shared" / "data" / "horse-gallop"
 
@@ -62,15 +62,26 @@ def ceiling(data, regions=(1, 10, 25, 50, 100), split: str | None = None, turns:
         pos_xyz = baselines.regional_projection(vertices[tr], vertices[te], labels)
         rows.append({"regions": int(r), "acap": scores(pos_acap), "xyz": scores(pos_xyz)})
         print(json.dumps(rows[-1]), flush=True)
-    return {"data": str(data), "split": split, "turns": turns, "scale_quantile": 0.0, "train_shapes": len(tr), "test_shapes": len(te), "rows": rows}
+    return {
+        "data": str(data),
+        "split": split,
+        "turns": turns,
+        "scale_quantile": 0.0,
+        "train_shapes": len(tr),
+        "test_shapes": len(te),
+        "rows": rows,
+    }
 
 
 def markdown(result: dict) -> str:
-    lines = [f"Regional projection onto the training span, {Path(result['data']).name} "
-             f"({result['train_shapes']} train / {result['test_shapes']} test, split {result['split']}, "
-             f"rotation branches {result.get('turns', 'per-shape')})", "",
-             "| regions | Erms, ACAP features | STED, ACAP | Erms, coordinates | STED, coordinates |",
-             "|---|---|---|---|---|"]
+    lines = [
+        f"Regional projection onto the training span, {Path(result['data']).name} "
+        f"({result['train_shapes']} train / {result['test_shapes']} test, split {result['split']}, "
+        f"rotation branches {result.get('turns', 'per-shape')})",
+        "",
+        "| regions | Erms, ACAP features | STED, ACAP | Erms, coordinates | STED, coordinates |",
+        "|---|---|---|---|---|",
+    ]
     for row in result["rows"]:
         a, c = row["acap"], row["xyz"]
         lines.append(f"| {row['regions']} | {a['erms']:.2f} | {a['sted']:.4f} | {c['erms']:.2f} | {c['sted']:.4f} |")

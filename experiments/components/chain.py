@@ -40,26 +40,52 @@ def stage_plan(args) -> list[tuple[str, list[str]]]:
         plan.append(("base", argv))
     prev = str(out / "base") if args.from_run is None else str(args.from_run)
     common = ["--data", str(args.data), "--mixes", str(args.mixes), "--rigid", "--seed", str(args.seed)]
-    plan.append(("rigid", ["components", "finetune", prev, "--out", str(out / "rigid"), "--steps", str(args.first_steps)]
-                 + common))
+    plan.append(
+        (
+            "rigid",
+            ["components", "finetune", prev, "--out", str(out / "rigid"), "--steps", str(args.first_steps)] + common,
+        )
+    )
     prev = str(out / "rigid")
     for r in range(1, args.rounds + 1):
         name = f"round{r}"
-        plan.append((name, ["components", "finetune", prev, "--out", str(out / name), "--steps", str(args.round_steps),
-                            "--generated", str(args.generated)] + common))
+        plan.append(
+            (
+                name,
+                [
+                    "components",
+                    "finetune",
+                    prev,
+                    "--out",
+                    str(out / name),
+                    "--steps",
+                    str(args.round_steps),
+                    "--generated",
+                    str(args.generated),
+                ]
+                + common,
+            )
+        )
         prev = str(out / name)
     return plan
 
 
 def markdown(results: dict) -> str:
-    lines = [f"# Fine-tuning chain on {results['data']}", "",
-             f"{results['hardware']}; {results['date']}. Each stage is scored by `jaxdeform components evaluate` "
-             "(encode, decode, ACAP reconstruction of the unseen shapes).", "",
-             "| stage | test Erms | test STED | max eq. 8 | train Erms | seconds |", "|---|---|---|---|---|---|"]
+    lines = [
+        f"# Fine-tuning chain on {results['data']}",
+        "",
+        f"{results['hardware']}; {results['date']}. Each stage is scored by `jaxdeform components evaluate` "
+        "(encode, decode, ACAP reconstruction of the unseen shapes).",
+        "",
+        "| stage | test Erms | test STED | max eq. 8 | train Erms | seconds |",
+        "|---|---|---|---|---|---|",
+    ]
     for name, st in results["stages"].items():
         te, tr = st["evaluate"]["test"], st["evaluate"]["train"]
-        lines.append(f"| {name} | {te['erms']:.2f} | {te['sted']:.4f} | {te['max_relative_squared_error']:.4f} | "
-                     f"{tr['erms']:.2f} | {st['seconds']:.0f} |")
+        lines.append(
+            f"| {name} | {te['erms']:.2f} | {te['sted']:.4f} | {te['max_relative_squared_error']:.4f} | "
+            f"{tr['erms']:.2f} | {st['seconds']:.0f} |"
+        )
     return "\n".join(lines) + "\n"
 
 
@@ -67,8 +93,13 @@ def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("data", type=Path, help="mesh folder (or file) the chain trains and scores on")
     parser.add_argument("--out", "-o", type=Path, required=True, help="folder for the stage runs and results")
-    parser.add_argument("--from", dest="from_run", type=Path, default=None,
-                        help="start from this multiscale run instead of training one")
+    parser.add_argument(
+        "--from",
+        dest="from_run",
+        type=Path,
+        default=None,
+        help="start from this multiscale run instead of training one",
+    )
     parser.add_argument("--config", default="default", help="training configuration of the base run")
     parser.add_argument("--epochs", type=int, default=None, help="override the base run's epochs")
     parser.add_argument("--first-steps", type=int, default=3000, help="--rigid steps before the rounds (3000)")
@@ -79,9 +110,14 @@ def main(argv=None) -> dict:
     parser.add_argument("--seed", type=int, default=0, help="fine-tuning seed: mixes, generated codes, batches (0)")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
     args = parser.parse_args(argv)
-    for flag, value, least in (("--first-steps", args.first_steps, 1), ("--rounds", args.rounds, 0),
-                               ("--round-steps", args.round_steps, 1), ("--generated", args.generated, 1),
-                               ("--mixes", args.mixes, 0), ("--seed", args.seed, 0)):
+    for flag, value, least in (
+        ("--first-steps", args.first_steps, 1),
+        ("--rounds", args.rounds, 0),
+        ("--round-steps", args.round_steps, 1),
+        ("--generated", args.generated, 1),
+        ("--mixes", args.mixes, 0),
+        ("--seed", args.seed, 0),
+    ):
         if value < least:
             parser.exit(2, f"chain: {flag} must be at least {least}, got {value}.\n")
     if not args.data.exists():
@@ -115,8 +151,12 @@ def main(argv=None) -> dict:
             parser.exit(code, f"chain: stage {name} failed (exit {code}).\n")
         run = crun.load(folder)
         evaluated = crun.evaluate(run, args.data)
-        results["stages"][name] = {"folder": str(folder), "command": cli_argv, "seconds": round(seconds, 1),
-                                   "evaluate": evaluated}
+        results["stages"][name] = {
+            "folder": str(folder),
+            "command": cli_argv,
+            "seconds": round(seconds, 1),
+            "evaluate": evaluated,
+        }
         results["hardware"] = hardware()
         results["date"] = time.strftime("%Y-%m-%d")
         write_text(path, json.dumps(results, indent=1))

@@ -44,13 +44,27 @@ def summary(runs: dict) -> dict:
     out = {}
     for label, r in runs.items():
         kz = r["config"]["kz"]
-        out[label] = {"levels": len(kz), "kz": kz, "d": r["config"]["d"], "split": r.get("split", "every10"),
-                      "epochs": r["config"]["epochs"], "train_shapes": r["train_shapes"],
-                      "train_seconds": r["train_seconds"],
-                      "max_relative_squared_error": r["test_max_rse"], "mean_relative_squared_error": r["test_mean_rse"],
-                      "erms": r.get("test_erms"), "paper_max_relative_squared_error": PAPER.get(len(kz)),
-                      "curve": [{"epoch": p["epoch"], "max_rse": p.get("test_max_rse", p["train_max_rse"]),
-                                 "mean_rse": p.get("test_mean_rse", p["train_mean_rse"])} for p in r["curve"]]}
+        out[label] = {
+            "levels": len(kz),
+            "kz": kz,
+            "d": r["config"]["d"],
+            "split": r.get("split", "every10"),
+            "epochs": r["config"]["epochs"],
+            "train_shapes": r["train_shapes"],
+            "train_seconds": r["train_seconds"],
+            "max_relative_squared_error": r["test_max_rse"],
+            "mean_relative_squared_error": r["test_mean_rse"],
+            "erms": r.get("test_erms"),
+            "paper_max_relative_squared_error": PAPER.get(len(kz)),
+            "curve": [
+                {
+                    "epoch": p["epoch"],
+                    "max_rse": p.get("test_max_rse", p["train_max_rse"]),
+                    "mean_rse": p.get("test_mean_rse", p["train_mean_rse"]),
+                }
+                for p in r["curve"]
+            ],
+        }
     return out
 
 
@@ -58,23 +72,39 @@ def markdown(rows: dict, title: str, hardware: str) -> str:
     labels = list(rows)
     epochs = sorted({p["epoch"] for r in rows.values() for p in r["curve"]})
     at = {lab: {p["epoch"]: p["max_rse"] for p in rows[lab]["curve"]} for lab in labels}
-    lines = [f"# {title}", "", f"Hardware: {hardware}.", "",
-             "Largest relative squared error (eq. 8) over the evaluated shapes, per epoch; the paper's figure "
-             "(10,000 epochs) in the header.", "",
-             "| epoch | " + " | ".join(f"{lab} ({rows[lab]['levels']} level{'s' * (rows[lab]['levels'] > 1)}; "
-                                       f"paper {rows[lab]['paper_max_relative_squared_error']})" for lab in labels) + " |",
-             "|---|" + "---|" * len(labels)]
+    lines = [
+        f"# {title}",
+        "",
+        f"Hardware: {hardware}.",
+        "",
+        "Largest relative squared error (eq. 8) over the evaluated shapes, per epoch; the paper's figure "
+        "(10,000 epochs) in the header.",
+        "",
+        "| epoch | "
+        + " | ".join(
+            f"{lab} ({rows[lab]['levels']} level{'s' * (rows[lab]['levels'] > 1)}; "
+            f"paper {rows[lab]['paper_max_relative_squared_error']})"
+            for lab in labels
+        )
+        + " |",
+        "|---|" + "---|" * len(labels),
+    ]
     for e in epochs:
         cells = [f"{at[lab][e]:.4g}" if e in at[lab] else "" for lab in labels]
         lines.append(f"| {e:,} | " + " | ".join(cells) + " |")
-    lines += ["", "| run | levels (kz) | shapes | epochs | max eq. 8 | mean eq. 8 | Erms | training incl. compile |",
-              "|---|---|---|---|---|---|---|---|"]
+    lines += [
+        "",
+        "| run | levels (kz) | shapes | epochs | max eq. 8 | mean eq. 8 | Erms | training incl. compile |",
+        "|---|---|---|---|---|---|---|---|",
+    ]
     for lab in labels:
         r = rows[lab]
         erms = "not measured" if r["erms"] is None else f"{r['erms']:.2f}"
-        lines.append(f"| {lab} | {r['levels']} ({', '.join(map(str, r['kz']))}) | {r['train_shapes']} | {r['epochs']:,} | "
-                     f"{r['max_relative_squared_error']:.4g} | {r['mean_relative_squared_error']:.4g} | "
-                     f"{erms} | {r['train_seconds']:.0f} s |")
+        lines.append(
+            f"| {lab} | {r['levels']} ({', '.join(map(str, r['kz']))}) | {r['train_shapes']} | {r['epochs']:,} | "
+            f"{r['max_relative_squared_error']:.4g} | {r['mean_relative_squared_error']:.4g} | "
+            f"{erms} | {r['train_seconds']:.0f} s |"
+        )
     return "\n".join(lines + [""])
 
 
@@ -91,8 +121,15 @@ def plot(rows: dict, path: Path, size=charts.SIZE, title: str = TITLE) -> Path:
         colour = f"C{i % 10}"
         pts = [(p["epoch"], p["max_rse"]) for p in r["curve"] if p["max_rse"] > 0]  # a log axis
         levels = f"{r['levels']} level{'s' * (r['levels'] > 1)}"
-        ax.plot([e for e, _ in pts], [v for _, v in pts], color=colour, marker="o", markersize=3, linewidth=1.6,
-                label=f"{label} ({levels})")
+        ax.plot(
+            [e for e, _ in pts],
+            [v for _, v in pts],
+            color=colour,
+            marker="o",
+            markersize=3,
+            linewidth=1.6,
+            label=f"{label} ({levels})",
+        )
         paper = r["paper_max_relative_squared_error"]
         if paper and r["levels"] not in papers:
             papers[r["levels"]] = paper

@@ -45,23 +45,30 @@ def fig6(args, datasets, train_and_evaluate) -> dict:
             ed = crun.editor(loaded)
             # a model of several levels edits coarse to fine (the run's default); its one-stage edit (every code
             # at once) is the ablation row
-            variants = [("", ed.stages)] + ([(ONE_STAGE, None)]
-                                            if ed.stages is not None and not args.skip_one_stage else [])
+            variants = [("", ed.stages)] + (
+                [(ONE_STAGE, None)] if ed.stages is not None and not args.skip_one_stage else []
+            )
             for suffix, stages in variants:
                 per_n = {}
                 for n in controls:
                     t0 = time.perf_counter()
-                    reports = [ed.edit_error(vertices[i], n, stages=stages, objective=args.edit_objective)
-                               for i in pick]
-                    per_n[str(n)] = {"mean_error": float(np.mean([r.mean_error for r in reports])),
-                                     "control_error": float(np.mean([r.control_error for r in reports])),
-                                     "shapes": [int(i) for i in pick], "stages": stages,
-                                     "objective": args.edit_objective if ed.space == "features" else "controls",
-                                     "iterations": [int(r.result.steps) for r in reports],
-                                     "converged": int(sum(bool(r.result.converged) for r in reports)),
-                                     "seconds_per_edit": round((time.perf_counter() - t0) / len(pick), 3)}
-                    print(f"   {n} controls{suffix}: mean error {per_n[str(n)]['mean_error']:.4g} of the diagonal",
-                          flush=True)
+                    reports = [
+                        ed.edit_error(vertices[i], n, stages=stages, objective=args.edit_objective) for i in pick
+                    ]
+                    per_n[str(n)] = {
+                        "mean_error": float(np.mean([r.mean_error for r in reports])),
+                        "control_error": float(np.mean([r.control_error for r in reports])),
+                        "shapes": [int(i) for i in pick],
+                        "stages": stages,
+                        "objective": args.edit_objective if ed.space == "features" else "controls",
+                        "iterations": [int(r.result.steps) for r in reports],
+                        "converged": int(sum(bool(r.result.converged) for r in reports)),
+                        "seconds_per_edit": round((time.perf_counter() - t0) / len(pick), 3),
+                    }
+                    print(
+                        f"   {n} controls{suffix}: mean error {per_n[str(n)]['mean_error']:.4g} of the diagonal",
+                        flush=True,
+                    )
                 rows[f"{name}/{method}{suffix}"] = per_n
     out = Path(args.out) / "fig6"
     write_text(out / "results.md", markdown(rows, controls, hardware()))
@@ -71,8 +78,14 @@ def fig6(args, datasets, train_and_evaluate) -> dict:
 
 def markdown(rows: dict, controls, hw: str) -> str:
     head = "| data / method | " + " | ".join(f"{n} controls" for n in controls) + " |"
-    lines = ["# Seed 000, Fig. 6: mean vertex error of edits toward unseen shapes (over the bbox diagonal)", "",
-             f"Hardware: {hw}.", "", head, "|---|" + "---|" * len(controls)]
+    lines = [
+        "# Seed 000, Fig. 6: mean vertex error of edits toward unseen shapes (over the bbox diagonal)",
+        "",
+        f"Hardware: {hw}.",
+        "",
+        head,
+        "|---|" + "---|" * len(controls),
+    ]
     for key, per_n in rows.items():
         lines.append(f"| {key} | " + " | ".join(f"{per_n[str(n)]['mean_error']:.4g}" for n in controls) + " |")
     return "\n".join(lines + [""])
@@ -88,8 +101,16 @@ def plot(rows: dict, controls, path: Path, size=charts.SIZE) -> Path:
         base = key.removesuffix(ONE_STAGE)
         c = colour.setdefault(base, f"C{len(colour) % 10}")
         ys = [100.0 * per_n[str(n)]["mean_error"] for n in controls]
-        ax.plot(controls, ys, color=c, linestyle="--" if key.endswith(ONE_STAGE) else "-", marker="o",
-                markersize=4, linewidth=1.6, label=key)
+        ax.plot(
+            controls,
+            ys,
+            color=c,
+            linestyle="--" if key.endswith(ONE_STAGE) else "-",
+            marker="o",
+            markersize=4,
+            linewidth=1.6,
+            label=key,
+        )
     ax.set_xscale("log")
     ax.set_xticks(list(controls), [str(n) for n in controls])
     ax.xaxis.set_minor_locator(NullLocator())

@@ -28,24 +28,24 @@ import json
 import time
 from pathlib import Path
 
-import numpy as np
-
-import jaxdeform  # noqa: F401  (x64)
 import jax
 import jax.numpy as jnp
+import numpy as np
 import optax
 from jax.flatten_util import ravel_pytree
 
+import jaxdeform  # noqa: F401  (x64)
+from experiments.components.common import write_text
 from jaxdeform.components import model
 from jaxdeform.components import run as crun
 from jaxdeform.mesh.topology import build_topology
 from jaxdeform.nn.graph_conv import Rings, rings_from_topology
 from jaxdeform.nn.host import host_scalars
-from experiments.components.common import write_text
 
 
-def fit_codes(params, rings: Rings, x, codes0, *, steps: int = 300, lr: float = 0.02,
-              log=None) -> tuple[tuple, np.ndarray]:
+def fit_codes(
+    params, rings: Rings, x, codes0, *, steps: int = 300, lr: float = 0.02, log=None
+) -> tuple[tuple, np.ndarray]:
     """Codes (one array per level) fitted by Adam from ``codes0`` so that the decoders reproduce ``x`` (N, V, 9);
     returns them and the loss (sum of squared feature errors) before each step."""
 
@@ -71,8 +71,9 @@ def fit_codes(params, rings: Rings, x, codes0, *, steps: int = 300, lr: float = 
     return codes, host_scalars(losses)
 
 
-def fit_positions(params, rings: Rings, run, ref, codes0, *, iterations: int = 150,
-                  log=None) -> tuple[tuple, np.ndarray]:
+def fit_positions(
+    params, rings: Rings, run, ref, codes0, *, iterations: int = 150, log=None
+) -> tuple[tuple, np.ndarray]:
     """Codes fitted by L-BFGS from ``codes0`` so that the ACAP reconstruction of the decoders' output matches the
     vertices ``ref`` (N, V, 3) up to a translation per shape; returns them and the loss (mean squared vertex
     distance) at the start and after each iteration."""
@@ -109,8 +110,9 @@ def fit_positions(params, rings: Rings, run, ref, codes0, *, iterations: int = 1
 
     w0 = np.asarray(w0, np.float64)
     losses.append(fun(w0)[0] / scale)  # the start, then one entry per iteration
-    res = scipy.optimize.minimize(fun, w0, jac=True, method="L-BFGS-B", callback=callback,
-                                  options=dict(maxiter=iterations, ftol=0.0, gtol=0.0))
+    res = scipy.optimize.minimize(
+        fun, w0, jac=True, method="L-BFGS-B", callback=callback, options=dict(maxiter=iterations, ftol=0.0, gtol=0.0)
+    )
     return unflatten(jnp.asarray(res.x)), np.asarray(losses)
 
 
@@ -118,9 +120,12 @@ def main(argv=None) -> dict:
     parser = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     parser.add_argument("run", help="a trained multiscale or tan run (jaxdeform components train)")
     parser.add_argument("--data", help="the run's data set (default: the folder it was trained on)")
-    parser.add_argument("--space", choices=("features", "positions"), default="features",
-                        help="fit the codes to the scaled features (Adam) or to the vertices through the ACAP "
-                             "reconstruction (L-BFGS)")
+    parser.add_argument(
+        "--space",
+        choices=("features", "positions"),
+        default="features",
+        help="fit the codes to the scaled features (Adam) or to the vertices through the ACAP reconstruction (L-BFGS)",
+    )
     parser.add_argument("--steps", type=int, default=300, help="Adam steps (features) or L-BFGS iterations")
     parser.add_argument("--lr", type=float, default=0.02)
     parser.add_argument("--json", help="write the result here")
@@ -135,23 +140,45 @@ def main(argv=None) -> dict:
     codes0 = tuple(model.encode(run.params, x, rings, run.config))
     t0 = time.perf_counter()
     if args.space == "features":
-        codes, losses = fit_codes(run.params, rings, x, codes0, steps=args.steps, lr=args.lr,
-                                  log=lambda i, v: print(f"step {i}: feature loss {v:.6g}", flush=True))
+        codes, losses = fit_codes(
+            run.params,
+            rings,
+            x,
+            codes0,
+            steps=args.steps,
+            lr=args.lr,
+            log=lambda i, v: print(f"step {i}: feature loss {v:.6g}", flush=True),
+        )
     else:
-        codes, losses = fit_positions(run.params, rings, run, ref, codes0, iterations=args.steps,
-                                      log=lambda i, v: print(f"iteration {i}: mean squared distance {v:.6g}",
-                                                             flush=True))
+        codes, losses = fit_positions(
+            run.params,
+            rings,
+            run,
+            ref,
+            codes0,
+            iterations=args.steps,
+            log=lambda i, v: print(f"iteration {i}: mean squared distance {v:.6g}", flush=True),
+        )
     fit_s = time.perf_counter() - t0
-    result = {"run": str(args.run), "test_shapes": int(ref.shape[0]), "space": args.space, "steps": args.steps,
-              "lr": args.lr if args.space == "features" else None, "fit_s": round(fit_s, 1)}
+    result = {
+        "run": str(args.run),
+        "test_shapes": int(ref.shape[0]),
+        "space": args.space,
+        "steps": args.steps,
+        "lr": args.lr if args.space == "features" else None,
+        "fit_s": round(fit_s, 1),
+    }
     for name, c in (("encoder", codes0), ("fitted", codes)):
         xh = model.decode_latents(run.params, c, rings)
         rec = {"positions": crun.positions_from_scaled(run, xh), "scaled": np.asarray(x), "scaled_hat": np.asarray(xh)}
         m = crun.set_metrics(ref, rec, faces)
         m["feature_loss"] = float(jnp.sum((xh - x) ** 2))
         result[name] = m
-        print(f"{name} codes: test Erms {m['erms']:.3f}, STED {m['sted']:.4f}, max relative squared error "
-              f"{m['max_relative_squared_error']:.5f}, feature loss {m['feature_loss']:.6g}", flush=True)
+        print(
+            f"{name} codes: test Erms {m['erms']:.3f}, STED {m['sted']:.4f}, max relative squared error "
+            f"{m['max_relative_squared_error']:.5f}, feature loss {m['feature_loss']:.6g}",
+            flush=True,
+        )
     result["loss_history"] = losses[:: max(1, len(losses) // 100)].tolist()
     if args.json:
         write_text(Path(args.json), json.dumps(result, indent=2))

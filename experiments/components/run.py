@@ -61,8 +61,17 @@ def synthetic_tube(out: Path) -> Path:
     return d
 
 
-def train_and_evaluate(data: Path, folder: Path, method: str, config: str, split: str, epochs, force: bool,
-                       train: bool = True, figures: bool = True) -> dict | None:
+def train_and_evaluate(
+    data: Path,
+    folder: Path,
+    method: str,
+    config: str,
+    split: str,
+    epochs,
+    force: bool,
+    train: bool = True,
+    figures: bool = True,
+) -> dict | None:
     """Train (or reuse) one run and evaluate it; returns the evaluation with the run's timing. With
     ``train=False`` a run that does not exist yet is not trained: None. ``figures=False`` skips the component
     figures of the autoencoder runs."""
@@ -120,17 +129,23 @@ def _datasets(args) -> list[tuple[str, Path]]:
     return out
 
 
-
-
 def table2(args) -> dict:
     rows = {}
     for name, path in _datasets(args):
         for method in args.methods or TABLE2_METHODS:
             folder = _root(args, "table2") / name / method
             print(f"== table 2: {name} / {method}", flush=True)
-            rows[f"{name}/{method}"] = train_and_evaluate(path, folder, method, args.config,
-                                                          _split(args, name), args.epochs, args.force,
-                                                          train=not args.trained_only, figures=not args.no_figures)
+            rows[f"{name}/{method}"] = train_and_evaluate(
+                path,
+                folder,
+                method,
+                args.config,
+                _split(args, name),
+                args.epochs,
+                args.force,
+                train=not args.trained_only,
+                figures=not args.no_figures,
+            )
     return {k: v for k, v in rows.items() if v is not None}
 
 
@@ -142,9 +157,17 @@ def _multiscale_table(args, experiment: str, configs) -> dict:
             folder = _root(args, experiment) / name / cfg
             print(f"== {experiment}: {name} / {cfg}", flush=True)
             config = cfg if args.config != "test" else ("test" if cfg == "default" else f"test-{cfg}")
-            rows[f"{name}/{cfg}"] = train_and_evaluate(path, folder, "multiscale", config, _split(args, name),
-                                                       args.epochs, args.force, train=not args.trained_only,
-                                                       figures=not args.no_figures)
+            rows[f"{name}/{cfg}"] = train_and_evaluate(
+                path,
+                folder,
+                "multiscale",
+                config,
+                _split(args, name),
+                args.epochs,
+                args.force,
+                train=not args.trained_only,
+                figures=not args.no_figures,
+            )
     return {k: v for k, v in rows.items() if v is not None}
 
 
@@ -162,27 +185,37 @@ def _fmt(x, digits=4) -> str:
 
 def markdown(experiment: str, rows: dict, hardware: str, split: str | None = None) -> str:
     """The results table; ``split`` as given to --split (None: each data set's protocol of Sec. 5.1)."""
-    what = {None: "generalization to unseen shapes",
-            "all": "every shape trains: 'test' is the whole data set, no unseen shape"}.get(split, f"split {split}")
+    what = {
+        None: "generalization to unseen shapes",
+        "all": "every shape trains: 'test' is the whole data set, no unseen shape",
+    }.get(split, f"split {split}")
     lines = [f"# Seed 000, {experiment} ({what})", "", f"Hardware: {hardware}.", ""]
     if experiment in ("table2", "table4"):
-        lines += ["| data / run | test Erms | test STED | paper Erms | paper STED | train Erms | train time (s) |",
-                  "|---|---|---|---|---|---|---|"]
+        lines += [
+            "| data / run | test Erms | test STED | paper Erms | paper STED | train Erms | train time (s) |",
+            "|---|---|---|---|---|---|---|",
+        ]
         for key, r in rows.items():
             run_name = key.split("/")[-1]
             paper = PAPER[experiment].get(run_name) if key.startswith("horse-gallop/") else None
             pe, ps = (paper if isinstance(paper, tuple) else (paper, None)) if paper is not None else (None, None)
             t = r.get("timing", {})
             secs = t.get("run_s", t.get("fit_s"))
-            lines.append(f"| {key} | {_fmt(r['test']['erms'])} | {_fmt(r['test']['sted'])} | {_fmt(pe)} | {_fmt(ps)} | "
-                         f"{_fmt(r['train']['erms'])} | {_fmt(secs, 3)} |")
+            lines.append(
+                f"| {key} | {_fmt(r['test']['erms'])} | {_fmt(r['test']['sted'])} | {_fmt(pe)} | {_fmt(ps)} | "
+                f"{_fmt(r['train']['erms'])} | {_fmt(secs, 3)} |"
+            )
     elif experiment == "table5":
-        lines += ["| data / levels | max rel. squared error (test) | (train) | paper (horse) | test Erms |",
-                  "|---|---|---|---|---|"]
+        lines += [
+            "| data / levels | max rel. squared error (test) | (train) | paper (horse) | test Erms |",
+            "|---|---|---|---|---|",
+        ]
         for key, r in rows.items():
             paper = PAPER["table5"].get(key.split("/")[-1]) if key.startswith("horse-gallop/") else None
-            lines.append(f"| {key} | {_fmt(r['test'].get('max_relative_squared_error'))} | "
-                         f"{_fmt(r['train'].get('max_relative_squared_error'))} | {_fmt(paper)} | {_fmt(r['test']['erms'])} |")
+            lines.append(
+                f"| {key} | {_fmt(r['test'].get('max_relative_squared_error'))} | "
+                f"{_fmt(r['train'].get('max_relative_squared_error'))} | {_fmt(paper)} | {_fmt(r['test']['erms'])} |"
+            )
     lines.append("")
     return "\n".join(lines)
 
@@ -198,25 +231,47 @@ def main(argv=None) -> dict:
     parser.add_argument("--out", default="out/experiments/components")
     parser.add_argument("--datasets", nargs="+")
     parser.add_argument("--methods", nargs="+", choices=TABLE2_METHODS, help="table2: a subset of the methods")
-    parser.add_argument("--runs", nargs="+", choices=sorted(set(TABLE4_CONFIGS + TABLE5_CONFIGS)),
-                        help="table4/table5: a subset of their configurations (the others are left out)")
+    parser.add_argument(
+        "--runs",
+        nargs="+",
+        choices=sorted(set(TABLE4_CONFIGS + TABLE5_CONFIGS)),
+        help="table4/table5: a subset of their configurations (the others are left out)",
+    )
     parser.add_argument("--epochs", type=int, help="override the training epochs of every run")
-    parser.add_argument("--split", choices=crun.SPLITS,
-                        help="table2/table4/table5: train every run on this split instead of the data set's protocol "
-                             "(Sec. 5.1); 'all' trains on every shape and reports the whole data set as 'test' "
-                             "(Table 5 read as the representation error); runs and results go to OUT/<experiment>-<split>")
+    parser.add_argument(
+        "--split",
+        choices=crun.SPLITS,
+        help="table2/table4/table5: train every run on this split instead of the data set's protocol "
+        "(Sec. 5.1); 'all' trains on every shape and reports the whole data set as 'test' "
+        "(Table 5 read as the representation error); runs and results go to OUT/<experiment>-<split>",
+    )
     parser.add_argument("--force", action="store_true", help="retrain runs that exist")
-    parser.add_argument("--trained-only", action="store_true",
-                        help="table2/table4/table5: evaluate the runs that exist and leave the others out (no training)")
+    parser.add_argument(
+        "--trained-only",
+        action="store_true",
+        help="table2/table4/table5: evaluate the runs that exist and leave the others out (no training)",
+    )
     parser.add_argument("--no-figures", action="store_true", help="skip the component figures (PNGs) of the runs")
-    parser.add_argument("--controls", nargs="+", type=int, metavar="N",
-                        help="fig6: these control-point counts instead of the configuration's (5 10 20 40)")
-    parser.add_argument("--edit-objective", choices=OBJECTIVES, default="deformation",
-                        help="fig6: how the methods on ACAP features edit (jaxdeform.components.edit): 'deformation' "
-                             "(default: the controls held, the codes minimise the deformation energy, the paper's "
-                             "data-driven deformation) or 'controls' (the decoded mesh fitted to the controls)")
-    parser.add_argument("--skip-one-stage", action="store_true",
-                        help="fig6: leave out the multiscale model's one-stage edit (the ablation row)")
+    parser.add_argument(
+        "--controls",
+        nargs="+",
+        type=int,
+        metavar="N",
+        help="fig6: these control-point counts instead of the configuration's (5 10 20 40)",
+    )
+    parser.add_argument(
+        "--edit-objective",
+        choices=OBJECTIVES,
+        default="deformation",
+        help="fig6: how the methods on ACAP features edit (jaxdeform.components.edit): 'deformation' "
+        "(default: the controls held, the codes minimise the deformation energy, the paper's "
+        "data-driven deformation) or 'controls' (the decoded mesh fitted to the controls)",
+    )
+    parser.add_argument(
+        "--skip-one-stage",
+        action="store_true",
+        help="fig6: leave out the multiscale model's one-stage edit (the ablation row)",
+    )
     args = parser.parse_args(argv)
     if args.trained_only and args.force:
         parser.error("--trained-only evaluates existing runs; it cannot be combined with --force.")
@@ -229,8 +284,14 @@ def main(argv=None) -> dict:
         rows = editing.fig6(args, _datasets(args), train_and_evaluate)
     else:
         rows = EXPERIMENTS[args.experiment](args)
-    result = {"experiment": args.experiment, "config": args.config, "hardware": hardware(),
-              "split": args.split or "protocol", "seconds": round(time.perf_counter() - t0, 1), "rows": rows}
+    result = {
+        "experiment": args.experiment,
+        "config": args.config,
+        "hardware": hardware(),
+        "split": args.split or "protocol",
+        "seconds": round(time.perf_counter() - t0, 1),
+        "rows": rows,
+    }
     out = _root(args, args.experiment)
     write_text(out / "results.json", json.dumps(result, indent=2, default=float))
     if args.experiment != "fig6":

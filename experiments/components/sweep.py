@@ -39,14 +39,14 @@ import json
 import time
 from pathlib import Path
 
+import jax.numpy as jnp
 import numpy as np
 
 import jaxdeform  # noqa: F401  (x64)
-import jax.numpy as jnp
 from jaxdeform import acap, metrics
 from jaxdeform.components import model, train
-from jaxdeform.components.finetune import regional_mixes
 from jaxdeform.components import run as crun
+from jaxdeform.components.finetune import regional_mixes
 from jaxdeform.mesh.topology import build_topology
 from jaxdeform.nn.graph_conv import rings_from_topology
 from jaxdeform.nn.losses import vertex_norms
@@ -71,7 +71,9 @@ def main(argv=None, extra_config: dict | None = None, model_options: dict | None
     :class:`jaxdeform.components.model.Config` set over the command line's (callers that name a model variant,
     such as :mod:`experiments.components.reference_variants`)."""
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
-    ap.add_argument("--data", default=str(Path(__file__).resolve().parents[2].parent / "shared" / "data" / "horse-gallop"))
+    ap.add_argument(
+        "--data", default=str(Path(__file__).resolve().parents[2].parent / "shared" / "data" / "horse-gallop")
+    )
     ap.add_argument("--kz", default="10,5")
     ap.add_argument("--d", default="0.4,0.2")
     ap.add_argument("--lambda-recon", type=float, default=10.0)
@@ -81,25 +83,54 @@ def main(argv=None, extra_config: dict | None = None, model_options: dict | None
     ap.add_argument("--no-attention", action="store_true")
     ap.add_argument("--attention-gradient", action="store_true")
     ap.add_argument("--separate", action="store_true", help="level-by-level training (Table 4)")
-    ap.add_argument("--turns", choices=("aligned", "per-shape"), default="aligned",
-                    help="rotation branches: aligned across shapes to the training shapes' reference (acap.align_turns; "
-                         "the run default) or as each shape's own consistency solve left them")
-    ap.add_argument("--scale-quantile", type=float, default=crun.SCALE_QUANTILE,
-                    help="feature scaler bounds at this quantile of the training features, clipped (acap.Scaler)")
+    ap.add_argument(
+        "--turns",
+        choices=("aligned", "per-shape"),
+        default="aligned",
+        help="rotation branches: aligned across shapes to the training shapes' reference (acap.align_turns; "
+        "the run default) or as each shape's own consistency solve left them",
+    )
+    ap.add_argument(
+        "--scale-quantile",
+        type=float,
+        default=crun.SCALE_QUANTILE,
+        help="feature scaler bounds at this quantile of the training features, clipped (acap.Scaler)",
+    )
     ap.add_argument("--epochs", type=int, default=2000)
-    ap.add_argument("--eval-every", type=int, metavar="N",
-                    help="also evaluate train and test Erms every N epochs (the learning curve, key 'curve')")
-    ap.add_argument("--curve", choices=("erms", "features"), default="erms",
-                    help="what each point of the learning curve holds: Erms (an ACAP reconstruction of every shape) "
-                         "or only the feature metrics (eq. 8 and feature MSE)")
-    ap.add_argument("--split", choices=crun.SPLITS, default="every10",
-                    help="training shapes: every 10th (default), a seeded random half, or all of them")
+    ap.add_argument(
+        "--eval-every",
+        type=int,
+        metavar="N",
+        help="also evaluate train and test Erms every N epochs (the learning curve, key 'curve')",
+    )
+    ap.add_argument(
+        "--curve",
+        choices=("erms", "features"),
+        default="erms",
+        help="what each point of the learning curve holds: Erms (an ACAP reconstruction of every shape) "
+        "or only the feature metrics (eq. 8 and feature MSE)",
+    )
+    ap.add_argument(
+        "--split",
+        choices=crun.SPLITS,
+        default="every10",
+        help="training shapes: every 10th (default), a seeded random half, or all of them",
+    )
     ap.add_argument("--lr", type=float, default=1e-3)
-    ap.add_argument("--decay-rate", type=float, default=train.TrainConfig.decay_rate,
-                    help="learning rate multiplied by this every 1,000 steps")
+    ap.add_argument(
+        "--decay-rate",
+        type=float,
+        default=train.TrainConfig.decay_rate,
+        help="learning rate multiplied by this every 1,000 steps",
+    )
     ap.add_argument("--clip-norm", type=float, help="clip each step's gradient to this global norm before Adam")
-    ap.add_argument("--augment", type=int, default=0, metavar="N",
-                    help="train on the real shapes and N regional mixes of them (regional_mixes)")
+    ap.add_argument(
+        "--augment",
+        type=int,
+        default=0,
+        metavar="N",
+        help="train on the real shapes and N regional mixes of them (regional_mixes)",
+    )
     ap.add_argument("--batch", type=int, default=train.TrainConfig.batch, help="shapes per step")
     ap.add_argument("--mix-regions", default="3,12", help="least and most regions of a mix")
     ap.add_argument("--mix-sigma", type=float, default=0.15, help="width of a region's weight (normalized geodesics)")
@@ -108,11 +139,26 @@ def main(argv=None, extra_config: dict | None = None, model_options: dict | None
     ap.add_argument("--jsonl", help="append the result line to this file")
     a = ap.parse_args(argv)
 
-    cfg = model.Config(kz=tuple(int(k) for k in _floats(a.kz)), d=_floats(a.d), lambda_recon=a.lambda_recon,
-                       lambda_sparse=a.lambda_sparse, mask=a.mask, latent=a.latent, attention=not a.no_attention,
-                       attention_gradient=a.attention_gradient, **(model_options or {}))
-    tc = train.TrainConfig(epochs=a.epochs, learning_rate=a.lr, seed=a.seed, joint=not a.separate,
-                          decay_rate=a.decay_rate, clip_norm=a.clip_norm, batch=a.batch)
+    cfg = model.Config(
+        kz=tuple(int(k) for k in _floats(a.kz)),
+        d=_floats(a.d),
+        lambda_recon=a.lambda_recon,
+        lambda_sparse=a.lambda_sparse,
+        mask=a.mask,
+        latent=a.latent,
+        attention=not a.no_attention,
+        attention_gradient=a.attention_gradient,
+        **(model_options or {}),
+    )
+    tc = train.TrainConfig(
+        epochs=a.epochs,
+        learning_rate=a.lr,
+        seed=a.seed,
+        joint=not a.separate,
+        decay_rate=a.decay_rate,
+        clip_norm=a.clip_norm,
+        batch=a.batch,
+    )
     vertices, faces = crun.load_data(a.data)
     tr, te = crun.split_indices(vertices.shape[0], a.split)
     same = a.split == "all"  # test is the training set again: evaluated once
@@ -126,12 +172,15 @@ def main(argv=None, extra_config: dict | None = None, model_options: dict | None
 
     def features_hat(idx, p, c):
         xs = jnp.asarray(x[idx])
-        return jnp.concatenate([train.reconstruct(p, xs[i:i + 16], rings, c) for i in range(0, len(idx), 16)])
+        return jnp.concatenate([train.reconstruct(p, xs[i : i + 16], rings, c) for i in range(0, len(idx), 16)])
 
     def feature_metrics(idx, xh) -> dict:
         rse = metrics.relative_squared_error(x[idx], xh)
-        return {"feature_mse": float(np.mean((np.asarray(xh) - x[idx]) ** 2)), "max_rse": float(rse.max()),
-                "mean_rse": float(rse.mean())}
+        return {
+            "feature_mse": float(np.mean((np.asarray(xh) - x[idx]) ** 2)),
+            "max_rse": float(rse.max()),
+            "mean_rse": float(rse.mean()),
+        }
 
     def evaluate(idx, p, c):
         xh = features_hat(idx, p, c)
@@ -154,20 +203,47 @@ def main(argv=None, extra_config: dict | None = None, model_options: dict | None
     data = x[tr]
     if a.augment:
         lo, hi = (int(t) for t in a.mix_regions.split(","))
-        data = np.concatenate([data, regional_mixes(data, dist, a.augment, np.random.default_rng(a.seed), (lo, hi),
-                                                    a.mix_sigma, a.mix_alpha)])
+        data = np.concatenate(
+            [
+                data,
+                regional_mixes(
+                    data, dist, a.augment, np.random.default_rng(a.seed), (lo, hi), a.mix_sigma, a.mix_alpha
+                ),
+            ]
+        )
     t0 = time.perf_counter()
-    params, history = train.train(data, rings, dist, cfg, tc, progress=True, snapshot=snapshot if a.eval_every else None,
-                                  snapshot_every=a.eval_every or 1000)
+    params, history = train.train(
+        data,
+        rings,
+        dist,
+        cfg,
+        tc,
+        progress=True,
+        snapshot=snapshot if a.eval_every else None,
+        snapshot_every=a.eval_every or 1000,
+    )
     seconds = time.perf_counter() - t0
 
-    result = {"config": {**dataclasses.asdict(cfg), **dataclasses.asdict(tc), "turns": a.turns, "scale_quantile": a.scale_quantile,
-                         "augment": a.augment, **(extra_config or {}), **({"mix_regions": a.mix_regions, "mix_sigma": a.mix_sigma,
-                                                   "mix_alpha": a.mix_alpha} if a.augment else {})}, "data": str(a.data),
-              "train_shapes": len(tr), "test_shapes": len(te), "train_seconds": round(seconds, 1),
-              "final_loss": float(history[-1]),
-              # the loss per 100 epochs: last value and largest (spikes of Adam's instability show here)
-              "loss_per_100": [[float(w[-1]), float(w.max())] for w in (history[i:i + 100] for i in range(0, len(history), 100))]}
+    result = {
+        "config": {
+            **dataclasses.asdict(cfg),
+            **dataclasses.asdict(tc),
+            "turns": a.turns,
+            "scale_quantile": a.scale_quantile,
+            "augment": a.augment,
+            **(extra_config or {}),
+            **({"mix_regions": a.mix_regions, "mix_sigma": a.mix_sigma, "mix_alpha": a.mix_alpha} if a.augment else {}),
+        },
+        "data": str(a.data),
+        "train_shapes": len(tr),
+        "test_shapes": len(te),
+        "train_seconds": round(seconds, 1),
+        "final_loss": float(history[-1]),
+        # the loss per 100 epochs: last value and largest (spikes of Adam's instability show here)
+        "loss_per_100": [
+            [float(w[-1]), float(w.max())] for w in (history[i : i + 100] for i in range(0, len(history), 100))
+        ],
+    }
     result["split"] = a.split
     for name, idx in sets:
         result[f"{name}_erms"], fm = evaluate(idx, params, cfg)
@@ -177,8 +253,13 @@ def main(argv=None, extra_config: dict | None = None, model_options: dict | None
         for name, idx in sets:
             result[f"level0_{name}_erms"] = evaluate(idx, params[:1], c0)[0]
     if same:
-        result.update({k.replace("train_", "test_", 1): v for k, v in list(result.items())
-                       if "train_" in k and k != "train_seconds"})
+        result.update(
+            {
+                k.replace("train_", "test_", 1): v
+                for k, v in list(result.items())
+                if "train_" in k and k != "train_seconds"
+            }
+        )
     if curve:
         result["curve"] = curve
     result["inside_fraction"] = [inside_fraction(np.asarray(p["C"]), dist, cfg.d[lvl]) for lvl, p in enumerate(params)]

@@ -67,14 +67,24 @@ def settings(config: str, baseline_max_faces: int | None) -> Settings:
     if config == "test":
         field = fieldmod.FieldConfig(steps=30, batch_size=256, hidden=64)
         return Settings(
-            distill=DistillConfig(n_views=4, resolution=96, field=field), meshes=("spot",), survey=("bar",),
-            resolutions=(1_000, 4_000), pose_faces=20_000, baseline_max_faces=baseline_max_faces or 4_000, repeats=3,
+            distill=DistillConfig(n_views=4, resolution=96, field=field),
+            meshes=("spot",),
+            survey=("bar",),
+            resolutions=(1_000, 4_000),
+            pose_faces=20_000,
+            baseline_max_faces=baseline_max_faces or 4_000,
+            repeats=3,
             rebind_mesh_faces=2_000,
         )
     return Settings(
-        distill=DistillConfig(), meshes=TEST_MESHES, survey=SURVEY,
-        resolutions=(1_000, 10_000, 50_000, 200_000, 1_000_000), pose_faces=1_000_000,
-        baseline_max_faces=baseline_max_faces or 200_000, repeats=20, rebind_mesh_faces=None,
+        distill=DistillConfig(),
+        meshes=TEST_MESHES,
+        survey=SURVEY,
+        resolutions=(1_000, 10_000, 50_000, 200_000, 1_000_000),
+        pose_faces=1_000_000,
+        baseline_max_faces=baseline_max_faces or 200_000,
+        repeats=20,
+        rebind_mesh_faces=None,
     )
 
 
@@ -110,8 +120,11 @@ def distilled(out: Path, name: str, vertices, faces, s: Settings, force: bool):
     path = out / "fields" / f"{name}.npz"
     if path.is_file() and not force:
         field, meta = fieldmod.load_field(path)
-        if (meta.get("n_vertices") == vertices.shape[0] and meta.get("n_views") == s.distill.n_views
-                and meta.get("config") == s.distill.field_config().to_dict()):
+        if (
+            meta.get("n_vertices") == vertices.shape[0]
+            and meta.get("n_views") == s.distill.n_views
+            and meta.get("config") == s.distill.field_config().to_dict()
+        ):
             return field, meta
     print(f"distilling {name} ({vertices.shape[0]} vertices, {faces.shape[0]} faces)", flush=True)
     result = distill_mesh(vertices, faces, config=s.distill, progress=True)
@@ -172,8 +185,16 @@ def stage_pose(vertices, faces, field, n_faces: int, repeats: int, seed: int = 0
     compile_s = time.perf_counter() - t0
     it = iter(poses[1:])
     ms = _median_ms(lambda: jax.block_until_ready(weights.blend(vj, W, next(it))), repeats)
-    return {"faces": int(f.shape[0]), "vertices": int(v.shape[0]), "handles": 10, "pose_ms": ms,
-            "fps": 1e3 / ms, "first_call_s": compile_s, "remesh_s": t_remesh, "field_on_vertices_s": t_field}
+    return {
+        "faces": int(f.shape[0]),
+        "vertices": int(v.shape[0]),
+        "handles": 10,
+        "pose_ms": ms,
+        "fps": 1e3 / ms,
+        "first_call_s": compile_s,
+        "remesh_s": t_remesh,
+        "field_on_vertices_s": t_field,
+    }
 
 
 def stage_timing(out: Path, data: Path, vertices, faces, s: Settings, force: bool) -> list[dict]:
@@ -199,9 +220,16 @@ def stage_timing(out: Path, data: Path, vertices, faces, s: Settings, force: boo
         vj, Tj = jax.numpy.asarray(v, np.float32), jax.numpy.asarray(T, np.float32)
         jax.block_until_ready(weights.blend(vj, W, Tj))
         pose_ms = _median_ms(lambda: jax.block_until_ready(weights.blend(vj, W, Tj)), s.repeats)
-        row = {"faces": int(f.shape[0]), "vertices": int(v.shape[0]),
-               "dfd": {"preprocess": result.timings["total"] + t_first, "bind": bind_ms / 1e3, "pose": pose_ms / 1e3,
-                       "distill": result.timings}}
+        row = {
+            "faces": int(f.shape[0]),
+            "vertices": int(v.shape[0]),
+            "dfd": {
+                "preprocess": result.timings["total"] + t_first,
+                "bind": bind_ms / 1e3,
+                "pose": pose_ms / 1e3,
+                "distill": result.timings,
+            },
+        }
         for method in ("arap", "biharmonic"):
             if f.shape[0] > s.baseline_max_faces:
                 row[method] = None
@@ -211,8 +239,11 @@ def stage_timing(out: Path, data: Path, vertices, faces, s: Settings, force: boo
                 row[method] = t
             except Exception as exc:  # a baseline failing on a remeshed input is reported, not fatal
                 row[method] = {"error": " ".join(str(exc).split())[:200]}
-        print(f"timing {row['faces']} faces: " + json.dumps({k: row[k] for k in ("dfd", "arap", "biharmonic")},
-                                                           default=lambda x: round(x, 4)), flush=True)
+        print(
+            f"timing {row['faces']} faces: "
+            + json.dumps({k: row[k] for k in ("dfd", "arap", "biharmonic")}, default=lambda x: round(x, 4)),
+            flush=True,
+        )
         rows.append(row)
     return rows
 
@@ -226,8 +257,15 @@ def stage_symmetry(out: Path, data: Path, s: Settings, force: bool) -> dict:
         planes = weights.detect_symmetry(lambda p: fieldmod.evaluate_field(field, p), v)
         best = planes[0] if planes else None
         res[name] = {
-            "planes": [{"normal": np.round(p.normal, 4).tolist(), "offset": float(p.offset), "score": float(p.score),
-                        "symmetric": bool(p.symmetric)} for p in planes],
+            "planes": [
+                {
+                    "normal": np.round(p.normal, 4).tolist(),
+                    "offset": float(p.offset),
+                    "score": float(p.score),
+                    "symmetric": bool(p.symmetric),
+                }
+                for p in planes
+            ],
             "detected": None if best is None or not best.symmetric else np.round(best.normal, 4).tolist(),
             "expected_symmetric": SYMMETRY_EXPECTED.get(name),
         }
@@ -243,9 +281,18 @@ def _panel(vertices, faces, camera, size, *, scalar=None, caption=None, markers=
     from jaxdeform.mesh.render import caption as write_caption
     from jaxdeform.mesh.render import project, render
 
-    img = render(vertices, faces, scalar=scalar, camera=camera, width=size, height=size, cmap="viridis",
-                 vmin=0.0 if scalar is not None else None, vmax=1.0 if scalar is not None else None,
-                 colorbar=False)  # no bar: it would narrow the viewport the markers are projected into
+    img = render(
+        vertices,
+        faces,
+        scalar=scalar,
+        camera=camera,
+        width=size,
+        height=size,
+        cmap="viridis",
+        vmin=0.0 if scalar is not None else None,
+        vmax=1.0 if scalar is not None else None,
+        colorbar=False,
+    )  # no bar: it would narrow the viewport the markers are projected into
     if markers:
         pil = Image.fromarray(img)
         draw = ImageDraw.Draw(pil)
@@ -284,8 +331,9 @@ def stage_figures(out: Path, data: Path, s: Settings, force: bool) -> dict:
         moved = d.deform([handle], T)
         local = d.deform([handle], T, locality=4.0)
         panels = [
-            _panel(v, f, camera, size, scalar=w, caption=f"{name}: DFD weights (0 purple .. 1 yellow)",
-                   markers=[v[handle]]),
+            _panel(
+                v, f, camera, size, scalar=w, caption=f"{name}: DFD weights (0 purple .. 1 yellow)", markers=[v[handle]]
+            ),
             _panel(v, f, camera, size, scalar=wl, caption="locality 4", markers=[v[handle]]),
             _panel(moved, f, camera, size, caption="deformed", markers=[moved[handle]]),
             _panel(local, f, camera, size, caption="deformed, locality 4", markers=[local[handle]]),
@@ -312,8 +360,7 @@ def stage_figures(out: Path, data: Path, s: Settings, force: bool) -> dict:
         # (eq. 8) is what keeps the far (fixed) end in place; anchors (eq. 7) would cancel the handle itself
         moved = d.deform([handle], M[:3][None], locality=SURVEY_LOCALITY)
         err = float(np.sqrt(np.mean(np.sum((moved - ref) ** 2, axis=1))) / np.linalg.norm(np.ptp(v, axis=0)))
-        camera = auto_camera(np.concatenate([v, ref, moved]), azimuth_deg=20.0, elevation_deg=20.0,
-                             up_axis=_up_axis(v))
+        camera = auto_camera(np.concatenate([v, ref, moved]), azimuth_deg=20.0, elevation_deg=20.0, up_axis=_up_axis(v))
         w = d.weights([handle], locality=SURVEY_LOCALITY)[:, 0]
         panels = [
             _panel(v, f, camera, size, scalar=w, caption=f"{name}: weights", markers=[v[handle]]),
@@ -333,22 +380,40 @@ def markdown(summary: dict) -> str:
     lines = [f"# DFD (seed 004) experiments, {summary['machine']}", ""]
     if "distill_seconds" in summary:
         t = summary["distill_seconds"]
-        lines += ["## Distillation of armadillo", "",
-                  "| render s | features s | field s | total s |", "|---|---|---|---|",
-                  f"| {t['render']:.1f} | {t['features']:.1f} | {t['field']:.1f} | {t['total']:.1f} |", ""]
+        lines += [
+            "## Distillation of armadillo",
+            "",
+            "| render s | features s | field s | total s |",
+            "|---|---|---|---|",
+            f"| {t['render']:.1f} | {t['features']:.1f} | {t['field']:.1f} | {t['total']:.1f} |",
+            "",
+        ]
     if "rebind_ms" in summary:
         r = summary["rebind_ms"]
-        lines += ["## Rebind (weights of a new handle set), armadillo", "",
-                  "| handles | ours ms | paper ms (A40) |", "|---|---|---|"]
+        lines += [
+            "## Rebind (weights of a new handle set), armadillo",
+            "",
+            "| handles | ours ms | paper ms (A40) |",
+            "|---|---|---|",
+        ]
         lines += [f"| {k} | {r[k]:.2f} | {PAPER['rebind_s'][int(k)] * 1e3:.0f} |" for k in r]
         lines.append("")
     if "pose" in summary:
         p = summary["pose"]
-        lines += ["## Pose", "", f"{p['faces']} faces ({p['vertices']} vertices), 10 handles: {p['pose_ms']:.1f} ms "
-                  f"per pose = {p['fps']:.0f} frames per second.", ""]
+        lines += [
+            "## Pose",
+            "",
+            f"{p['faces']} faces ({p['vertices']} vertices), 10 handles: {p['pose_ms']:.1f} ms "
+            f"per pose = {p['fps']:.0f} frames per second.",
+            "",
+        ]
     if "timing" in summary:
-        lines += ["## Timing study (Fig. 10), seconds: preprocess / bind / pose", "",
-                  "| faces | DFD | ARAP (libigl, 10 it.) | biharmonic + LBS (libigl) |", "|---|---|---|---|"]
+        lines += [
+            "## Timing study (Fig. 10), seconds: preprocess / bind / pose",
+            "",
+            "| faces | DFD | ARAP (libigl, 10 it.) | biharmonic + LBS (libigl) |",
+            "|---|---|---|---|",
+        ]
 
         def fmt(t):
             if t is None:
@@ -361,19 +426,29 @@ def markdown(summary: dict) -> str:
             lines.append(f"| {row['faces']} | {fmt(row['dfd'])} | {fmt(row['arap'])} | {fmt(row['biharmonic'])} |")
         lines.append("")
     if "symmetry" in summary:
-        lines += ["## Symmetry (eq. 9, eps 0.1): best plane", "",
-                  "| mesh | best normal | score | detected | expected |", "|---|---|---|---|---|"]
+        lines += [
+            "## Symmetry (eq. 9, eps 0.1): best plane",
+            "",
+            "| mesh | best normal | score | detected | expected |",
+            "|---|---|---|---|---|",
+        ]
         for name, r in summary["symmetry"].items():
             best = r["planes"][0] if r["planes"] else None
-            lines.append(f"| {name} | {best['normal'] if best else '-'} | {best['score']:.3f} | "
-                         f"{'yes' if r['detected'] else 'no'} | "
-                         f"{'-' if r['expected_symmetric'] is None else ('yes' if r['expected_symmetric'] else 'no')} |")
+            lines.append(
+                f"| {name} | {best['normal'] if best else '-'} | {best['score']:.3f} | "
+                f"{'yes' if r['detected'] else 'no'} | "
+                f"{'-' if r['expected_symmetric'] is None else ('yes' if r['expected_symmetric'] else 'no')} |"
+            )
         lines.append("")
     if "figures" in summary:
         lines += ["## Figures", ""]
         for name, item in summary["figures"].items():
             path = item if isinstance(item, str) else item["figure"]
-            extra = "" if isinstance(item, str) else f" (RMS to the survey's result {item['rms_vs_laplacian_over_diag']:.3f} of the diagonal)"
+            extra = (
+                ""
+                if isinstance(item, str)
+                else f" (RMS to the survey's result {item['rms_vs_laplacian_over_diag']:.3f} of the diagonal)"
+            )
             lines.append(f"![{name}]({path}){extra}")
         lines.append("")
     return "\n".join(lines)
@@ -383,9 +458,15 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--config", choices=("default", "test"), default="default")
     ap.add_argument("--data", default=str(Path(__file__).resolve().parents[2].parent / "shared" / "data"))
-    ap.add_argument("--out", default=None, help="default: experiments/handles/results (test: out/experiments/handles-test)")
-    ap.add_argument("--stages", nargs="+", default=["distill", "rebind", "pose", "timing", "symmetry", "figures"],
-                    choices=["distill", "rebind", "pose", "timing", "symmetry", "figures"])
+    ap.add_argument(
+        "--out", default=None, help="default: experiments/handles/results (test: out/experiments/handles-test)"
+    )
+    ap.add_argument(
+        "--stages",
+        nargs="+",
+        default=["distill", "rebind", "pose", "timing", "symmetry", "figures"],
+        choices=["distill", "rebind", "pose", "timing", "symmetry", "figures"],
+    )
     ap.add_argument("--baseline-max-faces", type=int, default=None)
     ap.add_argument("--force", action="store_true", help="re-distil cached fields")
     args = ap.parse_args(argv)
@@ -393,8 +474,11 @@ def main(argv=None) -> int:
     if not (data / "test-meshes").is_dir():
         raise SystemExit(f"test meshes not found at {data / 'test-meshes'} (../shared/data beside the repository).")
     root = Path(__file__).resolve().parent
-    out = Path(args.out) if args.out else (root / "results" if args.config == "default"
-                                          else Path("out/experiments/handles-test"))
+    out = (
+        Path(args.out)
+        if args.out
+        else (root / "results" if args.config == "default" else Path("out/experiments/handles-test"))
+    )
     out.mkdir(parents=True, exist_ok=True)
     s = settings(args.config, args.baseline_max_faces)
     summary_path = out / "summary.json"
@@ -411,9 +495,14 @@ def main(argv=None) -> int:
         result = distill_mesh(*armadillo, config=s.distill, progress=True)
         fieldmod.save_field(out / "fields" / f"{name}.npz", result.field, result.meta)
         summary["distill_seconds"] = {k: round(float(x), 3) for k, x in result.timings.items()}
-        summary["distill_mesh"] = {"name": name, "vertices": int(armadillo[0].shape[0]),
-                                   "faces": int(armadillo[1].shape[0]), "views": s.distill.n_views,
-                                   "resolution": s.distill.resolution, "wall_s": time.perf_counter() - t0}
+        summary["distill_mesh"] = {
+            "name": name,
+            "vertices": int(armadillo[0].shape[0]),
+            "faces": int(armadillo[1].shape[0]),
+            "views": s.distill.n_views,
+            "resolution": s.distill.resolution,
+            "wall_s": time.perf_counter() - t0,
+        }
     field, _ = distilled(out, name, *armadillo, s, False)
     if "rebind" in args.stages:
         Z = fieldmod.evaluate_field(field, armadillo[0])

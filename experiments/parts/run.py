@@ -37,12 +37,19 @@ def dem_bones(frames, faces, bones: int) -> dict:
         from benchmarks.parts_dembones import run_dem_bones, skin
     except ImportError:
         return {"available": False}
-    weights, transforms, seconds, _ = run_dem_bones(DemBones, frames, faces, bones=bones, nnz=1, n_iters=30,
-                                                    n_init_iters=10, n_trans_iters=5, n_weights_iters=3)
+    weights, transforms, seconds, _ = run_dem_bones(
+        DemBones, frames, faces, bones=bones, nnz=1, n_iters=30, n_init_iters=10, n_trans_iters=5, n_weights_iters=3
+    )
     rec = skin(frames[0], weights, transforms)
     err = hierarchy.rmse(frames, rec)
-    return {"available": True, "bones_asked": bones, "bones_used": int((weights.max(axis=1) > 0).sum()),
-            "rmse": err, "rmse_over_diagonal": err / hierarchy.bbox_diagonal(frames), "seconds": round(seconds, 3)}
+    return {
+        "available": True,
+        "bones_asked": bones,
+        "bones_used": int((weights.max(axis=1) > 0).sum()),
+        "rmse": err,
+        "rmse_over_diagonal": err / hierarchy.bbox_diagonal(frames),
+        "seconds": round(seconds, 3),
+    }
 
 
 def run_one(name: str, data: Path, out: Path) -> dict:
@@ -59,26 +66,51 @@ def run_one(name: str, data: Path, out: Path) -> dict:
     strip = interpolate.interpolate(fit.params, fit.labels, fit.latent, faces, frames, a, b, ts)
     gaps = interpolate.contact_gaps(fit.params, fit.labels, fit.latent, faces, frames, a, b, ts)
     figures.strip_figure(strip, faces, run / "interpolation.png", labels=fit.labels)
-    ours = {k: info[k] for k in ("parts", "iterations", "parts_per_stage", "rmse", "rmse_over_diagonal", "seconds",
-                                 "disconnected_parts", "loglik_monotone", "rotation_det_range")}
-    ours["max_joint_gap_over_diagonal"] = float(np.max(gaps)) / hierarchy.bbox_diagonal(frames) if np.size(gaps) else 0.0
+    ours = {
+        k: info[k]
+        for k in (
+            "parts",
+            "iterations",
+            "parts_per_stage",
+            "rmse",
+            "rmse_over_diagonal",
+            "seconds",
+            "disconnected_parts",
+            "loglik_monotone",
+            "rotation_det_range",
+        )
+    }
+    ours["max_joint_gap_over_diagonal"] = (
+        float(np.max(gaps)) / hierarchy.bbox_diagonal(frames) if np.size(gaps) else 0.0
+    )
     ours["interpolation"] = [a, b]
     peer = dem_bones(frames, faces, info["parts"])
-    return {"dataset": name, "shapes": int(frames.shape[0]), "vertices": int(frames.shape[1]), "ours": ours,
-            "dem_bones_rigid": peer}
+    return {
+        "dataset": name,
+        "shapes": int(frames.shape[0]),
+        "vertices": int(frames.shape[1]),
+        "ours": ours,
+        "dem_bones_rigid": peer,
+    }
 
 
 def table(results: list[dict]) -> str:
-    rows = ["| data | shapes | parts (coarse/refined/final) | AECM iterations (coarse/refine/final) | ours RMSE / diag | "
-            "ours s | Dem Bones rigid, same bones: RMSE / diag | Dem Bones s | max joint gap / diag |",
-            "|---|---|---|---|---|---|---|---|---|"]
+    rows = [
+        "| data | shapes | parts (coarse/refined/final) | AECM iterations (coarse/refine/final) | ours RMSE / diag | "
+        "ours s | Dem Bones rigid, same bones: RMSE / diag | Dem Bones s | max joint gap / diag |",
+        "|---|---|---|---|---|---|---|---|---|",
+    ]
     for r in results:
         o, d = r["ours"], r["dem_bones_rigid"]
         pps, its = o["parts_per_stage"], o["iterations"]
-        peer = f"{d['rmse_over_diagonal']:.5f} ({d['bones_used']} bones used)" if d.get("available") else "not installed"
-        rows.append(f"| {r['dataset']} | {r['shapes']} | {pps['coarse']}/{pps['refine']}/{pps['final']} | "
-                    f"{its['coarse']}/{its['refine']}/{its['final']} | {o['rmse_over_diagonal']:.5f} | {o['seconds']:.1f} | "
-                    f"{peer} | {d.get('seconds', '-')} | {o['max_joint_gap_over_diagonal']:.1e} |")
+        peer = (
+            f"{d['rmse_over_diagonal']:.5f} ({d['bones_used']} bones used)" if d.get("available") else "not installed"
+        )
+        rows.append(
+            f"| {r['dataset']} | {r['shapes']} | {pps['coarse']}/{pps['refine']}/{pps['final']} | "
+            f"{its['coarse']}/{its['refine']}/{its['final']} | {o['rmse_over_diagonal']:.5f} | {o['seconds']:.1f} | "
+            f"{peer} | {d.get('seconds', '-')} | {o['max_joint_gap_over_diagonal']:.1e} |"
+        )
     return "\n".join(rows)
 
 
@@ -91,8 +123,9 @@ def main(argv=None) -> list[dict]:
     p = argparse.ArgumentParser(prog="python -m experiments.parts.run", description=__doc__.split("\n\n")[0])
     p.add_argument("--data", default="../shared/data")
     p.add_argument("--out", default="out/experiments/parts")
-    p.add_argument("--datasets", nargs="+", default=list(DATASETS),
-                   help="folders under --data (default: the three of the study)")
+    p.add_argument(
+        "--datasets", nargs="+", default=list(DATASETS), help="folders under --data (default: the three of the study)"
+    )
     args = p.parse_args(argv)
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -102,10 +135,23 @@ def main(argv=None) -> list[dict]:
         if not (Path(args.data) / name).exists():
             raise SystemExit(f"{Path(args.data) / name}: no such data set.")
         results.append(run_one(name, Path(args.data), out))
-        print(f"  {json.dumps(results[-1]['ours'])}\n  dem bones: {json.dumps(results[-1]['dem_bones_rigid'])}", flush=True)
+        print(
+            f"  {json.dumps(results[-1]['ours'])}\n  dem bones: {json.dumps(results[-1]['dem_bones_rigid'])}",
+            flush=True,
+        )
     md = table(results)
-    _write(out / "results.json", json.dumps({"python": platform.python_version(), "cpu_count": os.cpu_count(),
-                                             "date": time.strftime("%Y-%m-%d"), "results": results}, indent=2))
+    _write(
+        out / "results.json",
+        json.dumps(
+            {
+                "python": platform.python_version(),
+                "cpu_count": os.cpu_count(),
+                "date": time.strftime("%Y-%m-%d"),
+                "results": results,
+            },
+            indent=2,
+        ),
+    )
     _write(out / "results.md", md + "\n")
     print(md)
     return results

@@ -4,9 +4,34 @@ Public API: :func:`encode`, :func:`decode`, :class:`Scaler`, :func:`prepare` (an
 for many calls on one reference).
 """
 
-from jaxdeform.acap.features import (Acap, Scaler, align_turns, cached, decode, default_solver, encode, features_from,
-                                     gradients_from_features, prepare, split_features, turn_reference)
+from jaxdeform.acap.features import (
+    Acap,
+    Scaler,
+    align_turns,
+    cached,
+    decode,
+    default_solver,
+    encode,
+    features_from,
+    gradients_from_features,
+    prepare,
+    split_features,
+    turn_reference,
+)
 from jaxdeform.acap.reconstruct import SolveInfo
 
-__all__ = ["Acap", "Scaler", "SolveInfo", "align_turns", "cached", "decode", "default_solver", "encode", "features_from",
-           "gradients_from_features", "prepare", "split_features", "turn_reference"]
+__all__ = [
+    "Acap",
+    "Scaler",
+    "SolveInfo",
+    "align_turns",
+    "cached",
+    "decode",
+    "default_solver",
+    "encode",
+    "features_from",
+    "gradients_from_features",
+    "prepare",
+    "split_features",
+    "turn_reference",
+]

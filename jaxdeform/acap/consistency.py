@@ -32,8 +32,9 @@ import jax.numpy as jnp
 import numpy as np
 import scipy.sparse as sp
 from jaxtyping import Array, Bool, Float
-from jaxdeform.typing import Int
 from scipy.sparse import csgraph
+
+from jaxdeform.typing import Int
 
 EPS_DOT = 1e-2
 EPS_ANGLE = 1e-3
@@ -55,7 +56,7 @@ class Graph:
     n: int
     edges: np.ndarray  # (E, 2)
     roots: np.ndarray  # (C,) one root per connected component
-    rings: "Rings"
+    rings: Rings
 
 
 @jax.tree_util.register_dataclass
@@ -104,8 +105,12 @@ def build_graph(edges: np.ndarray, n: int) -> Graph:
     classes = [c[np.argsort(-degree[c], kind="stable")] for c in _colour_classes(nbr, mask)]
     i32 = lambda x: jnp.asarray(x, jnp.int32)  # noqa: E731
     rings = Rings(
-        nbr=i32(nbr), mask=jnp.asarray(mask), degree=i32(degree), parent=i32(parent),
-        is_root=jnp.asarray(is_root), jumps=tuple(i32(j) for j in jumps),
+        nbr=i32(nbr),
+        mask=jnp.asarray(mask),
+        degree=i32(degree),
+        parent=i32(parent),
+        is_root=jnp.asarray(is_root),
+        jumps=tuple(i32(j) for j in jumps),
         classes=tuple(i32(c) for c in classes),
         class_slots=tuple(tuple(int(np.count_nonzero(degree[c] > k)) for k in range(kmax)) for c in classes),
     )
@@ -433,7 +438,9 @@ def temporal(axis: np.ndarray, angle: np.ndarray, g: Graph) -> tuple[np.ndarray,
     return np.asarray(phi), np.asarray(o)
 
 
-def consistent_angles(axis: np.ndarray, angle: np.ndarray, g: Graph, mode: Consistency) -> tuple[np.ndarray, np.ndarray]:
+def consistent_angles(
+    axis: np.ndarray, angle: np.ndarray, g: Graph, mode: Consistency
+) -> tuple[np.ndarray, np.ndarray]:
     """(phi, o) for ``mode`` in spatial / temporal / none (none: phi = angle, o = 1)."""
     if mode == "spatial":
         return spatial(axis, angle, g)
@@ -486,8 +493,12 @@ def milp_orientation(axis: np.ndarray, angle: np.ndarray, g: Graph) -> np.ndarra
     lb = np.zeros(n + m)
     ub = np.ones(n + m)
     lb[g.roots] = 1.0
-    res = milp(c, constraints=[LinearConstraint(a_mat, np.concatenate(lo), np.concatenate(hi))],
-               integrality=np.ones(n + m), bounds=Bounds(lb, ub))
+    res = milp(
+        c,
+        constraints=[LinearConstraint(a_mat, np.concatenate(lo), np.concatenate(hi))],
+        integrality=np.ones(n + m),
+        bounds=Bounds(lb, ub),
+    )
     if not res.success:
         raise RuntimeError(f"milp orientation failed: {res.message}")
     return 2.0 * np.rint(res.x[:n]) - 1.0

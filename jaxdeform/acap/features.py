@@ -52,8 +52,9 @@ DEFAULT_REFINE = 1
 _S_IDX = (np.array([0, 0, 0, 1, 1, 2]), np.array([0, 1, 2, 1, 2, 2]))
 
 
-def features_from(v: Float[jax.typing.ArrayLike, "*batch 3"],
-                  s: Float[jax.typing.ArrayLike, "*batch 3 3"]) -> Float[Array, "*batch 9"]:
+def features_from(
+    v: Float[jax.typing.ArrayLike, "*batch 3"], s: Float[jax.typing.ArrayLike, "*batch 3 3"]
+) -> Float[Array, "*batch 9"]:
     """9-d features from axis-angle vectors and symmetric S."""
     rot = jnp.stack([-v[..., 2], v[..., 1], -v[..., 0]], axis=-1)
     return jnp.concatenate([rot, s[..., _S_IDX[0], _S_IDX[1]]], axis=-1)
@@ -66,8 +67,9 @@ def split_features_cm(f: Float[Array, "9 ..."]) -> tuple[Array, Array]:
     return v, jnp.stack([jnp.stack([s00, s01, s02]), jnp.stack([s01, s11, s12]), jnp.stack([s02, s12, s22])])
 
 
-def split_features(f: Float[jax.typing.ArrayLike, "*batch 9"]
-                   ) -> tuple[Float[Array, "*batch 3"], Float[Array, "*batch 3 3"]]:
+def split_features(
+    f: Float[jax.typing.ArrayLike, "*batch 9"],
+) -> tuple[Float[Array, "*batch 3"], Float[Array, "*batch 3 3"]]:
     """Inverse of :func:`features_from`: (axis-angle vectors (..., 3), S (..., 3, 3))."""
     v, s = split_features_cm(to_cm(f, 1))
     return from_cm(v, 1), from_cm(s)
@@ -109,8 +111,12 @@ def _frame_as(frame: RestFrame, dtype) -> RestFrame:
     """The reference constants of ``frame`` in ``dtype`` (the frame itself when it already is)."""
     if frame.dtype == dtype:
         return frame
-    return dataclasses.replace(frame, weights=frame.weights.astype(dtype), c_ring=frame.c_ring.astype(dtype),
-                               c_normal=frame.c_normal.astype(dtype))
+    return dataclasses.replace(
+        frame,
+        weights=frame.weights.astype(dtype),
+        c_ring=frame.c_ring.astype(dtype),
+        c_normal=frame.c_normal.astype(dtype),
+    )
 
 
 def _local_cm(frame: RestFrame, vertices):
@@ -185,8 +191,12 @@ class Acap(eqx.Module):
     @property
     def graph(self) -> cons.Graph:
         """The host graph of the consistency solves (edges and component roots for the exact MILP path)."""
-        return cons.Graph(n=self.topo.n_vertices, edges=np.asarray(self.topo.edges, np.int64),
-                          roots=np.flatnonzero(np.asarray(self.rings.is_root)), rings=self.rings)
+        return cons.Graph(
+            n=self.topo.n_vertices,
+            edges=np.asarray(self.topo.edges, np.int64),
+            roots=np.flatnonzero(np.asarray(self.rings.is_root)),
+            rings=self.rings,
+        )
 
     @property
     def solver(self) -> str:
@@ -251,7 +261,7 @@ class Acap(eqx.Module):
             self._cache.items[key] = rec
         return rec
 
-    def with_rest(self, rest: Float[jax.typing.ArrayLike, "v 3"]) -> "Acap":
+    def with_rest(self, rest: Float[jax.typing.ArrayLike, "v 3"]) -> Acap:
         """The same Acap with its reference-side constants (fit constants, edge weights, reconstruction
         weights) recomputed from ``rest``: :meth:`encode` and :meth:`decode` of the result are differentiable
         with respect to ``rest``. The topology stays; a factored solver solves only at its own reference
@@ -260,10 +270,17 @@ class Acap(eqx.Module):
         frame = self.frame
         w, c_ring, c_normal = _rest_constants(rest, frame.topo, frame.plan, self.weighting)
         frame = dataclasses.replace(frame, weights=w, c_ring=c_ring, c_normal=c_normal)
-        return Acap(rest=rest, faces=self.faces, topo=self.topo, frame=frame, rings=self.rings,
-                    rec=self.rec.with_rest(rest, w), weighting=self.weighting)
+        return Acap(
+            rest=rest,
+            faces=self.faces,
+            topo=self.topo,
+            frame=frame,
+            rings=self.rings,
+            rec=self.rec.with_rest(rest, w),
+            weighting=self.weighting,
+        )
 
-    def deformation_energy(self, features, positions) -> Float[Array, "..."]:
+    def deformation_energy(self, features, positions) -> Float[Array, ...]:
         """The ACAP reconstruction's objective without its anchor term, per shape:
         sum over edges of w_ij |(p_i - p_j) - (T_i + T_j)/2 (q_i - q_j)|^2, with T the deformation gradients of
         ``features`` (..., V, 9) and p = ``positions`` (..., V, 3). Zero when the positions realise the features'
@@ -294,8 +311,9 @@ class Acap(eqx.Module):
             raise ConnectivityError(f"features must be (..., {self.topo.n_vertices}, 9), got {f.shape}.")
         return f
 
-    def decode_info(self, features, *, anchors=None, targets=None, refine: int = DEFAULT_REFINE,
-                    initial=None) -> tuple[Float[Array, "... v 3"], SolveInfo]:
+    def decode_info(
+        self, features, *, anchors=None, targets=None, refine: int = DEFAULT_REFINE, initial=None
+    ) -> tuple[Float[Array, "... v 3"], SolveInfo]:
         """(positions (..., V, 3), :class:`SolveInfo` of its linear solves) from features (..., V, 9).
 
         Positions are in the features' dtype. ``anchors``: vertex indices held at ``targets`` (..., A, 3)
@@ -311,8 +329,9 @@ class Acap(eqx.Module):
         f = self._features(features)
         return _decode(self.reconstructor(anchors), _frame_as(self.frame, f.dtype), f, targets, refine, initial)
 
-    def decode(self, features, *, anchors=None, targets=None, refine: int = DEFAULT_REFINE,
-               initial=None) -> Float[Array, "... v 3"]:
+    def decode(
+        self, features, *, anchors=None, targets=None, refine: int = DEFAULT_REFINE, initial=None
+    ) -> Float[Array, "... v 3"]:
         """Positions (..., V, 3) from features (..., V, 9); see :meth:`decode_info`. Differentiable in the
         features and the targets (and the reference, through :meth:`with_rest`)."""
         return self.decode_info(features, anchors=anchors, targets=targets, refine=refine, initial=initial)[0]
@@ -401,8 +420,16 @@ def default_solver(n_vertices: int, backend: str | None = None) -> str:
     return "dense" if n_vertices <= DENSE_MAX_VERTICES else "cg"
 
 
-def prepare(rest, faces, weighting: Weighting = "official", *, solver: str | None = None, anchors=None,
-            cg_rtol: float | None = None, cg_max_steps: int = CG_MAX_STEPS) -> Acap:
+def prepare(
+    rest,
+    faces,
+    weighting: Weighting = "official",
+    *,
+    solver: str | None = None,
+    anchors=None,
+    cg_rtol: float | None = None,
+    cg_max_steps: int = CG_MAX_STEPS,
+) -> Acap:
     """Build the :class:`Acap` of a reference mesh: all host work (topology, consistency graph, reference
     fits, edge weights, the reconstruction's factor for ``anchors``; default vertex 0).
 
@@ -426,10 +453,18 @@ def prepare(rest, faces, weighting: Weighting = "official", *, solver: str | Non
     frame = rest_frame(rest_j, topo, weighting)
     graph = cons.build_graph(np.asarray(topo.edges), topo.n_vertices)
     solver = default_solver(topo.n_vertices) if solver is None else solver
-    rec = Reconstructor.build(rest_j, topo, frame.weights, anchors, solver=solver, cg_rtol=cg_rtol,
-                              cg_max_steps=cg_max_steps)
-    return Acap(rest=rest_j, faces=jnp.asarray(faces, jnp.int32), topo=topo, frame=frame, rings=graph.rings, rec=rec,
-                weighting=weighting)
+    rec = Reconstructor.build(
+        rest_j, topo, frame.weights, anchors, solver=solver, cg_rtol=cg_rtol, cg_max_steps=cg_max_steps
+    )
+    return Acap(
+        rest=rest_j,
+        faces=jnp.asarray(faces, jnp.int32),
+        topo=topo,
+        frame=frame,
+        rings=graph.rings,
+        rec=rec,
+        weighting=weighting,
+    )
 
 
 _CACHE: OrderedDict = OrderedDict()
@@ -440,8 +475,14 @@ def cached(rest, faces, weighting: Weighting = "official", *, solver: str | None
     """:func:`prepare` with a small LRU cache keyed by the reference and faces bytes."""
     rest = np.asarray(rest)
     faces = np.asarray(faces)
-    key = (hashlib.sha1(rest.tobytes()).hexdigest(), rest.shape, str(rest.dtype),
-           hashlib.sha1(faces.astype(np.int64).tobytes()).hexdigest(), weighting, solver)
+    key = (
+        hashlib.sha1(rest.tobytes()).hexdigest(),
+        rest.shape,
+        str(rest.dtype),
+        hashlib.sha1(faces.astype(np.int64).tobytes()).hexdigest(),
+        weighting,
+        solver,
+    )
     if key in _CACHE:
         _CACHE.move_to_end(key)
         return _CACHE[key]
@@ -452,8 +493,9 @@ def cached(rest, faces, weighting: Weighting = "official", *, solver: str | None
     return acap
 
 
-def encode(rest, faces, vertices, *, consistency: str | None = "spatial",
-           weighting: Weighting = "official") -> Float[Array, "... v 9"]:
+def encode(
+    rest, faces, vertices, *, consistency: str | None = "spatial", weighting: Weighting = "official"
+) -> Float[Array, "... v 9"]:
     """ACAP features (..., V, 9) of ``vertices`` (..., V, 3) relative to ``rest`` (V, 3) (host convenience:
     :func:`prepare` cached by the reference's bytes; use :meth:`Acap.encode` inside jit).
 
@@ -463,8 +505,16 @@ def encode(rest, faces, vertices, *, consistency: str | None = "spatial",
     return cached(rest, faces, weighting).encode(vertices, consistency)
 
 
-def decode(features, rest, faces, *, anchors=None, targets=None, refine: int = DEFAULT_REFINE,
-           weighting: Weighting = "official"):
+def decode(
+    features,
+    rest,
+    faces,
+    *,
+    anchors=None,
+    targets=None,
+    refine: int = DEFAULT_REFINE,
+    weighting: Weighting = "official",
+):
     """Vertex positions (..., V, 3) from features (..., V, 9) (host convenience, see :func:`encode`).
 
     ``anchors``: vertex indices held at ``targets`` (default: their reference positions); without anchors
@@ -480,8 +530,9 @@ def turn_reference(features: Float[jax.typing.ArrayLike, "n v 9"]) -> Float[Arra
     return cons.turn_reference(jnp.asarray(features)[..., :3])
 
 
-def align_turns(features: Float[jax.typing.ArrayLike, "*batch v 9"],
-                reference: Float[jax.typing.ArrayLike, "v 3"]) -> Float[Array, "*batch v 9"]:
+def align_turns(
+    features: Float[jax.typing.ArrayLike, "*batch v 9"], reference: Float[jax.typing.ArrayLike, "v 3"]
+) -> Float[Array, "*batch v 9"]:
     """The same features with every rotation vector on the 2 pi branch nearest ``reference`` (consistency
     across shapes; the rotations, so the decoded positions, do not change)."""
     f = jnp.asarray(features)
@@ -520,16 +571,21 @@ class Scaler:
     quantile: float = 0.0
 
     @staticmethod
-    def fit(features, quantile: float = 0.0) -> "Scaler":
+    def fit(features, quantile: float = 0.0) -> Scaler:
         f = np.asarray(features)
         check_quantile(quantile)
         if quantile == 0.0:
-            return Scaler(float(f[..., :3].min()) - SCALE_PAD, float(f[..., :3].max()) + SCALE_PAD,
-                          float(f[..., 3:].min()) - SCALE_PAD, float(f[..., 3:].max()) + SCALE_PAD)
+            return Scaler(
+                float(f[..., :3].min()) - SCALE_PAD,
+                float(f[..., :3].max()) + SCALE_PAD,
+                float(f[..., 3:].min()) - SCALE_PAD,
+                float(f[..., 3:].max()) + SCALE_PAD,
+            )
         r0, r1 = np.quantile(f[..., :3], [quantile, 1.0 - quantile])
         s0, s1 = np.quantile(f[..., 3:], [quantile, 1.0 - quantile])
-        return Scaler(float(r0) - SCALE_PAD, float(r1) + SCALE_PAD, float(s0) - SCALE_PAD, float(s1) + SCALE_PAD,
-                      float(quantile))
+        return Scaler(
+            float(r0) - SCALE_PAD, float(r1) + SCALE_PAD, float(s0) - SCALE_PAD, float(s1) + SCALE_PAD, float(quantile)
+        )
 
     def _bounds(self, dtype):
         lo = jnp.asarray([self.rot_min] * 3 + [self.s_min] * 6, dtype)
@@ -554,7 +610,7 @@ class Scaler:
         return np.array(bounds + ([self.quantile] if self.quantile > 0.0 else []))
 
     @staticmethod
-    def from_array(a) -> "Scaler":
+    def from_array(a) -> Scaler:
         """From :meth:`to_array` (four entries, as files written before ``quantile`` hold: no clipping)."""
         a = np.asarray(a, dtype=np.float64).ravel()
         return Scaler(*map(float, a[:5]))

@@ -17,8 +17,13 @@ from jaxdeform.errors import ConnectivityError, JaxDeformError, MeshFormatError
 WEIGHTINGS = ("official", "cotangent")
 
 
-def encode_arrays(vertices: np.ndarray, reference: np.ndarray, faces: np.ndarray, consistency: str = "spatial",
-                  weighting: str = "official") -> dict[str, np.ndarray]:
+def encode_arrays(
+    vertices: np.ndarray,
+    reference: np.ndarray,
+    faces: np.ndarray,
+    consistency: str = "spatial",
+    weighting: str = "official",
+) -> dict[str, np.ndarray]:
     """The arrays of a features file for ``vertices`` (N, V, 3) sharing ``faces`` with ``reference``, computed in
     their dtype; a :class:`JaxDeformError` when the features are not finite."""
     from jaxdeform.acap.features import Scaler, features_from, log_matrices, prepare
@@ -81,7 +86,9 @@ def _features_array(data: dict, path: Path) -> np.ndarray:
         if scaler.size < 4 or scaler.dtype.kind not in "iuf":
             raise MeshFormatError(f"{path}: 'scaler' must hold 4 numbers (rot_min, rot_max, s_min, s_max).")
         if scaled.ndim not in (2, 3) or scaled.shape[-1] != 9 or scaled.dtype.kind != "f":
-            raise MeshFormatError(f"{path}: 'scaled' must be a float (N, V, 9) array, got {scaled.dtype} {scaled.shape}.")
+            raise MeshFormatError(
+                f"{path}: 'scaled' must be a float (N, V, 9) array, got {scaled.dtype} {scaled.shape}."
+            )
         return np.asarray(Scaler.from_array(scaler).inverse(scaled))
     raise MeshFormatError(f"{path}: holds neither 'features' nor 'scaled' with 'scaler'.")
 
@@ -101,13 +108,19 @@ def read_features(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, np.n
     if features.ndim == 2:
         features = features[None]
     if features.ndim != 3 or features.shape[-1] != 9 or features.dtype.kind != "f":
-        raise MeshFormatError(f"{path}: features must be a float (N, V, 9) array, got {features.dtype} {features.shape}.")
+        raise MeshFormatError(
+            f"{path}: features must be a float (N, V, 9) array, got {features.dtype} {features.shape}."
+        )
     if features.shape[0] == 0:
         raise MeshFormatError(f"{path}: the features hold no frames (N = 0).")
     if reference.ndim != 2 or reference.shape[1] != 3 or reference.dtype.kind != "f":
-        raise MeshFormatError(f"{path}: 'reference' must be a float (V, 3) array, got {reference.dtype} {reference.shape}.")
+        raise MeshFormatError(
+            f"{path}: 'reference' must be a float (V, 3) array, got {reference.dtype} {reference.shape}."
+        )
     if faces.ndim != 2 or faces.shape[1] != 3 or faces.dtype.kind not in "iu" or faces.shape[0] == 0:
-        raise MeshFormatError(f"{path}: 'faces' must be a non-empty integer (F, 3) array, got {faces.dtype} {faces.shape}.")
+        raise MeshFormatError(
+            f"{path}: 'faces' must be a non-empty integer (F, 3) array, got {faces.dtype} {faces.shape}."
+        )
     if features.shape[1] != reference.shape[0]:
         raise ConnectivityError(
             f"{path}: the features have {features.shape[1]} vertices but the reference has {reference.shape[0]}."

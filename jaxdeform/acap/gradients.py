@@ -49,8 +49,9 @@ def sexp(x: Array) -> Array:
     return jnp.where(jnp.isfinite(y) & (y <= 1e5), y, 1.0)
 
 
-def edge_weights(rest: Float[jax.typing.ArrayLike, "v 3"], topo: Topology,
-                 weighting: Weighting = "official") -> Float[Array, " e"]:
+def edge_weights(
+    rest: Float[jax.typing.ArrayLike, "v 3"], topo: Topology, weighting: Weighting = "official"
+) -> Float[Array, " e"]:
     c = cotangent_weights(rest, topo)
     if weighting == "official":
         return sexp(c) ** OFFICIAL_EXPONENT
@@ -113,9 +114,14 @@ def ring_plan(topo: Topology) -> RingPlan:
     last = [int(np.flatnonzero(n_faces > k).max()) + 1 for k in range(vf.shape[1])]
     i32 = lambda a: jnp.asarray(a, jnp.int32)  # noqa: E731
     return RingPlan(
-        order=i32(order), position=i32(position), neighbors=i32(np.asarray(topo.neighbors)[order]),
-        degree=i32(degree[order]), faces=i32(vf), faces_mask=jnp.asarray(vf_mask),
-        ring_counts=_prefix_counts(degree[order], topo.max_degree), face_counts=tuple(last),
+        order=i32(order),
+        position=i32(position),
+        neighbors=i32(np.asarray(topo.neighbors)[order]),
+        degree=i32(degree[order]),
+        faces=i32(vf),
+        faces_mask=jnp.asarray(vf_mask),
+        ring_counts=_prefix_counts(degree[order], topo.max_degree),
+        face_counts=tuple(last),
     )
 
 
@@ -141,8 +147,9 @@ class RestFrame:
         return self.c_ring.dtype
 
 
-def rest_frame(rest: Float[jax.typing.ArrayLike, "v 3"], topo: Topology,
-               weighting: Weighting = "official") -> RestFrame:
+def rest_frame(
+    rest: Float[jax.typing.ArrayLike, "v 3"], topo: Topology, weighting: Weighting = "official"
+) -> RestFrame:
     rest = jnp.asarray(rest)
     if weighting not in ("official", "cotangent"):
         raise ValueError(f"unknown weighting '{weighting}'; expected 'official' or 'cotangent'.")
@@ -215,8 +222,9 @@ def to_vertex_major(vertices: Float[jax.typing.ArrayLike, "... v 3"]) -> Float[A
     return jnp.moveaxis(vertices.reshape(-1, v, 3), (0, 2), (2, 0))
 
 
-def deformation_gradients(frame: RestFrame,
-                          vertices: Float[jax.typing.ArrayLike, "*batch v 3"]) -> Float[Array, "*batch v 3 3"]:
+def deformation_gradients(
+    frame: RestFrame, vertices: Float[jax.typing.ArrayLike, "*batch v 3"]
+) -> Float[Array, "*batch v 3 3"]:
     """T_i for each frame (any leading batch shape) relative to the reference of ``frame``."""
     vertices = jnp.asarray(vertices, dtype=frame.dtype)
     t = deformation_gradients_cm(frame, to_vertex_major(vertices))  # (3, 3, V, B)

@@ -84,7 +84,9 @@ def register_factor(n: int, rows: np.ndarray, cols: np.ndarray, vals: np.ndarray
     vals = np.asarray(vals, dtype=np.float64)
     if not np.all(np.isfinite(vals)):
         raise DegenerateMeshError("the reconstruction matrix has non-finite entries (degenerate reference mesh).")
-    solver = CholeskySolverD(n, np.ascontiguousarray(rows, np.int32), np.ascontiguousarray(cols, np.int32), vals, MatrixType.COO)
+    solver = CholeskySolverD(
+        n, np.ascontiguousarray(rows, np.int32), np.ascontiguousarray(cols, np.int32), vals, MatrixType.COO
+    )
     with _LOCK:
         key = next(_KEYS)
         _FACTORS[key] = solver
@@ -153,7 +155,9 @@ class NormalMatrix(eqx.Module):
 
     def diagonal(self, dtype) -> Array:
         w = self.sqrt_w.astype(dtype) ** 2
-        d = jax.ops.segment_sum(w, self.edge_i, self.n, indices_are_sorted=True) + jax.ops.segment_sum(w, self.edge_j, self.n)
+        d = jax.ops.segment_sum(w, self.edge_i, self.n, indices_are_sorted=True) + jax.ops.segment_sum(
+            w, self.edge_j, self.n
+        )
         return d.at[self.anchors].add(self.sqrt_a.astype(dtype) ** 2)
 
     def dense(self, dtype) -> Array:
@@ -180,11 +184,13 @@ class HostCholesky(eqx.Module):
     key: int = eqx.field(static=True)
 
     @staticmethod
-    def build(matrix: NormalMatrix) -> "HostCholesky":
+    def build(matrix: NormalMatrix) -> HostCholesky:
         """Factor ``matrix`` on the host; its arrays must be concrete (not traced)."""
         if is_traced(matrix):
-            raise ValueError("the host factor of a new anchor set needs a concrete Acap: call acap.reconstructor(anchors) "
-                             "outside the trace, or pass the Acap closed over instead of as an argument.")
+            raise ValueError(
+                "the host factor of a new anchor set needs a concrete Acap: call acap.reconstructor(anchors) "
+                "outside the trace, or pass the Acap closed over instead of as an argument."
+            )
         w = np.asarray(matrix.sqrt_w, np.float64) ** 2
         e = np.stack([np.asarray(matrix.edge_i), np.asarray(matrix.edge_j)], axis=1)
         anchors = np.asarray(matrix.anchors)
@@ -206,7 +212,7 @@ class DenseCholesky(eqx.Module):
     chol: Float[Array, "v v"]
 
     @staticmethod
-    def build(matrix: NormalMatrix, dtype) -> "DenseCholesky":
+    def build(matrix: NormalMatrix, dtype) -> DenseCholesky:
         chol = jax.jit(lambda m: jnp.linalg.cholesky(m.dense(dtype)))(matrix)
         if not is_traced(chol) and not bool(jnp.isfinite(chol[-1, -1])):
             raise DegenerateMeshError("the reconstruction matrix is not positive definite (degenerate reference mesh).")
@@ -320,7 +326,11 @@ class NormalSolver(lx.AbstractLinearSolver):
         converged = jnp.all(jnp.stack([o[1] for o in outs]))
         steps = jnp.max(jnp.stack([o[2] for o in outs]))
         result = lx.RESULTS.where(converged, lx.RESULTS.successful, lx.RESULTS.max_steps_reached)
-        return jax.tree_util.tree_unflatten(treedef, [o[0] for o in outs]), result, {"steps": steps, "converged": converged}
+        return (
+            jax.tree_util.tree_unflatten(treedef, [o[0] for o in outs]),
+            result,
+            {"steps": steps, "converged": converged},
+        )
 
     def transpose(self, state, options):
         return state.transpose(), options
@@ -352,7 +362,12 @@ class LinearLeastSquares(optx.AbstractLeastSquaresSolver):
     def init(self, fn, y, args, options, f_struct, aux_struct, tags):
         del fn, y, args, options, f_struct, tags
         aux = jax.tree_util.tree_map(lambda s: jnp.zeros(s.shape, s.dtype), aux_struct)
-        return (jnp.array(False), aux, optx.RESULTS.successful, {"steps": jnp.array(0, jnp.int32), "converged": jnp.array(True)})
+        return (
+            jnp.array(False),
+            aux,
+            optx.RESULTS.successful,
+            {"steps": jnp.array(0, jnp.int32), "converged": jnp.array(True)},
+        )
 
     def step(self, fn, y, args, options, state, tags):
         del options, state
@@ -398,7 +413,6 @@ def edge_targets(t_vm: Float[Array, "v 3 3 b"], rest_edges, sqrt_w, i, j) -> Flo
     return tsum[:, :, 0] * q[:, None, 0] + tsum[:, :, 1] * q[:, None, 1] + tsum[:, :, 2] * q[:, None, 2]
 
 
-
 class SolveInfo(eqx.Module):
     """How a reconstruction's linear solves went: ``converged`` (always True for the factored solvers) and
     ``steps`` (the most iterations any solve took; 1 for the factored solvers)."""
@@ -406,7 +420,7 @@ class SolveInfo(eqx.Module):
     converged: Bool[Array, ""]
     steps: Int[Array, ""]
 
-    def merge(self, other: "SolveInfo") -> "SolveInfo":
+    def merge(self, other: SolveInfo) -> SolveInfo:
         return SolveInfo(self.converged & other.converged, jnp.maximum(self.steps, other.steps))
 
 
@@ -422,8 +436,10 @@ def _check_anchors(anchors, n: int) -> np.ndarray:
 def is_traced(*trees) -> bool:
     """Whether any leaf of ``trees`` holds values the host cannot read now: a tracer, or a global array with
     parts on other processes (multi-host). Such values are checked inside the computation, not on the host."""
-    return any(isinstance(x, jax.core.Tracer) or (isinstance(x, jax.Array) and not x.is_fully_addressable)
-               for x in jax.tree_util.tree_leaves(trees))
+    return any(
+        isinstance(x, jax.core.Tracer) or (isinstance(x, jax.Array) and not x.is_fully_addressable)
+        for x in jax.tree_util.tree_leaves(trees)
+    )
 
 
 @jax.jit
@@ -450,9 +466,16 @@ class Reconstructor(eqx.Module):
     anchor_weight: float = eqx.field(static=True, default=ANCHOR_WEIGHT)
 
     @staticmethod
-    def build(rest: Float[ArrayLike, "v 3"], topo: Topology, weights: Float[ArrayLike, " e"], anchors=None,
-              anchor_weight: float = ANCHOR_WEIGHT, solver: Solver = "host", cg_rtol: float | None = None,
-              cg_max_steps: int = CG_MAX_STEPS) -> "Reconstructor":
+    def build(
+        rest: Float[ArrayLike, "v 3"],
+        topo: Topology,
+        weights: Float[ArrayLike, " e"],
+        anchors=None,
+        anchor_weight: float = ANCHOR_WEIGHT,
+        solver: Solver = "host",
+        cg_rtol: float | None = None,
+        cg_max_steps: int = CG_MAX_STEPS,
+    ) -> Reconstructor:
         """Host-side construction: checks (positive weights, anchors) and the factor of ``solver``.
 
         ``rest`` (V, 3) and ``weights`` (E,) may be jax or numpy arrays; ``anchors``: vertex indices (default
@@ -463,7 +486,9 @@ class Reconstructor(eqx.Module):
         rest = jnp.asarray(rest)
         w_host = np.asarray(weights, dtype=np.float64)
         if not np.all(w_host > 0):
-            raise DegenerateMeshError("reconstruction needs positive edge weights; use weighting='official' for this mesh.")
+            raise DegenerateMeshError(
+                "reconstruction needs positive edge weights; use weighting='official' for this mesh."
+            )
         n = topo.n_vertices
         anchors = _check_anchors(anchors, n)
         a = float(anchor_weight * np.mean(w_host))
@@ -482,7 +507,9 @@ class Reconstructor(eqx.Module):
         )
         return rec.with_method(solver, cg_rtol, cg_max_steps)
 
-    def with_method(self, solver: Solver, cg_rtol: float | None = None, cg_max_steps: int = CG_MAX_STEPS) -> "Reconstructor":
+    def with_method(
+        self, solver: Solver, cg_rtol: float | None = None, cg_max_steps: int = CG_MAX_STEPS
+    ) -> Reconstructor:
         """The same problem solved by ``solver`` (factors are built now, on the host for ``"host"``)."""
         if solver == "host":
             method = HostCholesky.build(self.matrix())
@@ -502,7 +529,7 @@ class Reconstructor(eqx.Module):
         """The normal matrix of this problem (matrix-free)."""
         return NormalMatrix(self.sqrt_w, self.edge_i, self.edge_j, self.anchors, self.sqrt_a, self.rest.shape[0])
 
-    def with_anchors(self, anchors) -> "Reconstructor":
+    def with_anchors(self, anchors) -> Reconstructor:
         """The same reference with other anchors (vertex indices). The factored solvers need concrete indices
         (a new factor is built); conjugate gradients take traced ones too."""
         if is_traced(anchors):
@@ -517,7 +544,7 @@ class Reconstructor(eqx.Module):
             return eqx.tree_at(lambda r: r.method, rec, DenseCholesky.build(rec.matrix(), self.method.chol.dtype))
         return rec
 
-    def with_rest(self, rest: Float[ArrayLike, "v 3"], weights: Float[ArrayLike, " e"]) -> "Reconstructor":
+    def with_rest(self, rest: Float[ArrayLike, "v 3"], weights: Float[ArrayLike, " e"]) -> Reconstructor:
         """The problem's reference-side constants recomputed from ``rest`` and its edge ``weights`` (which
         the caller derives from ``rest``), so that positions are differentiable in the reference.
 
@@ -525,11 +552,18 @@ class Reconstructor(eqx.Module):
         the reference it was built for: there the derivatives are exact, elsewhere the solve is refused.
         """
         if not isinstance(self.method, ConjugateGradient):
-            rest = eqx.error_if(rest, jnp.any(rest != self.rest.astype(rest.dtype)),
-                                "a factored solver reconstructs only at its own reference; use solver='cg' to move it.")
+            rest = eqx.error_if(
+                rest,
+                jnp.any(rest != self.rest.astype(rest.dtype)),
+                "a factored solver reconstructs only at its own reference; use solver='cg' to move it.",
+            )
         weights = weights.astype(rest.dtype)
-        new = (rest, rest[self.edge_i] - rest[self.edge_j], jnp.sqrt(weights),
-               jnp.sqrt(self.anchor_weight * jnp.mean(weights)))
+        new = (
+            rest,
+            rest[self.edge_i] - rest[self.edge_j],
+            jnp.sqrt(weights),
+            jnp.sqrt(self.anchor_weight * jnp.mean(weights)),
+        )
         return eqx.tree_at(lambda r: (r.rest, r.rest_edges, r.sqrt_w, r.sqrt_a), self, new)
 
     def __call__(self, t: Float[ArrayLike, "... v 3 3"], targets: Float[ArrayLike, "... a 3"] | None = None):
@@ -544,7 +578,9 @@ class Reconstructor(eqx.Module):
         """J^T of this problem's residuals, for the solver."""
         return EdgeJacobianT(self.sqrt_w, self.edge_i, self.edge_j, self.anchors, self.sqrt_a, self.rest.shape[0])
 
-    def targets_vm(self, targets: Float[ArrayLike, "... a 3"] | None, lead: tuple, dtype) -> Float[Array, "a 3 b"] | None:
+    def targets_vm(
+        self, targets: Float[ArrayLike, "... a 3"] | None, lead: tuple, dtype
+    ) -> Float[Array, "a 3 b"] | None:
         """Anchor targets broadcast to the batch ``lead`` and laid out vertex-major (A, 3, B); None stays None."""
         if targets is None:
             return None
@@ -569,8 +605,12 @@ class Reconstructor(eqx.Module):
         """Positions (V, 3, B) from edge targets (E, 3, B) (:meth:`edge_targets_vm`) and anchor targets."""
         return self.solve(target, targets_vm)[0]
 
-    def solve(self, target: Float[Array, "e 3 b"], targets_vm: Float[Array, "a 3 b"] | None = None,
-              y0: Float[Array, "v 3 b"] | None = None) -> tuple[Array, SolveInfo]:
+    def solve(
+        self,
+        target: Float[Array, "e 3 b"],
+        targets_vm: Float[Array, "a 3 b"] | None = None,
+        y0: Float[Array, "v 3 b"] | None = None,
+    ) -> tuple[Array, SolveInfo]:
         """(positions (V, 3, B), :class:`SolveInfo`) from edge and anchor targets, starting from ``y0``
         (default zero; only conjugate gradients depend on the start, up to their tolerance)."""
         dtype = target.dtype
@@ -578,8 +618,15 @@ class Reconstructor(eqx.Module):
         if targets_vm is None:
             targets_vm = self.rest_targets_vm(b, dtype)
         y0 = jnp.zeros((self.rest.shape[0], 3, b), dtype) if y0 is None else y0.astype(dtype)
-        args = (target, targets_vm.astype(dtype), self.sqrt_w.astype(dtype), self.edge_i, self.edge_j, self.anchors,
-                self.sqrt_a.astype(dtype))
+        args = (
+            target,
+            targets_vm.astype(dtype),
+            self.sqrt_w.astype(dtype),
+            self.edge_i,
+            self.edge_j,
+            self.anchors,
+            self.sqrt_a.astype(dtype),
+        )
         # the solver holds primal values only: the derivatives come from the residuals' args (implicit adjoint)
         linsolve = jax.lax.stop_gradient(NormalSolver(self.method, self.matrix(), self.normal_rhs()))
         sol = optx.least_squares(

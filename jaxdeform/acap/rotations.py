@@ -78,9 +78,11 @@ def cross_cm(u: Array, v: Array) -> Array:
 
 
 def det_cm(a: Array) -> Array:
-    return (a[0, 0] * (a[1, 1] * a[2, 2] - a[1, 2] * a[2, 1])
-            - a[0, 1] * (a[1, 0] * a[2, 2] - a[1, 2] * a[2, 0])
-            + a[0, 2] * (a[1, 0] * a[2, 1] - a[1, 1] * a[2, 0]))
+    return (
+        a[0, 0] * (a[1, 1] * a[2, 2] - a[1, 2] * a[2, 1])
+        - a[0, 1] * (a[1, 0] * a[2, 2] - a[1, 2] * a[2, 0])
+        + a[0, 2] * (a[1, 0] * a[2, 1] - a[1, 1] * a[2, 0])
+    )
 
 
 def adjugate_cm(a: Array) -> Array:
@@ -109,6 +111,7 @@ def sym_cm(a: Array) -> Array:
 
 def _smallest_eigvec_cm(p: Array) -> Array:
     """Eigenvector of the smallest eigenvalue of an SPD matrix (repeated squaring of adj(P))."""
+
     def square(_, m):
         m = mm_cm(m, m)
         return m / jnp.maximum(frob_cm(m), 1e-30)
@@ -124,6 +127,7 @@ def _smallest_eigvec_cm(p: Array) -> Array:
 
 def polar_cm(t: Array, steps: int = NEWTON_STEPS) -> tuple[Array, Array]:
     """T = R S (component-major) with R a proper rotation and S symmetric (official sign convention)."""
+
     def newton(_, x):
         xinv = inv_cm(x)
         g = jnp.sqrt(frob_cm(xinv) / frob_cm(x))
@@ -235,8 +239,9 @@ def sym(a: jax.typing.ArrayLike) -> Array:
     return 0.5 * (a + jnp.swapaxes(a, -1, -2))
 
 
-def polar(t: Float[jax.typing.ArrayLike, "*batch 3 3"], steps: int = NEWTON_STEPS
-          ) -> tuple[Float[Array, "*batch 3 3"], Float[Array, "*batch 3 3"]]:
+def polar(
+    t: Float[jax.typing.ArrayLike, "*batch 3 3"], steps: int = NEWTON_STEPS
+) -> tuple[Float[Array, "*batch 3 3"], Float[Array, "*batch 3 3"]]:
     """T = R S with R a proper rotation and S symmetric (official ACAP sign convention)."""
     r, s = polar_cm(to_cm(t), steps)
     return from_cm(r), from_cm(s)

@@ -24,7 +24,8 @@ import functools
 import jax
 import jax.numpy as jnp
 import numpy as np
-from jax.sharding import Mesh, NamedSharding, PartitionSpec as P
+from jax.sharding import Mesh, NamedSharding
+from jax.sharding import PartitionSpec as P
 from jaxtyping import Array, ArrayLike, Float
 
 from jaxdeform.acap.features import Acap
@@ -59,8 +60,9 @@ def map_frames(fn, x, mesh: Mesh, axis: str = FRAMES):
     return out if size == n else jax.tree_util.tree_map(lambda y: y[:n], out)
 
 
-def encode(acap: Acap, vertices: Float[ArrayLike, "n v 3"], mesh: Mesh, consistency: str = "spatial",
-           axis: str = FRAMES) -> Float[Array, "n v 9"]:
+def encode(
+    acap: Acap, vertices: Float[ArrayLike, "n v 3"], mesh: Mesh, consistency: str = "spatial", axis: str = FRAMES
+) -> Float[Array, "n v 9"]:
     """:meth:`Acap.encode` of frames (N, V, 3), data-parallel over ``mesh`` (spatial or no consistency)."""
     if consistency == "temporal":
         raise ValueError("temporal consistency runs along the whole sequence and cannot be split over frames.")
@@ -70,8 +72,9 @@ def encode(acap: Acap, vertices: Float[ArrayLike, "n v 3"], mesh: Mesh, consiste
     return map_frames(functools.partial(_encode, acap, consistency), x, mesh, axis)
 
 
-def decode(acap: Acap, features: Float[ArrayLike, "n v 9"], mesh: Mesh, *, anchors=None, refine: int = 1,
-           axis: str = FRAMES) -> Float[Array, "n v 3"]:
+def decode(
+    acap: Acap, features: Float[ArrayLike, "n v 9"], mesh: Mesh, *, anchors=None, refine: int = 1, axis: str = FRAMES
+) -> Float[Array, "n v 3"]:
     """:meth:`Acap.decode` of features (N, V, 9), data-parallel over ``mesh`` (anchors at their reference)."""
     f = acap._features(features)
     if f.ndim != 3:

@@ -37,8 +37,11 @@ def cmd_encode(args: argparse.Namespace) -> int:
     try:
         check_same_connectivity(ref_f, faces, ref_v.shape[0], vertices.shape[1], "the input meshes")
     except ConnectivityError:
-        what = (f"{vertices.shape[1]} vertices against {ref_v.shape[0]}" if vertices.shape[1] != ref_v.shape[0]
-                else "different faces")
+        what = (
+            f"{vertices.shape[1]} vertices against {ref_v.shape[0]}"
+            if vertices.shape[1] != ref_v.shape[0]
+            else "different faces"
+        )
         raise ConnectivityError(
             f"the input meshes do not share the connectivity of the reference {args.reference} ({what})."
         ) from None
@@ -106,37 +109,60 @@ def cmd_decode(args: argparse.Namespace) -> int:
 
 def register(sub) -> None:
     """Add ``acap encode|decode`` to the top-level subparsers ``sub``."""
-    acap = sub.add_parser("acap", help="ACAP features: encode meshes, decode features.",
-                          description="ACAP features (Gao et al. 2019) and their temporal variant TS-ACAP.")
+    acap = sub.add_parser(
+        "acap",
+        help="ACAP features: encode meshes, decode features.",
+        description="ACAP features (Gao et al. 2019) and their temporal variant TS-ACAP.",
+    )
     acap_sub = acap.add_subparsers(dest="acap_command", metavar="ACTION", required=True)
 
     enc = acap_sub.add_parser(
-        "encode", help="Encode meshes to ACAP features (.npz).",
+        "encode",
+        help="Encode meshes to ACAP features (.npz).",
         description="Encode meshes sharing the reference's connectivity to ACAP features, written as one .npz "
-                    "with arrays log_r, s, features, scaled, scaler, faces, reference, consistency, weighting.",
+        "with arrays log_r, s, features, scaled, scaler, faces, reference, consistency, weighting.",
     )
-    enc.add_argument("inputs", nargs="+", metavar="INPUT",
-                     help="mesh files (.obj, .ply, .off, .npz) or folders of them (natural order)")
+    enc.add_argument(
+        "inputs",
+        nargs="+",
+        metavar="INPUT",
+        help="mesh files (.obj, .ply, .off, .npz) or folders of them (natural order)",
+    )
     enc.add_argument("--reference", "-r", required=True, metavar="REF", help="the reference (rest) mesh file")
     common.add_out(enc, "F.npz", "the .npz file to write")
-    enc.add_argument("--consistency", choices=CONSISTENCY_MODES, default="spatial",
-                     help="rotation-angle consistency: spatial (ACAP, default), temporal (TS-ACAP, frames in "
-                          "order) or none (angles in [0, pi])")
-    enc.add_argument("--weighting", choices=WEIGHTINGS, default="official",
-                     help="one-ring edge weights (default: official)")
+    enc.add_argument(
+        "--consistency",
+        choices=CONSISTENCY_MODES,
+        default="spatial",
+        help="rotation-angle consistency: spatial (ACAP, default), temporal (TS-ACAP, frames in "
+        "order) or none (angles in [0, pi])",
+    )
+    enc.add_argument(
+        "--weighting", choices=WEIGHTINGS, default="official", help="one-ring edge weights (default: official)"
+    )
     enc.add_argument("--float32", action="store_true", help="compute in float32 (default: float64)")
     enc.set_defaults(func=cmd_encode)
 
     dec = acap_sub.add_parser(
-        "decode", help="Decode ACAP features (.npz) to OBJ meshes.",
+        "decode",
+        help="Decode ACAP features (.npz) to OBJ meshes.",
         description="Decode the features of an .npz written by 'acap encode' (or one with 'scaled' and "
-                    "'scaler', inverse-scaled) to DIR/000.obj, DIR/001.obj, ...",
+        "'scaler', inverse-scaled) to DIR/000.obj, DIR/001.obj, ...",
     )
     dec.add_argument("features", metavar="F.npz", help="features file written by 'jaxdeform acap encode'")
     common.add_out(dec, "DIR", "folder to create with one OBJ per frame")
-    dec.add_argument("--anchors", type=int, nargs="+", metavar="I",
-                     help="vertex indices held at their reference positions (default: vertex 0)")
-    dec.add_argument("--refine", type=int, metavar="K",
-                     help="refinement steps after the least-squares solve (default: the library's)")
+    dec.add_argument(
+        "--anchors",
+        type=int,
+        nargs="+",
+        metavar="I",
+        help="vertex indices held at their reference positions (default: vertex 0)",
+    )
+    dec.add_argument(
+        "--refine",
+        type=int,
+        metavar="K",
+        help="refinement steps after the least-squares solve (default: the library's)",
+    )
     common.add_force(dec, "replace DIR if it exists and is not empty")
     dec.set_defaults(func=cmd_decode)

@@ -25,13 +25,21 @@ def cmd_cloth_simulate(args: argparse.Namespace) -> int:
     if args.seed < 0:
         raise ValueError(f"--seed must be a whole number >= 0, got {args.seed}.")
     with common.staged_folder(out) as tmp:
-        record = generate(args.scenario, tmp, n_sequences=args.sequences, n_frames=args.frames, seed=args.seed,
-                          progress=not args.quiet)
+        record = generate(
+            args.scenario,
+            tmp,
+            n_sequences=args.sequences,
+            n_frames=args.frames,
+            seed=args.seed,
+            progress=not args.quiet,
+        )
     pen = record["penetration"]
-    print(f"simulated {args.sequences} {args.scenario} sequences of {record['frames_per_sequence']} frames "
-          f"(coarse {record['vertices']['coarse']} / fine {record['vertices']['fine']} vertices); max obstacle "
-          f"penetration {100 * pen['coarse_max_over_edge']:.2f}% / {100 * pen['fine_max_over_edge']:.2f}% of the mean "
-          f"edge (at the vertices and on the order-{pen['samples_per_edge']} grid of every triangle); wrote {out}")
+    print(
+        f"simulated {args.sequences} {args.scenario} sequences of {record['frames_per_sequence']} frames "
+        f"(coarse {record['vertices']['coarse']} / fine {record['vertices']['fine']} vertices); max obstacle "
+        f"penetration {100 * pen['coarse_max_over_edge']:.2f}% / {100 * pen['fine_max_over_edge']:.2f}% of the mean "
+        f"edge (at the vertices and on the order-{pen['samples_per_edge']} grid of every triangle); wrote {out}"
+    )
     return 0
 
 
@@ -48,8 +56,9 @@ def _cloth_configs(args: argparse.Namespace):
         mcfg = replace(mcfg, seed=args.seed)
     if not 0.0 <= args.self_feed <= 1.0:
         raise ValueError(f"--self-feed is a probability and must lie in [0, 1], got {args.self_feed}.")
-    tcfg = TrainConfig(position_weight=0.0 if args.position_weight is None else args.position_weight,
-                       self_feed=args.self_feed)
+    tcfg = TrainConfig(
+        position_weight=0.0 if args.position_weight is None else args.position_weight, self_feed=args.self_feed
+    )
     return mcfg, common.steps_seed(tcfg, args)
 
 
@@ -61,12 +70,20 @@ def cmd_cloth_train(args: argparse.Namespace) -> int:
     common.check_out_folder(out, args.force, [args.data])
     ds = cdata.load_dataset(args.data)
     mcfg, tcfg = _cloth_configs(args)
-    run = train_run(ds, representation=args.representation, model_cfg=mcfg, train_cfg=tcfg, progress=not args.quiet,
-                    residual=args.target == "residual")
+    run = train_run(
+        ds,
+        representation=args.representation,
+        model_cfg=mcfg,
+        train_cfg=tcfg,
+        progress=not args.quiet,
+        residual=args.target == "residual",
+    )
     with common.staged_folder(out) as tmp:
         save_run(run, tmp)
-    print(f"trained a {args.model} on {len(ds.subset('train'))} {ds.scenario} sequences ({args.representation}) in "
-          f"{run.record['train_seconds']:.1f} s, final loss {run.record['final_loss']:.5f}; wrote {out}")
+    print(
+        f"trained a {args.model} on {len(ds.subset('train'))} {ds.scenario} sequences ({args.representation}) in "
+        f"{run.record['train_seconds']:.1f} s, final loss {run.record['final_loss']:.5f}; wrote {out}"
+    )
     return 0
 
 
@@ -108,29 +125,40 @@ def cmd_cloth_evaluate(args: argparse.Namespace) -> int:
     from jaxdeform.cloth.run import RUN_FILES, evaluate_run, load_run
 
     out = Path(args.json)
-    common.check_out_file(out, (".json",), [args.data], "metrics", "--json",
-                          protect=[args.run] + [Path(args.run) / f for f in RUN_FILES])
+    common.check_out_file(
+        out, (".json",), [args.data], "metrics", "--json", protect=[args.run] + [Path(args.run) / f for f in RUN_FILES]
+    )
     run = load_run(args.run)
     ds = cdata.load_dataset(args.data)
-    if not np.array_equal(ds.fine_faces, run.rep.fine_faces) or not np.array_equal(ds.coarse_faces, run.rep.coarse_faces):
+    if not np.array_equal(ds.fine_faces, run.rep.fine_faces) or not np.array_equal(
+        ds.coarse_faces, run.rep.coarse_faces
+    ):
         raise ConnectivityError(f"{args.data}: its meshes differ from the ones the run was trained on.")
     if "split" in run.record and Path(run.record.get("dataset", "")) == Path(args.data).resolve():
-        cdata.check_split(run.record["split"], f"{Path(args.run) / 'run.json'} (read against {args.data})",
-                          {x.name for x in ds.sequences})
+        cdata.check_split(
+            run.record["split"],
+            f"{Path(args.run) / 'run.json'} (read against {args.data})",
+            {x.name for x in ds.sequences},
+        )
         ds.split = run.record["split"]
     part = args.split
     res = evaluate_run(run, ds, part=part, progress=not args.quiet)
     with common.atomic_file(out) as tmp:
         tmp.write_text(json.dumps(res, indent=1) + "\n")
     t = res[part]
-    print(f"{part}: rmse {t['rmse']:.5f} m, hausdorff {t['hausdorff']:.5f} m, sted {t['sted']:.4f} "
-          f"(upsampled coarse rmse {res['upsampled_coarse'][part]['rmse']:.5f}); wrote {out}")
+    print(
+        f"{part}: rmse {t['rmse']:.5f} m, hausdorff {t['hausdorff']:.5f} m, sted {t['sted']:.4f} "
+        f"(upsampled coarse rmse {res['upsampled_coarse'][part]['rmse']:.5f}); wrote {out}"
+    )
     return 0
 
 
 def _add_simulate_train(cloth_sub) -> None:
-    csim = cloth_sub.add_parser("simulate", help="Simulate paired coarse/fine sequences of a scenario.",
-                                description="SHEET (81 / 4225 vertices) or DISK (148 / 7729) sequences, simulated separately.")
+    csim = cloth_sub.add_parser(
+        "simulate",
+        help="Simulate paired coarse/fine sequences of a scenario.",
+        description="SHEET (81 / 4225 vertices) or DISK (148 / 7729) sequences, simulated separately.",
+    )
     csim.add_argument("--scenario", required=True, choices=("sheet", "disk"))
     common.add_out(csim, "DIR", "dataset folder to write")
     csim.add_argument("--sequences", type=int, default=10, metavar="N", help="sequences (default 10)")
@@ -139,25 +167,44 @@ def _add_simulate_train(cloth_sub) -> None:
     common.add_force(csim, "replace a non-empty --out")
     common.add_quiet(csim)
     csim.set_defaults(func=cmd_cloth_simulate)
-    ctr = cloth_sub.add_parser("train", help="Train a detail model on a dataset's training split.",
-                               description="TS-ACAP features of both resolutions -> DeformTransformer (teacher forcing).")
+    ctr = cloth_sub.add_parser(
+        "train",
+        help="Train a detail model on a dataset's training split.",
+        description="TS-ACAP features of both resolutions -> DeformTransformer (teacher forcing).",
+    )
     ctr.add_argument("data", metavar="DATA", help="dataset folder written by 'cloth simulate'")
     common.add_out(ctr, "RUN", "run folder to write")
     ctr.add_argument("--model", default="transformer", choices=("transformer", "lstm", "none"))
     ctr.add_argument("--representation", default="ts-acap", choices=("ts-acap", "acap", "coords"))
-    ctr.add_argument("--target", default="residual", choices=("residual", "direct"),
-                     help="residual (default): learn the fine features as a residual over the Loop-upsampled "
-                          "coarse cloth's; direct: map coarse to fine features as the paper does")
-    ctr.add_argument("--skip", action="store_true",
-                     help="the fine decoder also reads the coarse features interpolated to the fine mesh")
-    ctr.add_argument("--position-weight", type=float, metavar="W",
-                     help="add W x the decoded positions' squared error (in fine edge lengths) to the loss "
-                          "(needs the scenario's pins; default 0: feature MSE only, as the paper)")
-    ctr.add_argument("--self-feed", type=float, default=0.5, metavar="P",
-                     help="train a window on the model's own predictions of its earlier frames with probability "
-                          "P (ramped up over the first half of training), as synthesis feeds them (default 0.5: "
-                          "it keeps the transformer from drifting on unseen sequences; 0: teacher forcing only, "
-                          "as the paper; the per-frame model ignores it)")
+    ctr.add_argument(
+        "--target",
+        default="residual",
+        choices=("residual", "direct"),
+        help="residual (default): learn the fine features as a residual over the Loop-upsampled "
+        "coarse cloth's; direct: map coarse to fine features as the paper does",
+    )
+    ctr.add_argument(
+        "--skip",
+        action="store_true",
+        help="the fine decoder also reads the coarse features interpolated to the fine mesh",
+    )
+    ctr.add_argument(
+        "--position-weight",
+        type=float,
+        metavar="W",
+        help="add W x the decoded positions' squared error (in fine edge lengths) to the loss "
+        "(needs the scenario's pins; default 0: feature MSE only, as the paper)",
+    )
+    ctr.add_argument(
+        "--self-feed",
+        type=float,
+        default=0.5,
+        metavar="P",
+        help="train a window on the model's own predictions of its earlier frames with probability "
+        "P (ramped up over the first half of training), as synthesis feeds them (default 0.5: "
+        "it keeps the transformer from drifting on unseen sequences; 0: teacher forcing only, "
+        "as the paper; the per-frame model ignores it)",
+    )
     common.add_steps(ctr, "training steps (default: the TrainConfig's)")
     common.add_seed(ctr)
     common.add_force(ctr, "replace a non-empty --out")
@@ -166,8 +213,11 @@ def _add_simulate_train(cloth_sub) -> None:
 
 
 def _add_synthesize_evaluate(cloth_sub) -> None:
-    csyn = cloth_sub.add_parser("synthesize", help="Fine cloth from coarse sequences with a trained run.",
-                                description="Writes one .npz sequence (vertices, faces) per coarse sequence.")
+    csyn = cloth_sub.add_parser(
+        "synthesize",
+        help="Fine cloth from coarse sequences with a trained run.",
+        description="Writes one .npz sequence (vertices, faces) per coarse sequence.",
+    )
     csyn.add_argument("run", metavar="RUN")
     csyn.add_argument("--coarse", required=True, metavar="DIR|SEQ", help="dataset folder or one sequence file")
     csyn.add_argument("--split", choices=("train", "test"), help="only this split of a dataset folder")
@@ -175,21 +225,31 @@ def _add_synthesize_evaluate(cloth_sub) -> None:
     csyn.add_argument("--no-refine", action="store_true", help="skip the collision refinement")
     common.add_force(csyn, "replace a non-empty --out")
     csyn.set_defaults(func=cmd_cloth_synthesize)
-    cev = cloth_sub.add_parser("evaluate", help="RMSE, Hausdorff and STED on the test (or training) split against the fine simulation.",
-                               description="Also reports the upsampled-coarse baseline.")
+    cev = cloth_sub.add_parser(
+        "evaluate",
+        help="RMSE, Hausdorff and STED on the test (or training) split against the fine simulation.",
+        description="Also reports the upsampled-coarse baseline.",
+    )
     cev.add_argument("run", metavar="RUN")
     cev.add_argument("--data", required=True, metavar="DATA")
     common.add_json(cev, required=True)
-    cev.add_argument("--split", choices=("test", "train"), default="test",
-                     help="the run's split to evaluate (default test; train tells fitting from generalising)")
+    cev.add_argument(
+        "--split",
+        choices=("test", "train"),
+        default="test",
+        help="the run's split to evaluate (default test; train tells fitting from generalising)",
+    )
     common.add_quiet(cev)
     cev.set_defaults(func=cmd_cloth_evaluate)
 
 
 def register(sub) -> None:
     """Add ``cloth simulate|train|synthesize|evaluate`` to the top-level subparsers ``sub``."""
-    cloth = sub.add_parser("cloth", help="Coarse-to-fine cloth detail synthesis (seed 002): simulate, train, synthesize, evaluate.",
-                           description="Paired cloth simulation data, TS-ACAP features and the DeformTransformer.")
+    cloth = sub.add_parser(
+        "cloth",
+        help="Coarse-to-fine cloth detail synthesis (seed 002): simulate, train, synthesize, evaluate.",
+        description="Paired cloth simulation data, TS-ACAP features and the DeformTransformer.",
+    )
     cloth_sub = cloth.add_subparsers(dest="cloth_command", metavar="ACTION", required=True)
     _add_simulate_train(cloth_sub)
     _add_synthesize_evaluate(cloth_sub)

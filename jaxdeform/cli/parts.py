@@ -30,14 +30,23 @@ def cmd_parts_fit(args: argparse.Namespace) -> int:
     if vertices.shape[0] < 2:
         raise ValueError(f"a parts fit needs at least 2 shapes; {' '.join(args.data)} holds {vertices.shape[0]}.")
     if args.initial_parts > vertices.shape[1]:
-        raise ValueError(f"--initial-parts {args.initial_parts} exceeds the {vertices.shape[1]} vertices of the meshes.")
-    fit = hierarchy.fit(vertices, faces, initial_parts=args.initial_parts, threshold=args.threshold,
-                        log=lambda line: print(line, flush=True))
+        raise ValueError(
+            f"--initial-parts {args.initial_parts} exceeds the {vertices.shape[1]} vertices of the meshes."
+        )
+    fit = hierarchy.fit(
+        vertices,
+        faces,
+        initial_parts=args.initial_parts,
+        threshold=args.threshold,
+        log=lambda line: print(line, flush=True),
+    )
     with common.staged_folder(out) as tmp:
         info = hierarchy.save_run(tmp, fit, vertices, faces, extra={"data": [str(d) for d in args.data]})
-    print(f"{info['parts']} parts from {vertices.shape[0]} shapes x {vertices.shape[1]} vertices in "
-          f"{info['seconds']:.1f} s (AECM iterations {info['iterations']}); rmse {info['rmse']:.4g} "
-          f"({info['rmse_over_diagonal']:.2e} of the bbox diagonal); wrote {out}/summary.json, {out}/model.npz")
+    print(
+        f"{info['parts']} parts from {vertices.shape[0]} shapes x {vertices.shape[1]} vertices in "
+        f"{info['seconds']:.1f} s (AECM iterations {info['iterations']}); rmse {info['rmse']:.4g} "
+        f"({info['rmse_over_diagonal']:.2e} of the bbox diagonal); wrote {out}/summary.json, {out}/model.npz"
+    )
     return 0
 
 
@@ -75,12 +84,25 @@ def cmd_parts_interpolate(args: argparse.Namespace) -> int:
         for k in range(args.steps):
             save_mesh(tmp / f"{k:0{width}d}.obj", frames[k], faces)
         figures.strip_figure(frames, faces, tmp / "strip.png", labels=fit.labels)
-        (tmp / "gaps.json").write_text(json.dumps({
-            "source": a, "target": b, "t": ts.tolist(), "joints": int(np.shape(gaps)[1]) if np.ndim(gaps) == 2 else 0,
-            "max_gap": float(np.max(gaps)) if np.size(gaps) else 0.0, "max_gap_over_diagonal": worst,
-            "gaps": np.asarray(gaps).tolist(), "seconds": round(elapsed, 4)}, indent=2))
-    print(f"interpolated shape {a} -> {b} in {args.steps} steps ({elapsed:.2f} s); largest joint gap "
-          f"{worst:.2e} of the bbox diagonal; wrote {out}/000.obj.., strip.png, gaps.json")
+        (tmp / "gaps.json").write_text(
+            json.dumps(
+                {
+                    "source": a,
+                    "target": b,
+                    "t": ts.tolist(),
+                    "joints": int(np.shape(gaps)[1]) if np.ndim(gaps) == 2 else 0,
+                    "max_gap": float(np.max(gaps)) if np.size(gaps) else 0.0,
+                    "max_gap_over_diagonal": worst,
+                    "gaps": np.asarray(gaps).tolist(),
+                    "seconds": round(elapsed, 4),
+                },
+                indent=2,
+            )
+        )
+    print(
+        f"interpolated shape {a} -> {b} in {args.steps} steps ({elapsed:.2f} s); largest joint gap "
+        f"{worst:.2e} of the bbox diagonal; wrote {out}/000.obj.., strip.png, gaps.json"
+    )
     return 0
 
 
@@ -97,8 +119,9 @@ def cmd_parts_show(args: argparse.Namespace) -> int:
     error = np.sqrt(np.mean(np.sum((vertices - fit.reconstruction) ** 2, axis=-1), axis=0))  # (V,) RMS over shapes
     with common.staged_folder(out) as tmp:
         figures.segmentation_figure(vertices[shape], faces, fit.labels, tmp / "segmentation.png")
-        figures.error_figure(vertices[shape], faces, error, tmp / "error.png",
-                             label="RMS reconstruction error over the shapes")
+        figures.error_figure(
+            vertices[shape], faces, error, tmp / "error.png", label="RMS reconstruction error over the shapes"
+        )
         figures.strip_figure(fit.reconstruction, faces, tmp / "reconstruction.png", labels=fit.labels)
     print(f"{fit.n_parts} parts; wrote {out}/segmentation.png, error.png, reconstruction.png")
     return 0
@@ -106,21 +129,35 @@ def cmd_parts_show(args: argparse.Namespace) -> int:
 
 def register(sub) -> None:
     """Add ``parts fit|interpolate|show`` to the top-level subparsers ``sub``."""
-    parts = sub.add_parser("parts", help="Rigid parts of a shape population (mixtures of factor analyzers).",
-                           description="Pose variations by rotation-constrained mixtures of factor analyzers "
-                                       "(seed 003): fit, interpolate, show.")
+    parts = sub.add_parser(
+        "parts",
+        help="Rigid parts of a shape population (mixtures of factor analyzers).",
+        description="Pose variations by rotation-constrained mixtures of factor analyzers "
+        "(seed 003): fit, interpolate, show.",
+    )
     parts_sub = parts.add_subparsers(dest="parts_command", metavar="ACTION", required=True)
-    pfit = parts_sub.add_parser("fit", help="Fit the hierarchy of part analyzers to shapes sharing one connectivity.",
-                                description="Fit Algorithm 1 and write RUN/summary.json and RUN/model.npz.")
+    pfit = parts_sub.add_parser(
+        "fit",
+        help="Fit the hierarchy of part analyzers to shapes sharing one connectivity.",
+        description="Fit Algorithm 1 and write RUN/summary.json and RUN/model.npz.",
+    )
     pfit.add_argument("data", nargs="+", metavar="DATA", help="mesh files or folders of them (at least 2 shapes)")
     common.add_out(pfit, "RUN", "run folder to create")
     pfit.add_argument("--initial-parts", type=int, default=8, metavar="N", help="parts of the coarse stage (default 8)")
-    pfit.add_argument("--threshold", type=float, default=2.5e-5, metavar="X",
-                      help="average variance (unit-box units squared) under which a part is not split (default 2.5e-5)")
+    pfit.add_argument(
+        "--threshold",
+        type=float,
+        default=2.5e-5,
+        metavar="X",
+        help="average variance (unit-box units squared) under which a part is not split (default 2.5e-5)",
+    )
     common.add_force(pfit, "replace RUN if it exists and is not empty")
     pfit.set_defaults(func=cmd_parts_fit)
-    pint = parts_sub.add_parser("interpolate", help="Interpolate the pose between two shapes of a run.",
-                                description="Algorithm 2: slerp of part rotations, joints kept in contact.")
+    pint = parts_sub.add_parser(
+        "interpolate",
+        help="Interpolate the pose between two shapes of a run.",
+        description="Algorithm 2: slerp of part rotations, joints kept in contact.",
+    )
     pint.add_argument("run", metavar="RUN", help="run folder written by 'jaxdeform parts fit'")
     pint.add_argument("--source", type=int, required=True, metavar="A", help="index of the first shape")
     pint.add_argument("--target", type=int, required=True, metavar="B", help="index of the last shape")
@@ -128,8 +165,11 @@ def register(sub) -> None:
     common.add_out(pint, "DIR", "folder to create (OBJ frames, strip.png, gaps.json)")
     common.add_force(pint, "replace DIR if it exists and is not empty")
     pint.set_defaults(func=cmd_parts_interpolate)
-    pshow = parts_sub.add_parser("show", help="Render the segmentation and the reconstruction error of a run.",
-                                 description="Write segmentation.png (three views), error.png, reconstruction.png.")
+    pshow = parts_sub.add_parser(
+        "show",
+        help="Render the segmentation and the reconstruction error of a run.",
+        description="Write segmentation.png (three views), error.png, reconstruction.png.",
+    )
     pshow.add_argument("run", metavar="RUN", help="run folder written by 'jaxdeform parts fit'")
     common.add_out(pshow, "DIR", "folder to create")
     pshow.add_argument("--shape", type=int, default=0, metavar="M", help="shape to draw the parts on (default 0)")

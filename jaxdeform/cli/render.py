@@ -51,8 +51,16 @@ def cmd_render(args: argparse.Namespace) -> int:
     camera = auto_camera(vertices, azimuth_deg=args.azimuth, elevation_deg=args.elevation, up_axis=args.up)
     t0 = time.perf_counter()
     image = render(
-        vertices, faces, scalar=scalar, camera=camera, width=args.width, height=args.height, cmap=args.cmap,
-        vmin=args.vmin, vmax=args.vmax, label=args.label,
+        vertices,
+        faces,
+        scalar=scalar,
+        camera=camera,
+        width=args.width,
+        height=args.height,
+        cmap=args.cmap,
+        vmin=args.vmin,
+        vmax=args.vmax,
+        label=args.label,
     )
     with common.writing(out):
         save_png(image, out)
@@ -66,17 +74,26 @@ def cmd_render(args: argparse.Namespace) -> int:
 
 def register(sub) -> None:
     """Add ``render`` to the top-level subparsers ``sub``."""
-    ren = sub.add_parser("render", help="Render a mesh to PNG, optionally coloured by a per-vertex scalar.",
-                         description="Ray-cast a mesh to a PNG image (CPU, Embree).")
+    ren = sub.add_parser(
+        "render",
+        help="Render a mesh to PNG, optionally coloured by a per-vertex scalar.",
+        description="Ray-cast a mesh to a PNG image (CPU, Embree).",
+    )
     ren.add_argument("mesh", metavar="MESH", help="mesh file (.obj, .ply, .off, or a one-frame .npz)")
     ren.add_argument("--scalar", metavar="FILE.npy", help="per-vertex values (.npy, one per vertex) to colour by")
     common.add_out(ren, "FILE.png", "image to write (default: MESH with .png suffix)", required=False)
     ren.add_argument("--width", type=int, default=800, help="image width in pixels (default 800)")
     ren.add_argument("--height", type=int, default=600, help="image height in pixels (default 600)")
-    ren.add_argument("--azimuth", type=float, default=30.0, metavar="DEG",
-                     help="camera azimuth about the up axis in degrees (default 30)")
-    ren.add_argument("--elevation", type=float, default=20.0, metavar="DEG",
-                     help="camera elevation in degrees (default 20)")
+    ren.add_argument(
+        "--azimuth",
+        type=float,
+        default=30.0,
+        metavar="DEG",
+        help="camera azimuth about the up axis in degrees (default 30)",
+    )
+    ren.add_argument(
+        "--elevation", type=float, default=20.0, metavar="DEG", help="camera elevation in degrees (default 20)"
+    )
     ren.add_argument("--up", choices=("y", "z"), default="y", help="the world's up axis (default y)")
     ren.add_argument("--cmap", choices=CMAPS, default="viridis", help="colormap for --scalar (default viridis)")
     ren.add_argument("--vmin", type=float, help="scalar value at the bottom of the colormap (default: min)")

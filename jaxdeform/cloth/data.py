@@ -110,8 +110,14 @@ def write_sequence(path: Path, pair: dict) -> None:
 
 def write_index(root: Path, scenario: str, names: list[str], split: dict | None = None, **info) -> Path:
     """``dataset.json`` (written last, atomically)."""
-    record = {"format": FORMAT, "version": VERSION, "scenario": scenario, "sequences": list(names),
-              "split": split or default_split(list(names)), **info}
+    record = {
+        "format": FORMAT,
+        "version": VERSION,
+        "scenario": scenario,
+        "sequences": list(names),
+        "split": split or default_split(list(names)),
+        **info,
+    }
     path = Path(root) / "dataset.json"
     with atomic_path(path) as tmp:
         tmp.write_text(json.dumps(record, indent=1, default=_jsonable) + "\n")
@@ -136,16 +142,18 @@ def read_sequence(path: Path) -> tuple[Sequence, dict]:
     coarse, fine = arrays["coarse"], arrays["fine"]
     for what, a in (("coarse", coarse), ("fine", fine)):
         if a.ndim != 3 or a.shape[-1] != 3 or a.shape[0] == 0 or a.dtype.kind not in "iuf":
-            raise MeshFormatError(f"{path}: {what} frames must be a non-empty numeric (T, V, 3) array, got "
-                                  f"{a.dtype} {a.shape}.")
+            raise MeshFormatError(
+                f"{path}: {what} frames must be a non-empty numeric (T, V, 3) array, got {a.dtype} {a.shape}."
+            )
         if not np.all(np.isfinite(a)):
             raise MeshFormatError(f"{path}: {what} frames hold NaN or infinite coordinates.")
         rest = arrays[f"{what}_rest"]
         if rest.ndim != 2 or rest.shape[1] != 3 or rest.dtype.kind not in "iuf" or not np.all(np.isfinite(rest)):
             raise MeshFormatError(f"{path}: its {what} rest mesh must be a finite (V, 3) array of numbers.")
         if a.shape[1] != rest.shape[0]:
-            raise ConnectivityError(f"{path}: its {what} frames have {a.shape[1]} vertices but its {what} rest mesh "
-                                    f"has {rest.shape[0]}.")
+            raise ConnectivityError(
+                f"{path}: its {what} frames have {a.shape[1]} vertices but its {what} rest mesh has {rest.shape[0]}."
+            )
     try:
         meta = json.loads(str(arrays["meta"]))
     except json.JSONDecodeError:
@@ -158,8 +166,12 @@ def read_sequence(path: Path) -> tuple[Sequence, dict]:
         if f"{res}_pins" in pins:
             idx, pos = pins[f"{res}_pins"], pins.get(f"{res}_pin_positions")
             n = (coarse if res == "coarse" else fine).shape[1]
-            if (pos is None or pos.shape != (idx.size, 3) or idx.dtype.kind not in "iu"
-                    or (idx.size and (idx.min() < 0 or idx.max() >= n))):
+            if (
+                pos is None
+                or pos.shape != (idx.size, 3)
+                or idx.dtype.kind not in "iu"
+                or (idx.size and (idx.min() < 0 or idx.max() >= n))
+            ):
                 raise MeshFormatError(f"{path}: its {res} pins do not match its {res} mesh.")
             if pos.dtype.kind not in "iuf" or not np.all(np.isfinite(pos)):
                 raise MeshFormatError(f"{path}: its {res} pin positions hold NaN, infinite or non-numeric values.")
@@ -182,8 +194,9 @@ def _obstacle_track(path: Path, arrays: dict, frames: int) -> dict:
     for name in Obstacles._fields:
         a = track[name]
         if a.ndim < 1 or a.shape[0] != frames or a.dtype.kind not in "iuf":
-            raise MeshFormatError(f"{path}: obs_{name} must hold numbers for each of the {frames} frames, got "
-                                  f"{a.dtype} {a.shape}.")
+            raise MeshFormatError(
+                f"{path}: obs_{name} must hold numbers for each of the {frames} frames, got {a.dtype} {a.shape}."
+            )
         if not np.all(np.isfinite(a)):
             raise MeshFormatError(f"{path}: obs_{name} holds NaN or infinite values.")
     check_rims(track["cylinder_r"], track["cylinder_h"], track["cylinder_rounding"], MeshFormatError, f"{path}: ")
@@ -193,8 +206,10 @@ def _obstacle_track(path: Path, arrays: dict, frames: int) -> dict:
 def check_split(split, where, names=None) -> None:
     """A split must map each part to a list of sequence names, and with ``names`` (the sequences there) name only
     those; one sentence starting with ``where`` otherwise."""
-    if not (isinstance(split, dict) and all(isinstance(v, list) and all(isinstance(n, str) for n in v)
-                                            for v in split.values())):
+    if not (
+        isinstance(split, dict)
+        and all(isinstance(v, list) and all(isinstance(n, str) for n in v) for v in split.values())
+    ):
         raise MeshFormatError(f"{where}: 'split' must map each part to a list of sequence names.")
     unknown = [] if names is None else [n for part in split.values() for n in part if n not in names]
     if unknown:
@@ -241,25 +256,37 @@ def load_dataset(root: str | Path) -> ClothDataset:
                 if a.shape != b.shape or ra.shape != rb.shape or not np.array_equal(a, b):
                     raise ConnectivityError(
                         f"{path.name} has a {res} mesh of {rb.shape[0]} vertices / {b.shape[0]} faces that differs "
-                        f"from {ref[0]}'s ({ra.shape[0]} / {a.shape[0]}); all sequences must share one connectivity.")
+                        f"from {ref[0]}'s ({ra.shape[0]} / {a.shape[0]}); all sequences must share one connectivity."
+                    )
         if seq.coarse.shape[0] != seq.fine.shape[0]:
-            raise ConnectivityError(f"{path.name} has {seq.coarse.shape[0]} coarse frames but {seq.fine.shape[0]} fine "
-                                    "frames; coarse and fine sequences must have equal lengths.")
+            raise ConnectivityError(
+                f"{path.name} has {seq.coarse.shape[0]} coarse frames but {seq.fine.shape[0]} fine "
+                "frames; coarse and fine sequences must have equal lengths."
+            )
         for res in ("coarse", "fine"):
             v = getattr(seq, res).shape[1]
             if v != ref[1][f"{res}_rest"].shape[0]:
-                raise ConnectivityError(f"{path.name}: its {res} frames have {v} vertices but its {res} rest mesh has "
-                                        f"{ref[1][f'{res}_rest'].shape[0]}.")
+                raise ConnectivityError(
+                    f"{path.name}: its {res} frames have {v} vertices but its {res} rest mesh has "
+                    f"{ref[1][f'{res}_rest'].shape[0]}."
+                )
         seqs.append(seq)
     shared = ref[1]
     names = [s.name for s in seqs]
     split = record.get("split") or default_split(names)
     check_split(split, root, names)
     info = {k: v for k, v in record.items() if k not in ("format", "version", "scenario", "sequences", "split")}
-    return ClothDataset(root, record.get("scenario", seqs[0].meta.get("kind", "unknown")),
-                        shared["coarse_rest"].astype(np.float64), shared["coarse_faces"].astype(np.int64),
-                        shared["fine_rest"].astype(np.float64), shared["fine_faces"].astype(np.int64),
-                        seqs, split, info)
+    return ClothDataset(
+        root,
+        record.get("scenario", seqs[0].meta.get("kind", "unknown")),
+        shared["coarse_rest"].astype(np.float64),
+        shared["coarse_faces"].astype(np.int64),
+        shared["fine_rest"].astype(np.float64),
+        shared["fine_faces"].astype(np.int64),
+        seqs,
+        split,
+        info,
+    )
 
 
 def _check_faces(path: Path, shared: dict) -> None:
@@ -271,5 +298,7 @@ def _check_faces(path: Path, shared: dict) -> None:
             raise ConnectivityError(f"{path.name}: the {res} faces index vertices the rest mesh does not have.")
         bad = zero_area_faces(v, f)
         if bad.size:
-            raise DegenerateMeshError(f"{path.name}: the {res} rest mesh has {bad.size} zero-area face(s), the first "
-                                      f"face {bad[0]}; its ACAP features need a rest mesh without them.")
+            raise DegenerateMeshError(
+                f"{path.name}: the {res} rest mesh has {bad.size} zero-area face(s), the first "
+                f"face {bad[0]}; its ACAP features need a rest mesh without them."
+            )

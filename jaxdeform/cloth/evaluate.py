@@ -26,8 +26,9 @@ from jaxdeform import metrics
 class Upsampler:
     """Loop subdivision ``levels`` times as one sparse (Vf, Vc) matrix; checks it lands on the fine faces."""
 
-    def __init__(self, coarse_faces: np.ndarray, n_coarse: int, fine_faces: np.ndarray | None = None,
-                 levels: int | None = None):
+    def __init__(
+        self, coarse_faces: np.ndarray, n_coarse: int, fine_faces: np.ndarray | None = None, levels: int | None = None
+    ):
         import igl
 
         f = np.asarray(coarse_faces, np.int64)
@@ -82,9 +83,16 @@ def sequence_errors(ref: np.ndarray, rec: np.ndarray, faces: np.ndarray, fps: fl
     sq = np.sum((ref - rec) ** 2, axis=-1)
     h = [metrics.hausdorff(a, b) for a, b in zip(ref, rec)]
     st = metrics.sted(ref, rec, faces, fps=fps)
-    return {"frames": int(ref.shape[0]), "sum_sq": float(sq.sum()), "count": int(sq.size),
-            "rmse": float(np.sqrt(sq.mean())), "hausdorff": float(np.mean(h)), "sted": float(st["sted"]),
-            "sted_s": float(st["sted_s"]), "sted_t": float(st.get("sted_t", 0.0))}
+    return {
+        "frames": int(ref.shape[0]),
+        "sum_sq": float(sq.sum()),
+        "count": int(sq.size),
+        "rmse": float(np.sqrt(sq.mean())),
+        "hausdorff": float(np.mean(h)),
+        "sted": float(st["sted"]),
+        "sted_s": float(st["sted_s"]),
+        "sted_t": float(st.get("sted_t", 0.0)),
+    }
 
 
 def pool(per_sequence: list[dict]) -> dict:
@@ -92,8 +100,11 @@ def pool(per_sequence: list[dict]) -> dict:
     if not per_sequence:
         raise ValueError("no sequences to pool.")
     frames = np.array([r["frames"] for r in per_sequence], np.float64)
-    out = {"rmse": float(np.sqrt(sum(r["sum_sq"] for r in per_sequence) / sum(r["count"] for r in per_sequence))),
-           "frames": int(frames.sum()), "sequences": len(per_sequence)}
+    out = {
+        "rmse": float(np.sqrt(sum(r["sum_sq"] for r in per_sequence) / sum(r["count"] for r in per_sequence))),
+        "frames": int(frames.sum()),
+        "sequences": len(per_sequence),
+    }
     for k in ("hausdorff", "sted", "sted_s", "sted_t"):
         out[k] = float(np.sum(frames * np.array([r[k] for r in per_sequence])) / frames.sum())
     return out
@@ -126,8 +137,15 @@ class LinearResidual:
     the learned models should beat it.
     """
 
-    def __init__(self, upsampler: Upsampler, coarse_seqs, fine_seqs, k: int = 64,
-                 lambdas=(1e-2, 1e-1, 1.0, 1e1, 1e2), val_every: int = 4):
+    def __init__(
+        self,
+        upsampler: Upsampler,
+        coarse_seqs,
+        fine_seqs,
+        k: int = 64,
+        lambdas=(1e-2, 1e-1, 1.0, 1e1, 1e2),
+        val_every: int = 4,
+    ):
         self.up = upsampler
         cs = [np.asarray(c, np.float64) for c in coarse_seqs]
         fs = [np.asarray(f, np.float64) for f in fine_seqs]

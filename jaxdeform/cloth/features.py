@@ -166,8 +166,9 @@ class Representation:
             return self.fine_rest, self.fine_faces, self.fine_scaling
         raise ValueError(f"resolution must be 'coarse' or 'fine', got {res!r}.")
 
-    def decode_fine(self, scaled, coarse_frames, refine: int = acapf.DEFAULT_REFINE, base=None, pins=None,
-                    pin_positions=None) -> np.ndarray:
+    def decode_fine(
+        self, scaled, coarse_frames, refine: int = acapf.DEFAULT_REFINE, base=None, pins=None, pin_positions=None
+    ) -> np.ndarray:
         """Fine positions (T, Vf, 3) from scaled fine features (T, Vf, C) and the coarse frames (T, Vc, 3).
 
         With ``residual`` the scaled features are a residual over ``base`` (default: :meth:`base` of the
@@ -180,24 +181,42 @@ class Representation:
         if self.kind == "coords":
             return f.astype(np.float32)
         if pins is not None and len(pins):
-            p = acapf.decode(f, self.fine_rest, self.fine_faces, anchors=np.asarray(pins),
-                             targets=np.asarray(pin_positions, np.float64), refine=refine)
+            p = acapf.decode(
+                f,
+                self.fine_rest,
+                self.fine_faces,
+                anchors=np.asarray(pins),
+                targets=np.asarray(pin_positions, np.float64),
+                refine=refine,
+            )
             return np.asarray(p, np.float32)
         p = np.asarray(acapf.decode(f, self.fine_rest, self.fine_faces, refine=refine), np.float64)
         return place(p, np.asarray(coarse_frames, np.float64), self.coarse_rest.shape[0]).astype(np.float32)
 
     def to_arrays(self) -> dict:
-        return {"kind": np.asarray(self.kind), "residual": np.asarray(self.residual),
-                "coarse_rest": self.coarse_rest, "coarse_faces": self.coarse_faces,
-                "fine_rest": self.fine_rest, "fine_faces": self.fine_faces,
-                "coarse_scaling": self.coarse_scaling.to_array(), "fine_scaling": self.fine_scaling.to_array()}
+        return {
+            "kind": np.asarray(self.kind),
+            "residual": np.asarray(self.residual),
+            "coarse_rest": self.coarse_rest,
+            "coarse_faces": self.coarse_faces,
+            "fine_rest": self.fine_rest,
+            "fine_faces": self.fine_faces,
+            "coarse_scaling": self.coarse_scaling.to_array(),
+            "fine_scaling": self.fine_scaling.to_array(),
+        }
 
     @staticmethod
     def from_arrays(a: dict) -> Representation:
-        return Representation(str(a["kind"]), np.asarray(a["coarse_rest"], np.float64),
-                              np.asarray(a["coarse_faces"], np.int64), np.asarray(a["fine_rest"], np.float64),
-                              np.asarray(a["fine_faces"], np.int64), Scaling.from_array(a["coarse_scaling"]),
-                              Scaling.from_array(a["fine_scaling"]), bool(a.get("residual", False)))
+        return Representation(
+            str(a["kind"]),
+            np.asarray(a["coarse_rest"], np.float64),
+            np.asarray(a["coarse_faces"], np.int64),
+            np.asarray(a["fine_rest"], np.float64),
+            np.asarray(a["fine_faces"], np.int64),
+            Scaling.from_array(a["coarse_scaling"]),
+            Scaling.from_array(a["fine_scaling"]),
+            bool(a.get("residual", False)),
+        )
 
 
 def place(fine: np.ndarray, coarse: np.ndarray, n_coarse: int) -> np.ndarray:
@@ -206,15 +225,23 @@ def place(fine: np.ndarray, coarse: np.ndarray, n_coarse: int) -> np.ndarray:
     return fine + shift
 
 
-def fit_representation(kind: Kind, dataset, train_names: list[str] | None = None, progress: bool = True,
-                       residual: bool = False):
+def fit_representation(
+    kind: Kind, dataset, train_names: list[str] | None = None, progress: bool = True, residual: bool = False
+):
     """(Representation fitted on the training sequences, {name: (coarse features, fine target)} scaled)."""
     _check_kind(kind)
     seqs = dataset.sequences
     train = set(train_names if train_names is not None else [s.name for s in dataset.subset("train")])
-    rep = Representation(kind, dataset.coarse_rest, dataset.coarse_faces, dataset.fine_rest, dataset.fine_faces,
-                         Scaling(np.zeros(channels(kind)), np.ones(channels(kind))),
-                         Scaling(np.zeros(channels(kind)), np.ones(channels(kind))), residual)
+    rep = Representation(
+        kind,
+        dataset.coarse_rest,
+        dataset.coarse_faces,
+        dataset.fine_rest,
+        dataset.fine_faces,
+        Scaling(np.zeros(channels(kind)), np.ones(channels(kind))),
+        Scaling(np.zeros(channels(kind)), np.ones(channels(kind))),
+        residual,
+    )
     raw = {}
     for s in tqdm(seqs, desc=f"{kind}{' residual' if residual else ''} features", unit="seq", disable=not progress):
         fine = encode_sequence(kind, dataset.fine_rest, dataset.fine_faces, s.fine)
@@ -246,5 +273,10 @@ def frame_change_stats(seqs: list[np.ndarray]) -> dict:
     """Largest, 99th and 99.9th percentile frame-to-frame change over sequences, and the fraction above pi
     (a rotation log jumping by a 2 pi turn or an axis flip)."""
     c = np.concatenate([frame_changes(f) for f in seqs])
-    return {"max": float(c.max()), "p99": float(np.percentile(c, 99)), "p99_9": float(np.percentile(c, 99.9)),
-            "fraction_above_pi": float(np.mean(c > np.pi)), "count": int(c.size)}
+    return {
+        "max": float(c.max()),
+        "p99": float(np.percentile(c, 99)),
+        "p99_9": float(np.percentile(c, 99.9)),
+        "fraction_above_pi": float(np.mean(c > np.pi)),
+        "count": int(c.size),
+    }

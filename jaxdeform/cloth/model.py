@@ -163,7 +163,9 @@ class MeshDecoder(nnx.Module):
         self.conv1 = MeshConv(channels + extra, channels, rngs=rngs)
         self.conv2 = MeshConv(channels, cout, rngs=rngs)
 
-    def __call__(self, z: Float[Array, "n latent"], extra: Float[Array, "n v e"] | None = None) -> Float[Array, "n v cout"]:
+    def __call__(
+        self, z: Float[Array, "n latent"], extra: Float[Array, "n v e"] | None = None
+    ) -> Float[Array, "n v cout"]:
         rings = self.rings.get()
         g = _tanh(self.fc(z).reshape(z.shape[0], self.rings.n_vertices, self.channels))
         if extra is not None:
@@ -203,8 +205,9 @@ class LSTM(nnx.Module):
 class DetailModel(nnx.Module):
     """Coarse -> fine feature windows (module docstring); ``coarse`` and ``fine`` are Topology or Rings."""
 
-    def __init__(self, coarse, fine, config: ModelConfig = ModelConfig(), *, rngs: nnx.Rngs | None = None,
-                 upsample=None):
+    def __init__(
+        self, coarse, fine, config: ModelConfig = ModelConfig(), *, rngs: nnx.Rngs | None = None, upsample=None
+    ):
         rngs = nnx.Rngs(config.seed) if rngs is None else rngs
         cfg = config
         self.config = cfg
@@ -212,12 +215,14 @@ class DetailModel(nnx.Module):
         self.n_fine = int(jnp.shape(fine.degree)[0])
         if cfg.skip:
             if upsample is None or tuple(np.shape(upsample)) != (self.n_fine, self.n_coarse):
-                raise ValueError(f"a skip model needs the ({self.n_fine}, {self.n_coarse}) coarse-to-fine "
-                                 "interpolation matrix.")
+                raise ValueError(
+                    f"a skip model needs the ({self.n_fine}, {self.n_coarse}) coarse-to-fine interpolation matrix."
+                )
             self.upsample = RingBuffer(jnp.asarray(upsample, jnp.float32))
         self.coarse_encoder = MeshEncoder(coarse, cfg.in_channels, cfg.conv_channels, cfg.latent, rngs=rngs)
-        self.fine_decoder = MeshDecoder(fine, cfg.in_channels, cfg.conv_channels, cfg.latent,
-                                        extra=cfg.in_channels if cfg.skip else 0, rngs=rngs)
+        self.fine_decoder = MeshDecoder(
+            fine, cfg.in_channels, cfg.conv_channels, cfg.latent, extra=cfg.in_channels if cfg.skip else 0, rngs=rngs
+        )
         if cfg.kind != "none":
             self.fine_encoder = MeshEncoder(fine, cfg.in_channels, cfg.conv_channels, cfg.latent, rngs=rngs)
         if cfg.kind == "transformer":
@@ -240,7 +245,9 @@ class DetailModel(nnx.Module):
             raise ValueError("the no-temporal model has no fine encoder.")
         return self.fine_encoder(x)
 
-    def decode_fine(self, z: Float[Array, "n l"], coarse: Float[Array, "n vc c"] | None = None) -> Float[Array, "n vf c"]:
+    def decode_fine(
+        self, z: Float[Array, "n l"], coarse: Float[Array, "n vc c"] | None = None
+    ) -> Float[Array, "n vf c"]:
         """Fine features from fine latents; a ``skip`` model also needs the same frames' coarse features."""
         if not self.config.skip:
             return self.fine_decoder(z)

@@ -64,8 +64,10 @@ def check_rims(radius, height, rim, error=ValueError, where: str = "") -> None:
     bad = ~((rim >= 0) & (rim < np.minimum(radius, 0.5 * height)))
     if np.any(bad):
         i = np.flatnonzero(bad.ravel())[0]
-        raise error(f"{where}a cylinder's rim radius must lie in [0, min(radius, height / 2)), got "
-                    f"{rim.ravel()[i]:g} for radius {radius.ravel()[i]:g} and height {height.ravel()[i]:g}.")
+        raise error(
+            f"{where}a cylinder's rim radius must lie in [0, min(radius, height / 2)), got "
+            f"{rim.ravel()[i]:g} for radius {radius.ravel()[i]:g} and height {height.ravel()[i]:g}."
+        )
 
 
 def make(spheres=(), capsules=(), cylinders=(), ground: float = NO_GROUND, dtype=np.float32) -> Obstacles:
@@ -76,8 +78,12 @@ def make(spheres=(), capsules=(), cylinders=(), ground: float = NO_GROUND, dtype
     if any(len(p) not in (3, 4) for p in cylinders):
         raise ValueError("a cylinder is (top_centre, radius, height) or (top_centre, radius, height, rim_radius).")
     y = [tuple(p) + (0.0,) * (4 - len(p)) for p in cylinders]
-    check_rims(np.asarray([p[1] for p in y], np.float64), np.asarray([p[2] for p in y], np.float64),
-               np.asarray([p[3] for p in y], np.float64), ValueError)
+    check_rims(
+        np.asarray([p[1] for p in y], np.float64),
+        np.asarray([p[2] for p in y], np.float64),
+        np.asarray([p[3] for p in y], np.float64),
+        ValueError,
+    )
 
     def vecs(rows):
         return np.asarray(rows, dtype).reshape(-1, 3)
@@ -86,10 +92,16 @@ def make(spheres=(), capsules=(), cylinders=(), ground: float = NO_GROUND, dtype
         return np.asarray(rows, dtype).reshape(-1)
 
     return Obstacles(
-        sphere_c=vecs([p[0] for p in s]), sphere_r=scal([p[1] for p in s]),
-        capsule_a=vecs([p[0] for p in c]), capsule_b=vecs([p[1] for p in c]), capsule_r=scal([p[2] for p in c]),
-        cylinder_c=vecs([p[0] for p in y]), cylinder_r=scal([p[1] for p in y]), cylinder_h=scal([p[2] for p in y]),
-        cylinder_rounding=scal([p[3] for p in y]), ground=np.asarray(ground, dtype),
+        sphere_c=vecs([p[0] for p in s]),
+        sphere_r=scal([p[1] for p in s]),
+        capsule_a=vecs([p[0] for p in c]),
+        capsule_b=vecs([p[1] for p in c]),
+        capsule_r=scal([p[2] for p in c]),
+        cylinder_c=vecs([p[0] for p in y]),
+        cylinder_r=scal([p[1] for p in y]),
+        cylinder_h=scal([p[2] for p in y]),
+        cylinder_rounding=scal([p[3] for p in y]),
+        ground=np.asarray(ground, dtype),
     )
 
 
@@ -222,21 +234,29 @@ def signed_distance(obs: Obstacles, x: Float[Array, "p 3"]) -> tuple[Float[Array
     return jnp.take_along_axis(d, k[:, None], 1)[:, 0], jnp.take_along_axis(n, k[:, None, None], 1)[:, 0]
 
 
-def query(obs: Obstacles, prev: Obstacles, x: Float[Array, "p 3"]
-          ) -> tuple[Float[Array, " p"], Float[Array, "p 3"], Float[Array, "p 3"], Int[Array, " p"]]:
+def query(
+    obs: Obstacles, prev: Obstacles, x: Float[Array, "p 3"]
+) -> tuple[Float[Array, " p"], Float[Array, "p 3"], Float[Array, "p 3"], Int[Array, " p"]]:
     """Distance, normal, displacement of the closest shape's surface point since ``prev`` (shapes translate; a
     capsule's point moves with its end points blended at the closest-point parameter), and the shape index."""
     x = jnp.asarray(x)
     d, n = _candidates(obs, x)
     k = jnp.argmin(d, axis=1)
     t = _capsule_param(obs, x)  # (p, c)
-    disp = jnp.concatenate([
-        jnp.broadcast_to((obs.sphere_c - prev.sphere_c)[None], (x.shape[0],) + obs.sphere_c.shape),
-        (1.0 - t)[..., None] * (obs.capsule_a - prev.capsule_a)[None]
-        + t[..., None] * (obs.capsule_b - prev.capsule_b)[None],
-        jnp.broadcast_to((obs.cylinder_c - prev.cylinder_c)[None], (x.shape[0],) + obs.cylinder_c.shape),
-        jnp.broadcast_to((obs.ground - prev.ground) * jnp.asarray(_UP, x.dtype), (x.shape[0], 1, 3)),
-    ], axis=1)
+    disp = jnp.concatenate(
+        [
+            jnp.broadcast_to((obs.sphere_c - prev.sphere_c)[None], (x.shape[0],) + obs.sphere_c.shape),
+            (1.0 - t)[..., None] * (obs.capsule_a - prev.capsule_a)[None]
+            + t[..., None] * (obs.capsule_b - prev.capsule_b)[None],
+            jnp.broadcast_to((obs.cylinder_c - prev.cylinder_c)[None], (x.shape[0],) + obs.cylinder_c.shape),
+            jnp.broadcast_to((obs.ground - prev.ground) * jnp.asarray(_UP, x.dtype), (x.shape[0], 1, 3)),
+        ],
+        axis=1,
+    )
     pick = k[:, None]
-    return (jnp.take_along_axis(d, pick, 1)[:, 0], jnp.take_along_axis(n, pick[..., None], 1)[:, 0],
-            jnp.take_along_axis(disp, pick[..., None], 1)[:, 0], k)
+    return (
+        jnp.take_along_axis(d, pick, 1)[:, 0],
+        jnp.take_along_axis(n, pick[..., None], 1)[:, 0],
+        jnp.take_along_axis(disp, pick[..., None], 1)[:, 0],
+        k,
+    )

@@ -25,8 +25,8 @@ Frames without collisions are returned unchanged, bit for bit.
 
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
-from typing import Callable
 
 import numpy as np
 import scipy.sparse as sp
@@ -54,8 +54,16 @@ def uniform_laplacian(faces: np.ndarray, n: int) -> sp.csr_matrix:
 class Refiner:
     """Collision refinement for one connectivity (the Laplacian and its square are built once)."""
 
-    def __init__(self, faces: np.ndarray, n_vertices: int, *, weight: float = 100.0, eps: float = 0.1,
-                 iterations: int = 3, rings: int = 6):
+    def __init__(
+        self,
+        faces: np.ndarray,
+        n_vertices: int,
+        *,
+        weight: float = 100.0,
+        eps: float = 0.1,
+        iterations: int = 3,
+        rings: int = 6,
+    ):
         if iterations < 1:
             raise ValueError("iterations must be at least 1.")
         if rings < 1:
@@ -104,7 +112,7 @@ class Refiner:
         targets = np.zeros((self.n, 3))
         p = p0
         its = 0
-        for its in range(1, self.iterations + 1):
+        for its in range(1, self.iterations + 1):  # noqa: B007  (read after the loop)
             hit = d < 0.0
             targets[hit] = p[hit] + (margin - d[hit])[:, None] * nrm[hit]
             mask |= hit

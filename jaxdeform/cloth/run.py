@@ -37,8 +37,15 @@ RUN_FORMAT = "jaxdeform-cloth-run"
 # ------------------------------------------------------------------------------------------------ data
 
 
-def generate(kind: str, out: str | Path, n_sequences: int = 10, n_frames: int | None = None, seed: int = 0,
-             progress: bool = True, levels: int = 3) -> dict:
+def generate(
+    kind: str,
+    out: str | Path,
+    n_sequences: int = 10,
+    n_frames: int | None = None,
+    seed: int = 0,
+    progress: bool = True,
+    levels: int = 3,
+) -> dict:
     """Simulate ``n_sequences`` paired sequences of a scenario into ``out``; returns the dataset index record.
 
     ``levels``: Loop levels from the coarse to the fine mesh (3: the paper's SHEET / DISK sizes). A sequence
@@ -71,12 +78,18 @@ def generate(kind: str, out: str | Path, n_sequences: int = 10, n_frames: int | 
         edge_f.append(_mean_edge(pair["fine_rest"], pair["fine_faces"]))
     ec, ef = float(np.mean(edge_c)), float(np.mean(edge_f))
     info = {
-        "frames_per_sequence": frames, "seed": seed,
+        "frames_per_sequence": frames,
+        "seed": seed,
         "vertices": {"coarse": int(pair["coarse"].shape[1]), "fine": int(pair["fine"].shape[1])},
-        "penetration": {"coarse_max_m": float(max(pen_c)), "fine_max_m": float(max(pen_f)),
-                        "coarse_mean_edge_m": ec, "fine_mean_edge_m": ef,
-                        "coarse_max_over_edge": float(max(pen_c)) / ec, "fine_max_over_edge": float(max(pen_f)) / ef,
-                        "samples_per_edge": min(pen_n)},
+        "penetration": {
+            "coarse_max_m": float(max(pen_c)),
+            "fine_max_m": float(max(pen_f)),
+            "coarse_mean_edge_m": ec,
+            "fine_mean_edge_m": ef,
+            "coarse_max_over_edge": float(max(pen_c)) / ec,
+            "fine_max_over_edge": float(max(pen_f)) / ef,
+            "samples_per_edge": min(pen_n),
+        },
         "timing": {"coarse_seconds_per_frame": float(np.median(t_c)), "fine_seconds_per_frame": float(np.median(t_f))},
     }
     cdata.write_index(out, kind, names, **info)
@@ -140,8 +153,16 @@ def check_training_data(ds: cdata.ClothDataset, window: int) -> None:
         raise JaxDeformError(f"{ds.root}: no training sequence has the {window} frames of one training window.")
 
 
-def train_run(data: str | Path | cdata.ClothDataset, *, representation: str = "ts-acap", model_cfg=None,
-              train_cfg=None, progress: bool = True, features: tuple | None = None, residual: bool = False) -> Run:
+def train_run(
+    data: str | Path | cdata.ClothDataset,
+    *,
+    representation: str = "ts-acap",
+    model_cfg=None,
+    train_cfg=None,
+    progress: bool = True,
+    features: tuple | None = None,
+    residual: bool = False,
+) -> Run:
     """Train a detail model on the dataset's training split; ``features`` = a cached fit_representation result."""
     from jaxdeform.cloth import model as cmodel
     from jaxdeform.cloth import train as ctrain
@@ -150,8 +171,9 @@ def train_run(data: str | Path | cdata.ClothDataset, *, representation: str = "t
     mcfg = model_cfg or cmodel.ModelConfig()
     check_training_data(ds, mcfg.window)
     train_names = [s.name for s in ds.subset("train")]
-    rep, scaled = features or cfeat.fit_representation(representation, ds, train_names, progress=progress,
-                                                       residual=residual)
+    rep, scaled = features or cfeat.fit_representation(
+        representation, ds, train_names, progress=progress, residual=residual
+    )
     if mcfg.in_channels != rep.channels:
         import dataclasses
 
@@ -160,14 +182,31 @@ def train_run(data: str | Path | cdata.ClothDataset, *, representation: str = "t
     ct = build_topology(ds.coarse_faces, ds.coarse_rest.shape[0])
     ft = build_topology(ds.fine_faces, ds.fine_rest.shape[0])
     positions = position_target(ds, rep, train_names) if tcfg.position_weight > 0 else None
-    model, hist = ctrain.train(mcfg, tcfg, ct, ft, [scaled[n][0] for n in train_names],
-                               [scaled[n][1] for n in train_names], progress=progress, positions=positions,
-                               upsample=rep.upsampler.matrix.toarray() if mcfg.skip else None)
-    record = {"format": RUN_FORMAT, "dataset": str(Path(ds.root).resolve()), "scenario": ds.scenario,
-              "split": ds.split, "representation": rep.kind, "residual": rep.residual, "model": mcfg.to_dict(), "train": _asdict(tcfg),
-              "final_loss": float(np.mean(hist.loss[-50:])) if len(hist.loss) else None,
-              "train_seconds": float(hist.seconds), "compile_seconds": float(hist.compile_seconds),
-              "thickness": _thickness(ds)}
+    model, hist = ctrain.train(
+        mcfg,
+        tcfg,
+        ct,
+        ft,
+        [scaled[n][0] for n in train_names],
+        [scaled[n][1] for n in train_names],
+        progress=progress,
+        positions=positions,
+        upsample=rep.upsampler.matrix.toarray() if mcfg.skip else None,
+    )
+    record = {
+        "format": RUN_FORMAT,
+        "dataset": str(Path(ds.root).resolve()),
+        "scenario": ds.scenario,
+        "split": ds.split,
+        "representation": rep.kind,
+        "residual": rep.residual,
+        "model": mcfg.to_dict(),
+        "train": _asdict(tcfg),
+        "final_loss": float(np.mean(hist.loss[-50:])) if len(hist.loss) else None,
+        "train_seconds": float(hist.seconds),
+        "compile_seconds": float(hist.compile_seconds),
+        "thickness": _thickness(ds),
+    }
     return Run(model, rep, record)
 
 
@@ -185,8 +224,15 @@ def position_target(ds: cdata.ClothDataset, rep: cfeat.Representation, names: li
         raise JaxDeformError(f"{ds.root}: the training sequences pin different fine vertices or positions.")
     rec = None if rep.kind == "coords" else acapf.cached(rep.fine_rest, rep.fine_faces).reconstructor(idx)
     base = [rep.base(s.coarse) for s in seqs] if rep.residual else None
-    return ctrain.PositionTarget.build([s.fine for s in seqs], base, rep.fine_scaling.lo, rep.fine_scaling.hi,
-                                       rec, None if rec is None else at, _mean_edge(rep.fine_rest, rep.fine_faces))
+    return ctrain.PositionTarget.build(
+        [s.fine for s in seqs],
+        base,
+        rep.fine_scaling.lo,
+        rep.fine_scaling.hi,
+        rec,
+        None if rec is None else at,
+        _mean_edge(rep.fine_rest, rep.fine_faces),
+    )
 
 
 def _asdict(cfg) -> dict:
@@ -265,8 +311,9 @@ def obstacle_sdf(obstacles: dict, t: int):
     return sdf
 
 
-def synthesize_timed(run: Run, coarse: np.ndarray, obstacles: dict | None = None, refine: bool = True,
-                     pins: dict | None = None) -> tuple[np.ndarray, dict]:
+def synthesize_timed(
+    run: Run, coarse: np.ndarray, obstacles: dict | None = None, refine: bool = True, pins: dict | None = None
+) -> tuple[np.ndarray, dict]:
     """Fine frames (T, Vf, 3) from coarse frames (T, Vc, 3), and seconds per frame of each stage.
 
     ``obstacles``: the scenario's obstacle track (for the refinement); ``pins``: its fixed vertices
@@ -283,8 +330,9 @@ def synthesize_timed(run: Run, coarse: np.ndarray, obstacles: dict | None = None
     ff = np.asarray(jax.block_until_ready(ctrain.synthesize(run.model, fc)))
     t2 = time.perf_counter()
     pins = pins or {}
-    fine = run.rep.decode_fine(ff, coarse, base=base, pins=pins.get("fine_pins"),
-                               pin_positions=pins.get("fine_pin_positions"))
+    fine = run.rep.decode_fine(
+        ff, coarse, base=base, pins=pins.get("fine_pins"), pin_positions=pins.get("fine_pin_positions")
+    )
     t3 = time.perf_counter()
     refined = 0
     if refine and obstacles:
@@ -297,13 +345,19 @@ def synthesize_timed(run: Run, coarse: np.ndarray, obstacles: dict | None = None
             refined += st.iterations > 0
         fine = out
     t4 = time.perf_counter()
-    timing = {"extraction": (t1 - t0) / n, "synthesis": (t2 - t1) / n, "reconstruction": (t3 - t2) / n,
-              "refinement": (t4 - t3) / n, "refined_frames": refined}
+    timing = {
+        "extraction": (t1 - t0) / n,
+        "synthesis": (t2 - t1) / n,
+        "reconstruction": (t3 - t2) / n,
+        "refinement": (t4 - t3) / n,
+        "refined_frames": refined,
+    }
     return fine, timing
 
 
-def evaluate_run(run: Run, ds: cdata.ClothDataset, part: str = "test", refine: bool = True,
-                 progress: bool = True) -> dict:
+def evaluate_run(
+    run: Run, ds: cdata.ClothDataset, part: str = "test", refine: bool = True, progress: bool = True
+) -> dict:
     """Errors of the run's synthesis and of the upsampled coarse baseline on a split of a dataset."""
     ups = ceval.Upsampler(ds.coarse_faces, ds.coarse_rest.shape[0], ds.fine_faces)
     ours, coarse = [], []

@@ -147,6 +147,7 @@ def _seed_int(kind: str, index: int, seed: int) -> int:
 
 # ----------------------------------------------------------------------------------------------------- meshes
 
+
 def _grid(n: int, size: float, top: float):
     u = np.linspace(-size / 2, size / 2, n)
     y = np.linspace(top - size, top, n)
@@ -183,7 +184,7 @@ def loop_subdivide(verts, faces, levels: int = 3):
     return np.asarray(v), np.asarray(f)
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def _meshes(kind: str, levels: int = 3):
     if kind == "sheet":
         cv, cf = _grid(SHEET_N, SHEET_SIZE, SHEET_TOP)
@@ -205,7 +206,7 @@ def meshes(kind: str, levels: int = 3):
     return tuple(np.array(a) for a in _meshes(kind, levels))
 
 
-@functools.lru_cache(maxsize=None)
+@functools.cache
 def models(kind: str, levels: int = 3) -> tuple[sim.ClothModel, sim.ClothModel]:
     """The coarse and fine :class:`ClothModel` of a kind (built once per process)."""
     cv, cf, fv, ff = _meshes(kind, levels)
@@ -221,7 +222,7 @@ def _pins(kind: str, levels: int = 3):
         corners = np.flatnonzero(pc)[[0, -1]]
         loop = np.asarray(igl.boundary_loop(np.ascontiguousarray(ff, np.int64)))
         i, j = sorted(int(np.flatnonzero(loop == c)[0]) for c in corners)
-        arcs = [loop[i:j + 1], np.concatenate([loop[j:], loop[: i + 1]])]
+        arcs = [loop[i : j + 1], np.concatenate([loop[j:], loop[: i + 1]])]
         arc = max(arcs, key=lambda a: fv[a, 1].mean())
         pf = np.zeros(len(fv), bool)
         pf[arc] = True
@@ -232,6 +233,7 @@ def _pins(kind: str, levels: int = 3):
 
 
 # --------------------------------------------------------------------------------------------------- scenes
+
 
 def _sheet_track(rng, index: int, T: int, dt: float):
     g = PARAMS.gravity
@@ -256,11 +258,21 @@ def _sheet_track(rng, index: int, T: int, dt: float):
         if kind == "sphere":
             frames.append(obst.make(spheres=[(b, radius)], ground=0.0))
         else:
-            frames.append(obst.make(capsules=[(b - POLE_HALF_LENGTH * side, b + POLE_HALF_LENGTH * side, radius)],
-                                    ground=0.0))
-    meta = dict(obstacle=kind, radius=radius, pivot=pivot.tolist(), pendulum_length=length, amplitude_m=amp,
-                amplitude_rad=phi0, yaw_deg=math.degrees(yaw), period_s=2 * math.pi / omega,
-                max_speed_m_s=length * phi0 * omega, pole_length=2 * POLE_HALF_LENGTH if kind == "pole" else None)
+            frames.append(
+                obst.make(capsules=[(b - POLE_HALF_LENGTH * side, b + POLE_HALF_LENGTH * side, radius)], ground=0.0)
+            )
+    meta = dict(
+        obstacle=kind,
+        radius=radius,
+        pivot=pivot.tolist(),
+        pendulum_length=length,
+        amplitude_m=amp,
+        amplitude_rad=phi0,
+        yaw_deg=math.degrees(yaw),
+        period_s=2 * math.pi / omega,
+        max_speed_m_s=length * phi0 * omega,
+        pole_length=2 * POLE_HALF_LENGTH if kind == "pole" else None,
+    )
     return obst.stack(frames), np.zeros((T, 3)), meta
 
 
@@ -281,15 +293,25 @@ def _disk_track(rng, index: int, n_per: int, T: int, dt: float):
     s = speed * ramp * (1 + gust_amp * np.sin(2 * math.pi * t / gust_period + gust_phase))
     ang = az + drift * t / max(t[-1], dt)
     wind = np.stack([s * np.cos(ang), np.zeros(T), s * np.sin(ang)], 1)
-    meta = dict(obstacle="table", table_radius=TABLE_RADIUS, table_top=TABLE_TOP, table_rim_radius=TABLE_RIM_RADIUS,
-                wind_speed_m_s=speed,
-                wind_azimuth_deg=math.degrees(az), wind_drift_deg=math.degrees(drift), gust_amplitude=gust_amp,
-                gust_period_s=gust_period, turbulence_m_s=turb, ramp_s=1.0)
+    meta = dict(
+        obstacle="table",
+        table_radius=TABLE_RADIUS,
+        table_top=TABLE_TOP,
+        table_rim_radius=TABLE_RIM_RADIUS,
+        wind_speed_m_s=speed,
+        wind_azimuth_deg=math.degrees(az),
+        wind_drift_deg=math.degrees(drift),
+        gust_amplitude=gust_amp,
+        gust_period_s=gust_period,
+        turbulence_m_s=turb,
+        ramp_s=1.0,
+    )
     return obst.static_track(table, T), wind, turb, meta
 
 
-def scenario(kind: str, index: int, seed: int = 0, n_frames: int = N_FRAMES, n_sequences: int = 10,
-             levels: int = 3) -> Scenario:
+def scenario(
+    kind: str, index: int, seed: int = 0, n_frames: int = N_FRAMES, n_sequences: int = 10, levels: int = 3
+) -> Scenario:
     """Sequence ``index`` of a scenario kind; deterministic from (kind, index, seed). ``n_sequences`` spreads
     the disk's wind speeds over [1, 5] m/s across indices; ``levels`` = Loop levels of the fine mesh."""
     if kind not in KINDS:
@@ -309,25 +331,73 @@ def scenario(kind: str, index: int, seed: int = 0, n_frames: int = N_FRAMES, n_s
         track, wind, turb, meta = _disk_track(rng, index, max(n_sequences, 1), n_frames, dt)
         params = params.replace(turbulence=float(turb))
         x0 = cv + np.array([0.0, TABLE_TOP + PARAMS.thickness + 0.005, 0.0])
-    meta = dict(kind=kind, index=index, seed=seed, n_frames=n_frames, frame_dt=dt,
-                settle_frames=SETTLE_FRAMES[kind], coarse_vertices=len(cv), fine_vertices=len(fv),
-                coarse_steps=list(COARSE_STEPS[kind]), fine_steps=list(FINE_STEPS), params=params.as_dict(),
-                fine_face_samples=sim.face_samples_for(fv, ff, params.thickness, MIN_OBSTACLE_RADIUS[kind]),
-                pinned_coarse=int(pc.sum()), pinned_fine=int(pf.sum()), levels=levels, **meta)
-    return Scenario(kind, index, seed, n_frames, SETTLE_FRAMES[kind], track, wind.astype(np.float32), params,
-                    pc, pf, x0.astype(np.float32), meta, levels)
+    meta = dict(
+        kind=kind,
+        index=index,
+        seed=seed,
+        n_frames=n_frames,
+        frame_dt=dt,
+        settle_frames=SETTLE_FRAMES[kind],
+        coarse_vertices=len(cv),
+        fine_vertices=len(fv),
+        coarse_steps=list(COARSE_STEPS[kind]),
+        fine_steps=list(FINE_STEPS),
+        params=params.as_dict(),
+        fine_face_samples=sim.face_samples_for(fv, ff, params.thickness, MIN_OBSTACLE_RADIUS[kind]),
+        pinned_coarse=int(pc.sum()),
+        pinned_fine=int(pf.sum()),
+        levels=levels,
+        **meta,
+    )
+    return Scenario(
+        kind,
+        index,
+        seed,
+        n_frames,
+        SETTLE_FRAMES[kind],
+        track,
+        wind.astype(np.float32),
+        params,
+        pc,
+        pf,
+        x0.astype(np.float32),
+        meta,
+        levels,
+    )
 
 
 # ------------------------------------------------------------------------------------------------ simulation
 
+
 def _run_one(model, params, x0, sc: Scenario, pinned, progress: bool, desc: str):
     T0 = obst.obstacles_at(sc.track, 0)
-    settle = sim.run(model, params.replace(turbulence=0.0), x0, None, obst.static_track(T0, sc.settle_frames),
-                     pinned, None, sc.key, wind_track=np.zeros((sc.settle_frames, 3)), progress=progress,
-                     desc=f"{desc} settle")
+    settle = sim.run(
+        model,
+        params.replace(turbulence=0.0),
+        x0,
+        None,
+        obst.static_track(T0, sc.settle_frames),
+        pinned,
+        None,
+        sc.key,
+        wind_track=np.zeros((sc.settle_frames, 3)),
+        progress=progress,
+        desc=f"{desc} settle",
+    )
     pins = np.broadcast_to(x0, (sc.n_frames,) + x0.shape)  # pinned vertices stay where they were placed
-    res = sim.run(model, params, settle.x, settle.v, sc.track, pinned, pins, sc.key, wind_track=sc.wind,
-                  progress=progress, desc=desc)
+    res = sim.run(
+        model,
+        params,
+        settle.x,
+        settle.v,
+        sc.track,
+        pinned,
+        pins,
+        sc.key,
+        wind_track=sc.wind,
+        progress=progress,
+        desc=desc,
+    )
     return res, settle.compile_seconds + res.compile_seconds
 
 
@@ -350,8 +420,12 @@ def pins(sc: Scenario) -> dict:
     part of the scenario, like the obstacles: the synthesis anchors its reconstruction on them."""
     x0f = fine_start(sc)
     pc, pf = np.flatnonzero(sc.pinned_coarse), np.flatnonzero(sc.pinned_fine)
-    return {"coarse_pins": pc.astype(np.int32), "coarse_pin_positions": np.asarray(sc.x0_coarse)[pc].astype(np.float32),
-            "fine_pins": pf.astype(np.int32), "fine_pin_positions": x0f[pf].astype(np.float32)}
+    return {
+        "coarse_pins": pc.astype(np.int32),
+        "coarse_pin_positions": np.asarray(sc.x0_coarse)[pc].astype(np.float32),
+        "fine_pins": pf.astype(np.int32),
+        "fine_pin_positions": x0f[pf].astype(np.float32),
+    }
 
 
 def simulate_pair(sc: Scenario, *, progress: bool = True) -> dict:
@@ -373,18 +447,34 @@ def simulate_pair(sc: Scenario, *, progress: bool = True) -> dict:
     sc_mean, sc_max = sim.edge_strain(mc, rc.frames)
     sf_mean, sf_max = sim.edge_strain(mf, rf.frames)
     meta = dict(sc.meta)
-    meta.update(coarse_seconds_per_frame=rc.seconds_per_frame, fine_seconds_per_frame=rf.seconds_per_frame,
-                coarse_compile_seconds=cc, fine_compile_seconds=cfine, coarse_wall_seconds=tc, fine_wall_seconds=tf,
-                coarse_strain_mean=sc_mean, coarse_strain_max=sc_max, fine_strain_mean=sf_mean,
-                fine_strain_max=sf_max, coarse_max_penetration=max_penetration(rc.frames, sc.track, cf),
-                fine_max_penetration=max_penetration(rf.frames, sc.track, ff), penetration_samples=PENETRATION_SAMPLES)
+    meta.update(
+        coarse_seconds_per_frame=rc.seconds_per_frame,
+        fine_seconds_per_frame=rf.seconds_per_frame,
+        coarse_compile_seconds=cc,
+        fine_compile_seconds=cfine,
+        coarse_wall_seconds=tc,
+        fine_wall_seconds=tf,
+        coarse_strain_mean=sc_mean,
+        coarse_strain_max=sc_max,
+        fine_strain_mean=sf_mean,
+        fine_strain_max=sf_max,
+        coarse_max_penetration=max_penetration(rc.frames, sc.track, cf),
+        fine_max_penetration=max_penetration(rf.frames, sc.track, ff),
+        penetration_samples=PENETRATION_SAMPLES,
+    )
     return {
         **pins(sc),
-        "coarse": rc.frames, "fine": rf.frames,
-        "coarse_faces": cf.astype(np.int32), "fine_faces": ff.astype(np.int32),
-        "coarse_rest": cv.astype(np.float32), "fine_rest": fv.astype(np.float32),
-        "obstacles": obst.to_dict(sc.track), "wind": sc.wind, "meta": meta,
-        "coarse_seconds_per_frame": rc.seconds_per_frame, "fine_seconds_per_frame": rf.seconds_per_frame,
+        "coarse": rc.frames,
+        "fine": rf.frames,
+        "coarse_faces": cf.astype(np.int32),
+        "fine_faces": ff.astype(np.int32),
+        "coarse_rest": cv.astype(np.float32),
+        "fine_rest": fv.astype(np.float32),
+        "obstacles": obst.to_dict(sc.track),
+        "wind": sc.wind,
+        "meta": meta,
+        "coarse_seconds_per_frame": rc.seconds_per_frame,
+        "fine_seconds_per_frame": rf.seconds_per_frame,
     }
 
 
@@ -415,8 +505,11 @@ PENETRATION_SAMPLES = 12
 @jax.jit
 def _penetration(frames, track, faces, bary):
     def one(x, obs):
-        pts = x if faces is None else jax.numpy.concatenate(
-            [x, jax.numpy.einsum("sk,fkd->fsd", bary, x[faces]).reshape(-1, 3)])
+        pts = (
+            x
+            if faces is None
+            else jax.numpy.concatenate([x, jax.numpy.einsum("sk,fkd->fsd", bary, x[faces]).reshape(-1, 3)])
+        )
         d, _ = obst.signed_distance(obs, pts)
         return jax.numpy.max(jax.numpy.maximum(-d, 0.0))
 

@@ -143,7 +143,7 @@ class ClothParams:
     face_samples: int = dataclasses.field(default=0, metadata=dict(static=True))  # 0 or 1: vertex contacts only
     face_friction: bool = dataclasses.field(default=True, metadata=dict(static=True))  # Coulomb at face samples
 
-    def replace(self, **kw) -> "ClothParams":
+    def replace(self, **kw) -> ClothParams:
         return dataclasses.replace(self, **kw)
 
     def as_dict(self) -> dict:
@@ -187,6 +187,7 @@ class SimResult(NamedTuple):
 
 
 # ----------------------------------------------------------------------------------------------- model (host)
+
 
 def _edge_colouring(edges: np.ndarray, n_vertices: int) -> np.ndarray:
     """Greedy colouring so that edges of one colour share no vertex (host, once per mesh)."""
@@ -333,12 +334,21 @@ def build_model(rest_vertices, faces) -> ClothModel:
 
     f32 = np.float32
     return ClothModel(
-        rest=jnp.asarray(X, f32), faces=jnp.asarray(F, jnp.int32), area_v=jnp.asarray(area_v, f32),
-        edges=jnp.asarray(edges, jnp.int32), rest_len=jnp.asarray(rest_len, f32),
-        color_edges=jnp.asarray(ce, jnp.int32), color_len=jnp.asarray(cl, f32), color_comp=jnp.asarray(cc, f32),
-        color_mask=jnp.asarray(cm), hinges=jnp.asarray(hinges, jnp.int32), hinge_k=jnp.asarray(hinge_k, f32),
-        hinge_comp=jnp.asarray(hinge_comp, f32), hinge_rest=jnp.asarray(hinge_rest, f32),
-        hinge_count=jnp.asarray(hinge_count, f32), mean_edge=jnp.asarray(rest_len.mean(), f32),
+        rest=jnp.asarray(X, f32),
+        faces=jnp.asarray(F, jnp.int32),
+        area_v=jnp.asarray(area_v, f32),
+        edges=jnp.asarray(edges, jnp.int32),
+        rest_len=jnp.asarray(rest_len, f32),
+        color_edges=jnp.asarray(ce, jnp.int32),
+        color_len=jnp.asarray(cl, f32),
+        color_comp=jnp.asarray(cc, f32),
+        color_mask=jnp.asarray(cm),
+        hinges=jnp.asarray(hinges, jnp.int32),
+        hinge_k=jnp.asarray(hinge_k, f32),
+        hinge_comp=jnp.asarray(hinge_comp, f32),
+        hinge_rest=jnp.asarray(hinge_rest, f32),
+        hinge_count=jnp.asarray(hinge_count, f32),
+        mean_edge=jnp.asarray(rest_len.mean(), f32),
     )
 
 
@@ -346,6 +356,7 @@ ClothModel.build = staticmethod(build_model)
 
 
 # ------------------------------------------------------------------------------------------------ air / wind
+
 
 def turbulence_modes(key, dtype=jnp.float32) -> dict:
     """Unit-scale random Fourier modes of the turbulence (q in 1/length units, omega in 1/time units)."""
@@ -359,8 +370,9 @@ def turbulence_modes(key, dtype=jnp.float32) -> dict:
     )
 
 
-def wind_velocity(params: ClothParams, modes: dict, mean: Float[Array, " 3"], x: Float[Array, "p 3"], t
-                  ) -> Float[Array, "p 3"]:
+def wind_velocity(
+    params: ClothParams, modes: dict, mean: Float[Array, " 3"], x: Float[Array, "p 3"], t
+) -> Float[Array, "p 3"]:
     """Air velocity at points x and time t: mean + turbulence * sum_k a_k sin(q_k.x / l - omega_k t / tau + phi_k)."""
     arg = x @ (modes["q"].T / params.turbulence_length) - modes["omega"] * (t / params.turbulence_time) + modes["phase"]
     return mean + params.turbulence * (jnp.sin(arg) @ modes["amp"])
@@ -379,13 +391,15 @@ def air_force(model: ClothModel, params: ClothParams, modes: dict, mean, x, v, t
     cn = jnp.sum(u * n, -1)
     um = jnp.sqrt(jnp.sum(u * u, -1) + 1e-20)
     coef = 0.5 * params.air_density * area
-    force = coef[:, None] * (params.drag * jnp.abs(cn)[:, None] * u
-                             + params.lift * cn[:, None] * (um[:, None] * n - (cn / um)[:, None] * u))
+    force = coef[:, None] * (
+        params.drag * jnp.abs(cn)[:, None] * u + params.lift * cn[:, None] * (um[:, None] * n - (cn / um)[:, None] * u)
+    )
     per = jnp.repeat(force / 3.0, 3, axis=0)
     return jax.ops.segment_sum(per, f.reshape(-1), num_segments=x.shape[0])
 
 
 # ------------------------------------------------------------------------------------------------ projections
+
 
 def _stretch_sweep(model: ClothModel, params: ClothParams, w, h2, p, lam):
     """One Gauss-Seidel sweep over the edge colours (XPBD distance constraints). lam: (k, m) multipliers."""
@@ -550,8 +564,9 @@ def _push_out_faces(model: ClothModel, params: ClothParams, w, obs: Obstacles, p
     return p + dp, jnp.sqrt(jnp.sum(dp * dp, -1)), depth
 
 
-def _collide_faces(model: ClothModel, params: ClothParams, w, obs_now: Obstacles, obs_prev: Obstacles, x_old, p,
-                   prior_depth):
+def _collide_faces(
+    model: ClothModel, params: ClothParams, w, obs_now: Obstacles, obs_prev: Obstacles, x_old, p, prior_depth
+):
     """The last push of the triangles' interiors, with Coulomb friction at the sample points. A sample in contact
     loses its tangential motion relative to the surface since ``x_old`` when that is at most mu times its normal
     correction in this substep (``prior_depth``, from the solver iterations, plus this push); otherwise that
@@ -579,6 +594,7 @@ def _collide(params: ClothParams, w, obs_now: Obstacles, obs_prev: Obstacles, x_
 
 
 # ------------------------------------------------------------------------------------------------- stepping
+
 
 def _tether_project(anchor, length, active, p):
     """Long-range attachments: a free vertex stays within its rest distance of its nearest pinned vertex."""
@@ -627,8 +643,13 @@ def _frame(model: ClothModel, params: ClothParams, modes: dict, inv_mass, pinned
                 dpush, fpush = dpush + dface, fpush + fdepth
             return p, ls, lb, push + dpush, fpush
 
-        carry0 = (p, jnp.zeros((n_col, m), x.dtype), jnp.zeros(model.hinge_k.shape[:1] + (3,), x.dtype),
-                  jnp.zeros(x.shape[:1], x.dtype), jnp.zeros(fshape, x.dtype))
+        carry0 = (
+            p,
+            jnp.zeros((n_col, m), x.dtype),
+            jnp.zeros(model.hinge_k.shape[:1] + (3,), x.dtype),
+            jnp.zeros(x.shape[:1], x.dtype),
+            jnp.zeros(fshape, x.dtype),
+        )
         p, _, _, push, fpush = jax.lax.fori_loop(0, params.iterations, iterate, carry0)
         if params.self_collision:
             p = _self_project(inv_mass, radius, p, nbr, nmask)
@@ -655,8 +676,7 @@ def trace_count() -> int:
 def _chunk(model, params, modes, inv_mass, pinned, tether, x, v, xs):
     global _TRACES
     _TRACES += 1
-    (x, v), frames = jax.lax.scan(lambda s, e: _frame(model, params, modes, inv_mass, pinned, tether, s, e),
-                                  (x, v), xs)
+    (x, v), frames = jax.lax.scan(lambda s, e: _frame(model, params, modes, inv_mass, pinned, tether, s, e), (x, v), xs)
     return x, v, frames
 
 
@@ -666,7 +686,7 @@ _COMPILED: dict = {}
 
 def _signature(args):
     leaves, tree = jax.tree_util.tree_flatten(args)
-    return tree, tuple((np.shape(a), str(getattr(a, 'dtype', None) or np.asarray(a).dtype)) for a in leaves)
+    return tree, tuple((np.shape(a), str(getattr(a, "dtype", None) or np.asarray(a).dtype)) for a in leaves)
 
 
 def clear_compiled() -> None:
@@ -709,8 +729,22 @@ def inverse_mass(model: ClothModel, params: ClothParams, pinned) -> Float[Array,
     return jnp.where(jnp.asarray(pinned), 0.0, 1.0 / (params.density * model.area_v)).astype(jnp.float32)
 
 
-def step(model: ClothModel, params: ClothParams, x, v, obstacles_prev: Obstacles, obstacles_now: Obstacles,
-         key=None, *, pinned=None, pin_prev=None, pin_now=None, wind_prev=None, wind_now=None, time_s: float = 0.0):
+def step(
+    model: ClothModel,
+    params: ClothParams,
+    x,
+    v,
+    obstacles_prev: Obstacles,
+    obstacles_now: Obstacles,
+    key=None,
+    *,
+    pinned=None,
+    pin_prev=None,
+    pin_now=None,
+    wind_prev=None,
+    wind_now=None,
+    time_s: float = 0.0,
+):
     """One frame (``params.substeps`` substeps) from the obstacles ``obstacles_prev`` to ``obstacles_now``.
 
     Returns the new (x, v). ``key`` draws the turbulence modes (the same key gives the same air field).
@@ -727,14 +761,36 @@ def step(model: ClothModel, params: ClothParams, x, v, obstacles_prev: Obstacles
     xs = (obstacles_prev, obstacles_now, pin_prev, pin_now, wind_prev, wind_now, time_s)
     xs = jax.tree_util.tree_map(lambda a: jnp.asarray(a, jnp.float32)[None], xs)
     modes = turbulence_modes(jax.random.PRNGKey(0) if key is None else key)
-    x1, v1, _ = _JIT_CHUNK(model, _params_leaves(params), modes, inverse_mass(model, params, pinned),
-                           jnp.asarray(pinned), tethers(model, pinned), x, jnp.asarray(v, jnp.float32), xs)
+    x1, v1, _ = _JIT_CHUNK(
+        model,
+        _params_leaves(params),
+        modes,
+        inverse_mass(model, params, pinned),
+        jnp.asarray(pinned),
+        tethers(model, pinned),
+        x,
+        jnp.asarray(v, jnp.float32),
+        xs,
+    )
     return x1, v1
 
 
-def run(model: ClothModel, params: ClothParams, x0, v0, obstacle_track: Obstacles, pinned=None, pin_track=None,
-        key=None, *, wind_track=None, start_time: float = 0.0, progress: bool = True, desc: str = "simulate",
-        chunk: int = CHUNK) -> SimResult:
+def run(
+    model: ClothModel,
+    params: ClothParams,
+    x0,
+    v0,
+    obstacle_track: Obstacles,
+    pinned=None,
+    pin_track=None,
+    key=None,
+    *,
+    wind_track=None,
+    start_time: float = 0.0,
+    progress: bool = True,
+    desc: str = "simulate",
+    chunk: int = CHUNK,
+) -> SimResult:
     """Simulate T = len(track) frames; frame t is the state after stepping the obstacles from track[t - 1] to
     track[t] (track[-1] := track[0]), so every stored frame went through a collision projection.
 
@@ -759,8 +815,11 @@ def run(model: ClothModel, params: ClothParams, x0, v0, obstacle_track: Obstacle
     pins = np.broadcast_to(x0, (T, V, 3)) if pin_track is None else np.asarray(pin_track, np.float32)
     if pins.shape != (T, V, 3):
         raise SimulationError(f"pin_track must have shape {(T, V, 3)}, got {pins.shape}.")
-    wind = (np.broadcast_to(np.asarray(params.wind, np.float32), (T, 3)) if wind_track is None
-            else np.asarray(wind_track, np.float32))
+    wind = (
+        np.broadcast_to(np.asarray(params.wind, np.float32), (T, 3))
+        if wind_track is None
+        else np.asarray(wind_track, np.float32)
+    )
     if wind.shape != (T, 3):
         raise SimulationError(f"wind_track must have shape {(T, 3)}, got {wind.shape}.")
     if not (np.all(np.isfinite(x0)) and np.all(np.isfinite(v0))):
@@ -772,8 +831,15 @@ def run(model: ClothModel, params: ClothParams, x0, v0, obstacle_track: Obstacle
     prev = np.maximum(idx - 1, 0)
     prev[T:] = T - 1
     times = (start_time + idx * params.frame_dt).astype(np.float32)
-    xs_all = (jax.tree_util.tree_map(lambda a: a[prev], track), jax.tree_util.tree_map(lambda a: a[idx], track),
-              pins[prev], pins[idx], wind[prev], wind[idx], times)
+    xs_all = (
+        jax.tree_util.tree_map(lambda a: a[prev], track),
+        jax.tree_util.tree_map(lambda a: a[idx], track),
+        pins[prev],
+        pins[idx],
+        wind[prev],
+        wind[idx],
+        times,
+    )
 
     key = jax.random.PRNGKey(0) if key is None else key
     modes = turbulence_modes(key)
@@ -789,7 +855,7 @@ def run(model: ClothModel, params: ClothParams, x0, v0, obstacle_track: Obstacle
 
     with tqdm(total=T, desc=desc, unit="frame", disable=not progress, leave=False) as bar:
         for c0 in range(0, T + n_pad, chunk):
-            xs = jax.tree_util.tree_map(lambda a: jnp.asarray(a[c0:c0 + chunk]), xs_all)
+            xs = jax.tree_util.tree_map(lambda a: jnp.asarray(a[c0 : c0 + chunk]), xs_all)
             args = (model, p, modes, w, pin_j, teth, x, v, xs)
             exe, cs = _executable(args)
             compile_s += cs
@@ -804,15 +870,32 @@ def run(model: ClothModel, params: ClothParams, x0, v0, obstacle_track: Obstacle
     frames = np.concatenate(out)[:T]
     if not np.all(np.isfinite(frames)):
         raise SimulationError("The simulation diverged (non-finite positions); lower the time step or stiffness.")
-    return SimResult(frames.astype(np.float32), frames[-1].astype(np.float32), v_last.astype(np.float32),
-                     compile_s, run_s / (T + n_pad))
+    return SimResult(
+        frames.astype(np.float32),
+        frames[-1].astype(np.float32),
+        v_last.astype(np.float32),
+        compile_s,
+        run_s / (T + n_pad),
+    )
 
 
-def simulate(model: ClothModel, params: ClothParams, x0, v0, obstacle_track: Obstacles, pinned=None,
-             pin_track=None, key=None, *, wind_track=None, progress: bool = True) -> np.ndarray:
+def simulate(
+    model: ClothModel,
+    params: ClothParams,
+    x0,
+    v0,
+    obstacle_track: Obstacles,
+    pinned=None,
+    pin_track=None,
+    key=None,
+    *,
+    wind_track=None,
+    progress: bool = True,
+) -> np.ndarray:
     """Frames (T, V, 3) float32 of a simulation (see :func:`run`); one compile per (mesh, static params)."""
-    return run(model, params, x0, v0, obstacle_track, pinned, pin_track, key, wind_track=wind_track,
-               progress=progress).frames
+    return run(
+        model, params, x0, v0, obstacle_track, pinned, pin_track, key, wind_track=wind_track, progress=progress
+    ).frames
 
 
 def edge_strain(model: ClothModel, frames) -> tuple[float, float]:

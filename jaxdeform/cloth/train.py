@@ -69,8 +69,9 @@ import functools
 import os
 import time
 from collections import Counter
+from collections.abc import Sequence
 from pathlib import Path
-from typing import NamedTuple, Sequence
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -84,8 +85,8 @@ from jaxdeform.cloth.model import DetailModel, ModelConfig, new_model
 from jaxdeform.errors import JaxDeformError
 from jaxdeform.nn import xla
 from jaxdeform.nn.archive import load_state, read_archive, save_module
-from jaxdeform.nn.host import host_scalars, recent_mean
 from jaxdeform.nn.graph_conv import Rings
+from jaxdeform.nn.host import host_scalars, recent_mean
 
 FORMAT = "jaxdeform-cloth-model"
 FORMAT_VERSION = 1
@@ -207,8 +208,9 @@ def gather_windows(
     return coarse[idx], fine[idx - 1], fine[idx]
 
 
-def self_fed_inputs(predict, coarse_win: Float[Array, "b w vc c"], fine_prev: Float[Array, "b w vf c"]
-                    ) -> Float[Array, "b w vf c"]:
+def self_fed_inputs(
+    predict, coarse_win: Float[Array, "b w vc c"], fine_prev: Float[Array, "b w vf c"]
+) -> Float[Array, "b w vf c"]:
     """The fine inputs of a window as synthesis would feed them (module docstring, "Self-feeding").
 
     ``predict(coarse_win, fine_prev_win)`` is the model; W - 1 passes without gradient, each moving the
@@ -241,13 +243,19 @@ class PositionTarget:
     edge: float = dataclasses.field(metadata=dict(static=True), default=1.0)  # mean fine rest edge length
 
     @staticmethod
-    def build(positions: Sequence, base: Sequence | None, lo, hi, reconstructor, anchor_targets,
-              edge: float) -> "PositionTarget":
+    def build(
+        positions: Sequence, base: Sequence | None, lo, hi, reconstructor, anchor_targets, edge: float
+    ) -> PositionTarget:
         """From per-sequence arrays (the same order as the training sequences)."""
-        return PositionTarget(stack_like_windows(positions), None if base is None else stack_like_windows(base),
-                              jnp.asarray(lo, jnp.float32), jnp.asarray(hi, jnp.float32), reconstructor,
-                              None if anchor_targets is None else jnp.asarray(anchor_targets, jnp.float32),
-                              float(edge))
+        return PositionTarget(
+            stack_like_windows(positions),
+            None if base is None else stack_like_windows(base),
+            jnp.asarray(lo, jnp.float32),
+            jnp.asarray(hi, jnp.float32),
+            reconstructor,
+            None if anchor_targets is None else jnp.asarray(anchor_targets, jnp.float32),
+            float(edge),
+        )
 
 
 def stack_like_windows(seqs: Sequence) -> Float[Array, "n v c"]:
@@ -282,9 +290,19 @@ def _tx(lr: float, decay_rate: float, decay_steps: int) -> optax.GradientTransfo
 
 
 @functools.cache
-def _train_step(graphdef, window: int, batch: int, lr: float, decay_rate: float, decay_steps: int,
-                position_weight: float = 0.0, self_feed: float = 0.0, steps: int = 1,
-                mesh: jax.sharding.Mesh | None = None, axis: str = parallel.BATCH):
+def _train_step(
+    graphdef,
+    window: int,
+    batch: int,
+    lr: float,
+    decay_rate: float,
+    decay_steps: int,
+    position_weight: float = 0.0,
+    self_feed: float = 0.0,
+    steps: int = 1,
+    mesh: jax.sharding.Mesh | None = None,
+    axis: str = parallel.BATCH,
+):
     """The jitted training step for one model structure and optimiser (cached: no retrace across runs).
 
     ``mesh``: the windows of a step split along ``mesh``'s ``axis``, every argument and result replicated over
@@ -304,8 +322,11 @@ def _train_step(graphdef, window: int, batch: int, lr: float, decay_rate: float,
             model.train()
             inputs = fp
             if self_feed > 0 and model.config.kind != "none":  # the per-frame model reads no fine input
-                own = jax.random.bernoulli(jax.random.fold_in(jax.random.fold_in(key, t), 1),
-                                           self_feed_probability(self_feed, t, steps), (batch,))
+                own = jax.random.bernoulli(
+                    jax.random.fold_in(jax.random.fold_in(key, t), 1),
+                    self_feed_probability(self_feed, t, steps),
+                    (batch,),
+                )
                 inputs = jnp.where(own[:, None, None, None], self_fed_inputs(model, cw, fp), fp)
             pred = model(cw, inputs)
             loss = jnp.mean(jnp.square(pred - ft))
@@ -324,8 +345,9 @@ def _train_step(graphdef, window: int, batch: int, lr: float, decay_rate: float,
     return jax.jit(step, donate_argnums=(0, 2), compiler_options=xla.compiler_options(), **shardings)
 
 
-def _checked_windows(model_cfg: ModelConfig, coarse_topo, fine_topo, coarse_seqs: Sequence,
-                     fine_seqs: Sequence) -> Windows:
+def _checked_windows(
+    model_cfg: ModelConfig, coarse_topo, fine_topo, coarse_seqs: Sequence, fine_seqs: Sequence
+) -> Windows:
     """The training :func:`windows` of the paired sequences, checked against the two meshes.
 
     Guarantees ``win.coarse`` is (rows, Vc, C) and ``win.fine`` (rows, Vf, C) with Vc / Vf the vertex counts of
@@ -335,11 +357,15 @@ def _checked_windows(model_cfg: ModelConfig, coarse_topo, fine_topo, coarse_seqs
     win = windows(coarse_seqs, fine_seqs, model_cfg.window)
     nc, nf = int(np.shape(coarse_topo.degree)[0]), int(np.shape(fine_topo.degree)[0])
     if win.coarse.shape[1:] != (nc, model_cfg.in_channels):
-        raise ValueError(f"coarse features must be (T, {nc}, {model_cfg.in_channels}), got (T, {win.coarse.shape[1]}, "
-                         f"{win.coarse.shape[2]}).")
+        raise ValueError(
+            f"coarse features must be (T, {nc}, {model_cfg.in_channels}), got (T, {win.coarse.shape[1]}, "
+            f"{win.coarse.shape[2]})."
+        )
     if win.fine.shape[1:] != (nf, model_cfg.in_channels):
-        raise ValueError(f"fine features must be (T, {nf}, {model_cfg.in_channels}), got (T, {win.fine.shape[1]}, "
-                         f"{win.fine.shape[2]}).")
+        raise ValueError(
+            f"fine features must be (T, {nf}, {model_cfg.in_channels}), got (T, {win.fine.shape[1]}, "
+            f"{win.fine.shape[2]})."
+        )
     return win
 
 
@@ -358,8 +384,16 @@ def _position_target(tc: TrainConfig, positions: PositionTarget | None, win: Win
     return None
 
 
-def _run_steps(step_fn, state: tuple, win: Windows, key, positions: PositionTarget | None, tc: TrainConfig,
-               desc: str, progress: bool) -> tuple[tuple, np.ndarray, float, float]:
+def _run_steps(
+    step_fn,
+    state: tuple,
+    win: Windows,
+    key,
+    positions: PositionTarget | None,
+    tc: TrainConfig,
+    desc: str,
+    progress: bool,
+) -> tuple[tuple, np.ndarray, float, float]:
     """Run ``tc.steps`` calls of the jitted ``step_fn`` from ``state`` = (params, rest, opt_state).
 
     Step t passes ``jnp.int32(t)`` and the same ``key``, windows and ``positions``. A tqdm bar titled ``desc``
@@ -375,8 +409,9 @@ def _run_steps(step_fn, state: tuple, win: Windows, key, positions: PositionTarg
     compile_s = 0.0
     with tqdm(total=tc.steps, desc=desc, unit="step", disable=not progress) as bar:
         for t in range(tc.steps):
-            params, rest, opt_state, loss = step_fn(params, rest, opt_state, win.coarse, win.fine, win.starts, key,
-                                                    jnp.int32(t), positions)
+            params, rest, opt_state, loss = step_fn(
+                params, rest, opt_state, win.coarse, win.fine, win.starts, key, jnp.int32(t), positions
+            )
             losses.append(loss)
             if t == 0:
                 loss.block_until_ready()
@@ -426,18 +461,28 @@ def train(
     tc = train_cfg
     opt_state = _tx(tc.learning_rate, tc.decay_rate, tc.decay_steps).init(params)
     positions = _position_target(tc, positions, win)
-    step_fn = _train_step(graphdef, win.window, int(tc.batch_size), float(tc.learning_rate), float(tc.decay_rate),
-                          int(tc.decay_steps), float(tc.position_weight), float(tc.self_feed),
-                          int(tc.steps) if tc.self_feed > 0 else 1,
-                          **({} if mesh is None else {"mesh": mesh, "axis": axis}))
+    step_fn = _train_step(
+        graphdef,
+        win.window,
+        int(tc.batch_size),
+        float(tc.learning_rate),
+        float(tc.decay_rate),
+        int(tc.decay_steps),
+        float(tc.position_weight),
+        float(tc.self_feed),
+        int(tc.steps) if tc.self_feed > 0 else 1,
+        **({} if mesh is None else {"mesh": mesh, "axis": axis}),
+    )
     key = jax.random.PRNGKey(tc.seed)
     if mesh is not None:  # state and windows placed on the mesh once (the step would copy them on every call)
         params, rest, opt_state, arrays, key = parallel.replicate(
-            (params, rest, opt_state, (win.coarse, win.fine, win.starts), key), mesh)
+            (params, rest, opt_state, (win.coarse, win.fine, win.starts), key), mesh
+        )
         win = Windows(*arrays, window=win.window)
 
     (params, rest, opt_state), loss_arr, seconds, compile_s = _run_steps(
-        step_fn, (params, rest, opt_state), win, key, positions, tc, f"train {model_cfg.kind}", progress)
+        step_fn, (params, rest, opt_state), win, key, positions, tc, f"train {model_cfg.kind}", progress
+    )
     nnx.update(model, params, rest)
     model.eval()
     step_s = (seconds - compile_s) / max(tc.steps - 1, 1)
@@ -518,8 +563,9 @@ def synthesize(model: DetailModel, coarse_seq: Float[Array, "t vc c"], *, chunk:
     x = jnp.asarray(coarse_seq, dtype=jnp.float32)
     cfg = model.config
     if x.ndim != 3 or x.shape[1:] != (model.n_coarse, cfg.in_channels) or x.shape[0] < 1:
-        raise ValueError(f"the coarse sequence must be (T >= 1, {model.n_coarse}, {cfg.in_channels}), got shape "
-                         f"{tuple(x.shape)}.")
+        raise ValueError(
+            f"the coarse sequence must be (T >= 1, {model.n_coarse}, {cfg.in_channels}), got shape {tuple(x.shape)}."
+        )
     graphdef, state = nnx.split(model)
     return _synthesize_fn(graphdef, int(chunk))(state, x)
 
@@ -533,10 +579,19 @@ def _rings_of(model: DetailModel) -> tuple[Rings, Rings]:
 
 def save_model(path: str | os.PathLike, model: DetailModel, meta: dict | None = None) -> Path:
     """Write the model (parameters, both meshes' one-rings, configuration) and JSON ``meta`` atomically."""
-    record = {"format": FORMAT, "version": FORMAT_VERSION, "config": model.config.to_dict(),
-              "n_coarse": model.n_coarse, "n_fine": model.n_fine, "meta": dict(meta or {})}
-    rings = {f"rings:{name}:{field}": np.asarray(arr)
-             for name, r in zip(("coarse", "fine"), _rings_of(model)) for field, arr in r._asdict().items()}
+    record = {
+        "format": FORMAT,
+        "version": FORMAT_VERSION,
+        "config": model.config.to_dict(),
+        "n_coarse": model.n_coarse,
+        "n_fine": model.n_fine,
+        "meta": dict(meta or {}),
+    }
+    rings = {
+        f"rings:{name}:{field}": np.asarray(arr)
+        for name, r in zip(("coarse", "fine"), _rings_of(model))
+        for field, arr in r._asdict().items()
+    }
     if model.config.skip:
         rings["upsample"] = np.asarray(model.upsample[...])
     return save_module(path, model, record, nnx.Param, extra=rings)

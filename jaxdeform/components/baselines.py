@@ -136,8 +136,9 @@ def _check_data(data, what: str = "data", domain: str | None = None) -> tuple[np
     elif domain not in DOMAINS:
         raise JaxDeformError(f"domain must be one of {', '.join(DOMAINS)}, got {domain!r}.")
     elif x.shape[2] != DOMAINS[domain]:
-        raise MeshFormatError(f"{what} must have {DOMAINS[domain]} channels per vertex for domain {domain!r}, "
-                              f"got {x.shape[2]}.")
+        raise MeshFormatError(
+            f"{what} must have {DOMAINS[domain]} channels per vertex for domain {domain!r}, got {x.shape[2]}."
+        )
     if x.shape[0] < 2:
         raise JaxDeformError(f"{what} holds {x.shape[0]} shape(s); fitting a linear model needs at least 2.")
     if not np.all(np.isfinite(x)):
@@ -388,9 +389,19 @@ class SplocsResult(NamedTuple):
     objectives: list  # objective after initialisation, then after every outer iteration
 
 
-def splocs_solve(x: Float[np.ndarray, "f v 3"], rows: DistanceRows, k: int, *, sparsity: float, d_min: float,
-                 d_max: float, rho: float, outer: int, inner: int,
-                 progress: Callable[[int, float], None] | None = None) -> SplocsResult:
+def splocs_solve(
+    x: Float[np.ndarray, "f v 3"],
+    rows: DistanceRows,
+    k: int,
+    *,
+    sparsity: float,
+    d_min: float,
+    d_max: float,
+    rho: float,
+    outer: int,
+    inner: int,
+    progress: Callable[[int, float], None] | None = None,
+) -> SplocsResult:
     """Sparse localized components of centred, scaled data X (F, V, 3) (NumPy, float64)."""
     w, c, centres = splocs_init(x, k, rows, d_min, d_max)
     lam = sparsity * support_weights(rows(centres), d_min, d_max)
@@ -418,22 +429,38 @@ def _check_splocs_args(n_components, sparsity, d_min, d_max, rho, outer, inner) 
         raise JaxDeformError(f"outer must be >= 0 and inner >= 1, got outer={outer}, inner={inner}.")
 
 
-def fit_splocs(vertices: Float[np.ndarray, "n v 3"], dist: DistanceLike, n_components: int = 50,
-               sparsity: float = 2.0, d_min: float = 0.1, d_max: float = 0.7, rho: float = 10.0,
-               outer: int = 10, inner: int = 10,
-               progress: Callable[[int, float], None] | None = None) -> LinearModel:
+def fit_splocs(
+    vertices: Float[np.ndarray, "n v 3"],
+    dist: DistanceLike,
+    n_components: int = 50,
+    sparsity: float = 2.0,
+    d_min: float = 0.1,
+    d_max: float = 0.7,
+    rho: float = 10.0,
+    outer: int = 10,
+    inner: int = 10,
+    progress: Callable[[int, float], None] | None = None,
+) -> LinearModel:
     """SPLOCS on coordinates (N, V, 3) with the public code's defaults; see the module docstring.
 
     ``dist``: normalized geodesic distances, a (V, V) array or a callable ``rows(indices) -> (len, V)``.
     ``progress(iteration, objective)`` is called after every outer iteration.
     """
-    return fit_splocs_detailed(vertices, dist, n_components, sparsity, d_min, d_max, rho, outer, inner,
-                               progress)[0]
+    return fit_splocs_detailed(vertices, dist, n_components, sparsity, d_min, d_max, rho, outer, inner, progress)[0]
 
 
-def fit_splocs_detailed(vertices, dist: DistanceLike, n_components: int = 50, sparsity: float = 2.0,
-                        d_min: float = 0.1, d_max: float = 0.7, rho: float = 10.0, outer: int = 10,
-                        inner: int = 10, progress=None) -> tuple[LinearModel, SplocsResult]:
+def fit_splocs_detailed(
+    vertices,
+    dist: DistanceLike,
+    n_components: int = 50,
+    sparsity: float = 2.0,
+    d_min: float = 0.1,
+    d_max: float = 0.7,
+    rho: float = 10.0,
+    outer: int = 10,
+    inner: int = 10,
+    progress=None,
+) -> tuple[LinearModel, SplocsResult]:
     """:func:`fit_splocs` that also returns the solver's result (training weights, centres, objectives)."""
     _check_splocs_args(n_components, sparsity, d_min, d_max, rho, outer, inner)
     x, _ = _check_data(vertices, "vertices", domain="xyz")
@@ -445,9 +472,18 @@ def fit_splocs_detailed(vertices, dist: DistanceLike, n_components: int = 50, sp
     scale = float(np.std(xc))
     if not scale > 1e-12 * float(np.abs(x).max()):
         raise JaxDeformError("every training shape is identical; there is no deformation to decompose.")
-    result = splocs_solve(xc / scale, rows, int(n_components), sparsity=float(sparsity), d_min=float(d_min),
-                          d_max=float(d_max), rho=float(rho), outer=int(outer), inner=int(inner),
-                          progress=progress)
+    result = splocs_solve(
+        xc / scale,
+        rows,
+        int(n_components),
+        sparsity=float(sparsity),
+        d_min=float(d_min),
+        d_max=float(d_max),
+        rho=float(rho),
+        outer=int(outer),
+        inner=int(inner),
+        progress=progress,
+    )
     model = LinearModel(jnp.asarray(mean, dtype), jnp.asarray(result.components, dtype), scale, "xyz", "splocs")
     return model, result
 
@@ -471,8 +507,9 @@ def geodesic_regions(dist: Float[np.ndarray, "v v"], n_regions: int, start: int 
     return dist[np.asarray(centres)].argmin(axis=0)
 
 
-def regional_projection(train: Float[np.ndarray, "n v c"], test: Float[np.ndarray, "m v c"],
-                        labels: Int[np.ndarray, " v"]) -> Float[np.ndarray, "m v c"]:
+def regional_projection(
+    train: Float[np.ndarray, "n v c"], test: Float[np.ndarray, "m v c"], labels: Int[np.ndarray, " v"]
+) -> Float[np.ndarray, "m v c"]:
     """Each test shape, region by region, replaced by its least-squares fit in the span of the training
     shapes' deviations from their mean, restricted to that region.
 

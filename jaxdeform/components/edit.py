@@ -78,7 +78,8 @@ from __future__ import annotations
 
 import dataclasses
 import functools
-from typing import Any, Callable, Literal, NamedTuple
+from collections.abc import Callable
+from typing import Any, Literal, NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -200,12 +201,24 @@ class _Model:
     controls: tuple[int, ...] | None = None
 
     def _key(self):
-        return (id(self.decode), id(self.acap), self.scaler, self.anchor, self.refine, self.latent_dtype,
-                self.objective, self.controls)
+        return (
+            id(self.decode),
+            id(self.acap),
+            self.scaler,
+            self.anchor,
+            self.refine,
+            self.latent_dtype,
+            self.objective,
+            self.controls,
+        )
 
     def __eq__(self, other):
-        return (isinstance(other, _Model) and self.decode is other.decode and self.acap is other.acap
-                and self._key()[2:] == other._key()[2:])
+        return (
+            isinstance(other, _Model)
+            and self.decode is other.decode
+            and self.acap is other.acap
+            and self._key()[2:] == other._key()[2:]
+        )
 
     def __hash__(self):
         return hash(self._key())
@@ -296,9 +309,12 @@ def _scaled(model, free_translation, tolerance, w0, w_ref, controls, targets, re
         return w0 + free * z / c
 
     # the regularization pulls toward w_ref (latent0) in every stage; a stage starts at w0
-    return _Scaled(latent=latent, rows=lambda z: control_rows(latent(z)),
-                   reg_rows=lambda z: sqrt_reg * (latent(z) - w_ref),
-                   atol=tolerance * jnp.where(spread > 0, spread, 1.0))
+    return _Scaled(
+        latent=latent,
+        rows=lambda z: control_rows(latent(z)),
+        reg_rows=lambda z: sqrt_reg * (latent(z) - w_ref),
+        atol=tolerance * jnp.where(spread > 0, spread, 1.0),
+    )
 
 
 def _lm(problem: _Scaled, steps, tolerance, z0):
@@ -306,8 +322,14 @@ def _lm(problem: _Scaled, steps, tolerance, z0):
     # ACAP reconstruction's implicit-adjoint solve rejects as non-finite input (the forward-mode Jacobian
     # comes from _forward_jacobian instead).
     solver = optx.LevenbergMarquardt(rtol=tolerance, atol=problem.atol)
-    sol = optx.least_squares(lambda z, _: (problem.rows(z), problem.reg_rows(z)), solver, z0, max_steps=steps,
-                             throw=False, options={"jac": "bwd"})
+    sol = optx.least_squares(
+        lambda z, _: (problem.rows(z), problem.reg_rows(z)),
+        solver,
+        z0,
+        max_steps=steps,
+        throw=False,
+        options={"jac": "bwd"},
+    )
     return sol.value, sol.stats["num_steps"], sol.result == optx.RESULTS.successful
 
 
@@ -345,8 +367,9 @@ def _adam(model, free_translation, steps, w0, w_ref, controls, targets, regulari
     return w0 + free * (w - w0), jnp.asarray(steps)
 
 
-def _deformation_solve(model: _Model, method, steps, tolerance, w0, w_ref, targets, regularization, learning_rate,
-                       free):
+def _deformation_solve(
+    model: _Model, method, steps, tolerance, w0, w_ref, targets, regularization, learning_rate, free
+):
     """Objective "deformation": minimise E(w) / E(latent0) + regularization |w - latent0|^2 over this stage's free
     latents (raw latent units), E the deformation energy of the mesh whose control vertices are held at the
     targets. Returns (w, iterations, converged, objective at w, mesh of w)."""
@@ -369,8 +392,9 @@ def _deformation_solve(model: _Model, method, steps, tolerance, w0, w_ref, targe
         taken, converged = jnp.asarray(steps), jnp.asarray(False)
     else:
         # the objective starts near 1 (it is relative to the rest code's energy): tolerances are relative ones
-        sol = optx.minimise(objective, optx.BFGS(rtol=tolerance, atol=1e-3 * tolerance), z0, max_steps=steps,
-                            throw=False)
+        sol = optx.minimise(
+            objective, optx.BFGS(rtol=tolerance, atol=1e-3 * tolerance), z0, max_steps=steps, throw=False
+        )
         z, taken, converged = sol.value, sol.stats["num_steps"], sol.result == optx.RESULTS.successful
     w = latent(z)
     value, mesh = objective_and_mesh(w)
@@ -378,22 +402,44 @@ def _deformation_solve(model: _Model, method, steps, tolerance, w0, w_ref, targe
 
 
 @functools.partial(jax.jit, static_argnames=("model", "method", "steps", "tolerance", "free_translation"))
-def _edit_jit(model: _Model, w0, w_ref, controls, targets, regularization, learning_rate, free, *, method: str,
-              steps: int, tolerance: float, free_translation: bool) -> EditResult:
+def _edit_jit(
+    model: _Model,
+    w0,
+    w_ref,
+    controls,
+    targets,
+    regularization,
+    learning_rate,
+    free,
+    *,
+    method: str,
+    steps: int,
+    tolerance: float,
+    free_translation: bool,
+) -> EditResult:
     # the optimiser works in the default float type (float64: jaxdeform enables x64) whatever the decoder's
     # dtype: optimistix keeps its own scalars in that type, and the K latents cost nothing
     latent_dtype, w0 = w0.dtype, w0.astype(jnp.result_type(float))
     w_ref = w_ref.astype(w0.dtype)  # the regularization's reference (latent0); w0 is this stage's start
     free = free.astype(w0.dtype)  # (K,) 1 = optimised in this stage, 0 = held at w0 (traced: stages share one compile)
     if model.objective == "deformation":
-        w, taken, converged, objective, p = _deformation_solve(model, method, steps, tolerance, w0, w_ref, targets,
-                                                               regularization, learning_rate, free)
+        w, taken, converged, objective, p = _deformation_solve(
+            model, method, steps, tolerance, w0, w_ref, targets, regularization, learning_rate, free
+        )
         r = p[controls] - targets
-        return EditResult(w.astype(latent_dtype), p, jnp.zeros((3,), p.dtype), jnp.mean(jnp.linalg.norm(r, axis=-1)),
-                          objective, taken, converged)
+        return EditResult(
+            w.astype(latent_dtype),
+            p,
+            jnp.zeros((3,), p.dtype),
+            jnp.mean(jnp.linalg.norm(r, axis=-1)),
+            objective,
+            taken,
+            converged,
+        )
     if method == "adam":
-        w, taken = _adam(model, free_translation, steps, w0, w_ref, controls, targets, regularization, learning_rate,
-                         free)
+        w, taken = _adam(
+            model, free_translation, steps, w0, w_ref, controls, targets, regularization, learning_rate, free
+        )
         converged = jnp.asarray(False)  # a fixed number of steps: no stopping test
     else:
         problem = _scaled(model, free_translation, tolerance, w0, w_ref, controls, targets, regularization, free)
@@ -402,8 +448,9 @@ def _edit_jit(model: _Model, w0, w_ref, controls, targets, regularization, learn
         w = problem.latent(z)
     r, t, p = _control_residuals(model, free_translation, w, controls, targets)
     objective = jnp.sum(r.astype(w0.dtype) ** 2) + regularization * jnp.sum((w - w_ref) ** 2)
-    return EditResult(w.astype(latent_dtype), p + t, t, jnp.mean(jnp.linalg.norm(r, axis=-1)), objective, taken,
-                      converged)
+    return EditResult(
+        w.astype(latent_dtype), p + t, t, jnp.mean(jnp.linalg.norm(r, axis=-1)), objective, taken, converged
+    )
 
 
 # --------------------------------------------------------------------------------------------------
@@ -432,8 +479,20 @@ def _rest_of(acap_or_rest_faces) -> np.ndarray:
     return rest
 
 
-def _check_inputs(decode, latent0, controls, targets, n_vertices: int, out_width: int, *, steps, learning_rate,
-                  regularization, method, what: str):
+def _check_inputs(
+    decode,
+    latent0,
+    controls,
+    targets,
+    n_vertices: int,
+    out_width: int,
+    *,
+    steps,
+    learning_rate,
+    regularization,
+    method,
+    what: str,
+):
     if not callable(decode):
         raise EditInputError(f"{what} must be a callable mapping a latent vector to an array.")
     w0 = jnp.asarray(latent0)
@@ -489,8 +548,21 @@ def _check_stages(stages, k: int) -> tuple[int, ...]:
     return st
 
 
-def _run(model: _Model, w0, controls, targets, dtype, *, steps, learning_rate, regularization, method,
-         tolerance, free_translation, stages=None) -> EditResult:
+def _run(
+    model: _Model,
+    w0,
+    controls,
+    targets,
+    dtype,
+    *,
+    steps,
+    learning_rate,
+    regularization,
+    method,
+    tolerance,
+    free_translation,
+    stages=None,
+) -> EditResult:
     """One edit per stage (coarse to fine): stage s optimises the first ``stages[s]`` latents from the result
     of stage s - 1, the others held; every stage calls the same compiled function (the mask is traced)."""
     k = int(w0.shape[0])
@@ -502,9 +574,20 @@ def _run(model: _Model, w0, controls, targets, dtype, *, steps, learning_rate, r
     result, taken, converged, w_ref = None, 0, True, w0
     for prefix in stages:
         free = jnp.asarray(index < prefix)
-        result = _edit_jit(model, w0, w_ref, controls, targets, jnp.asarray(regularization, fdtype),
-                           jnp.asarray(learning_rate, fdtype), free, method=method, steps=int(steps), tolerance=tol,
-                           free_translation=bool(free_translation))
+        result = _edit_jit(
+            model,
+            w0,
+            w_ref,
+            controls,
+            targets,
+            jnp.asarray(regularization, fdtype),
+            jnp.asarray(learning_rate, fdtype),
+            free,
+            method=method,
+            steps=int(steps),
+            tolerance=tol,
+            free_translation=bool(free_translation),
+        )
         w0 = result.latent
         taken = taken + result.steps
         converged = converged & result.converged
@@ -516,12 +599,25 @@ def _run(model: _Model, w0, controls, targets, dtype, *, steps, learning_rate, r
 # --------------------------------------------------------------------------------------------------
 
 
-def edit(decode_features: Callable[[Array], Array], latent0: Float[Array, " k"], acap_or_rest_faces: Any,
-         scaler: Scaler | None, controls: Int[Array, " m"], targets: Float[Array, "m 3"], *,
-         steps: int = DEFAULT_STEPS, learning_rate: float = DEFAULT_LEARNING_RATE,
-         regularization: float = DEFAULT_REGULARIZATION, method: Method = "bfgs", anchor: int = 0,
-         refine: int = DEFAULT_REFINE, free_translation: bool = True, tolerance: float | None = None,
-         stages: tuple[int, ...] | None = None, objective: Objective = "controls") -> EditResult:
+def edit(
+    decode_features: Callable[[Array], Array],
+    latent0: Float[Array, " k"],
+    acap_or_rest_faces: Any,
+    scaler: Scaler | None,
+    controls: Int[Array, " m"],
+    targets: Float[Array, "m 3"],
+    *,
+    steps: int = DEFAULT_STEPS,
+    learning_rate: float = DEFAULT_LEARNING_RATE,
+    regularization: float = DEFAULT_REGULARIZATION,
+    method: Method = "bfgs",
+    anchor: int = 0,
+    refine: int = DEFAULT_REFINE,
+    free_translation: bool = True,
+    tolerance: float | None = None,
+    stages: tuple[int, ...] | None = None,
+    objective: Objective = "controls",
+) -> EditResult:
     """Latent weights whose ACAP-reconstructed mesh meets ``targets`` at the ``controls`` vertices.
 
     ``decode_features(w (K,)) -> (V, 9)`` ACAP features (scaled when ``scaler`` is given; ``scaler.inverse``
@@ -545,36 +641,69 @@ def edit(decode_features: Callable[[Array], Array], latent0: Float[Array, " k"],
         raise EditInputError(f"the anchor vertex must lie in [0, {n}), got {anchor}.")
     if int(refine) != refine or refine < 0:
         raise EditInputError(f"refine must be a non-negative integer, got {refine}.")
-    w0, c, t = _check_inputs(decode_features, latent0, controls, targets, n, 9, steps=steps,
-                             learning_rate=learning_rate, regularization=regularization, method=method,
-                             what="decode_features")
+    w0, c, t = _check_inputs(
+        decode_features,
+        latent0,
+        controls,
+        targets,
+        n,
+        9,
+        steps=steps,
+        learning_rate=learning_rate,
+        regularization=regularization,
+        method=method,
+        what="decode_features",
+    )
     if objective not in OBJECTIVES:
         raise EditInputError(f"unknown objective '{objective}'; expected one of {', '.join(OBJECTIVES)}.")
     held = None
     if objective == "deformation":
         if method == "lm":
-            raise EditInputError("the deformation objective is not a least-squares problem in the latents; use "
-                                 "method 'bfgs' or 'adam'.")
+            raise EditInputError(
+                "the deformation objective is not a least-squares problem in the latents; use method 'bfgs' or 'adam'."
+            )
         held = tuple(int(i) for i in np.asarray(c))
         if len(set(held)) != len(held):
-            raise EditInputError("the deformation objective holds each control vertex at its target: the control "
-                                 "indices must be distinct.")
+            raise EditInputError(
+                "the deformation objective holds each control vertex at its target: the control "
+                "indices must be distinct."
+            )
     model = _Model(decode_features, acap, scaler, int(anchor), int(refine), str(w0.dtype), objective, held)
     # host factorisations now: they cannot happen while tracing
     acap.reconstructor(model.anchors)
     if held is not None:
         acap.reconstructor(list(held))
         acap.reconstructor(None)
-    return _run(model, w0, c, t, acap.rest.dtype, steps=steps, learning_rate=learning_rate,
-                regularization=regularization, method=method, tolerance=tolerance, free_translation=free_translation,
-                stages=stages)
+    return _run(
+        model,
+        w0,
+        c,
+        t,
+        acap.rest.dtype,
+        steps=steps,
+        learning_rate=learning_rate,
+        regularization=regularization,
+        method=method,
+        tolerance=tolerance,
+        free_translation=free_translation,
+        stages=stages,
+    )
 
 
-def edit_positions(decode_positions: Callable[[Array], Array], latent0: Float[Array, " k"],
-                   controls: Int[Array, " m"], targets: Float[Array, "m 3"], *, steps: int = DEFAULT_STEPS,
-                   learning_rate: float = DEFAULT_LEARNING_RATE, regularization: float = DEFAULT_REGULARIZATION,
-                   method: Method = "bfgs", free_translation: bool = True,
-                   tolerance: float | None = None, stages: tuple[int, ...] | None = None) -> EditResult:
+def edit_positions(
+    decode_positions: Callable[[Array], Array],
+    latent0: Float[Array, " k"],
+    controls: Int[Array, " m"],
+    targets: Float[Array, "m 3"],
+    *,
+    steps: int = DEFAULT_STEPS,
+    learning_rate: float = DEFAULT_LEARNING_RATE,
+    regularization: float = DEFAULT_REGULARIZATION,
+    method: Method = "bfgs",
+    free_translation: bool = True,
+    tolerance: float | None = None,
+    stages: tuple[int, ...] | None = None,
+) -> EditResult:
     """:func:`edit` for coordinate-space models: ``decode_positions(w (K,)) -> (V, 3)`` positions directly.
 
     Same objective, optimiser and free translation as :func:`edit`, so methods compare under one protocol.
@@ -589,13 +718,34 @@ def edit_positions(decode_positions: Callable[[Array], Array], latent0: Float[Ar
     shape = getattr(out, "shape", ())
     if len(shape) != 2 or shape[1] != 3:
         raise EditInputError(f"decode_positions must return a (V, 3) array, got shape {shape}.")
-    w0, c, t = _check_inputs(decode_positions, w0, controls, targets, shape[0], 3, steps=steps,
-                             learning_rate=learning_rate, regularization=regularization, method=method,
-                             what="decode_positions")
+    w0, c, t = _check_inputs(
+        decode_positions,
+        w0,
+        controls,
+        targets,
+        shape[0],
+        3,
+        steps=steps,
+        learning_rate=learning_rate,
+        regularization=regularization,
+        method=method,
+        what="decode_positions",
+    )
     model = _Model(decode_positions, None, None, 0, 0, str(w0.dtype))
-    return _run(model, w0, c, t, out.dtype, steps=steps, learning_rate=learning_rate,
-                regularization=regularization, method=method, tolerance=tolerance, free_translation=free_translation,
-                stages=stages)
+    return _run(
+        model,
+        w0,
+        c,
+        t,
+        out.dtype,
+        steps=steps,
+        learning_rate=learning_rate,
+        regularization=regularization,
+        method=method,
+        tolerance=tolerance,
+        free_translation=free_translation,
+        stages=stages,
+    )
 
 
 def bounding_box_diagonal(vertices: Float[Array, "v 3"]) -> float:
@@ -604,9 +754,18 @@ def bounding_box_diagonal(vertices: Float[Array, "v 3"]) -> float:
     return float(np.linalg.norm(v.max(axis=0) - v.min(axis=0)))
 
 
-def edit_error(decode: Callable[[Array], Array], latent0: Float[Array, " k"], acap_or_rest_faces: Any,
-               scaler: Scaler | None, ground_truth: Float[Array, "v 3"], n_controls: int, *,
-               space: Literal["features", "positions"] = "features", start: int = 0, **edit_kwargs) -> EditErrorReport:
+def edit_error(
+    decode: Callable[[Array], Array],
+    latent0: Float[Array, " k"],
+    acap_or_rest_faces: Any,
+    scaler: Scaler | None,
+    ground_truth: Float[Array, "v 3"],
+    n_controls: int,
+    *,
+    space: Literal["features", "positions"] = "features",
+    start: int = 0,
+    **edit_kwargs,
+) -> EditErrorReport:
     """The protocol of seed 000's Fig. 6 on one unseen shape.
 
     ``n_controls`` control vertices by furthest point sampling on the rest shape (from ``start``), targets =

@@ -110,16 +110,23 @@ class ComponentSet:
     def n_vertices(self) -> int:
         return self.values.shape[1]
 
-    def select(self, mask) -> "ComponentSet":
+    def select(self, mask) -> ComponentSet:
         """The components where ``mask`` (K,) is true (or at integer positions ``mask``)."""
         m = np.asarray(mask)
-        return dataclasses.replace(self, values=self.values[m], level=self.level[m], block=self.block[m],
-                                   index=self.index[m], magnitude=self.magnitude[m])
+        return dataclasses.replace(
+            self,
+            values=self.values[m],
+            level=self.level[m],
+            block=self.block[m],
+            index=self.index[m],
+            magnitude=self.magnitude[m],
+        )
 
     def names(self) -> list[str]:
         """A short label per component: ``"AE0 #3"``, ``"AE4 #1"`` (level 1, block 3), ``"PCA #7"``."""
-        return [component_name(int(l), int(b), int(k), self.method)
-                for l, b, k in zip(self.level, self.block, self.index)]
+        return [
+            component_name(int(l), int(b), int(k), self.method) for l, b, k in zip(self.level, self.block, self.index)
+        ]
 
     def groups(self) -> list[str]:
         """The block each component belongs to, as named in figures (one row per block)."""
@@ -158,8 +165,9 @@ def _one_hot_codes(scale: Float[Array, " kz"], base: Float[Array, " kz"]) -> Flo
     return base[None, :] * (1.0 - eye) + eye * scale[None, :]
 
 
-def _block_deltas(p: dict, rings: Rings, scale: Float[Array, " kz"],
-                  base: Float[Array, " kz"]) -> Float[Array, "kz v 9"]:
+def _block_deltas(
+    p: dict, rings: Rings, scale: Float[Array, " kz"], base: Float[Array, " kz"]
+) -> Float[Array, "kz v 9"]:
     out = ae_decode(p, _one_hot_codes(scale, base), rings)
     return out - ae_decode(p, base[None, :], rings)
 
@@ -168,8 +176,9 @@ _block_deltas_jit = jax.jit(_block_deltas)
 
 
 @jax.jit
-def _level_deltas(p: dict, rings: Rings, scale: Float[Array, "n kz"],
-                  base: Float[Array, "n kz"]) -> Float[Array, "n kz v 9"]:
+def _level_deltas(
+    p: dict, rings: Rings, scale: Float[Array, "n kz"], base: Float[Array, "n kz"]
+) -> Float[Array, "n kz v 9"]:
     return jax.vmap(lambda q, s, b: _block_deltas(q, rings, s, b))(p, scale, base)
 
 
@@ -180,8 +189,9 @@ def _level_kz(params: tuple, level: int) -> tuple[int, int]:
     return int(n), int(kz)
 
 
-def block_components(params: tuple, rings: Rings, level: int, block: int, scale=1.0,
-                     base=None) -> Float[Array, "kz v 9"]:
+def block_components(
+    params: tuple, rings: Rings, level: int, block: int, scale=1.0, base=None
+) -> Float[Array, "kz v 9"]:
     """Components (Kz, V, 9) of block ``block`` of ``level``, as scaled-feature differences.
 
     Row k is ``ae_decode(base with z_k = scale_k) - ae_decode(base)``; ``scale`` is a number or one per
@@ -197,8 +207,9 @@ def block_components(params: tuple, rings: Rings, level: int, block: int, scale=
     return _block_deltas_jit(p, rings, s, b)
 
 
-def latent_extremes(params: tuple, rings: Rings, level: int, codes: Float[Array, "n b kz"],
-                    base: Float[Array, "n kz"] | None = None) -> Float[Array, "n kz"]:
+def latent_extremes(
+    params: tuple, rings: Rings, level: int, codes: Float[Array, "n b kz"], base: Float[Array, "n kz"] | None = None
+) -> Float[Array, "n kz"]:
     """Per block and latent dimension, the end of the codes' range [min_m z, max_m z] whose component changes
     the features most (largest squared norm), as in the public code of Tan et al. [10]."""
     n, kz = _level_kz(params, level)
@@ -212,9 +223,16 @@ def latent_extremes(params: tuple, rings: Rings, level: int, codes: Float[Array,
     return jnp.where(d_hi >= d_lo, hi, lo)
 
 
-def all_components(params: tuple, rings: Rings, config: Config, *, scale: float | None = None,
-                   latents: tuple | None = None, reference: int | None = None,
-                   scaler: Scaler | None = None) -> ComponentSet:
+def all_components(
+    params: tuple,
+    rings: Rings,
+    config: Config,
+    *,
+    scale: float | None = None,
+    latents: tuple | None = None,
+    reference: int | None = None,
+    scaler: Scaler | None = None,
+) -> ComponentSet:
     """Every block's components, level by level (K = sum_l n_l Kz_l; 60 with the paper's Kz = [10, 5]).
 
     ``params`` may hold a prefix of the config's levels. Magnitudes: with ``latents`` (the training codes, per level (n_l, B, Kz_l) as in ``Output.latents``) the
@@ -247,13 +265,20 @@ def all_components(params: tuple, rings: Rings, config: Config, *, scale: float 
         block.append(np.repeat(np.arange(n), kz))
         index.append(np.tile(np.arange(kz), n))
         magnitude.append(np.asarray(s).reshape(-1))
-    cs = ComponentSet(np.concatenate(values), np.concatenate(level), np.concatenate(block),
-                      np.concatenate(index), np.concatenate(magnitude), "scaled")
+    cs = ComponentSet(
+        np.concatenate(values),
+        np.concatenate(level),
+        np.concatenate(block),
+        np.concatenate(index),
+        np.concatenate(magnitude),
+        "scaled",
+    )
     return cs if scaler is None else unscale(cs, scaler)
 
 
-def from_arrays(components, domain: Literal["acap", "xyz"], *, scaler: Scaler | None = None, weight=1.0,
-                method: str = "linear") -> ComponentSet:
+def from_arrays(
+    components, domain: Literal["acap", "xyz"], *, scaler: Scaler | None = None, weight=1.0, method: str = "linear"
+) -> ComponentSet:
     """Components given as arrays (K, V, c) (e.g. PCA or SPLOCS), as one block at level 0.
 
     ``domain="acap"``: ACAP feature differences (c = 9), taken as *scaled* and mapped back when ``scaler`` is
@@ -270,8 +295,9 @@ def from_arrays(components, domain: Literal["acap", "xyz"], *, scaler: Scaler | 
     w = np.broadcast_to(np.asarray(weight, dtype=np.float64), (c.shape[0],))
     k = c.shape[0]
     zeros = np.zeros(k, dtype=np.int64)
-    cs = ComponentSet(c * w[:, None, None], zeros, zeros, np.arange(k), w.copy(),
-                      "scaled" if scaler is not None else domain, method)
+    cs = ComponentSet(
+        c * w[:, None, None], zeros, zeros, np.arange(k), w.copy(), "scaled" if scaler is not None else domain, method
+    )
     return cs if scaler is None else unscale(cs, scaler)
 
 
@@ -288,8 +314,9 @@ def unscale(cs: ComponentSet, scaler: Scaler) -> ComponentSet:
     return dataclasses.replace(cs, values=np.asarray(unscale_values(cs.values, scaler)), domain="acap")
 
 
-def component_meshes(cs: ComponentSet, rest, faces, *, scaler: Scaler | None = None, base=None,
-                     refine: int | None = None) -> np.ndarray:
+def component_meshes(
+    cs: ComponentSet, rest, faces, *, scaler: Scaler | None = None, base=None, refine: int | None = None
+) -> np.ndarray:
     """Each component applied alone to the reference: vertex positions (K, V, 3).
 
     ``"acap"``: ``decode(base + diff)`` with ``base`` (V, 9) defaulting to the reference's own features
@@ -379,8 +406,9 @@ class Removal:
         }
 
 
-def remove_redundant(cs: ComponentSet, eps1: float = EPS1, eps2: float = EPS2,
-                     duplicate_cos: float | None = DUPLICATE_COS) -> Removal:
+def remove_redundant(
+    cs: ComponentSet, eps1: float = EPS1, eps2: float = EPS2, duplicate_cos: float | None = DUPLICATE_COS
+) -> Removal:
     """Sec. 4.3: drop components whose strength (eq. (7)) is below ``eps2``; then (not in the paper, see the
     module docstring) drop a component whose |cosine similarity| with an earlier kept one reaches
     ``duplicate_cos`` (``None``: skip this check). Earlier = level, block, index order."""
@@ -394,7 +422,8 @@ def remove_redundant(cs: ComponentSet, eps1: float = EPS1, eps2: float = EPS2,
     removed = {}
     for i in np.flatnonzero(~keep):
         removed[(int(cs.level[i]), int(cs.block[i]), int(cs.index[i]))] = (
-            f"slight deformation: strength {strength[i]:.3g} < eps2 = {eps2:g}")
+            f"slight deformation: strength {strength[i]:.3g} < eps2 = {eps2:g}"
+        )
     if duplicate_cos is not None and keep.any():
         sim = np.abs(np.asarray(similarity_matrix(cs.values)))
         for i in np.flatnonzero(keep):  # a loop over components, not vertices
@@ -404,7 +433,8 @@ def remove_redundant(cs: ComponentSet, eps1: float = EPS1, eps2: float = EPS2,
                 if sim[i, j] >= duplicate_cos:
                     keep[i] = False
                     removed[(int(cs.level[i]), int(cs.block[i]), int(cs.index[i]))] = (
-                        f"duplicate of {names[j]}: |cos| = {sim[i, j]:.6f} >= {duplicate_cos:g}")
+                        f"duplicate of {names[j]}: |cos| = {sim[i, j]:.6f} >= {duplicate_cos:g}"
+                    )
     kept = {}
     for l, b in sorted({(int(l), int(b)) for l, b in zip(cs.level, cs.block)}):
         sel = (cs.level == l) & (cs.block == b) & keep
@@ -413,8 +443,24 @@ def remove_redundant(cs: ComponentSet, eps1: float = EPS1, eps2: float = EPS2,
 
 
 __all__ = [
-    "EPS1", "EPS2", "DUPLICATE_COS", "IDENTITY_FEATURES", "ComponentSet", "Removal", "active_vertices",
-    "all_components", "block_components", "block_name", "component_meshes", "component_name",
-    "deformation_strength", "from_arrays", "latent_extremes", "remove_redundant", "similarity_matrix", "unscale",
-    "unscale_values", "vertex_strength",
+    "EPS1",
+    "EPS2",
+    "DUPLICATE_COS",
+    "IDENTITY_FEATURES",
+    "ComponentSet",
+    "Removal",
+    "active_vertices",
+    "all_components",
+    "block_components",
+    "block_name",
+    "component_meshes",
+    "component_name",
+    "deformation_strength",
+    "from_arrays",
+    "latent_extremes",
+    "remove_redundant",
+    "similarity_matrix",
+    "unscale",
+    "unscale_values",
+    "vertex_strength",
 ]

@@ -24,7 +24,17 @@ from PIL import Image, ImageDraw, ImageFont
 
 from jaxdeform.components.extract import ComponentSet, Removal, deformation_strength, vertex_strength
 from jaxdeform.errors import ConnectivityError, DegenerateMeshError, MeshFormatError
-from jaxdeform.mesh.render import COLORMAPS, VIEWS, Camera, auto_camera, cast_rays, colormap, render, save_png, view_angles
+from jaxdeform.mesh.render import (
+    COLORMAPS,
+    VIEWS,
+    Camera,
+    auto_camera,
+    cast_rays,
+    colormap,
+    render,
+    save_png,
+    view_angles,
+)
 
 #: The body colour of undeformed regions.
 GREY = (0.72, 0.72, 0.72)
@@ -60,8 +70,19 @@ def blend(t, cmap: str = "viridis", body=GREY) -> np.ndarray:
     return (1.0 - t)[..., None] * np.asarray(body, dtype=np.float64) + t[..., None] * colormap(t, cmap)
 
 
-def render_component(vertices, faces, strength, camera: Camera, width: int, height: int, *, vmax: float | None = None,
-                     cmap: str = "viridis", body=GREY, background=_WHITE) -> np.ndarray:
+def render_component(
+    vertices,
+    faces,
+    strength,
+    camera: Camera,
+    width: int,
+    height: int,
+    *,
+    vmax: float | None = None,
+    cmap: str = "viridis",
+    body=GREY,
+    background=_WHITE,
+) -> np.ndarray:
     """One component mesh with its deformed region coloured: an ``(height, width, 3)`` uint8 image.
 
     ``strength`` (V,) non-negative per-vertex strength, mapped to t = strength / ``vmax`` (default: its maximum;
@@ -75,8 +96,19 @@ def render_component(vertices, faces, strength, camera: Camera, width: int, heig
     hit = hits.hit
     tri = hits.triangle[hit]
     t_pix = np.einsum("nk,nk->n", hits.barycentric[hit], t[f[tri]])
-    shade = render(vertices, faces, camera=camera, width=width, height=height, base_color=_WHITE,
-                   background=_WHITE, shading=True).astype(np.float64)[hit] / 255.0
+    shade = (
+        render(
+            vertices,
+            faces,
+            camera=camera,
+            width=width,
+            height=height,
+            base_color=_WHITE,
+            background=_WHITE,
+            shading=True,
+        ).astype(np.float64)[hit]
+        / 255.0
+    )
     image = np.empty((height, width, 3))
     image[...] = np.asarray(background, dtype=np.float64)
     image[hit] = shade * blend(t_pix, cmap, body)
@@ -93,7 +125,8 @@ def _check_meshes(meshes, faces, strength) -> tuple[np.ndarray, np.ndarray, np.n
     if not np.all(np.isfinite(x)):
         bad = np.argwhere(~np.isfinite(x))[0]
         raise DegenerateMeshError(
-            f"component mesh {int(bad[0])} has a NaN or infinite coordinate (vertex {int(bad[1])}).")
+            f"component mesh {int(bad[0])} has a NaN or infinite coordinate (vertex {int(bad[1])})."
+        )
     f = np.asarray(faces)
     if f.ndim != 2 or f.shape[1] != 3 or f.shape[0] == 0 or not np.issubdtype(f.dtype, np.integer):
         raise MeshFormatError(f"faces must be a non-empty integer (F, 3) array, got {f.dtype} {f.shape}.")
@@ -131,7 +164,7 @@ def _layout_rows(groups: list[str], rows: Sequence[str] | None, max_columns: int
         if not members:
             lines.append((name, []))
         for start in range(0, len(members), max_columns):
-            lines.append((name if start == 0 else "", members[start:start + max_columns]))
+            lines.append((name if start == 0 else "", members[start : start + max_columns]))
     return lines
 
 
@@ -141,7 +174,7 @@ def _draw_legend(width: int, height: int, cmap: str, body, text: str, font) -> n
     x0, y0 = 10, (height - bar_h) // 2
     ramp = (blend(np.linspace(0.0, 1.0, bar_w), cmap, body) * 255 + 0.5).astype(np.uint8)
     arr = np.full((height, width, 3), 255, dtype=np.uint8)
-    arr[y0:y0 + bar_h, x0:x0 + bar_w] = ramp[None]
+    arr[y0 : y0 + bar_h, x0 : x0 + bar_w] = ramp[None]
     strip = Image.fromarray(arr)
     draw = ImageDraw.Draw(strip)
     draw.rectangle([x0 - 1, y0 - 1, x0 + bar_w, y0 + bar_h], outline=_INK)
@@ -209,8 +242,9 @@ def _grid_geometry(lines: list[tuple[str, list[int]]], panel: int, title: str | 
     return _Grid(font, big, caption_h, label_w, gap, width, title_h, legend_h, line_h, height)
 
 
-def _draw_grid_text(canvas: np.ndarray, g: _Grid, lines, titles: list[str], title: str | None,
-                    panel: int) -> np.ndarray:
+def _draw_grid_text(
+    canvas: np.ndarray, g: _Grid, lines, titles: list[str], title: str | None, panel: int
+) -> np.ndarray:
     """``canvas`` (left unchanged) with the title, row names, panel captions and line separators drawn.
 
     Rows without members get "no component kept". Returns a new ``(g.height, g.width, 3)`` uint8 array.
@@ -224,8 +258,13 @@ def _draw_grid_text(canvas: np.ndarray, g: _Grid, lines, titles: list[str], titl
         if name:
             draw.text((12, top + g.caption_h + panel // 2), name, font=g.big, fill=_INK, anchor="lm")
         if not members:
-            draw.text((g.label_w + 8, top + g.caption_h + panel // 2), "no component kept", font=g.font,
-                      fill=_MUTED, anchor="lm")
+            draw.text(
+                (g.label_w + 8, top + g.caption_h + panel // 2),
+                "no component kept",
+                font=g.font,
+                fill=_MUTED,
+                anchor="lm",
+            )
         for c, i in enumerate(members):
             xo = g.label_w + c * (panel + g.gap)
             draw.text((xo + panel // 2, top + g.caption_h - 4), titles[i], font=g.font, fill=_INK, anchor="mb")
@@ -278,18 +317,23 @@ def components_figure(
         y = g.title_h + r * g.line_h + g.caption_h
         for c, i in enumerate(members):
             xo = g.label_w + c * (panel + g.gap)
-            canvas[y:y + panel, xo:xo + panel] = render_component(x[i], f, s[i], camera, panel, panel, vmax=vmax,
-                                                                  cmap=cmap)
-    scale_text = ("per-vertex strength ||X_diff,i||, each panel scaled to its maximum" if vmax is None
-                  else f"per-vertex strength ||X_diff,i|| from 0 to {vmax:.3g}")
-    canvas[g.height - g.legend_h:] = _draw_legend(g.width, g.legend_h, cmap, GREY, scale_text, g.font)
+            canvas[y : y + panel, xo : xo + panel] = render_component(
+                x[i], f, s[i], camera, panel, panel, vmax=vmax, cmap=cmap
+            )
+    scale_text = (
+        "per-vertex strength ||X_diff,i||, each panel scaled to its maximum"
+        if vmax is None
+        else f"per-vertex strength ||X_diff,i|| from 0 to {vmax:.3g}"
+    )
+    canvas[g.height - g.legend_h :] = _draw_legend(g.width, g.legend_h, cmap, GREY, scale_text, g.font)
     image = _draw_grid_text(canvas, g, lines, titles, title, panel)
     save_png(image, path)
     return image
 
 
-def component_set_figure(cs: ComponentSet, meshes, faces, path, *, removal: Removal | None = None,
-                         **kwargs) -> np.ndarray:
+def component_set_figure(
+    cs: ComponentSet, meshes, faces, path, *, removal: Removal | None = None, **kwargs
+) -> np.ndarray:
     """:func:`components_figure` of a :class:`~jaxdeform.components.extract.ComponentSet` and its meshes
     (from :func:`~jaxdeform.components.extract.component_meshes`): rows per block (``AE0``, ``AE1`` ...),
     panels titled with the component index and its strength I (eq. (7)); with a ``removal`` only the kept
@@ -307,8 +351,16 @@ def component_set_figure(cs: ComponentSet, meshes, faces, path, *, removal: Remo
     if not keep.any():
         raise ValueError("every component was removed, so there is nothing to draw.")
     idx = np.flatnonzero(keep)
-    return components_figure(x[idx], faces, np.asarray(vertex_strength(cs.values))[idx], path,
-                             groups=[groups[i] for i in idx], titles=[titles[i] for i in idx], rows=rows, **kwargs)
+    return components_figure(
+        x[idx],
+        faces,
+        np.asarray(vertex_strength(cs.values))[idx],
+        path,
+        groups=[groups[i] for i in idx],
+        titles=[titles[i] for i in idx],
+        rows=rows,
+        **kwargs,
+    )
 
 
 # ----------------------------------------------------------------------------------- similarity heat map
@@ -410,8 +462,13 @@ def _annotate_cells(draw: ImageDraw.ImageDraw, h: _Heat, m: np.ndarray, lo: floa
         for j in range(k):
             t = (m[i, j] - lo) / (1.0 - lo)
             luminance = float(np.dot(colormap(t, cmap), [0.299, 0.587, 0.114]))
-            draw.text((h.x0 + j * cell + cell // 2, h.y0 + i * cell + cell // 2), f"{m[i, j]:.2f}", font=h.font,
-                      fill=(20, 20, 20) if luminance > 0.5 else (240, 240, 240), anchor="mm")
+            draw.text(
+                (h.x0 + j * cell + cell // 2, h.y0 + i * cell + cell // 2),
+                f"{m[i, j]:.2f}",
+                font=h.font,
+                fill=(20, 20, 20) if luminance > 0.5 else (240, 240, 240),
+                anchor="mm",
+            )
 
 
 def similarity_figure(
@@ -439,10 +496,10 @@ def similarity_figure(
 
     canvas = np.full((h.height, h.width, 3), 255, dtype=np.uint8)
     rgb = (colormap((m - lo) / (1.0 - lo), cmap) * 255 + 0.5).astype(np.uint8)
-    canvas[h.y0:h.y0 + h.side, h.x0:h.x0 + h.side] = np.repeat(np.repeat(rgb, cell, axis=0), cell, axis=1)
+    canvas[h.y0 : h.y0 + h.side, h.x0 : h.x0 + h.side] = np.repeat(np.repeat(rgb, cell, axis=0), cell, axis=1)
     rows = np.arange(h.side)
     ramp = (colormap(1.0 - rows / max(h.side - 1, 1), cmap) * 255 + 0.5).astype(np.uint8)
-    canvas[h.y0:h.y0 + h.side, h.bx:h.bx + h.bar_w] = ramp[:, None]
+    canvas[h.y0 : h.y0 + h.side, h.bx : h.bx + h.bar_w] = ramp[:, None]
 
     pil = Image.fromarray(canvas)
     draw = ImageDraw.Draw(pil)
@@ -461,5 +518,12 @@ def similarity_figure(
     return image
 
 
-__all__ = ["VIEWS", "GREY", "blend", "render_component", "components_figure", "component_set_figure",
-           "similarity_figure"]
+__all__ = [
+    "VIEWS",
+    "GREY",
+    "blend",
+    "render_component",
+    "components_figure",
+    "component_set_figure",
+    "similarity_figure",
+]

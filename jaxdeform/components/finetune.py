@@ -38,8 +38,15 @@ from jaxdeform.mesh.topology import build_topology
 from jaxdeform.nn.graph_conv import rings_from_topology
 
 
-def regional_mixes(x: np.ndarray, dist: np.ndarray, n: int, rng: np.random.Generator,
-                   regions: tuple[int, int] = (3, 12), sigma: float = 0.15, alpha: float = 0.5) -> np.ndarray:
+def regional_mixes(
+    x: np.ndarray,
+    dist: np.ndarray,
+    n: int,
+    rng: np.random.Generator,
+    regions: tuple[int, int] = (3, 12),
+    sigma: float = 0.15,
+    alpha: float = 0.5,
+) -> np.ndarray:
     """(n, V, C) mixes of the S shapes ``x`` (S, V, C): a mix picks R ~ U{regions} random centre vertices, gives
     each a Dirichlet(alpha) combination of the S shapes, and blends the centres' combinations over the mesh by the
     normalized Gaussian weights exp(-(dist / sigma)^2) of the geodesic distances ``dist`` (V, V): every vertex is a
@@ -48,15 +55,23 @@ def regional_mixes(x: np.ndarray, dist: np.ndarray, n: int, rng: np.random.Gener
     out = np.empty((n,) + x.shape[1:], x.dtype)
     for i in range(n):  # data preparation, once per run
         centres = rng.choice(v, rng.integers(regions[0], regions[1] + 1), replace=False)
-        w = np.exp(-(np.asarray(dist[centres], np.float64) / sigma) ** 2)  # (R, V)
+        w = np.exp(-((np.asarray(dist[centres], np.float64) / sigma) ** 2))  # (R, V)
         w /= np.maximum(w.sum(axis=0, keepdims=True), 1e-300)
         per_vertex = w.T @ rng.dirichlet(np.full(s, alpha), size=len(centres))  # (V, S), rows sum to 1
         out[i] = np.einsum("vs,svc->vc", per_vertex, x)
     return out
 
 
-def generated_meshes(run: crun.Run, x: np.ndarray, dist: np.ndarray, n: int, noise: float, rng: np.random.Generator,
-                     rings, chunk: int = 16) -> np.ndarray:
+def generated_meshes(
+    run: crun.Run,
+    x: np.ndarray,
+    dist: np.ndarray,
+    n: int,
+    noise: float,
+    rng: np.random.Generator,
+    rings,
+    chunk: int = 16,
+) -> np.ndarray:
     """(n, V, 9) scaled ACAP features of meshes the run's model generates beyond the mixes: the codes that its
     encoder gives ``n`` regional mixes of the shapes ``x`` (S, V, 9), each code entry moved by ``noise`` times its
     standard deviation over those codes (Gaussian), decoded, reconstructed to vertices, and those meshes' own
@@ -64,11 +79,13 @@ def generated_meshes(run: crun.Run, x: np.ndarray, dist: np.ndarray, n: int, noi
     base = regional_mixes(x, dist, n, rng)
     enc = jax.jit(lambda xb: model.encode(run.params, xb, rings, run.config))
     dec = jax.jit(lambda zb: model.decode_latents(run.params, zb, rings))
-    codes = [np.concatenate(z, axis=1) for z in zip(*[enc(jnp.asarray(base[i:i + chunk]))
-                                                        for i in range(0, n, chunk)])]  # per level (n_l, n, Kz)
+    codes = [
+        np.concatenate(z, axis=1) for z in zip(*[enc(jnp.asarray(base[i : i + chunk])) for i in range(0, n, chunk)])
+    ]  # per level (n_l, n, Kz)
     moved = [c + noise * c.std(axis=1, keepdims=True) * rng.standard_normal(c.shape).astype(c.dtype) for c in codes]
-    feats = np.concatenate([np.asarray(dec(tuple(jnp.asarray(c[:, i:i + chunk]) for c in moved)))
-                            for i in range(0, n, chunk)])
+    feats = np.concatenate(
+        [np.asarray(dec(tuple(jnp.asarray(c[:, i : i + chunk]) for c in moved))) for i in range(0, n, chunk)]
+    )
     return np.asarray(crun.scaled_features(run, crun.positions_from_scaled(run, feats)), x.dtype)
 
 
@@ -156,8 +173,17 @@ def check_run(run: crun.Run) -> None:
         raise crun.RunError(f"{run.path} is a {run.method} run: only multiscale and tan runs can be fine-tuned.")
 
 
-def check_options(steps: int, batch: int, mixes: int, position_weight: float, lr: float, seed: int = 0,
-                  lr_final: float | None = None, generated: int = 0, code_noise: float = 1.0) -> None:
+def check_options(
+    steps: int,
+    batch: int,
+    mixes: int,
+    position_weight: float,
+    lr: float,
+    seed: int = 0,
+    lr_final: float | None = None,
+    generated: int = 0,
+    code_noise: float = 1.0,
+) -> None:
     """One sentence (ValueError) for an option out of range."""
     if seed < 0:
         raise ValueError(f"--seed must be a non-negative integer, got {seed}.")
@@ -183,9 +209,22 @@ def schedule(lr: float, steps: int, lr_final: float | None = None):
     return optax.cosine_decay_schedule(lr, max(steps - 1, 1), alpha=lr_final / lr)
 
 
-def finetune(run: crun.Run, x_train, *, mixes: int = 400, steps: int = 1000, batch: int = 8,
-             position_weight: float = 1e5, lr: float = 2e-4, seed: int = 0, progress: bool = True,
-             lr_final: float | None = None, rigid: bool = False, generated: int = 0, code_noise: float = 1.0):
+def finetune(
+    run: crun.Run,
+    x_train,
+    *,
+    mixes: int = 400,
+    steps: int = 1000,
+    batch: int = 8,
+    position_weight: float = 1e5,
+    lr: float = 2e-4,
+    seed: int = 0,
+    progress: bool = True,
+    lr_final: float | None = None,
+    rigid: bool = False,
+    generated: int = 0,
+    code_noise: float = 1.0,
+):
     """(params, history (steps, 2): model loss and position term of each step's batch before its update)."""
     check_options(steps, batch, mixes, position_weight, lr, seed, lr_final, generated, code_noise)
     check_run(run)
@@ -200,7 +239,7 @@ def finetune(run: crun.Run, x_train, *, mixes: int = 400, steps: int = 1000, bat
         pool = np.concatenate([pool, generated_meshes(run, x_train, dist, generated, code_noise, rng, rings)])
     _, positions, _ = position_loss_fn(run, rings, jnp.asarray(dist), position_weight)
     positions = jax.jit(positions)
-    targets = np.concatenate([np.asarray(positions(jnp.asarray(pool[i:i + 8]))) for i in range(0, len(pool), 8)])
+    targets = np.concatenate([np.asarray(positions(jnp.asarray(pool[i : i + 8]))) for i in range(0, len(pool), 8)])
     opt = optax.adam(schedule(lr, steps, lr_final))
     step = make_step(run, rings, jnp.asarray(dist), position_weight, opt, rigid)
 
@@ -225,9 +264,23 @@ def finetune(run: crun.Run, x_train, *, mixes: int = 400, steps: int = 1000, bat
     return params, np.asarray(jax.device_get(history), np.float64).reshape(steps, 2)  # one transfer, no XLA op
 
 
-def fit(run: crun.Run, out: Path, data=None, *, mixes: int = 400, steps: int = 1000, batch: int = 8,
-        position_weight: float = 1e5, lr: float = 2e-4, seed: int = 0, progress: bool = True,
-        lr_final: float | None = None, rigid: bool = False, generated: int = 0, code_noise: float = 1.0) -> dict:
+def fit(
+    run: crun.Run,
+    out: Path,
+    data=None,
+    *,
+    mixes: int = 400,
+    steps: int = 1000,
+    batch: int = 8,
+    position_weight: float = 1e5,
+    lr: float = 2e-4,
+    seed: int = 0,
+    progress: bool = True,
+    lr_final: float | None = None,
+    rigid: bool = False,
+    generated: int = 0,
+    code_noise: float = 1.0,
+) -> dict:
     """Fine-tune ``run`` on its training shapes (read from ``data``, default the run's data folder) and write the
     result into the empty folder ``out``: a copy of the run with the new parameters and training codes, run.json
     with ``finetune`` (options, seconds, first and last loss terms, source run). Returns that record. The options
@@ -236,13 +289,37 @@ def fit(run: crun.Run, out: Path, data=None, *, mixes: int = 400, steps: int = 1
     vertices, _ = crun.run_data(run, data)
     x_train = crun.scaled_features(run, vertices[run.train_idx])
     t0 = time.perf_counter()
-    params, history = finetune(run, x_train, mixes=mixes, steps=steps, batch=batch, position_weight=position_weight,
-                               lr=lr, seed=seed, progress=progress, lr_final=lr_final, rigid=rigid,
-                               generated=generated, code_noise=code_noise)
-    record = {"mixes": mixes, "steps": steps, "batch": batch, "position_weight": position_weight, "lr": lr,
-              "lr_final": lr if lr_final is None else lr_final,
-              "seed": seed, "rigid": rigid, "generated": generated, "code_noise": code_noise, "seconds": round(time.perf_counter() - t0, 1), "first_terms": history[0].tolist(),
-              "last_terms": history[-1].tolist(), "source": str(run.path)}
+    params, history = finetune(
+        run,
+        x_train,
+        mixes=mixes,
+        steps=steps,
+        batch=batch,
+        position_weight=position_weight,
+        lr=lr,
+        seed=seed,
+        progress=progress,
+        lr_final=lr_final,
+        rigid=rigid,
+        generated=generated,
+        code_noise=code_noise,
+    )
+    record = {
+        "mixes": mixes,
+        "steps": steps,
+        "batch": batch,
+        "position_weight": position_weight,
+        "lr": lr,
+        "lr_final": lr if lr_final is None else lr_final,
+        "seed": seed,
+        "rigid": rigid,
+        "generated": generated,
+        "code_noise": code_noise,
+        "seconds": round(time.perf_counter() - t0, 1),
+        "first_terms": history[0].tolist(),
+        "last_terms": history[-1].tolist(),
+        "source": str(run.path),
+    }
     out = Path(out)
     for name in ("mesh.npz", "history.npy"):
         if (run.path / name).is_file():

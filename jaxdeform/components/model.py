@@ -41,8 +41,17 @@ import jax.numpy as jnp
 from jaxtyping import Array, Float
 
 from jaxdeform.nn import graph_conv
-from jaxdeform.nn.graph_conv import (MU, Rings, ae_decode_pre, ae_encode, ae_forward, ae_forward_error, init_ae_block,
-                                     masked_blocks_error, mesh_conv)
+from jaxdeform.nn.graph_conv import (
+    MU,
+    Rings,
+    ae_decode_pre,
+    ae_encode,
+    ae_forward,
+    ae_forward_error,
+    init_ae_block,
+    masked_blocks_error,
+    mesh_conv,
+)
 from jaxdeform.nn.losses import group_sparsity, latent_bound
 
 
@@ -142,7 +151,9 @@ def _normal_weights(params: tuple, key: Array, std: float) -> tuple:
     for (path, leaf), k in zip(leaves, keys):
         name = getattr(path[-1], "key", None)
         if name not in _WEIGHTS + ("b",):
-            raise ValueError(f"unexpected parameter {jax.tree_util.keystr(path)}: only {_WEIGHTS} and biases are known.")
+            raise ValueError(
+                f"unexpected parameter {jax.tree_util.keystr(path)}: only {_WEIGHTS} and biases are known."
+            )
         out.append((std * jax.random.normal(k, leaf.shape)).astype(leaf.dtype) if name != "b" else leaf)
     return jax.tree_util.tree_unflatten(tree, out)
 
@@ -151,12 +162,22 @@ def _decoder_weights(params: tuple[dict, ...], config: Config | None) -> tuple[d
     """``params`` as the decoders read them: with ``config.tie_conv`` every block's ``conv_dec`` takes its
     encoder's W_point and W_neighbor (its bias its own); otherwise ``params`` itself."""
     if config is not None and config.tie_conv:
-        return tuple({**p, "conv_dec": {**p["conv_dec"], "W_point": p["conv_enc"]["W_point"],
-                                        "W_neighbor": p["conv_enc"]["W_neighbor"]}} for p in params)
+        return tuple(
+            {
+                **p,
+                "conv_dec": {
+                    **p["conv_dec"],
+                    "W_point": p["conv_enc"]["W_point"],
+                    "W_neighbor": p["conv_enc"]["W_neighbor"],
+                },
+            }
+            for p in params
+        )
     for p in params:
         if "W_point" not in p["conv_dec"]:
-            raise ValueError("the parameters hold no decoder convolution weights (a tie_conv model): pass the "
-                             "model's Config.")
+            raise ValueError(
+                "the parameters hold no decoder convolution weights (a tie_conv model): pass the model's Config."
+            )
     return params
 
 
@@ -207,8 +228,9 @@ def attention_masks(c: Float[Array, "kz nine_v"]) -> Float[Array, "kz v"]:
     return am / jnp.where(total > 0, total, 1.0)
 
 
-def _levels(params: tuple[dict, ...], x: Float[Array, "b v 9"], rings: Rings, config: Config,
-            with_error: bool = False) -> list:
+def _levels(
+    params: tuple[dict, ...], x: Float[Array, "b v 9"], rings: Rings, config: Config, with_error: bool = False
+) -> list:
     """Per level: (inputs (n_l, B, V, 9), latents (n_l, B, Kz_l), outputs (n_l, B, V, 9), errors (n_l, B) or
     None): ``with_error`` gives each block's summed squared error against its input, per shape.
 
@@ -221,8 +243,13 @@ def _levels(params: tuple[dict, ...], x: Float[Array, "b v 9"], rings: Rings, co
     parent = None  # (residuals (n_l, B, V, 9), masks (n_l, Kz_l, V)) of the level before, where attention applies
     levels = []
     for level, p in enumerate(params):
-        if (with_error and parent is not None and level + 1 == len(params) and not config.attention_gradient
-                and config.latent == "linear"):
+        if (
+            with_error
+            and parent is not None
+            and level + 1 == len(params)
+            and not config.attention_gradient
+            and config.latent == "linear"
+        ):
             res, am = parent
             split = lambda a: a.reshape(am.shape[:2] + a.shape[1:])  # noqa: E731  (n_l, ...) -> (parents, Kz, ...)
             outs = _masked_blocks(jax.tree_util.tree_map(split, p), res, am, rings, config)
@@ -255,7 +282,9 @@ def encode(params: tuple[dict, ...], x: Float[Array, "b v 9"], rings: Rings, con
     return tuple(z for _, z, _, _ in _levels(params, x, rings, config))
 
 
-def reconstruction(params: tuple[dict, ...], x: Float[Array, "b v 9"], rings: Rings, config: Config) -> Float[Array, "b v 9"]:
+def reconstruction(
+    params: tuple[dict, ...], x: Float[Array, "b v 9"], rings: Rings, config: Config
+) -> Float[Array, "b v 9"]:
     """The model's reconstruction of a batch of scaled features (the sum of every block's output)."""
     return sum(jnp.sum(x_hat, axis=0) for _, _, x_hat, _ in _levels(params, x, rings, config))
 
@@ -265,8 +294,9 @@ def level_sparsity(p: dict, dist: Float[Array, "v v"], config: Config, level: in
     return jax.vmap(lambda c: group_sparsity(c, dist, config.sparsity_cutoff(level), config.mask))(p["C"])
 
 
-def forward(params: tuple[dict, ...], x: Float[Array, "b v 9"], rings: Rings, dist: Float[Array, "v v"],
-            config: Config) -> Output:
+def forward(
+    params: tuple[dict, ...], x: Float[Array, "b v 9"], rings: Rings, dist: Float[Array, "v v"], config: Config
+) -> Output:
     """Run every level on a batch of scaled features and return the reconstruction and the total loss.
 
     ``params`` may hold fewer levels than ``config`` (a prefix: used by separate, level-by-level training).
@@ -279,16 +309,18 @@ def forward(params: tuple[dict, ...], x: Float[Array, "b v 9"], rings: Rings, di
         rec_l = jnp.mean(err, axis=-1)  # L_recon of each block: the paper's mean over shapes of the summed squares
         sparse_l = level_sparsity(p, dist, config, level)
         latent_l = jax.vmap(lambda zz: latent_bound(zz, config.theta))(z)
-        total = total + jnp.sum(config.lambda_recon * rec_l + config.lambda_sparse * sparse_l
-                                + config.lambda_latent * latent_l)
+        total = total + jnp.sum(
+            config.lambda_recon * rec_l + config.lambda_sparse * sparse_l + config.lambda_latent * latent_l
+        )
         recon = recon + jnp.sum(x_hat, axis=0)
         terms.append({"recon": jnp.sum(rec_l), "sparsity": jnp.sum(sparse_l), "latent": jnp.sum(latent_l)})
         latents.append(z)
     return Output(recon, total, terms, tuple(latents))
 
 
-def decode_latents(params: tuple[dict, ...], latents: tuple, rings: Rings,
-                   config: Config | None = None) -> Float[Array, "b v 9"]:
+def decode_latents(
+    params: tuple[dict, ...], latents: tuple, rings: Rings, config: Config | None = None
+) -> Float[Array, "b v 9"]:
     """Scaled features (B, V, 9) from latent codes: the sum over every block of its decoder output.
 
     ``latents[l]`` has shape (n_l, B, Kz_l), as in :attr:`Output.latents`; a block's output depends on its own

@@ -40,9 +40,9 @@ import dataclasses
 import json
 import time
 import warnings
+from collections.abc import Callable
 from concurrent.futures import ThreadPoolExecutor
 from pathlib import Path
-from typing import Callable
 
 import jax
 import jax.numpy as jnp
@@ -102,7 +102,10 @@ CONFIGS: dict[str, dict[str, tuple[model.Config | None, train.TrainConfig]]] = {
         "test": (_multiscale(kz=(3, 2)), train.TrainConfig(epochs=30)),
         "test-no-attention": (_multiscale(kz=(3, 2), attention=False), train.TrainConfig(epochs=30)),
         "test-separate": (_multiscale(kz=(3, 2)), train.TrainConfig(epochs=30, joint=False)),
-        "test-no-attention-separate": (_multiscale(kz=(3, 2), attention=False), train.TrainConfig(epochs=30, joint=False)),
+        "test-no-attention-separate": (
+            _multiscale(kz=(3, 2), attention=False),
+            train.TrainConfig(epochs=30, joint=False),
+        ),
         "test-levels1": (_multiscale(kz=(3,), d=(0.4,)), train.TrainConfig(epochs=30)),
         "test-levels3": (_multiscale(kz=(3, 2, 2), d=(0.4, 0.2, 0.1)), train.TrainConfig(epochs=30)),
         "test-latent-tanh": (_multiscale(kz=(3, 2), latent="tanh"), train.TrainConfig(epochs=30)),
@@ -120,7 +123,6 @@ CONFIGS: dict[str, dict[str, tuple[model.Config | None, train.TrainConfig]]] = {
 N_LINEAR = {"default": 50, "test": 8}
 
 
-
 def resolve_config(method: str, name: str, epochs: int | None = None, seed: int | None = None):
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r}; expected one of {', '.join(METHODS)}.")
@@ -136,8 +138,9 @@ def resolve_config(method: str, name: str, epochs: int | None = None, seed: int 
     return cfg, tc
 
 
-def stale_reason(record: dict, method: str, name: str, epochs: int | None = None,
-                 split: str | None = None) -> str | None:
+def stale_reason(
+    record: dict, method: str, name: str, epochs: int | None = None, split: str | None = None
+) -> str | None:
     """Why a stored run (its run.json ``record``) is not what ``resolve_config(method, name, epochs)`` and this
     code's feature preparation would train now, or None. The epoch count is compared only when ``epochs`` is
     given (a run trained with ``--epochs N`` is reused by a later call without it), the split only when ``split``
@@ -208,16 +211,21 @@ def check_nondegenerate(vertices: np.ndarray, faces: np.ndarray, where: str) -> 
     lengths = np.linalg.norm(vertices[:, edges[:, 0]] - vertices[:, edges[:, 1]], axis=-1)  # (N, 3F)
     if np.any(lengths <= 0):
         k, e = np.argwhere(lengths <= 0)[0]
-        raise DegenerateMeshError(f"{where}: shape {k} has a zero-length edge (vertices {edges[e, 0]} and "
-                                  f"{edges[e, 1]} coincide); a components run needs every edge of positive length.")
+        raise DegenerateMeshError(
+            f"{where}: shape {k} has a zero-length edge (vertices {edges[e, 0]} and "
+            f"{edges[e, 1]} coincide); a components run needs every edge of positive length."
+        )
     bad = zero_area_faces(vertices[0], faces)
     if bad.size:
-        raise DegenerateMeshError(f"{where}: the rest shape (shape 0) has {bad.size} zero-area face(s), the first "
-                                  f"face {bad[0]}; its geodesic distances need a mesh without them.")
+        raise DegenerateMeshError(
+            f"{where}: the rest shape (shape 0) has {bad.size} zero-area face(s), the first "
+            f"face {bad[0]}; its geodesic distances need a mesh without them."
+        )
 
 
-def fit_feature_transform(train_features: np.ndarray, scale_quantile: float = SCALE_QUANTILE,
-                          align: bool = True) -> tuple[np.ndarray | None, acap.Scaler]:
+def fit_feature_transform(
+    train_features: np.ndarray, scale_quantile: float = SCALE_QUANTILE, align: bool = True
+) -> tuple[np.ndarray | None, acap.Scaler]:
     """What the ACAP methods fit on the training shapes' features (N, V, 9) before learning: the rotation
     reference the 2 pi branches are aligned to (None with ``align=False``: per-shape branches) and the feature
     scaler, fitted on the aligned features at ``scale_quantile``. Apply both with :func:`apply_feature_transform`."""
@@ -227,8 +235,9 @@ def fit_feature_transform(train_features: np.ndarray, scale_quantile: float = SC
     return turns, acap.Scaler.fit(aligned, scale_quantile)
 
 
-def apply_feature_transform(features: np.ndarray, turns: np.ndarray | None, scaler: acap.Scaler,
-                            dtype=None) -> np.ndarray:
+def apply_feature_transform(
+    features: np.ndarray, turns: np.ndarray | None, scaler: acap.Scaler, dtype=None
+) -> np.ndarray:
     """Features (N, V, 9) as the ACAP methods see them: branches aligned to ``turns`` (when given), then scaled."""
     dtype = np.asarray(features).dtype if dtype is None else np.dtype(dtype)
     feats = np.asarray(features, dtype)
@@ -246,18 +255,33 @@ def normalized_geodesics(rest: np.ndarray, faces: np.ndarray, dtype=np.float32) 
 
 
 def _json_config(cfg) -> dict | None:
-    return None if cfg is None else {k: (list(v) if isinstance(v, tuple) else v)
-                                     for k, v in dataclasses.asdict(cfg).items()}
+    return (
+        None
+        if cfg is None
+        else {k: (list(v) if isinstance(v, tuple) else v) for k, v in dataclasses.asdict(cfg).items()}
+    )
 
 
 def _model_config(d: dict) -> model.Config:
     return model.Config(**{k: (tuple(v) if isinstance(v, list) else v) for k, v in d.items()})
 
 
-def fit(out: Path, data, method: str = "multiscale", config: str = "default", *, epochs: int | None = None,
-        seed: int | None = None, split: str = "every10", split_seed: int = 0, progress: bool = True,
-        scale_quantile: float = SCALE_QUANTILE, dtype=np.float32, log: Callable[[str], None] = print,
-        loaded: tuple[np.ndarray, np.ndarray] | None = None) -> dict:
+def fit(
+    out: Path,
+    data,
+    method: str = "multiscale",
+    config: str = "default",
+    *,
+    epochs: int | None = None,
+    seed: int | None = None,
+    split: str = "every10",
+    split_seed: int = 0,
+    progress: bool = True,
+    scale_quantile: float = SCALE_QUANTILE,
+    dtype=np.float32,
+    log: Callable[[str], None] = print,
+    loaded: tuple[np.ndarray, np.ndarray] | None = None,
+) -> dict:
     """Train ``method`` on the training split of ``data`` and write the run into ``out`` (an empty folder).
 
     ``loaded``: ``load_data(data)``'s result where the caller has it already (the CLI checks the data first).
@@ -268,11 +292,17 @@ def fit(out: Path, data, method: str = "multiscale", config: str = "default", *,
     vertices, faces = load_data(data) if loaded is None else loaded
     train_idx, test_idx = split_indices(vertices.shape[0], split, split_seed)
     rest = vertices[0]
-    record = {"method": method, "config_name": config, "config": _json_config(cfg), "train_config": _json_config(tc),
-              "data": str(data), "split": {"mode": split, "seed": split_seed, "train": train_idx.tolist(),
-                                           "test": test_idx.tolist()},
-              "n_shapes": int(vertices.shape[0]), "n_vertices": int(vertices.shape[1]),
-              "dtype": np.dtype(dtype).name}
+    record = {
+        "method": method,
+        "config_name": config,
+        "config": _json_config(cfg),
+        "train_config": _json_config(tc),
+        "data": str(data),
+        "split": {"mode": split, "seed": split_seed, "train": train_idx.tolist(), "test": test_idx.tolist()},
+        "n_shapes": int(vertices.shape[0]),
+        "n_vertices": int(vertices.shape[1]),
+        "dtype": np.dtype(dtype).name,
+    }
     scaler = turns = None
     t0 = time.perf_counter()
     record["timing"] = {}
@@ -292,10 +322,21 @@ def fit(out: Path, data, method: str = "multiscale", config: str = "default", *,
     if method in AUTOENCODERS:
         rings = rings_from_topology(build_topology(faces, rest.shape[0]))
         timing: dict = {}
-        log(f"training {method} ({config}) on {len(train_idx)} shapes x {rest.shape[0]} vertices, "
-            f"{tc.epochs} epochs{'' if tc.joint else ' per level'}")
-        params, history = train.train(x, rings, dist, cfg, tc, checkpoint_dir=out / "params",
-                                      checkpoint_every=max(tc.epochs // 10, 1), progress=progress, timing=timing)
+        log(
+            f"training {method} ({config}) on {len(train_idx)} shapes x {rest.shape[0]} vertices, "
+            f"{tc.epochs} epochs{'' if tc.joint else ' per level'}"
+        )
+        params, history = train.train(
+            x,
+            rings,
+            dist,
+            cfg,
+            tc,
+            checkpoint_dir=out / "params",
+            checkpoint_every=max(tc.epochs // 10, 1),
+            progress=progress,
+            timing=timing,
+        )
         record["timing"].update(timing)
         np.save(out / "history.npy", history)
         final = model.forward(params, jnp.asarray(x), rings, jnp.asarray(dist), cfg)
@@ -392,8 +433,10 @@ def read_record(path: Path) -> dict:
     try:
         record = json.loads((path / "run.json").read_text())
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
-        raise RunError(f"{path / 'run.json'} is not a readable run record ({exc.__class__.__name__}: it is "
-                       "empty, truncated or not JSON).") from None
+        raise RunError(
+            f"{path / 'run.json'} is not a readable run record ({exc.__class__.__name__}: it is "
+            "empty, truncated or not JSON)."
+        ) from None
     if not isinstance(record, dict) or any(k not in record for k in RECORD_KEYS):
         missing = [k for k in RECORD_KEYS if not isinstance(record, dict) or k not in record]
         raise RunError(f"{path / 'run.json'} is not a components run record (it lacks {', '.join(missing)}).")
@@ -420,14 +463,17 @@ def load(path) -> Run:
             raise RunError(f"{path}: model.npz is missing.")
         linear = baselines.load(path / "model.npz")
     turns = np.asarray(arrays["turn_reference"]) if "turn_reference" in arrays else None
-    return Run(path, record, np.asarray(arrays["rest"]), np.asarray(arrays["faces"]), scaler, cfg, params, linear,
-               turns)
+    return Run(
+        path, record, np.asarray(arrays["rest"]), np.asarray(arrays["faces"]), scaler, cfg, params, linear, turns
+    )
 
 
 def _check_data(run: Run, vertices: np.ndarray, faces: np.ndarray, where: str) -> None:
     if vertices.shape[0] != run.record["n_shapes"]:
-        raise RunError(f"{where} holds {vertices.shape[0]} shapes but the run was trained on a set of "
-                       f"{run.record['n_shapes']}; pass the same data folder.")
+        raise RunError(
+            f"{where} holds {vertices.shape[0]} shapes but the run was trained on a set of "
+            f"{run.record['n_shapes']}; pass the same data folder."
+        )
     check_same_connectivity(run.faces, faces, run.rest.shape[0], vertices.shape[1], where)
 
 
@@ -470,15 +516,19 @@ def reconstruct(run: Run, vertices: np.ndarray) -> dict:
 
 
 def _reconstruct_features(params, x, rings, config, chunk: int = 16):
-    return jnp.concatenate([train.reconstruct(params, x[i:i + chunk], rings, config)
-                            for i in range(0, x.shape[0], chunk)])
+    return jnp.concatenate(
+        [train.reconstruct(params, x[i : i + chunk], rings, config) for i in range(0, x.shape[0], chunk)]
+    )
 
 
 def set_metrics(ref: np.ndarray, rec: dict, faces: np.ndarray) -> dict:
     per_shape = metrics.erms_per_shape(ref, rec["positions"])  # one normalization; their RMS is the set's Erms
-    out = {"shapes": int(ref.shape[0]), "erms": float(np.sqrt(np.mean(per_shape**2))),
-           "erms_per_shape": [round(float(e), 4) for e in per_shape],
-           "sted": float(metrics.sted(ref, rec["positions"], faces, temporal=False)["sted"])}
+    out = {
+        "shapes": int(ref.shape[0]),
+        "erms": float(np.sqrt(np.mean(per_shape**2))),
+        "erms_per_shape": [round(float(e), 4) for e in per_shape],
+        "sted": float(metrics.sted(ref, rec["positions"], faces, temporal=False)["sted"]),
+    }
     if "scaled" in rec:
         rse = metrics.relative_squared_error(rec["scaled"], rec["scaled_hat"])
         out["max_relative_squared_error"] = float(rse.max())
@@ -523,8 +573,9 @@ def components(run: Run):
     peak = w[np.argmax(np.abs(w), axis=0), np.arange(w.shape[1])]  # signed largest training weight
     weight = float(lin.scale) * peak
     if lin.domain == "acap":
-        cs = extract.from_arrays(np.asarray(lin.components), "acap", scaler=run.scaler, weight=weight,
-                                 method=run.method)
+        cs = extract.from_arrays(
+            np.asarray(lin.components), "acap", scaler=run.scaler, weight=weight, method=run.method
+        )
         base = np.asarray(run.scaler.inverse(jnp.asarray(lin.mean)))
     else:
         cs = extract.from_arrays(np.asarray(lin.components), "xyz", weight=weight, method=run.method)
@@ -595,8 +646,16 @@ class Editor:
         from jaxdeform.components import edit as ed
 
         rest_arg = self._acap() if self.space == "features" else self.run.rest
-        return ed.edit_error(self.decode, self.latent0, rest_arg, self.run.scaler, ground_truth, n_controls,
-                             space=self.space, **self._options(kw))
+        return ed.edit_error(
+            self.decode,
+            self.latent0,
+            rest_arg,
+            self.run.scaler,
+            ground_truth,
+            n_controls,
+            space=self.space,
+            **self._options(kw),
+        )
 
 
 def editor(run: Run) -> Editor:
@@ -614,7 +673,7 @@ def editor(run: Run) -> Editor:
         def decode(w):
             parts, start = [], 0
             for s, n in zip(shapes, sizes):
-                parts.append(w[start:start + n].reshape(s))
+                parts.append(w[start : start + n].reshape(s))
                 start += n
             return model.decode_latents(params, tuple(parts), rings)[0]
 
@@ -650,8 +709,10 @@ def read_controls(path) -> tuple[np.ndarray, np.ndarray]:
                 rows = np.loadtxt(path, ndmin=2)
             idx, tgt = rows[:, 0], rows[:, 1:]
     except (ValueError, KeyError, TypeError, json.JSONDecodeError) as exc:
-        raise RunError(f"{path}: cannot read control points ({exc}); expected JSON with 'indices' and "
-                       f"'targets' or lines 'index x y z'.") from None
+        raise RunError(
+            f"{path}: cannot read control points ({exc}); expected JSON with 'indices' and "
+            f"'targets' or lines 'index x y z'."
+        ) from None
     if idx.ndim != 1 or idx.size == 0 or tgt.shape != (idx.size, 3):
         raise RunError(f"{path}: expected M >= 1 control indices and an (M, 3) array of targets.")
     if not np.all(np.isfinite(idx)) or np.any(np.abs(idx) > 2**53) or not np.all(idx == np.round(idx)):

@@ -25,8 +25,8 @@ from __future__ import annotations
 import dataclasses
 import functools
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 import jax
 import jax.numpy as jnp
@@ -48,7 +48,7 @@ class TrainConfig:
     # Exponential decay, lr * decay_rate ** (step / decay_steps): the paper gives no rate. 0.1 ** 0.1 takes the
     # rate to 1e-4 over the 10,000 epochs; a slower decay (0.96 per 1,000 steps) lets Adam's oscillation grow
     # into a loss explosion late in horse-gallop training (docs/seed000-components.md).
-    decay_rate: float = 0.1 ** 0.1
+    decay_rate: float = 0.1**0.1
     decay_steps: int = 1000
     seed: int = 0
     joint: bool = True  # False: level-by-level ("separate") training, Table 4
@@ -85,8 +85,16 @@ def step_batch(n_data: int, tc: TrainConfig) -> int:
     return min(int(n_data), tc.batch)
 
 
-def make_step(config: model.Config, tc: TrainConfig, rings: Rings, dist, stage: int | None = None, *,
-              mesh: jax.sharding.Mesh | None = None, axis: str = parallel.BATCH) -> Callable:
+def make_step(
+    config: model.Config,
+    tc: TrainConfig,
+    rings: Rings,
+    dist,
+    stage: int | None = None,
+    *,
+    mesh: jax.sharding.Mesh | None = None,
+    axis: str = parallel.BATCH,
+) -> Callable:
     """The jitted step (params, opt_state, key, data) -> (params, opt_state, key, loss, terms): the loss's
     gradient (every term of eq. (2), the group sparsity's included) through :func:`optimizer` and
     ``optax.apply_updates``.
@@ -176,8 +184,14 @@ class _Checkpoints:
 
 
 def _state(params, opt_state, key, history, stage_index, epoch):
-    return {"params": params, "opt_state": opt_state, "key": key, "history": history,
-            "stage": np.int32(stage_index), "epoch": np.int32(epoch)}
+    return {
+        "params": params,
+        "opt_state": opt_state,
+        "key": key,
+        "history": history,
+        "stage": np.int32(stage_index),
+        "epoch": np.int32(epoch),
+    }
 
 
 def seed_keys(seed: int) -> tuple:
@@ -210,7 +224,7 @@ def _resume(ckpt: _Checkpoints, tc: TrainConfig, stages: list[int | None], param
 def _full_params(sub, params: tuple, stage: int | None) -> tuple:
     """Every level's parameters: the trained ``sub`` (all levels, or levels 0..``stage``) followed by the levels
     of ``params`` after ``stage``."""
-    return sub if stage is None else tuple(sub) + tuple(params[stage + 1:])
+    return sub if stage is None else tuple(sub) + tuple(params[stage + 1 :])
 
 
 class _StageLosses:
@@ -229,7 +243,7 @@ class _StageLosses:
 
     def flush(self, upto: int) -> None:
         """Write the losses of epochs < ``upto`` into ``history`` with one device_get."""
-        self.history[self.base + self.on_host: self.base + upto] = host_scalars(self.losses)
+        self.history[self.base + self.on_host : self.base + upto] = host_scalars(self.losses)
         self.losses, self.on_host = [], upto
 
 
@@ -295,8 +309,9 @@ class _Run:
         losses.flush(tc.epochs)
         return _full_params(sub, params, stage), key
 
-    def _after_epoch(self, stage_index: int, epoch: int, loss, terms, sub, opt_state, key, params: tuple,
-                     losses: _StageLosses) -> None:
+    def _after_epoch(
+        self, stage_index: int, epoch: int, loss, terms, sub, opt_state, key, params: tuple, losses: _StageLosses
+    ) -> None:
         """Log, progress, snapshot and checkpoint after ``epoch`` of stage ``stage_index``, each when due.
 
         ``sub``, ``opt_state``, ``key`` are the state after the epoch's step, ``params`` every level's parameters
@@ -337,11 +352,26 @@ class _Run:
         self.ckpt.save(base + done, saved)
 
 
-def train(data, rings: Rings, dist, config: model.Config, tc: TrainConfig, *, params=None,
-          checkpoint_dir=None, checkpoint_every: int = 1000, resume: bool = False, progress: bool = False,
-          log: Callable[[int, float, dict], None] | None = None, log_every: int = 100,
-          timing: dict | None = None, snapshot: Callable[[int, tuple], None] | None = None,
-          snapshot_every: int = 1000, mesh: jax.sharding.Mesh | None = None, axis: str = parallel.BATCH):
+def train(
+    data,
+    rings: Rings,
+    dist,
+    config: model.Config,
+    tc: TrainConfig,
+    *,
+    params=None,
+    checkpoint_dir=None,
+    checkpoint_every: int = 1000,
+    resume: bool = False,
+    progress: bool = False,
+    log: Callable[[int, float, dict], None] | None = None,
+    log_every: int = 100,
+    timing: dict | None = None,
+    snapshot: Callable[[int, tuple], None] | None = None,
+    snapshot_every: int = 1000,
+    mesh: jax.sharding.Mesh | None = None,
+    axis: str = parallel.BATCH,
+):
     """Train for ``tc.epochs`` epochs (per level when ``tc.joint`` is False).
 
     Returns (params, loss history (stages * epochs,)). ``params``: start from these instead of a fresh
@@ -377,10 +407,32 @@ def train(data, rings: Rings, dist, config: model.Config, tc: TrainConfig, *, pa
     if progress:
         from tqdm.auto import tqdm
 
-        bar = tqdm(total=len(stages) * tc.epochs, initial=start_stage * tc.epochs + start_epoch,
-                   desc="components train", unit="epoch", dynamic_ncols=True)
-    run = _Run(data, rings, dist, config, tc, stages, history, mesh, axis, log, log_every, bar, snapshot,
-               snapshot_every, ckpt, checkpoint_every, timing)
+        bar = tqdm(
+            total=len(stages) * tc.epochs,
+            initial=start_stage * tc.epochs + start_epoch,
+            desc="components train",
+            unit="epoch",
+            dynamic_ncols=True,
+        )
+    run = _Run(
+        data,
+        rings,
+        dist,
+        config,
+        tc,
+        stages,
+        history,
+        mesh,
+        axis,
+        log,
+        log_every,
+        bar,
+        snapshot,
+        snapshot_every,
+        ckpt,
+        checkpoint_every,
+        timing,
+    )
     for stage_index in range(start_stage, len(stages)):
         first = start_epoch if stage_index == start_stage else 0
         params, key = run.stage(stage_index, first, params, opt_state, key)

@@ -234,8 +234,15 @@ def bending_tube_sequence(
     phi = ang[None, None, :] + twist[:, :, None]  # (N, L, A)
     rng = np.random.default_rng(seed)
     r = radius + _bump_field(
-        rng, n_frames, n_around, n_along, int(n_bumps), float(bump_amplitude), float(bump_width),
-        float(radius), float(length),
+        rng,
+        n_frames,
+        n_around,
+        n_along,
+        int(n_bumps),
+        float(bump_amplitude),
+        float(bump_width),
+        float(radius),
+        float(length),
     )
     verts = (
         centre[:, :, None, :]
@@ -248,8 +255,16 @@ def bending_tube_sequence(
     return verts, _tube_faces(n_around, n_along)
 
 
-def twisted_bar(n_along: int = 48, width: float = 1.0, depth: float = 0.3, length: float = 4.0,
-                twist_turns: float = 0.375, bend: float = 0.6, n_width: int = 8, n_depth: int = 4):
+def twisted_bar(
+    n_along: int = 48,
+    width: float = 1.0,
+    depth: float = 0.3,
+    length: float = 4.0,
+    twist_turns: float = 0.375,
+    bend: float = 0.6,
+    n_width: int = 8,
+    n_depth: int = 4,
+):
     """A closed rectangular bar along ``y``, twisted about its axis and bent in ``x``: no mirror symmetry.
 
     The cross-section (``width`` x ``depth`` in ``x``, ``z``) at height ``y = s length`` (``s`` in [0, 1]) turns
@@ -263,12 +278,14 @@ def twisted_bar(n_along: int = 48, width: float = 1.0, depth: float = 0.3, lengt
     # the rectangle's boundary, counter-clockwise seen from +y, as one closed ring of points
     xs = np.linspace(-width / 2, width / 2, n_width + 1)
     zs = np.linspace(-depth / 2, depth / 2, n_depth + 1)
-    ring = np.concatenate([
-        np.stack([xs[:-1], np.full(n_width, zs[-1])], 1),
-        np.stack([np.full(n_depth, xs[-1]), zs[::-1][:-1]], 1),
-        np.stack([xs[::-1][:-1], np.full(n_width, zs[0])], 1),
-        np.stack([np.full(n_depth, xs[0]), zs[:-1]], 1),
-    ])
+    ring = np.concatenate(
+        [
+            np.stack([xs[:-1], np.full(n_width, zs[-1])], 1),
+            np.stack([np.full(n_depth, xs[-1]), zs[::-1][:-1]], 1),
+            np.stack([xs[::-1][:-1], np.full(n_width, zs[0])], 1),
+            np.stack([np.full(n_depth, xs[0]), zs[:-1]], 1),
+        ]
+    )
     m = ring.shape[0]
     s = np.linspace(0.0, 1.0, n_along)
     ang = 2 * np.pi * twist_turns * s

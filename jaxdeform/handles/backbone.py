@@ -312,8 +312,14 @@ def extract_patch_features(
 
 def _dinov2_config(state: Mapping[str, np.ndarray], num_heads: int | None, offset: float) -> ViTConfig:
     """Infer the ViT shape from DINOv2-named tensors (raises on missing keys / non-ViT contents)."""
-    required = ["cls_token", "pos_embed", "patch_embed.proj.weight", "patch_embed.proj.bias", "norm.weight",
-                "norm.bias"]
+    required = [
+        "cls_token",
+        "pos_embed",
+        "patch_embed.proj.weight",
+        "patch_embed.proj.bias",
+        "norm.weight",
+        "norm.bias",
+    ]
     missing = [k for k in required if k not in state]
     if missing:
         raise JaxDeformError(f"not a DINOv2 ViT checkpoint: tensor(s) {', '.join(missing)} missing.")
@@ -338,9 +344,16 @@ def _dinov2_config(state: Mapping[str, np.ndarray], num_heads: int | None, offse
     if heads < 1 or dim % heads:
         raise JaxDeformError(f"cannot split width {dim} into heads of 64; pass num_heads explicitly.")
     registers = int(state["register_tokens"].shape[-2]) if "register_tokens" in state else 0
-    return ViTConfig(dim=dim, depth=depth, heads=heads, mlp_dim=int(state["blocks.0.mlp.fc1.weight"].shape[0]),
-                     patch_size=int(proj.shape[-1]), registers=registers, pos_grid=grid,
-                     interpolate_offset=offset)
+    return ViTConfig(
+        dim=dim,
+        depth=depth,
+        heads=heads,
+        mlp_dim=int(state["blocks.0.mlp.fc1.weight"].shape[0]),
+        patch_size=int(proj.shape[-1]),
+        registers=registers,
+        pos_grid=grid,
+        interpolate_offset=offset,
+    )
 
 
 def vit_from_dinov2_state(
@@ -536,8 +549,7 @@ def _block_tensors(hf: dict[str, np.ndarray], i: int, out: dict[str, np.ndarray]
         out[f"{b}.norm1.{suffix}"] = hf[f"{h}.norm1.{suffix}"]
         out[f"{b}.norm2.{suffix}"] = hf[f"{h}.norm2.{suffix}"]
     # (in, out) MatMul weights -> torch (out, in)
-    out[f"{b}.attn.qkv.weight"] = np.concatenate(
-        [hf[f"{att}.{n}.weight"].T for n in ("query", "key", "value")], axis=0)
+    out[f"{b}.attn.qkv.weight"] = np.concatenate([hf[f"{att}.{n}.weight"].T for n in ("query", "key", "value")], axis=0)
     out[f"{b}.attn.qkv.bias"] = np.concatenate([hf[f"{att}.{n}.bias"] for n in ("query", "key", "value")])
     out[f"{b}.attn.proj.weight"] = hf[f"{h}.attention.output.dense.weight"].T
     out[f"{b}.attn.proj.bias"] = hf[f"{h}.attention.output.dense.bias"]

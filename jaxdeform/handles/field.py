@@ -218,8 +218,23 @@ def _tx(lr: float) -> optax.GradientTransformation:
 
 
 @functools.partial(jax.jit, static_argnames=("graphdef", "batch_size", "lr", "image_hw"))
-def _train_step(graphdef, params, rest, opt_state, key, step, points, view_idx, pixel_yx, patch_feats, jitter, *,
-                batch_size: int, lr: float, image_hw: tuple[int, int]):
+def _train_step(
+    graphdef,
+    params,
+    rest,
+    opt_state,
+    key,
+    step,
+    points,
+    view_idx,
+    pixel_yx,
+    patch_feats,
+    jitter,
+    *,
+    batch_size: int,
+    lr: float,
+    image_hw: tuple[int, int],
+):
     """One Adam step on a uniform minibatch of covered pixels; returns (params, opt_state, loss).
 
     ``jitter`` (world units, traced) is the std of a Gaussian offset added to each drawn surface point.
@@ -304,8 +319,9 @@ def distill(
         feats = feats.astype(jnp.float32)
     half_diag = 0.5 * float(np.linalg.norm(np.asarray(bbox[1], np.float64) - np.asarray(bbox[0], np.float64)))
     jitter = jnp.float32(config.jitter * half_diag)
-    step_fn = functools.partial(_train_step, graphdef, batch_size=int(config.batch_size),
-                                lr=float(config.learning_rate), image_hw=hw)
+    step_fn = functools.partial(
+        _train_step, graphdef, batch_size=int(config.batch_size), lr=float(config.learning_rate), image_hw=hw
+    )
 
     from tqdm.auto import tqdm
 

@@ -21,7 +21,8 @@ from __future__ import annotations
 
 import os
 import time
-from dataclasses import dataclass, field as dc_field
+from dataclasses import dataclass
+from dataclasses import field as dc_field
 
 import numpy as np
 
@@ -42,6 +43,7 @@ class DistillConfig:
     def __post_init__(self):
         if self.mirror not in ("alternate", "none"):
             raise ValueError(f"mirror must be 'alternate' or 'none', got {self.mirror!r}.")
+
     field: object = None  # a field.FieldConfig; None = its defaults
 
     def field_config(self):
@@ -85,8 +87,9 @@ def load_mesh_file(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
         raise DegenerateMeshError(f"{path}: {exc}") from None
 
 
-def distill_mesh(vertices, faces, *, config: DistillConfig = DistillConfig(), backbone=None,
-                 progress: bool = True) -> Distilled:
+def distill_mesh(
+    vertices, faces, *, config: DistillConfig = DistillConfig(), backbone=None, progress: bool = True
+) -> Distilled:
     """Render, extract 2D features and distil them into a feature field; stage timings in ``.timings``."""
     from jaxdeform.handles import field as fieldmod
     from jaxdeform.handles import views
@@ -110,8 +113,16 @@ def distill_mesh(vertices, faces, *, config: DistillConfig = DistillConfig(), ba
         patches[1::2] = patches[1::2, :, ::-1]
     t2 = time.perf_counter()
     fcfg = config.field_config()
-    fitted, history = fieldmod.distill(cov.points, cov.view, cov.pixel_yx, patches, rendered.image_hw, fcfg,
-                                       progress=progress, bbox=(v.min(axis=0), v.max(axis=0)))
+    fitted, history = fieldmod.distill(
+        cov.points,
+        cov.view,
+        cov.pixel_yx,
+        patches,
+        rendered.image_hw,
+        fcfg,
+        progress=progress,
+        bbox=(v.min(axis=0), v.max(axis=0)),
+    )
     t3 = time.perf_counter()
     # the field's bounding box and configuration are recorded by field.save_field from the field itself
     meta = {

@@ -43,7 +43,12 @@ import numpy as np
 from jaxdeform.errors import JaxDeformError
 from jaxdeform.handles.session import DRAG_MODES, PICK_ACTIONS, RESET_TARGETS, EditSession
 from jaxdeform.handles.viewport import (  # noqa: F401 - re-exported: the page's constants
-    JPEG_QUALITY, MARKER_RADIUS, ORBIT_DEG_PER_PIXEL, PREVIEW_SCALES, WEIGHT_COLORMAP, WEIGHT_RANGE,
+    JPEG_QUALITY,
+    MARKER_RADIUS,
+    ORBIT_DEG_PER_PIXEL,
+    PREVIEW_SCALES,
+    WEIGHT_COLORMAP,
+    WEIGHT_RANGE,
 )
 
 log = logging.getLogger(__name__)
@@ -139,23 +144,33 @@ def _drag(s: EditSession, body: dict) -> dict:
     return s.state()
 
 
-_OPTIONS = {"locality": "locality", "lambda": "lam", "symmetric": "symmetric", "pou": "pou",
-            "show_weights": "show_weights"}
+_OPTIONS = {
+    "locality": "locality",
+    "lambda": "lam",
+    "symmetric": "symmetric",
+    "pou": "pou",
+    "show_weights": "show_weights",
+}
 
 
 def _options(s: EditSession, body: dict) -> dict:
     unknown = sorted(set(body) - set(_OPTIONS))
     if unknown:
         raise BadRequest(f"unknown option '{unknown[0]}'; the options are {', '.join(sorted(_OPTIONS))}.")
-    values = {name: (_optional_number(body, key) if key == "lambda" else _flag(body, key))
-              for key, name in _OPTIONS.items()}
+    values = {
+        name: (_optional_number(body, key) if key == "lambda" else _flag(body, key)) for key, name in _OPTIONS.items()
+    }
     s.set_options(**values)
     return s.state()
 
 
 def _view(s: EditSession, body: dict) -> dict:
-    s.set_view(zoom=_optional_number(body, "zoom"), azimuth=_optional_number(body, "azimuth"),
-               elevation=_optional_number(body, "elevation"), reset=bool(body.get("reset")))
+    s.set_view(
+        zoom=_optional_number(body, "zoom"),
+        azimuth=_optional_number(body, "azimuth"),
+        elevation=_optional_number(body, "elevation"),
+        reset=bool(body.get("reset")),
+    )
     return s.state()
 
 
@@ -190,8 +205,13 @@ def _reset(s: EditSession, body: dict) -> dict:
 
 
 POST_ROUTES: dict[str, Callable[[EditSession, dict], dict]] = {
-    "/api/pick": _pick, "/api/drag": _drag, "/api/options": _options, "/api/view": _view,
-    "/api/handle": _handle_edit, "/api/anchor": _anchor, "/api/reset": _reset,
+    "/api/pick": _pick,
+    "/api/drag": _drag,
+    "/api/options": _options,
+    "/api/view": _view,
+    "/api/handle": _handle_edit,
+    "/api/anchor": _anchor,
+    "/api/reset": _reset,
 }
 
 
@@ -260,7 +280,7 @@ class _Handler(BaseHTTPRequestHandler):
         if path in ("/", "/index.html"):
             self._static("index.html")
         elif path.startswith("/static/"):
-            self._static(path[len("/static/"):])
+            self._static(path[len("/static/") :])
         elif path == "/favicon.ico":
             self._send(HTTPStatus.NO_CONTENT, b"", "image/x-icon")
         elif path == "/api/mesh-info":

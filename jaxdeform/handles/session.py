@@ -24,8 +24,17 @@ import numpy as np
 from PIL import Image
 
 from jaxdeform.handles.viewport import (
-    MARKER_RADIUS, Viewport, check_array, check_choice, check_image_size, check_index, check_number, compose,
-    interior_pixel, swept_angle, translation_step,
+    MARKER_RADIUS,
+    Viewport,
+    check_array,
+    check_choice,
+    check_image_size,
+    check_index,
+    check_number,
+    compose,
+    interior_pixel,
+    swept_angle,
+    translation_step,
 )
 from jaxdeform.handles.weights import Deformer, make_transform
 
@@ -46,12 +55,18 @@ class Options:
 
     def as_json(self) -> dict:
         """The options as the page names them (``lambda`` for ``lam``)."""
-        return {"locality": self.locality, "lambda": self.lam, "symmetric": self.symmetric, "pou": self.pou,
-                "show_weights": self.show_weights}
+        return {
+            "locality": self.locality,
+            "lambda": self.lam,
+            "symmetric": self.symmetric,
+            "pou": self.pou,
+            "show_weights": self.show_weights,
+        }
 
 
 def _locked(method):
     """``method`` run while holding ``self.lock``."""
+
     @functools.wraps(method)
     def run(self, *args, **kwargs):
         with self.lock:
@@ -70,8 +85,7 @@ class EditSession:
         width, height: the displayed image in pixels, at least 16 each. up_axis: the camera's up axis.
     """
 
-    def __init__(self, vertices, faces, Z, *, field_fn=None, width: int = 512, height: int = 512,
-                 up_axis: str = "y"):
+    def __init__(self, vertices, faces, Z, *, field_fn=None, width: int = 512, height: int = 512, up_axis: str = "y"):
         self.width, self.height = check_image_size(width, height)
         self.rest = np.ascontiguousarray(vertices, dtype=np.float64)
         self.faces = np.ascontiguousarray(faces, dtype=np.int64)
@@ -108,10 +122,16 @@ class EditSession:
             if not self.handles:
                 self.deformed = self.rest.copy()
             else:
-                self.deformed = np.asarray(self.deformer.deform(
-                    np.asarray(self.handles, dtype=np.int64), np.stack(self.transforms), anchors=self._anchor_array(),
-                    locality=self._locality(), symmetric=self.options.symmetric and self.plane is not None,
-                    pou=self.options.pou))
+                self.deformed = np.asarray(
+                    self.deformer.deform(
+                        np.asarray(self.handles, dtype=np.int64),
+                        np.stack(self.transforms),
+                        anchors=self._anchor_array(),
+                        locality=self._locality(),
+                        symmetric=self.options.symmetric and self.plane is not None,
+                        pou=self.options.pou,
+                    )
+                )
             self.timings["deform_ms"] = 1e3 * (time.perf_counter() - t0)
         self.version += 1
 
@@ -148,9 +168,14 @@ class EditSession:
     def deform_args(self) -> dict:
         """Keyword arguments of ``Deformer.deform`` (JSON values) that reproduce the displayed mesh."""
         with self.lock:
-            return {"handles": list(self.handles), "transforms": [t.tolist() for t in self.transforms],
-                    "anchors": list(self.anchors), "locality": self._locality(),
-                    "symmetric": bool(self.options.symmetric), "pou": bool(self.options.pou)}
+            return {
+                "handles": list(self.handles),
+                "transforms": [t.tolist() for t in self.transforms],
+                "anchors": list(self.anchors),
+                "locality": self._locality(),
+                "symmetric": bool(self.options.symmetric),
+                "pou": bool(self.options.pou),
+            }
 
     @_locked
     def mesh_info(self) -> dict:
@@ -158,11 +183,17 @@ class EditSession:
         ``covered_pixel`` ((x, y) inside the displayed silhouette, or None) and ``marker_radius``."""
         hint = interior_pixel(self.view.ray_hits(self.version, self._deformed64(), self.faces).hit)
         return {
-            "n_vertices": int(self.rest.shape[0]), "n_faces": int(self.faces.shape[0]),
-            "n_features": self.n_features, "width": self.width, "height": self.height,
-            "bbox_min": self.rest.min(axis=0).tolist(), "bbox_max": self.rest.max(axis=0).tolist(),
-            "symmetry_available": self.plane is not None, "field_given": self.field_given,
-            "covered_pixel": None if hint is None else list(hint), "marker_radius": MARKER_RADIUS,
+            "n_vertices": int(self.rest.shape[0]),
+            "n_faces": int(self.faces.shape[0]),
+            "n_features": self.n_features,
+            "width": self.width,
+            "height": self.height,
+            "bbox_min": self.rest.min(axis=0).tolist(),
+            "bbox_max": self.rest.max(axis=0).tolist(),
+            "symmetry_available": self.plane is not None,
+            "field_given": self.field_given,
+            "covered_pixel": None if hint is None else list(hint),
+            "marker_radius": MARKER_RADIUS,
         }
 
     @_locked
@@ -171,15 +202,25 @@ class EditSession:
         deform_args, symmetry_plane, camera, width, height, markers (projected handles / anchors) and timings."""
         plane = None
         if self.plane is not None:
-            plane = {"normal": np.asarray(self.plane.normal, dtype=np.float64).tolist(),
-                     "offset": float(self.plane.offset), "score": float(self.plane.score)}
+            plane = {
+                "normal": np.asarray(self.plane.normal, dtype=np.float64).tolist(),
+                "offset": float(self.plane.offset),
+                "score": float(self.plane.score),
+            }
         return {
-            "version": self.version, "handles": list(self.handles),
-            "transforms": [t.tolist() for t in self.transforms], "anchors": list(self.anchors),
-            "selected": self.selected, "options": self.options.as_json(), "deform_args": self.deform_args(),
+            "version": self.version,
+            "handles": list(self.handles),
+            "transforms": [t.tolist() for t in self.transforms],
+            "anchors": list(self.anchors),
+            "selected": self.selected,
+            "options": self.options.as_json(),
+            "deform_args": self.deform_args(),
             "symmetry_plane": plane,
             "camera": self.view.as_json(),
-            "width": self.width, "height": self.height, "markers": self._markers(), "timings": dict(self.timings),
+            "width": self.width,
+            "height": self.height,
+            "markers": self._markers(),
+            "timings": dict(self.timings),
         }
 
     @_locked
@@ -192,8 +233,11 @@ class EditSession:
         """DFD weights (V, K) of the handles under the current anchors and locality ((V, 0) without handles)."""
         if not self.handles:
             return np.zeros((self.rest.shape[0], 0))
-        return np.asarray(self.deformer.weights(np.asarray(self.handles, dtype=np.int64),
-                                                anchors=self._anchor_array(), locality=self._locality()))
+        return np.asarray(
+            self.deformer.weights(
+                np.asarray(self.handles, dtype=np.int64), anchors=self._anchor_array(), locality=self._locality()
+            )
+        )
 
     @_locked
     def selected_weights(self) -> np.ndarray | None:
@@ -264,8 +308,9 @@ class EditSession:
     def set_transform(self, handle: int | None, transform) -> None:
         """Set a handle's (3, 4) affine map (``handle`` None: the selected one); the identity resets it."""
         k = self._handle(handle)
-        self.transforms[k] = check_array(transform, (3, 4),
-                                         "'transform' must be 3 rows of 4 finite numbers (an affine map).")
+        self.transforms[k] = check_array(
+            transform, (3, 4), "'transform' must be 3 rows of 4 finite numbers (an affine map)."
+        )
         self._changed()
 
     def reset_handle(self, handle: int | None = None) -> None:
@@ -344,8 +389,13 @@ class EditSession:
                 self._select(handle)
         elif action == "anchor" and vertex is not None:
             self.toggle_anchor(vertex)
-        return {"hit": tri >= 0, "triangle": tri if tri >= 0 else None, "vertex": vertex,
-                "point": None if point is None else point.tolist(), "handle": handle}
+        return {
+            "hit": tri >= 0,
+            "triangle": tri if tri >= 0 else None,
+            "vertex": vertex,
+            "point": None if point is None else point.tolist(),
+            "handle": handle,
+        }
 
     @_locked
     def drag(self, mode: str, start, end, handle: int | None = None) -> None:
@@ -380,8 +430,15 @@ class EditSession:
     # ----------------------------------------------------------------------------------------- options, view
 
     @_locked
-    def set_options(self, *, locality: bool | None = None, lam: float | None = None, symmetric: bool | None = None,
-                    pou: bool | None = None, show_weights: bool | None = None) -> dict:
+    def set_options(
+        self,
+        *,
+        locality: bool | None = None,
+        lam: float | None = None,
+        symmetric: bool | None = None,
+        pou: bool | None = None,
+        show_weights: bool | None = None,
+    ) -> dict:
         """Change the given options (None keeps one); returns them as :meth:`Options.as_json`.
 
         ``lam`` lies in [0, 100]; ``symmetric`` needs a detected plane (``ValueError`` otherwise). The mesh is
@@ -402,13 +459,20 @@ class EditSession:
         if show_weights is not None:
             new.show_weights = bool(show_weights)
         old, self.options = self.options, new
-        self._changed(geometry=(new.locality, new.lam, new.symmetric, new.pou) !=
-                      (old.locality, old.lam, old.symmetric, old.pou))
+        self._changed(
+            geometry=(new.locality, new.lam, new.symmetric, new.pou) != (old.locality, old.lam, old.symmetric, old.pou)
+        )
         return new.as_json()
 
     @_locked
-    def set_view(self, *, zoom: float | None = None, azimuth: float | None = None, elevation: float | None = None,
-                 reset: bool = False) -> None:
+    def set_view(
+        self,
+        *,
+        zoom: float | None = None,
+        azimuth: float | None = None,
+        elevation: float | None = None,
+        reset: bool = False,
+    ) -> None:
         """Change the camera; see :meth:`Viewport.set` (zoom multiplies the distance; angles in degrees)."""
         self.view.set(zoom=zoom, azimuth=azimuth, elevation=elevation, reset=reset)
         self._changed(geometry=False)

@@ -190,8 +190,14 @@ class Viewport:
         self.elevation = float(np.clip(self.elevation + ORBIT_DEG_PER_PIXEL * (end[1] - start[1]), -89, 89))
         self._update()
 
-    def set(self, *, zoom: float | None = None, azimuth: float | None = None, elevation: float | None = None,
-            reset: bool = False) -> None:
+    def set(
+        self,
+        *,
+        zoom: float | None = None,
+        azimuth: float | None = None,
+        elevation: float | None = None,
+        reset: bool = False,
+    ) -> None:
         """Reset first if ``reset``; ``zoom`` in [0.01, 100] multiplies the camera distance (kept within 0.1 to
         10 times the initial one); ``azimuth`` in [-180, 180], ``elevation`` in [-89, 89] degrees. All arguments
         are checked before anything changes."""
@@ -211,8 +217,15 @@ class Viewport:
     def as_json(self) -> dict:
         """The camera (eye, target, up, fov_deg) and its orbit parameters (azimuth, elevation, zoom)."""
         cam = self.camera
-        return {"eye": list(cam.eye), "target": list(cam.target), "up": list(cam.up), "fov_deg": cam.fov_deg,
-                "azimuth": self.azimuth, "elevation": self.elevation, "zoom": self.zoom}
+        return {
+            "eye": list(cam.eye),
+            "target": list(cam.target),
+            "up": list(cam.up),
+            "fov_deg": cam.fov_deg,
+            "azimuth": self.azimuth,
+            "elevation": self.elevation,
+            "zoom": self.zoom,
+        }
 
     def project(self, points) -> tuple[np.ndarray, np.ndarray]:
         """Display coordinates (P, 2) and depths (P,) of world points (P, 3)."""
@@ -259,8 +272,16 @@ class Viewport:
             self._hits = (version, cast_rays(vertices, faces, self.camera, self.width, self.height))
         return self._hits[1]
 
-    def frame(self, version: int, vertices: np.ndarray, faces: np.ndarray,
-              scalar: Callable[[], np.ndarray | None], scale: int, fmt: str, timings: dict) -> bytes:
+    def frame(
+        self,
+        version: int,
+        vertices: np.ndarray,
+        faces: np.ndarray,
+        scalar: Callable[[], np.ndarray | None],
+        scale: int,
+        fmt: str,
+        timings: dict,
+    ) -> bytes:
         """The mesh rendered and encoded (cached per version, scale and format).
 
         Arguments:
@@ -283,9 +304,18 @@ class Viewport:
         pixels = self._pixels.get(scale)
         if pixels is None or pixels[0] != version:
             t0 = time.perf_counter()
-            img = render(vertices, faces, camera=self.camera, width=max(1, round(self.width / scale)),
-                         height=max(1, round(self.height / scale)), scalar=scalar(), cmap=WEIGHT_COLORMAP,
-                         vmin=WEIGHT_RANGE[0], vmax=WEIGHT_RANGE[1], colorbar=False)
+            img = render(
+                vertices,
+                faces,
+                camera=self.camera,
+                width=max(1, round(self.width / scale)),
+                height=max(1, round(self.height / scale)),
+                scalar=scalar(),
+                cmap=WEIGHT_COLORMAP,
+                vmin=WEIGHT_RANGE[0],
+                vmax=WEIGHT_RANGE[1],
+                colorbar=False,
+            )
             pixels = self._pixels[scale] = (version, img)
             timings[f"render{suffix}_ms"] = 1e3 * (time.perf_counter() - t0)
         t1 = time.perf_counter()

@@ -426,7 +426,9 @@ def detect_symmetry(
         pts = v[np.sort(np.random.default_rng(0).choice(v.shape[0], size=int(max_points), replace=False))]
     f0 = np.asarray(field_fn(pts), dtype=np.float64)
     if f0.ndim != 2 or f0.shape[0] != pts.shape[0]:
-        raise ValueError(f"field_fn must map (P, 3) points to (P, C) features, got shape {f0.shape} for P = {pts.shape[0]}.")
+        raise ValueError(
+            f"field_fn must map (P, 3) points to (P, C) features, got shape {f0.shape} for P = {pts.shape[0]}."
+        )
     planes = []
     for cand in candidate_planes(v, pca=pca):
         f1 = np.asarray(field_fn(reflect_points(cand, pts)), dtype=np.float64)
@@ -555,8 +557,9 @@ class Deformer:
     Order of the weight steps: DFD weights, then locality (eq. 8), then anchors (eq. 7).
     """
 
-    def __init__(self, vertices, faces, Z=None, *, field_fn: Callable[[np.ndarray], np.ndarray] | None = None,
-                 dtype=np.float32):
+    def __init__(
+        self, vertices, faces, Z=None, *, field_fn: Callable[[np.ndarray], np.ndarray] | None = None, dtype=np.float32
+    ):
         v = np.asarray(vertices, dtype=np.float64)
         if v.ndim != 2 or v.shape[1] != 3 or v.shape[0] == 0 or not np.all(np.isfinite(v)):
             raise ValueError(f"vertices must be a non-empty finite (V, 3) array, got shape {v.shape}.")
@@ -629,8 +632,9 @@ class Deformer:
         W, k = self._padded_weights(handles, anchors, locality)
         return np.array(W[:, :k])
 
-    def deform(self, handles, transforms, *, anchors=(), locality: float = 0.0, symmetric: bool = False,
-               pou: bool = False) -> np.ndarray:
+    def deform(
+        self, handles, transforms, *, anchors=(), locality: float = 0.0, symmetric: bool = False, pou: bool = False
+    ) -> np.ndarray:
         """Deformed vertices (V, 3) for one (3, 4) affine transform per handle (eq. 1, 9 or 10).
 
         The weights of the last request are reused (pou: their normalised eq.-10 form too), so a new frame of the

@@ -24,7 +24,20 @@ _WHERE = {
     "save_sequence": "io",
 }
 
-__all__ = sorted(_WHERE)
+__all__ = [
+    "Topology",
+    "build_topology",
+    "cot_laplacian",
+    "cotangent_weights",
+    "face_areas",
+    "face_normals",
+    "laplacian_coo",
+    "load_mesh",
+    "load_sequence",
+    "save_mesh",
+    "save_sequence",
+    "vertex_normals",
+]
 
 if TYPE_CHECKING:
     from jaxdeform.mesh.geometry import (

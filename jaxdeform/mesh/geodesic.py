@@ -162,7 +162,9 @@ def _exact(v: np.ndarray, f: np.ndarray, s: np.ndarray) -> np.ndarray:
             continue
         local = comps.local_index(ids, int(src))
         # Without explicit targets (VT) igl.exact_geodesic returns an empty array.
-        d = igl.exact_geodesic(vc, fc, np.array([local], dtype=np.int64), empty, np.arange(vc.shape[0], dtype=np.int64), empty)
+        d = igl.exact_geodesic(
+            vc, fc, np.array([local], dtype=np.int64), empty, np.arange(vc.shape[0], dtype=np.int64), empty
+        )
         d = _finish_row(np.asarray(d, dtype=np.float64), "exact geodesic algorithm")
         d[local] = 0.0
         out[row, ids] = d

@@ -95,7 +95,9 @@ def laplacian_coo(
     n = topo.n_vertices
     rows = np.concatenate([e[:, 0], e[:, 1], np.arange(n)])
     cols = np.concatenate([e[:, 1], e[:, 0], np.arange(n)])
-    diag = jax.ops.segment_sum(jnp.concatenate([weights, weights]), jnp.concatenate([topo.edges[:, 0], topo.edges[:, 1]]), n)
+    diag = jax.ops.segment_sum(
+        jnp.concatenate([weights, weights]), jnp.concatenate([topo.edges[:, 0], topo.edges[:, 1]]), n
+    )
     vals = jnp.concatenate([-weights, -weights, diag])
     return rows, cols, vals
 

@@ -35,8 +35,7 @@ def _suffix(path: Path) -> str:
     suffix = path.suffix.lower()
     if suffix not in SEQUENCE_SUFFIXES:
         raise MeshFormatError(
-            f"{path}: unknown mesh format '{path.suffix or '(none)'}'; expected one of "
-            f"{', '.join(SEQUENCE_SUFFIXES)}."
+            f"{path}: unknown mesh format '{path.suffix or '(none)'}'; expected one of {', '.join(SEQUENCE_SUFFIXES)}."
         )
     return suffix
 
@@ -159,8 +158,10 @@ def read_ply(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
     nv, nf = declared.get("vertex"), declared.get("face")
     # trimesh reads a truncated ASCII body without complaint; polygons may split into several triangles
     if (nv is not None and vertices.shape[0] != nv) or (nf is not None and faces.shape[0] < nf):
-        raise MeshFormatError(f"{path}: the header declares {nv} vertices and {nf} faces but the file holds "
-                              f"{vertices.shape[0]} and {faces.shape[0]} (truncated file).")
+        raise MeshFormatError(
+            f"{path}: the header declares {nv} vertices and {nf} faces but the file holds "
+            f"{vertices.shape[0]} and {faces.shape[0]} (truncated file)."
+        )
     return _finish(path, vertices, faces)
 
 
@@ -213,7 +214,9 @@ def _expand(paths: Sequence[str | os.PathLike] | str | os.PathLike) -> list[Path
 def check_same_connectivity(faces_ref: ArrayLike, faces: ArrayLike, n_ref: int, n: int, where: str) -> None:
     """Raise ConnectivityError unless two meshes have the same vertex count and identical faces."""
     if n != n_ref:
-        raise ConnectivityError(f"{where} has {n} vertices but the first mesh has {n_ref}; meshes must share one connectivity.")
+        raise ConnectivityError(
+            f"{where} has {n} vertices but the first mesh has {n_ref}; meshes must share one connectivity."
+        )
     if faces.shape != faces_ref.shape or not np.array_equal(faces, faces_ref):
         raise ConnectivityError(f"{where} has different faces from the first mesh; meshes must share one connectivity.")
 
@@ -239,8 +242,9 @@ def load_sequence(
 
             bad = repeated_vertex_face(faces)
             if bad >= 0:
-                raise ConnectivityError(f"{path}: face {bad} repeats a vertex index; faces must have 3 distinct "
-                                        "vertices.")
+                raise ConnectivityError(
+                    f"{path}: face {bad} repeats a vertex index; faces must have 3 distinct vertices."
+                )
             faces_ref = faces
             n_ref = verts.shape[1]
         else:
@@ -260,7 +264,9 @@ def _read_npz(path: Path) -> tuple[np.ndarray, np.ndarray]:
         verts = np.asarray(data["vertices"], dtype=np.float64)
         faces = np.asarray(data["faces"], dtype=np.int64)
     except (TypeError, ValueError) as exc:
-        raise MeshFormatError(f"{path}: 'vertices' and 'faces' must be numeric arrays ({type(exc).__name__}).") from None
+        raise MeshFormatError(
+            f"{path}: 'vertices' and 'faces' must be numeric arrays ({type(exc).__name__})."
+        ) from None
     if verts.ndim == 2:
         verts = verts[None]
     if verts.ndim != 3 or verts.shape[-1] != 3 or faces.ndim != 2 or faces.shape[1] != 3:

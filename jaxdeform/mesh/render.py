@@ -24,8 +24,8 @@ from pathlib import Path
 
 import numpy as np
 from embreex import rtcore_scene as rtcs
-from jaxtyping import ArrayLike, Float
 from embreex.mesh_construction import TriangleMesh
+from jaxtyping import ArrayLike, Float
 from PIL import Image, ImageDraw, ImageFont
 
 from jaxdeform.errors import ConnectivityError, DegenerateMeshError, MeshFormatError
@@ -40,16 +40,31 @@ _CMAP_ANCHORS: dict[str, np.ndarray] = {
     # Perceptually uniform dark blue -> green -> yellow (samples of matplotlib's viridis).
     "viridis": np.array(
         [
-            [68, 1, 84], [72, 40, 120], [62, 73, 137], [49, 104, 142], [38, 130, 142],
-            [31, 158, 137], [53, 183, 121], [110, 206, 88], [181, 222, 43], [253, 231, 37],
+            [68, 1, 84],
+            [72, 40, 120],
+            [62, 73, 137],
+            [49, 104, 142],
+            [38, 130, 142],
+            [31, 158, 137],
+            [53, 183, 121],
+            [110, 206, 88],
+            [181, 222, 43],
+            [253, 231, 37],
         ],
         dtype=np.float64,
     ),
     # Diverging blue -> light grey/white -> red (close to Moreland's "cool to warm").
     "coolwarm": np.array(
         [
-            [59, 76, 192], [98, 130, 234], [141, 176, 254], [184, 208, 249], [221, 221, 221],
-            [245, 196, 173], [244, 154, 123], [222, 96, 77], [180, 4, 38],
+            [59, 76, 192],
+            [98, 130, 234],
+            [141, 176, 254],
+            [184, 208, 249],
+            [221, 221, 221],
+            [245, 196, 173],
+            [244, 154, 123],
+            [222, 96, 77],
+            [180, 4, 38],
         ],
         dtype=np.float64,
     ),
@@ -117,7 +132,9 @@ def categorical_colors(n: int) -> np.ndarray:
 def _vec3(x, name: str) -> tuple[float, float, float]:
     a = np.asarray(x, dtype=np.float64).reshape(-1)
     if a.shape != (3,) or not np.all(np.isfinite(a)):
-        raise ValueError(f"camera {name} must be 3 finite numbers, got {[float(t) for t in a] if a.size <= 3 else x!r}.")
+        raise ValueError(
+            f"camera {name} must be 3 finite numbers, got {[float(t) for t in a] if a.size <= 3 else x!r}."
+        )
     return (float(a[0]), float(a[1]), float(a[2]))
 
 
@@ -554,8 +571,9 @@ def _hit_colours(v, f, tr: Trace, s, lo, hi, cmap: str, vc, base: np.ndarray, sh
     return colour
 
 
-def _compose_image(tr: Trace, colour: np.ndarray, bg: np.ndarray, width: int, height: int, view_w: int,
-                   k: int) -> np.ndarray:
+def _compose_image(
+    tr: Trace, colour: np.ndarray, bg: np.ndarray, width: int, height: int, view_w: int, k: int
+) -> np.ndarray:
     """The ``(height, width, 3)`` uint8 image: the traced view in the left ``view_w`` columns, background elsewhere.
 
     ``tr`` was traced at ``(view_w * k) x (height * k)`` pixels and ``colour`` holds its hit pixels' colours; the
@@ -595,17 +613,17 @@ def render(
 ) -> np.ndarray:
     """Render a mesh to an ``(height, width, 3)`` uint8 image.
 
-    Without ``scalar`` the mesh is drawn in ``base_color``; with a per-vertex ``scalar`` (length V) each
-    pixel gets the scalar interpolated at its hit point, mapped through ``cmap`` over [vmin, vmax] (default:
-    the scalar's range; values outside are clipped), and a colour bar is drawn at the right unless
-    ``colorbar=False`` (or the image is too small to hold one: under 60 pixels high, or the bar and its labels
-would take more than half the width). ``camera`` defaults to :func:`auto_camera`. ``shading=False`` draws flat colours
-    (no lighting); ``supersample=k`` traces k x k rays per pixel and averages them (anti-aliasing).
+        Without ``scalar`` the mesh is drawn in ``base_color``; with a per-vertex ``scalar`` (length V) each
+        pixel gets the scalar interpolated at its hit point, mapped through ``cmap`` over [vmin, vmax] (default:
+        the scalar's range; values outside are clipped), and a colour bar is drawn at the right unless
+        ``colorbar=False`` (or the image is too small to hold one: under 60 pixels high, or the bar and its labels
+    would take more than half the width). ``camera`` defaults to :func:`auto_camera`. ``shading=False`` draws flat colours
+        (no lighting); ``supersample=k`` traces k x k rays per pixel and averages them (anti-aliasing).
 
-    ``vertex_colors`` ((V, 3) RGB floats in [0, 1], e.g. :func:`categorical_colors` indexed by part labels)
-    colours each hit pixel with the colour of the hit triangle's vertex of largest barycentric weight: flat
-    per-region colours, never blended across part boundaries (except by the pixel averaging of
-    ``supersample`` > 1 on boundary pixels), and no colour bar. It cannot be combined with ``scalar``.
+        ``vertex_colors`` ((V, 3) RGB floats in [0, 1], e.g. :func:`categorical_colors` indexed by part labels)
+        colours each hit pixel with the colour of the hit triangle's vertex of largest barycentric weight: flat
+        per-region colours, never blended across part boundaries (except by the pixel averaging of
+        ``supersample`` > 1 on boundary pixels), and no colour bar. It cannot be combined with ``scalar``.
     """
     v, f = _check_mesh(vertices, faces)
     vc = _check_vertex_colors(vertex_colors, scalar, v.shape[0])

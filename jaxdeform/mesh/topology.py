@@ -22,8 +22,7 @@ import numpy as np
 from jaxtyping import ArrayLike, Bool
 
 from jaxdeform.errors import ConnectivityError
-from jaxdeform.typing import NonArrayLeaf
-from jaxdeform.typing import Int
+from jaxdeform.typing import Int, NonArrayLeaf
 
 
 @jax.tree_util.register_dataclass
@@ -84,7 +83,9 @@ def validate_faces(faces: ArrayLike, n_vertices: int | None = None) -> tuple[Int
     used = np.zeros(n, dtype=bool)
     used[faces.ravel()] = True
     if not used.all():
-        raise ConnectivityError(f"vertex {int(np.argmin(used))} belongs to no face; remove unreferenced vertices first.")
+        raise ConnectivityError(
+            f"vertex {int(np.argmin(used))} belongs to no face; remove unreferenced vertices first."
+        )
     return faces, n
 
 

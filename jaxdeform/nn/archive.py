@@ -31,8 +31,14 @@ def state_arrays(module: nnx.Module, *what) -> dict[str, np.ndarray]:
     return {PREFIX + jax.tree_util.keystr(path): np.asarray(leaf) for path, leaf in leaves}
 
 
-def save_module(path: str | os.PathLike, module: nnx.Module, record: dict, *what,
-                extra: dict[str, np.ndarray] | None = None, key: str = "record") -> Path:
+def save_module(
+    path: str | os.PathLike,
+    module: nnx.Module,
+    record: dict,
+    *what,
+    extra: dict[str, np.ndarray] | None = None,
+    key: str = "record",
+) -> Path:
     """Write the module's state arrays, ``extra`` arrays and the JSON ``record`` to ``path`` atomically."""
     try:
         text = json.dumps(record)
@@ -46,8 +52,9 @@ def save_module(path: str | os.PathLike, module: nnx.Module, record: dict, *what
     return path
 
 
-def read_archive(path: str | os.PathLike, what: str, fmt: str, version: int,
-                 key: str = "record") -> tuple[dict, dict[str, np.ndarray]]:
+def read_archive(
+    path: str | os.PathLike, what: str, fmt: str, version: int, key: str = "record"
+) -> tuple[dict, dict[str, np.ndarray]]:
     """(record, arrays) of an archive of format ``fmt``; ``what`` names the kind of file in the messages."""
     path = Path(path)
     if not path.is_file():
@@ -77,7 +84,7 @@ def load_state(path: str | os.PathLike, module: nnx.Module, arrays: dict[str, np
         name = PREFIX + jax.tree_util.keystr(key_path)
         arr = arrays.get(name)
         if arr is None or arr.shape != np.shape(leaf) or not np.all(np.isfinite(arr)):
-            raise JaxDeformError(f"{path}: the parameter {name[len(PREFIX):]} is missing, misshapen or not finite.")
+            raise JaxDeformError(f"{path}: the parameter {name[len(PREFIX) :]} is missing, misshapen or not finite.")
         new.append(jnp.asarray(arr, dtype=leaf.dtype))
     nnx.update(module, jax.tree_util.tree_unflatten(treedef, new))
 

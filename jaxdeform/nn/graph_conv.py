@@ -37,6 +37,7 @@ from typing import NamedTuple
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Bool, Float
+
 from jaxdeform.typing import Int
 
 MU = 9  # ACAP feature size per vertex
@@ -75,8 +76,9 @@ def init_mesh_conv(key: Array, cin: int, cout: int, dtype=jnp.float32) -> dict[s
     }
 
 
-def _slot_gathers(vm: Float[Array, "v f"], neighbors: Int[ArrayLike, "v k"],
-                  mask: Bool[ArrayLike, "v k"]) -> Float[Array, "v f"]:
+def _slot_gathers(
+    vm: Float[Array, "v f"], neighbors: Int[ArrayLike, "v k"], mask: Bool[ArrayLike, "v k"]
+) -> Float[Array, "v f"]:
     """sum_k [mask_ik] vm[n_ik]: one gather of whole rows per ring slot."""
     acc = jnp.zeros_like(vm)
     for k in range(neighbors.shape[1]):
@@ -84,8 +86,9 @@ def _slot_gathers(vm: Float[Array, "v f"], neighbors: Int[ArrayLike, "v k"],
     return acc
 
 
-def _slot_scatters(vm: Float[Array, "v f"], neighbors: Int[ArrayLike, "v k"],
-                   mask: Bool[ArrayLike, "v k"]) -> Float[Array, "v f"]:
+def _slot_scatters(
+    vm: Float[Array, "v f"], neighbors: Int[ArrayLike, "v k"], mask: Bool[ArrayLike, "v k"]
+) -> Float[Array, "v f"]:
     """The transpose of :func:`_slot_gathers`: row i added to row n_ik for every valid slot (a scatter-add per
     slot). Equal to :func:`_slot_gathers` on symmetric rings."""
     acc = jnp.zeros_like(vm)
@@ -108,7 +111,9 @@ def _ring_mean_vm_jvp(primals, tangents):
 
 
 def ring_mean(
-    x: Float[ArrayLike, "b v c"], neighbors: Int[ArrayLike, "v k"], mask: Bool[ArrayLike, "v k"],
+    x: Float[ArrayLike, "b v c"],
+    neighbors: Int[ArrayLike, "v k"],
+    mask: Bool[ArrayLike, "v k"],
     degree: Int[ArrayLike, " v"],
 ) -> Float[Array, "b v c"]:
     """(1/D_i) sum_j x_{n_ij} over the one-rings. The rings must be symmetric (j in ring(i) iff i in ring(j), as
@@ -170,8 +175,9 @@ def ae_decode(params: dict, z: Float[ArrayLike, "b kz"], rings: Rings) -> Float[
     return _tanh(mesh_conv(params["conv_dec"], g, rings.neighbors, rings.mask, rings.degree))
 
 
-def ae_decode_error(params: dict, z: Float[ArrayLike, "b kz"], target: Float[ArrayLike, "b v 9"],
-                    rings: Rings) -> tuple[Float[Array, "b v 9"], Float[Array, " b"]]:
+def ae_decode_error(
+    params: dict, z: Float[ArrayLike, "b kz"], target: Float[ArrayLike, "b v 9"], rings: Rings
+) -> tuple[Float[Array, "b v 9"], Float[Array, " b"]]:
     """(x_hat, err): :func:`ae_decode` and err_m = sum over (V, 9) of (x_hat_m - target_m)^2, the block's
     reconstruction error per shape."""
     x_hat = ae_decode(params, z, rings)
@@ -184,8 +190,9 @@ def _latent_code(params: dict, x: Float[ArrayLike, "b v 9"], rings: Rings, laten
     return jnp.tanh(z) if latent == "tanh" else z
 
 
-def ae_forward(params: dict, x: Float[ArrayLike, "b v 9"], rings: Rings,
-               latent: str = "linear") -> tuple[Float[Array, "b kz"], Float[Array, "b v 9"]]:
+def ae_forward(
+    params: dict, x: Float[ArrayLike, "b v 9"], rings: Rings, latent: str = "linear"
+) -> tuple[Float[Array, "b kz"], Float[Array, "b v 9"]]:
     """(z, x_hat) of one autoencoder block; ``latent="tanh"`` puts a tanh on z (see the module docstring)."""
     z = _latent_code(params, x, rings, latent)
     return z, ae_decode(params, z, rings)
@@ -199,8 +206,9 @@ def ae_forward_error(params: dict, x: Float[ArrayLike, "b v 9"], rings: Rings, l
     return z, x_hat, err
 
 
-def masked_blocks_error(params: dict, x: Float[ArrayLike, "n b v 9"], am: Float[ArrayLike, "n k v"],
-                        rings: Rings) -> tuple:
+def masked_blocks_error(
+    params: dict, x: Float[ArrayLike, "n b v 9"], am: Float[ArrayLike, "n k v"], rings: Rings
+) -> tuple:
     """(z, x_hat, err) of blocks (n, k) on their masked inputs: block (j, m) (parameters stacked (n, k, ...))
     runs :func:`ae_forward_error` (linear latent) on am[j, m, :, None] x[j], its error against that same input.
     Seed 000's children of a level's last blocks: n parents, k children each, am the parents' attention masks,

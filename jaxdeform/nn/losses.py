@@ -14,6 +14,7 @@ from __future__ import annotations
 import jax
 import jax.numpy as jnp
 from jaxtyping import Array, ArrayLike, Float
+
 from jaxdeform.typing import Int
 
 MU = 9
@@ -60,14 +61,16 @@ def _centres(sq: Float[Array, "kz v"]) -> Int[Array, " kz"]:
     return jnp.argmax(sq, axis=1).astype(jnp.int32)
 
 
-def geodesic_step_mask(dist: Float[ArrayLike, "v v"], centres: Int[ArrayLike, " kz"],
-                       d: FloatScalar) -> Float[Array, "kz v"]:
+def geodesic_step_mask(
+    dist: Float[ArrayLike, "v v"], centres: Int[ArrayLike, " kz"], d: FloatScalar
+) -> Float[Array, "kz v"]:
     """Lambda_ik = 0 where the normalized geodesic distance dist[c_k, i] < d, else 1 (eq. 3)."""
     return (dist[centres, :] >= d).astype(dist.dtype)
 
 
-def geodesic_linear_mask(dist: Float[ArrayLike, "v v"], centres: Int[ArrayLike, " kz"], d_min: FloatScalar,
-                         d_max: FloatScalar) -> Float[Array, "kz v"]:
+def geodesic_linear_mask(
+    dist: Float[ArrayLike, "v v"], centres: Int[ArrayLike, " kz"], d_min: FloatScalar, d_max: FloatScalar
+) -> Float[Array, "kz v"]:
     """Tan et al. (2018)'s mask: Lambda_ik = clip((dist[c_k, i] - d_min) / (d_max - d_min), 0, 1)."""
     return jnp.clip((dist[centres, :] - d_min) / (d_max - d_min), 0.0, 1.0).astype(dist.dtype)
 
@@ -87,8 +90,12 @@ def _sparsity_terms(C, dist, d, mask):
     return jax.lax.stop_gradient(lam).astype(C.dtype), _sqrt_or_zero(sq)
 
 
-def group_sparsity(C: Float[ArrayLike, "kz nine_v"], dist: Float[ArrayLike, "v v"],
-                   d: FloatScalar | tuple[FloatScalar, FloatScalar], mask: str = "step") -> Float[Array, ""]:
+def group_sparsity(
+    C: Float[ArrayLike, "kz nine_v"],
+    dist: Float[ArrayLike, "v v"],
+    d: FloatScalar | tuple[FloatScalar, FloatScalar],
+    mask: str = "step",
+) -> Float[Array, ""]:
     """Omega(C) = (1/Kz) sum_k sum_i Lambda_ik ||C_k,i||_2 with centres recomputed from C (no gradient
     flows through the centres or the mask). ``mask="step"`` (seed 000, eq. 3) takes the cut-off ``d``;
     ``mask="linear"`` (Tan et al.) takes ``d = (d_min, d_max)``."""

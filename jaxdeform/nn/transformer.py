@@ -77,7 +77,7 @@ class MultiHeadAttention(nnx.Module):
         self,
         x_q: Float[ArrayLike, "... tq d"],
         x_kv: Float[ArrayLike, "... tk d"],
-        mask: Bool[ArrayLike, "..."] | None = None,
+        mask: Bool[ArrayLike, ...] | None = None,
     ) -> Float[Array, "... tq d"]:
         q, k, v = self._split(self.q(x_q)), self._split(self.k(x_kv)), self._split(self.v(x_kv))
         logits = (q @ jnp.swapaxes(k, -1, -2)) / math.sqrt(self.d_k)  # (..., h, tq, tk)
@@ -122,7 +122,7 @@ class EncoderBlock(nnx.Module):
         self.drop = _dropout(dropout, rngs)
 
     def __call__(
-        self, x: Float[ArrayLike, "... t d"], mask: Bool[ArrayLike, "..."] | None = None
+        self, x: Float[ArrayLike, "... t d"], mask: Bool[ArrayLike, ...] | None = None
     ) -> Float[Array, "... t d"]:
         x = self.ln1(x + _drop(self.drop, self.attn(x, x, mask)))
         return self.ln2(x + _drop(self.drop, self.ffn(x)))
@@ -144,8 +144,8 @@ class DecoderBlock(nnx.Module):
         self,
         y: Float[ArrayLike, "... tt d"],
         memory: Float[ArrayLike, "... ts d"],
-        self_mask: Bool[ArrayLike, "..."] | None = None,
-        memory_mask: Bool[ArrayLike, "..."] | None = None,
+        self_mask: Bool[ArrayLike, ...] | None = None,
+        memory_mask: Bool[ArrayLike, ...] | None = None,
     ) -> Float[Array, "... tt d"]:
         y = self.ln1(y + _drop(self.drop, self.self_attn(y, y, self_mask)))
         y = self.ln2(y + _drop(self.drop, self.cross_attn(y, memory, memory_mask)))
@@ -160,7 +160,13 @@ class Transformer(nnx.Module):
     """
 
     def __init__(
-        self, d_model: int, heads: int = 8, blocks: int = 2, ffn: int | None = None, dropout: float = 0.0, *,
+        self,
+        d_model: int,
+        heads: int = 8,
+        blocks: int = 2,
+        ffn: int | None = None,
+        dropout: float = 0.0,
+        *,
         rngs: nnx.Rngs,
     ):
         if blocks < 1:

@@ -84,8 +84,16 @@ def segmentation_figure(
     for view in views:
         az, el = view_angles(view)
         cam = auto_camera(v, azimuth_deg=az, elevation_deg=el, up_axis=up_axis)
-        img = render(v, faces, vertex_colors=colours, camera=cam, width=width, height=height, shading=shading,
-                     background=_BACKGROUND)
+        img = render(
+            v,
+            faces,
+            vertex_colors=colours,
+            camera=cam,
+            width=width,
+            height=height,
+            shading=shading,
+            background=_BACKGROUND,
+        )
         panels.append(caption(img, _view_name(view)) if captions else img)
     image = hstack(panels)
     save_png(image, path)
@@ -120,8 +128,20 @@ def error_figure(
         vmin = 0.0  # errors are distances: anchor the colour bar at zero
     az, el = view_angles(view)
     cam = auto_camera(v, azimuth_deg=az, elevation_deg=el, up_axis=up_axis)
-    image = render(v, faces, scalar=e, camera=cam, width=width, height=height, cmap=cmap, vmin=vmin, vmax=vmax,
-                   colorbar=True, label=label, background=_BACKGROUND)
+    image = render(
+        v,
+        faces,
+        scalar=e,
+        camera=cam,
+        width=width,
+        height=height,
+        cmap=cmap,
+        vmin=vmin,
+        vmax=vmax,
+        colorbar=True,
+        label=label,
+        background=_BACKGROUND,
+    )
     save_png(image, path)
     return image
 
@@ -158,8 +178,7 @@ def strip_figure(
     cam = auto_camera(x.reshape(-1, 3), azimuth_deg=az, elevation_deg=el, up_axis=up_axis)
     panels = []
     for t in range(0, x.shape[0], step):
-        img = render(x[t], faces, vertex_colors=colours, camera=cam, width=width, height=height,
-                     background=_BACKGROUND)
+        img = render(x[t], faces, vertex_colors=colours, camera=cam, width=width, height=height, background=_BACKGROUND)
         panels.append(caption(img, str(t)) if captions else img)
     image = hstack(panels, gap=2)
     save_png(image, path)

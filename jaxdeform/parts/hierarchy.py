@@ -20,8 +20,8 @@ from __future__ import annotations
 import dataclasses
 import json
 import time
+from collections.abc import Callable
 from pathlib import Path
-from typing import Callable
 
 import jax
 import jax.numpy as jnp
@@ -90,8 +90,9 @@ def normalize(vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
 
 def to_data_units(p: MFA, offset: np.ndarray, scale: float) -> MFA:
     """Parameters of the same mixture for data = y * scale + offset."""
-    return MFA(log_pi=p.log_pi, mu=p.mu * scale + jnp.asarray(offset), rot=p.rot, d=p.d * scale,
-               sigma2=p.sigma2 * scale**2)
+    return MFA(
+        log_pi=p.log_pi, mu=p.mu * scale + jnp.asarray(offset), rot=p.rot, d=p.d * scale, sigma2=p.sigma2 * scale**2
+    )
 
 
 def components_of_labels(labels: np.ndarray, edges: np.ndarray) -> np.ndarray:
@@ -121,8 +122,9 @@ def split_regions(labels: np.ndarray, edges: np.ndarray, min_size: int) -> np.nd
         keep = small[src] & ~small[np.r_[b[cross], a[cross]]]
         if not keep.any():
             break
-        votes = sp.coo_matrix((np.ones(keep.sum()), (src[keep], dst_lab[keep])),
-                              shape=(len(sizes), labels.max() + 1)).toarray()
+        votes = sp.coo_matrix(
+            (np.ones(keep.sum()), (src[keep], dst_lab[keep])), shape=(len(sizes), labels.max() + 1)
+        ).toarray()
         has = votes.sum(axis=1) > 0
         target = np.argmax(votes, axis=1)
         move = small[comp] & has[comp]
@@ -156,9 +158,17 @@ def _labels_masked(y, p: MFA, mask: np.ndarray) -> np.ndarray:
 # ------------------------------------------------------------------------------------------ Algorithm 1
 
 
-def fit(vertices, faces, *, initial_parts: int = INITIAL_PARTS, threshold: float = THRESHOLD,
-        max_split: int = MAX_SPLIT, min_part_vertices: int = MIN_PART_VERTICES, seed: int = 0,
-        log: Callable[[str], None] = lambda s: None) -> PartsFit:
+def fit(
+    vertices,
+    faces,
+    *,
+    initial_parts: int = INITIAL_PARTS,
+    threshold: float = THRESHOLD,
+    max_split: int = MAX_SPLIT,
+    min_part_vertices: int = MIN_PART_VERTICES,
+    seed: int = 0,
+    log: Callable[[str], None] = lambda s: None,
+) -> PartsFit:
     """Fit the hierarchy of Algorithm 1 to shapes (M, V, 3) sharing ``faces``; see the module docstring."""
     t0 = time.perf_counter()
     vertices, faces = check_shapes(vertices, faces)
@@ -204,8 +214,9 @@ def fit(vertices, faces, *, initial_parts: int = INITIAL_PARTS, threshold: float
         next_label += splits
         refine_log.append({"part": k, "split_into": splits, "average_variance": var, "iterations": iters})
     accepted = [r["iterations"][r["split_into"] - 2] for r in refine_log if r["split_into"] > 1]
-    stages.append({"stage": "refine", "parts": int(next_label), "iterations": max(accepted, default=0),
-                   "per_part": refine_log})
+    stages.append(
+        {"stage": "refine", "parts": int(next_label), "iterations": max(accepted, default=0), "per_part": refine_log}
+    )
     log(f"refine: {next_label} parts (splits {[r['split_into'] for r in refine_log]})")
 
     # 3. one connected region per part
@@ -230,8 +241,15 @@ def fit(vertices, faces, *, initial_parts: int = INITIAL_PARTS, threshold: float
     rec = np.asarray(mfa.reconstruct(p_data, lab_j, latent))
     comp = components_of_labels(labels, edges)
     n_regions = np.array([np.unique(comp[labels == k]).size for k in range(used.size)])
-    return PartsFit(params=p_data, labels=labels, latent=np.asarray(latent), reconstruction=rec, stages=stages,
-                    seconds=time.perf_counter() - t0, disconnected_parts=np.flatnonzero(n_regions > 1).tolist())
+    return PartsFit(
+        params=p_data,
+        labels=labels,
+        latent=np.asarray(latent),
+        reconstruction=rec,
+        stages=stages,
+        seconds=time.perf_counter() - t0,
+        disconnected_parts=np.flatnonzero(n_regions > 1).tolist(),
+    )
 
 
 def rmse(vertices: np.ndarray, reconstruction: np.ndarray) -> float:
@@ -261,8 +279,9 @@ def summary(fit_: PartsFit, vertices: np.ndarray) -> dict:
         "vertices": int(np.asarray(vertices).shape[1]),
         "disconnected_parts": fit_.disconnected_parts,
         "rotation_det_range": [float(dets.min()), float(dets.max())],
-        "loglik_monotone": all(bool(np.all(np.diff(s["loglik"]) >= -1e-9 * np.abs(s["loglik"][-1])))
-                               for s in fit_.stages if "loglik" in s),
+        "loglik_monotone": all(
+            bool(np.all(np.diff(s["loglik"]) >= -1e-9 * np.abs(s["loglik"][-1]))) for s in fit_.stages if "loglik" in s
+        ),
     }
 
 
@@ -274,9 +293,18 @@ def save_run(path, fit_: PartsFit, vertices: np.ndarray, faces: np.ndarray, extr
     path = Path(path)
     path.mkdir(parents=True, exist_ok=True)
     p = fit_.params
-    arrays = {"log_pi": p.log_pi, "mu": p.mu, "rot": p.rot, "d": p.d, "sigma2": p.sigma2,
-              "labels": fit_.labels, "latent": fit_.latent, "vertices": vertices, "faces": faces,
-              "reconstruction": fit_.reconstruction}
+    arrays = {
+        "log_pi": p.log_pi,
+        "mu": p.mu,
+        "rot": p.rot,
+        "d": p.d,
+        "sigma2": p.sigma2,
+        "labels": fit_.labels,
+        "latent": fit_.latent,
+        "vertices": vertices,
+        "faces": faces,
+        "reconstruction": fit_.reconstruction,
+    }
     with atomic_path(path / "model.npz") as tmp:
         np.savez_compressed(tmp, **{k: np.asarray(v) for k, v in arrays.items()})
     info = summary(fit_, vertices) | (extra or {})
@@ -301,21 +329,33 @@ def load_run(path) -> tuple[PartsFit, np.ndarray, np.ndarray]:
     if missing:
         raise MeshFormatError(f"{model}: not a parts model (missing {', '.join(missing)}).")
     k = a["log_pi"].shape[0] if a["log_pi"].ndim == 1 else -1
-    m, v = (a["vertices"].shape[:2] if a["vertices"].ndim == 3 else (-1, -1))
-    shapes = {"mu": (k, m, 3), "rot": (k, m, 3, 3), "d": (k, 3), "sigma2": (k,), "labels": (v,), "latent": (v, 3),
-              "vertices": (m, v, 3), "reconstruction": (m, v, 3)}
+    m, v = a["vertices"].shape[:2] if a["vertices"].ndim == 3 else (-1, -1)
+    shapes = {
+        "mu": (k, m, 3),
+        "rot": (k, m, 3, 3),
+        "d": (k, 3),
+        "sigma2": (k,),
+        "labels": (v,),
+        "latent": (v, 3),
+        "vertices": (m, v, 3),
+        "reconstruction": (m, v, 3),
+    }
     bad = [n for n, s in shapes.items() if a[n].shape != s or -1 in s]
     if bad or a["faces"].ndim != 2 or a["faces"].shape[1] != 3:
         raise MeshFormatError(f"{model}: inconsistent array shapes ({', '.join(bad) or 'faces'}).")
     if a["labels"].dtype.kind not in "iu" or a["faces"].dtype.kind not in "iu":
-        raise MeshFormatError(f"{model}: labels and faces must be integer arrays, got {a['labels'].dtype} and "
-                              f"{a['faces'].dtype}.")
+        raise MeshFormatError(
+            f"{model}: labels and faces must be integer arrays, got {a['labels'].dtype} and {a['faces'].dtype}."
+        )
     if a["labels"].min() < 0 or a["labels"].max() >= k:
         raise MeshFormatError(f"{model}: labels outside the model's {k} parts.")
     if a["faces"].size == 0 or a["faces"].min() < 0 or a["faces"].max() >= v:
         raise MeshFormatError(f"{model}: faces index vertices outside the model's {v}.")
-    floats = [n for n in ("log_pi", "mu", "rot", "d", "sigma2", "latent", "vertices", "reconstruction")
-              if a[n].dtype.kind != "f" or not np.all(np.isfinite(a[n]))]
+    floats = [
+        n
+        for n in ("log_pi", "mu", "rot", "d", "sigma2", "latent", "vertices", "reconstruction")
+        if a[n].dtype.kind != "f" or not np.all(np.isfinite(a[n]))
+    ]
     if floats:
         raise MeshFormatError(f"{model}: {', '.join(floats)} must hold finite floats.")
     info = {}
@@ -326,9 +366,20 @@ def load_run(path) -> tuple[PartsFit, np.ndarray, np.ndarray]:
             raise MeshFormatError(f"{path / 'summary.json'}: not valid JSON.") from None
         if not isinstance(info, dict):
             raise MeshFormatError(f"{path / 'summary.json'}: not a parts-run summary (a JSON object).")
-    p = MFA(log_pi=jnp.asarray(a["log_pi"]), mu=jnp.asarray(a["mu"]), rot=jnp.asarray(a["rot"]),
-            d=jnp.asarray(a["d"]), sigma2=jnp.asarray(a["sigma2"]))
-    fit_ = PartsFit(params=p, labels=a["labels"], latent=a["latent"], reconstruction=a["reconstruction"],
-                    stages=info.get("stages", []), seconds=float(info.get("seconds", 0.0)),
-                    disconnected_parts=list(info.get("disconnected_parts", [])))
+    p = MFA(
+        log_pi=jnp.asarray(a["log_pi"]),
+        mu=jnp.asarray(a["mu"]),
+        rot=jnp.asarray(a["rot"]),
+        d=jnp.asarray(a["d"]),
+        sigma2=jnp.asarray(a["sigma2"]),
+    )
+    fit_ = PartsFit(
+        params=p,
+        labels=a["labels"],
+        latent=a["latent"],
+        reconstruction=a["reconstruction"],
+        stages=info.get("stages", []),
+        seconds=float(info.get("seconds", 0.0)),
+        disconnected_parts=list(info.get("disconnected_parts", [])),
+    )
     return fit_, a["vertices"], a["faces"]

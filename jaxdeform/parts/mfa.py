@@ -214,7 +214,10 @@ def _init_from_weights(y, resp, procrustes_iters: int) -> MFA:
 
     def align(z):
         # A_km = sum_i resp_ik (y_im - mu_km) z_ik^T ; R = proper Procrustes ; z = mean_m R^T (y - mu)
-        a = jnp.einsum("vk,vmx,vky->kmxy", resp, y, z) - mu[..., :, None] * jnp.einsum("vk,vky->ky", resp, z)[:, None, None, :]
+        a = (
+            jnp.einsum("vk,vmx,vky->kmxy", resp, y, z)
+            - mu[..., :, None] * jnp.einsum("vk,vky->ky", resp, z)[:, None, None, :]
+        )
         rot = proper_procrustes(a)
         zn = (jnp.einsum("vmx,kmxy->vky", y, rot) - jnp.einsum("kmx,kmxy->ky", mu, rot)[None]) / m
         return zn, rot
