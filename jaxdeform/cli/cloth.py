@@ -119,10 +119,8 @@ def cmd_cloth_synthesize(args: argparse.Namespace) -> int:
 def cmd_cloth_evaluate(args: argparse.Namespace) -> int:
     import json
 
-    import numpy as np
-
     from jaxdeform.cloth import data as cdata
-    from jaxdeform.cloth.run import RUN_FILES, evaluate_run, load_run
+    from jaxdeform.cloth.run import RUN_FILES, check_dataset, evaluate_run, load_run
 
     out = Path(args.json)
     common.check_out_file(
@@ -130,17 +128,7 @@ def cmd_cloth_evaluate(args: argparse.Namespace) -> int:
     )
     run = load_run(args.run)
     ds = cdata.load_dataset(args.data)
-    if not np.array_equal(ds.fine_faces, run.rep.fine_faces) or not np.array_equal(
-        ds.coarse_faces, run.rep.coarse_faces
-    ):
-        raise ConnectivityError(f"{args.data}: its meshes differ from the ones the run was trained on.")
-    if "split" in run.record and Path(run.record.get("dataset", "")) == Path(args.data).resolve():
-        cdata.check_split(
-            run.record["split"],
-            f"{Path(args.run) / 'run.json'} (read against {args.data})",
-            {x.name for x in ds.sequences},
-        )
-        ds.split = run.record["split"]
+    check_dataset(run, ds, args.data, args.run)
     part = args.split
     res = evaluate_run(run, ds, part=part, progress=not args.quiet)
     with common.atomic_file(out) as tmp:

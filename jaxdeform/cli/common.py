@@ -66,6 +66,11 @@ def add_json(p: argparse.ArgumentParser, help: str | None = None, required: bool
     p.add_argument("--json", required=required, metavar="OUT.json", help=help)
 
 
+def add_data(p: argparse.ArgumentParser, help: str, required: bool = False) -> None:
+    """``--data DATA...``: the mesh files or folders a run was trained on."""
+    p.add_argument("--data", nargs="+", required=required, metavar="DATA", help=help)
+
+
 def add_seed(p: argparse.ArgumentParser, help: str | None = None, default: int | None = None) -> None:
     p.add_argument("--seed", type=int, default=default, metavar="S", help=help)
 

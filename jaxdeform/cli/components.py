@@ -3,20 +3,20 @@
 
 ``train DATA... --out RUN`` and ``finetune RUN --out RUN2`` write run folders (built beside ``--out`` and renamed
 at the end); ``evaluate RUN --data DATA...`` prints the metrics (or writes them with ``--json``); ``show RUN
---out DIR`` writes ``components.png``, ``similarity.png`` and ``components.json``; ``edit RUN --controls FILE
---out MESH`` writes the edited mesh.
+--out DIR`` writes ``components.png``, ``similarity.png`` and ``components.json``; ``edit`` (the edited mesh) is
+in :mod:`jaxdeform.cli.components_edit`.
 """
 
 from __future__ import annotations
 
 import argparse
-import sys
-import time
 from pathlib import Path
 
 from jaxdeform.cli import common
 
 METHODS = ("multiscale", "tan", "pca", "pca-xyz", "splocs")
+#: the finetune options passed by name to finetune.check_options and finetune.fit
+FINETUNE_OPTIONS = ("mixes", "steps", "batch", "position_weight", "lr", "seed", "lr_final", "generated", "code_noise")
 
 
 def _data(paths: list[str]):
@@ -38,19 +38,10 @@ def cmd_components_train(args: argparse.Namespace) -> int:
     q = run.SCALE_QUANTILE if args.scale_quantile is None else args.scale_quantile
     check_quantile(q, "--scale-quantile")  # before any work (Scaler.fit checks it too, after encoding)
     loaded = run.load_data(data)  # fewer than 2 shapes or mixed connectivity: one sentence, nothing written
+    kw = {k: getattr(args, k) for k in ("epochs", "seed", "split", "split_seed")}
     with common.staged_folder(out) as tmp:
         record = run.fit(
-            tmp,
-            data,
-            args.method,
-            args.config,
-            epochs=args.epochs,
-            seed=args.seed,
-            split=args.split,
-            split_seed=args.split_seed,
-            progress=not args.quiet,
-            scale_quantile=q,
-            loaded=loaded,
+            tmp, data, args.method, args.config, progress=not args.quiet, scale_quantile=q, loaded=loaded, **kw
         )
     t = record["timing"]
     extra = ""
@@ -71,14 +62,8 @@ def cmd_components_evaluate(args: argparse.Namespace) -> int:
 
     common.check_exists([args.run] + list(args.data))
     if args.json:
-        common.check_out_file(
-            Path(args.json),
-            (".json",),
-            list(args.data),
-            "metrics",
-            "--json",
-            protect=[args.run] + [Path(args.run) / f for f in run.RUN_FILES],
-        )
+        protect = [args.run] + [Path(args.run) / f for f in run.RUN_FILES]
+        common.check_out_file(Path(args.json), (".json",), list(args.data), "metrics", "--json", protect=protect)
     loaded = run.load(args.run)
     result = run.evaluate(loaded, _data(args.data))
     text = json.dumps(result, indent=2)
@@ -86,15 +71,10 @@ def cmd_components_evaluate(args: argparse.Namespace) -> int:
         with common.atomic_file(Path(args.json)) as tmp:
             Path(tmp).write_text(text)
     te = result["test"]
-    print(
-        f"{result['method']}: test Erms {te['erms']:.4f}, STED {te['sted']:.4f}"
-        + (
-            f", max relative squared error {te['max_relative_squared_error']:.4g}"
-            if "max_relative_squared_error" in te
-            else ""
-        )
-        + (f"; wrote {args.json}" if args.json else "")
-    )
+    rse = "max_relative_squared_error"
+    rse = f", max relative squared error {te[rse]:.4g}" if rse in te else ""
+    wrote = f"; wrote {args.json}" if args.json else ""
+    print(f"{result['method']}: test Erms {te['erms']:.4f}, STED {te['sted']:.4f}{rse}{wrote}")
     if not args.json:
         print(text)
     return 0
@@ -106,37 +86,13 @@ def cmd_components_finetune(args: argparse.Namespace) -> int:
     common.check_exists([args.run] + list(args.data or []))
     out = Path(args.out)
     common.check_out_folder(out, args.force, [args.run] + list(args.data or []))
-    finetune.check_options(
-        args.steps,
-        args.batch,
-        args.mixes,
-        args.position_weight,
-        args.lr,
-        args.seed,
-        args.lr_final,
-        args.generated,
-        args.code_noise,
-    )
+    opts = {k: getattr(args, k) for k in FINETUNE_OPTIONS}
+    finetune.check_options(**opts)
     loaded = run.load(args.run)
     finetune.check_run(loaded)
     data = None if not args.data else _data(args.data)
     with common.staged_folder(out) as tmp:
-        rec = finetune.fit(
-            loaded,
-            tmp,
-            data,
-            mixes=args.mixes,
-            steps=args.steps,
-            batch=args.batch,
-            position_weight=args.position_weight,
-            lr=args.lr,
-            seed=args.seed,
-            progress=not args.quiet,
-            lr_final=args.lr_final,
-            rigid=args.rigid,
-            generated=args.generated,
-            code_noise=args.code_noise,
-        )
+        rec = finetune.fit(loaded, tmp, data, progress=not args.quiet, rigid=args.rigid, **opts)
     first, last = rec["first_terms"], rec["last_terms"]
     extra = f" and {args.generated} generated meshes" if args.generated else ""
     print(
@@ -159,41 +115,6 @@ def cmd_components_show(args: argparse.Namespace) -> int:
         f"{info['n_kept']} of {info['components']} components kept (eq. 7, eps2 = 0.01); wrote {out}/components.png, "
         f"similarity.png, components.json"
     )
-    return 0
-
-
-def cmd_components_edit(args: argparse.Namespace) -> int:
-    import numpy as np
-
-    from jaxdeform.components import run
-    from jaxdeform.mesh.io import save_mesh
-
-    common.check_exists([args.run, args.controls])
-    out = Path(args.out)
-    common.check_out_file(out, common.MESH_OUT, [args.run, args.controls], "mesh file")
-    loaded = run.load(args.run)
-    controls, targets = run.read_controls(args.controls)
-    t0 = time.perf_counter()
-    ed = run.editor(loaded)
-    result = ed.edit(
-        controls, targets, steps=args.steps, stages=None if args.one_stage else ed.stages, objective=args.objective
-    )
-    positions = np.asarray(result.positions)
-    if not np.all(np.isfinite(positions)):
-        raise ValueError("the edit did not converge to a finite mesh; try fewer or closer control points.")
-    with common.writing(out):
-        save_mesh(out, positions, loaded.faces)
-    stages = "" if ed.stages is None or args.one_stage else f", coarse to fine over {len(ed.stages)} levels"
-    print(
-        f"edited {loaded.method} run with {controls.size} control points in {time.perf_counter() - t0:.2f} s "
-        f"({int(result.steps)} steps{stages}); mean control residual {float(result.control_error):.3g}; wrote {out}"
-    )
-    if not bool(result.converged):
-        print(
-            f"warning: the optimiser stopped at the cap of {args.steps} iterations per stage before converging; "
-            "a larger --steps may fit the controls better.",
-            file=sys.stderr,
-        )
     return 0
 
 
@@ -245,7 +166,7 @@ def _add_train_evaluate(comp_sub) -> None:
         description="Reconstruct the run's training and unseen shapes and report metrics.",
     )
     ceval.add_argument("run", metavar="RUN", help="run folder written by 'jaxdeform components train'")
-    ceval.add_argument("--data", nargs="+", required=True, metavar="DATA", help="the data the run was trained on")
+    common.add_data(ceval, "the data the run was trained on", required=True)
     common.add_json(ceval, "write the metrics here")
     ceval.set_defaults(func=cmd_components_evaluate)
 
@@ -260,9 +181,7 @@ def _add_finetune(comp_sub) -> None:
     )
     cfine.add_argument("run", metavar="RUN", help="a multiscale or tan run written by 'jaxdeform components train'")
     common.add_out(cfine, "RUN2", "run folder to create")
-    cfine.add_argument(
-        "--data", nargs="+", metavar="DATA", help="the data the run was trained on (default: its folder)"
-    )
+    common.add_data(cfine, "the data the run was trained on (default: its folder)")
     cfine.add_argument("--mixes", type=int, default=400, metavar="N", help="regional mixes (default 400; 0: none)")
     common.add_steps(cfine, "Adam steps (default 1000)", default=1000)
     cfine.add_argument("--batch", type=int, default=8, metavar="B", help="shapes per step (default 8)")
@@ -303,7 +222,7 @@ def _add_finetune(comp_sub) -> None:
     cfine.set_defaults(func=cmd_components_finetune)
 
 
-def _add_show_edit(comp_sub) -> None:
+def _add_show(comp_sub) -> None:
     cshow = comp_sub.add_parser(
         "show",
         help="Render the kept components and their similarity matrix.",
@@ -314,43 +233,10 @@ def _add_show_edit(comp_sub) -> None:
     common.add_out(cshow, "DIR", "folder to create")
     common.add_force(cshow, "replace DIR if it exists and is not empty")
     cshow.set_defaults(func=cmd_components_show)
-    cedit = comp_sub.add_parser(
-        "edit",
-        help="Move control vertices; the run's components do the rest.",
-        description="Find the latent weights whose reconstructed mesh meets the targets "
-        "at the control vertices (Sec. 5.4) and write the edited mesh.",
-    )
-    cedit.add_argument("run", metavar="RUN", help="run folder written by 'jaxdeform components train'")
-    cedit.add_argument(
-        "--controls",
-        required=True,
-        metavar="FILE",
-        help='JSON {"indices": [...], "targets": [[x, y, z], ...]} or lines \'index x y z\'',
-    )
-    common.add_out(cedit, "MESH.obj", "edited mesh to write")
-    common.add_steps(
-        cedit, "optimiser iterations at most, per stage (default 500; BFGS stops once converged)", default=500
-    )
-    cedit.add_argument(
-        "--objective",
-        choices=("deformation", "controls"),
-        default="deformation",
-        help="runs on ACAP features: 'deformation' (default) holds the control vertices at their "
-        "targets and finds the codes whose deformation fits them best (the data-driven "
-        "deformation of seed 000's ref. [19]); 'controls' moves the decoded mesh as near the "
-        "targets as the codes allow. Coordinate runs (pca-xyz, splocs) always do the latter.",
-    )
-    cedit.add_argument(
-        "--one-stage",
-        action="store_true",
-        help="multiscale runs: optimise every level's codes at once instead of coarse to fine "
-        "(one stage per level: level 0's codes first)",
-    )
-    cedit.set_defaults(func=cmd_components_edit)
 
 
-def register(sub) -> None:
-    """Add ``components train|evaluate|finetune|show|edit`` to the top-level subparsers ``sub``."""
+def register(sub):
+    """Add ``components train|evaluate|finetune|show`` to ``sub``; returns the ``components`` subparsers."""
     comp = sub.add_parser(
         "components",
         help="Multiscale deformation components (seed 000) and baselines.",
@@ -359,4 +245,5 @@ def register(sub) -> None:
     comp_sub = comp.add_subparsers(dest="components_command", metavar="ACTION", required=True)
     _add_train_evaluate(comp_sub)
     _add_finetune(comp_sub)
-    _add_show_edit(comp_sub)
+    _add_show(comp_sub)
+    return comp_sub

