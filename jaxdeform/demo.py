@@ -84,18 +84,13 @@ def format_table(rows: list[dict]) -> str:
     return "\n".join([line(headers), line(["-" * w for w in widths])] + [line(c) for c in cells])
 
 
-def run(out: Path, n_frames: int = 24) -> dict:
-    from jaxdeform.mesh.render import auto_camera, render, save_png
+def _round_trips(acap, vertices) -> tuple[list, dict, dict, dict]:
+    """Encode and decode ``vertices`` (n, V, 3) with ``acap`` once per consistency mode of ``MODES``, in order.
 
-    t_start = time.perf_counter()
-    vertices, faces = bending_tube_sequence(n_frames)
-    n, nv = vertices.shape[:2]
-    rest = vertices[0]
-
-    t0 = time.perf_counter()
-    acap = prepare(rest, faces)
-    prepare_s = time.perf_counter() - t0
-
+    Returns ``(rows, decoded_by_mode, v_by_mode, err_by_mode)``: one result row per mode (angles, errors,
+    median ms per frame) and, per mode, the decoded positions, rotation vectors and per-vertex errors.
+    """
+    n = vertices.shape[0]
     rows, decoded_by_mode, v_by_mode, err_by_mode = [], {}, {}, {}
     for mode in MODES:
         (v, s), enc_s = _timed(lambda: acap.encode_parts(vertices, mode))
@@ -114,12 +109,17 @@ def run(out: Path, n_frames: int = 24) -> dict:
                 "decode_ms_per_frame": 1e3 * dec_s / n,
             }
         )
-    compute_s = time.perf_counter() - t_start
+    return rows, decoded_by_mode, v_by_mode, err_by_mode
 
-    out.mkdir(parents=True, exist_ok=True)
-    t0 = time.perf_counter()
+
+def _images(rest, faces, vertices, decoded_by_mode, v_by_mode, err_by_mode) -> dict:
+    """Render the demo's four images of the last frame (reference, deformed, spatial-mode error, temporal-mode
+    rotation angle). Returns ``{file name: image}`` in the order they are saved; writes nothing."""
+    from jaxdeform.mesh.render import auto_camera, render
+
+    n = vertices.shape[0]
     last = n - 1
-    images = {
+    return {
         "reference.png": render(rest, faces, camera=auto_camera(rest, **VIEW), width=WIDTH, height=HEIGHT),
         "deformed.png": render(
             vertices[last], faces, camera=auto_camera(vertices[last], **VIEW), width=WIDTH, height=HEIGHT
@@ -147,9 +147,11 @@ def run(out: Path, n_frames: int = 24) -> dict:
             label="|v| (rad)",
         ),
     }
-    paths = [save_png(img, out / name) for name, img in images.items()]
-    render_s = time.perf_counter() - t0
 
+
+def _write_summary(out: Path, n, nv, faces, rows, prepare_s, compute_s, render_s) -> Path:
+    """Write out/summary.json (data, normalisation, timings, images, environment and the result ``rows``)
+    atomically through a hidden temporary file. Returns its path."""
     summary = {
         "data": {
             "generator": "bending_tube_sequence",
@@ -183,6 +185,31 @@ def run(out: Path, n_frames: int = 24) -> dict:
     tmp = summary_path.with_name(f".{summary_path.name}.tmp")
     tmp.write_text(json.dumps(summary, indent=2) + "\n")
     tmp.replace(summary_path)
+    return summary_path
+
+
+def run(out: Path, n_frames: int = 24) -> dict:
+    from jaxdeform.mesh.render import save_png
+
+    t_start = time.perf_counter()
+    vertices, faces = bending_tube_sequence(n_frames)
+    n, nv = vertices.shape[:2]
+    rest = vertices[0]
+
+    t0 = time.perf_counter()
+    acap = prepare(rest, faces)
+    prepare_s = time.perf_counter() - t0
+
+    rows, decoded_by_mode, v_by_mode, err_by_mode = _round_trips(acap, vertices)
+    compute_s = time.perf_counter() - t_start
+
+    out.mkdir(parents=True, exist_ok=True)
+    t0 = time.perf_counter()
+    images = _images(rest, faces, vertices, decoded_by_mode, v_by_mode, err_by_mode)
+    paths = [save_png(img, out / name) for name, img in images.items()]
+    render_s = time.perf_counter() - t0
+
+    summary_path = _write_summary(out, n, nv, faces, rows, prepare_s, compute_s, render_s)
     return {
         "rows": rows,
         "paths": paths + [summary_path],

@@ -775,28 +775,12 @@ def step(
     return x1, v1
 
 
-def run(
-    model: ClothModel,
-    params: ClothParams,
-    x0,
-    v0,
-    obstacle_track: Obstacles,
-    pinned=None,
-    pin_track=None,
-    key=None,
-    *,
-    wind_track=None,
-    start_time: float = 0.0,
-    progress: bool = True,
-    desc: str = "simulate",
-    chunk: int = CHUNK,
-) -> SimResult:
-    """Simulate T = len(track) frames; frame t is the state after stepping the obstacles from track[t - 1] to
-    track[t] (track[-1] := track[0]), so every stored frame went through a collision projection.
+def _checked_inputs(model, params, x0, v0, obstacle_track, pinned, pin_track, wind_track):
+    """Validate and normalise the inputs of :func:`run`, in the order ``run`` has always checked them.
 
-    ``pinned`` (V,) bool; ``pin_track`` (T, V, 3) targets of the pinned vertices (default: their x0);
-    ``wind_track`` (T, 3) mean wind per frame (default: ``params.wind``); ``key`` the PRNG key of the
-    turbulence. Deterministic from the key. Returns frames, last state and timings (compilation apart).
+    Returns ``(x0, v0, track, T, pinned, pins, wind)``: float32 ``x0``/``v0`` (V, 3), the float32 obstacle
+    track and its frame count T >= 1, the (V,) bool pin mask, pin targets (T, V, 3) and wind (T, 3).
+    Raises :class:`SimulationError` (same messages as before) on the first bad input.
     """
     x0 = np.asarray(x0, np.float32)
     V = model.n_vertices
@@ -824,8 +808,16 @@ def run(
         raise SimulationError(f"wind_track must have shape {(T, 3)}, got {wind.shape}.")
     if not (np.all(np.isfinite(x0)) and np.all(np.isfinite(v0))):
         raise SimulationError("The initial state holds non-finite numbers.")
+    return x0, v0, track, T, pinned, pins, wind
 
-    # previous/current pairs per frame, padded to whole chunks by repeating the last frame
+
+def _frame_pairs(params, track, pins, wind, T, start_time, chunk):
+    """Per-frame (previous, current) inputs of the scan, padded to whole chunks by repeating the last frame.
+
+    Takes the checked track/pins/wind of T frames. Returns ``(xs_all, n_pad)`` where ``xs_all`` is the
+    host-side tuple ``(prev track, cur track, prev pins, cur pins, prev wind, cur wind, times)`` of
+    length ``T + n_pad`` (a multiple of ``chunk``); frame 0's previous is itself.
+    """
     n_pad = (-T) % chunk
     idx = np.concatenate([np.arange(T), np.full(n_pad, T - 1)])
     prev = np.maximum(idx - 1, 0)
@@ -840,23 +832,25 @@ def run(
         wind[idx],
         times,
     )
+    return xs_all, n_pad
 
-    key = jax.random.PRNGKey(0) if key is None else key
-    modes = turbulence_modes(key)
-    p = _params_leaves(params)
-    w = inverse_mass(model, params, pinned)
-    pin_j = jnp.asarray(pinned)
-    teth = tethers(model, pinned)
-    x, v = jnp.asarray(x0), jnp.asarray(v0)
+
+def _run_chunks(consts, x, v, xs_all, T, n_pad, chunk, progress, desc):
+    """Step the simulation chunk by chunk from state ``(x, v)`` with a tqdm bar of T frames.
+
+    ``consts`` is ``(model, params leaves, modes, inverse mass, pin mask, tethers)``. Returns
+    ``(frames, v_last, compile_s, run_s)``: the (T, V, 3) positions (padding dropped), the velocity of
+    frame T - 1, total compile seconds and total run seconds (compilation apart). No finiteness check.
+    """
+    from tqdm.auto import tqdm
+
     out = []
     compile_s = 0.0
     run_s = 0.0
-    from tqdm.auto import tqdm
-
     with tqdm(total=T, desc=desc, unit="frame", disable=not progress, leave=False) as bar:
         for c0 in range(0, T + n_pad, chunk):
             xs = jax.tree_util.tree_map(lambda a: jnp.asarray(a[c0 : c0 + chunk]), xs_all)
-            args = (model, p, modes, w, pin_j, teth, x, v, xs)
+            args = (*consts, x, v, xs)
             exe, cs = _executable(args)
             compile_s += cs
             t = time.perf_counter()
@@ -867,7 +861,46 @@ def run(
             if c0 <= T - 1 < c0 + chunk:
                 v_last = np.asarray(fv[T - 1 - c0])
             bar.update(min(chunk, T - c0))
-    frames = np.concatenate(out)[:T]
+    return np.concatenate(out)[:T], v_last, compile_s, run_s
+
+
+def run(
+    model: ClothModel,
+    params: ClothParams,
+    x0,
+    v0,
+    obstacle_track: Obstacles,
+    pinned=None,
+    pin_track=None,
+    key=None,
+    *,
+    wind_track=None,
+    start_time: float = 0.0,
+    progress: bool = True,
+    desc: str = "simulate",
+    chunk: int = CHUNK,
+) -> SimResult:
+    """Simulate T = len(track) frames; frame t is the state after stepping the obstacles from track[t - 1] to
+    track[t] (track[-1] := track[0]), so every stored frame went through a collision projection.
+
+    ``pinned`` (V,) bool; ``pin_track`` (T, V, 3) targets of the pinned vertices (default: their x0);
+    ``wind_track`` (T, 3) mean wind per frame (default: ``params.wind``); ``key`` the PRNG key of the
+    turbulence. Deterministic from the key. Returns frames, last state and timings (compilation apart).
+    """
+    x0, v0, track, T, pinned, pins, wind = _checked_inputs(
+        model, params, x0, v0, obstacle_track, pinned, pin_track, wind_track
+    )
+    xs_all, n_pad = _frame_pairs(params, track, pins, wind, T, start_time, chunk)
+    key = jax.random.PRNGKey(0) if key is None else key
+    modes = turbulence_modes(key)
+    p = _params_leaves(params)
+    w = inverse_mass(model, params, pinned)
+    pin_j = jnp.asarray(pinned)
+    teth = tethers(model, pinned)
+    x, v = jnp.asarray(x0), jnp.asarray(v0)
+    frames, v_last, compile_s, run_s = _run_chunks(
+        (model, p, modes, w, pin_j, teth), x, v, xs_all, T, n_pad, chunk, progress, desc
+    )
     if not np.all(np.isfinite(frames)):
         raise SimulationError("The simulation diverged (non-finite positions); lower the time step or stiffness.")
     return SimResult(

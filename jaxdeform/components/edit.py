@@ -594,6 +594,31 @@ def _run(
     return result._replace(steps=taken, converged=converged)
 
 
+def _held_controls(objective, method, controls) -> tuple[int, ...] | None:
+    """Check ``objective`` (and its compatibility with ``method``) for :func:`edit`.
+
+    Takes the objective name, the method and the checked control indices. Returns the control indices
+    as a tuple of ints for the "deformation" objective (they are held at the targets), ``None`` for
+    "controls". Raises :class:`EditInputError` (unknown objective, "lm" with "deformation", or repeated
+    control indices under "deformation").
+    """
+    if objective not in OBJECTIVES:
+        raise EditInputError(f"unknown objective '{objective}'; expected one of {', '.join(OBJECTIVES)}.")
+    held = None
+    if objective == "deformation":
+        if method == "lm":
+            raise EditInputError(
+                "the deformation objective is not a least-squares problem in the latents; use method 'bfgs' or 'adam'."
+            )
+        held = tuple(int(i) for i in np.asarray(controls))
+        if len(set(held)) != len(held):
+            raise EditInputError(
+                "the deformation objective holds each control vertex at its target: the control "
+                "indices must be distinct."
+            )
+    return held
+
+
 # --------------------------------------------------------------------------------------------------
 # Public entry points
 # --------------------------------------------------------------------------------------------------
@@ -654,20 +679,7 @@ def edit(
         method=method,
         what="decode_features",
     )
-    if objective not in OBJECTIVES:
-        raise EditInputError(f"unknown objective '{objective}'; expected one of {', '.join(OBJECTIVES)}.")
-    held = None
-    if objective == "deformation":
-        if method == "lm":
-            raise EditInputError(
-                "the deformation objective is not a least-squares problem in the latents; use method 'bfgs' or 'adam'."
-            )
-        held = tuple(int(i) for i in np.asarray(c))
-        if len(set(held)) != len(held):
-            raise EditInputError(
-                "the deformation objective holds each control vertex at its target: the control "
-                "indices must be distinct."
-            )
+    held = _held_controls(objective, method, c)
     model = _Model(decode_features, acap, scaler, int(anchor), int(refine), str(w0.dtype), objective, held)
     # host factorisations now: they cannot happen while tracing
     acap.reconstructor(model.anchors)

@@ -266,6 +266,78 @@ def _model_config(d: dict) -> model.Config:
     return model.Config(**{k: (tuple(v) if isinstance(v, list) else v) for k, v in d.items()})
 
 
+def _fit_autoencoder(out, record, method, config, x, rest, faces, dist, cfg, tc, train_idx, progress, log) -> dict:
+    """Train the autoencoder ``method`` on the scaled ACAP features ``x`` (checkpoints under out/params).
+
+    Writes out/history.npy and adds the training timings, ``final_terms`` and ``final_loss`` to ``record``
+    (in that order). Returns the training codes, ``{"level<i>": latents}``.
+    """
+    rings = rings_from_topology(build_topology(faces, rest.shape[0]))
+    timing: dict = {}
+    log(
+        f"training {method} ({config}) on {len(train_idx)} shapes x {rest.shape[0]} vertices, "
+        f"{tc.epochs} epochs{'' if tc.joint else ' per level'}"
+    )
+    params, history = train.train(
+        x,
+        rings,
+        dist,
+        cfg,
+        tc,
+        checkpoint_dir=out / "params",
+        checkpoint_every=max(tc.epochs // 10, 1),
+        progress=progress,
+        timing=timing,
+    )
+    record["timing"].update(timing)
+    np.save(out / "history.npy", history)
+    final = model.forward(params, jnp.asarray(x), rings, jnp.asarray(dist), cfg)
+    record["final_terms"] = jax.tree_util.tree_map(float, final.terms)
+    codes = {f"level{i}": np.asarray(z) for i, z in enumerate(final.latents)}
+    record["final_loss"] = float(history[-1])
+    return codes
+
+
+def _fit_linear(out, record, method, config, x, vertices, train_idx, rest, faces) -> dict:
+    """Fit the linear baseline ``method`` ("pca" on the ACAP features ``x``; "pca-xyz" or "splocs" on the
+    training positions) with ``N_LINEAR[config]`` components and save it as out/model.npz.
+
+    Adds ``fit_s`` to ``record["timing"]``. Returns the training codes, ``{"weights": (n, k)}``.
+    """
+    t1 = time.perf_counter()
+    k = N_LINEAR[config]
+    if method == "pca":
+        lin = baselines.fit_pca(x, k, domain="acap")
+    elif method == "pca-xyz":
+        lin = baselines.fit_pca(vertices[train_idx], k, domain="xyz")
+    else:
+        rows = lambda idx: geodesic.geodesic_distances(rest, faces, idx, normalize=False)  # noqa: E731
+        diameter = _diameter(rest, faces)
+        lin = baselines.fit_splocs(vertices[train_idx], lambda idx: rows(idx) / diameter, k)
+    baselines.save(lin, out / "model.npz")
+    train_data = x if method == "pca" else vertices[train_idx]
+    codes = {"weights": np.asarray(baselines.project(lin, jnp.asarray(train_data)))}
+    record["timing"]["fit_s"] = round(time.perf_counter() - t1, 3)
+    return codes
+
+
+def _write_run(out, record, rest, faces, scaler, turns, codes) -> None:
+    """Write out/mesh.npz (rest, faces and, for the ACAP methods, the scaler and turn reference),
+    out/codes.npz and out/run.json, each atomically, in that order."""
+    arrays = {"rest": rest, "faces": faces}
+    if scaler is not None:
+        arrays["scaler"] = scaler.to_array()
+        arrays["turn_reference"] = turns
+    with atomic_path(out / "mesh.npz") as tmp:
+        with open(tmp, "wb") as fh:
+            np.savez(fh, **arrays)
+    with atomic_path(out / "codes.npz") as tmp:  # training codes: the magnitudes components are shown at
+        with open(tmp, "wb") as fh:
+            np.savez(fh, **codes)
+    with atomic_path(out / "run.json") as tmp:
+        Path(tmp).write_text(json.dumps(record, indent=2))
+
+
 def fit(
     out: Path,
     data,
@@ -303,7 +375,7 @@ def fit(
         "n_vertices": int(vertices.shape[1]),
         "dtype": np.dtype(dtype).name,
     }
-    scaler = turns = None
+    scaler = turns = x = dist = None
     t0 = time.perf_counter()
     record["timing"] = {}
     # The autoencoders' geodesics (libigl's C++) run on a thread beside the features (mostly
@@ -320,57 +392,11 @@ def fit(
         if geo is not None:
             dist, record["timing"]["geodesics_s"] = geo.result()
     if method in AUTOENCODERS:
-        rings = rings_from_topology(build_topology(faces, rest.shape[0]))
-        timing: dict = {}
-        log(
-            f"training {method} ({config}) on {len(train_idx)} shapes x {rest.shape[0]} vertices, "
-            f"{tc.epochs} epochs{'' if tc.joint else ' per level'}"
-        )
-        params, history = train.train(
-            x,
-            rings,
-            dist,
-            cfg,
-            tc,
-            checkpoint_dir=out / "params",
-            checkpoint_every=max(tc.epochs // 10, 1),
-            progress=progress,
-            timing=timing,
-        )
-        record["timing"].update(timing)
-        np.save(out / "history.npy", history)
-        final = model.forward(params, jnp.asarray(x), rings, jnp.asarray(dist), cfg)
-        record["final_terms"] = jax.tree_util.tree_map(float, final.terms)
-        codes = {f"level{i}": np.asarray(z) for i, z in enumerate(final.latents)}
-        record["final_loss"] = float(history[-1])
+        codes = _fit_autoencoder(out, record, method, config, x, rest, faces, dist, cfg, tc, train_idx, progress, log)
     else:
-        t1 = time.perf_counter()
-        k = N_LINEAR[config]
-        if method == "pca":
-            lin = baselines.fit_pca(x, k, domain="acap")
-        elif method == "pca-xyz":
-            lin = baselines.fit_pca(vertices[train_idx], k, domain="xyz")
-        else:
-            rows = lambda idx: geodesic.geodesic_distances(rest, faces, idx, normalize=False)  # noqa: E731
-            diameter = _diameter(rest, faces)
-            lin = baselines.fit_splocs(vertices[train_idx], lambda idx: rows(idx) / diameter, k)
-        baselines.save(lin, out / "model.npz")
-        train_data = x if method == "pca" else vertices[train_idx]
-        codes = {"weights": np.asarray(baselines.project(lin, jnp.asarray(train_data)))}
-        record["timing"]["fit_s"] = round(time.perf_counter() - t1, 3)
+        codes = _fit_linear(out, record, method, config, x, vertices, train_idx, rest, faces)
     record["timing"]["total_s"] = round(time.perf_counter() - t0, 3)
-    arrays = {"rest": rest, "faces": faces}
-    if scaler is not None:
-        arrays["scaler"] = scaler.to_array()
-        arrays["turn_reference"] = turns
-    with atomic_path(out / "mesh.npz") as tmp:
-        with open(tmp, "wb") as fh:
-            np.savez(fh, **arrays)
-    with atomic_path(out / "codes.npz") as tmp:  # training codes: the magnitudes components are shown at
-        with open(tmp, "wb") as fh:
-            np.savez(fh, **codes)
-    with atomic_path(out / "run.json") as tmp:
-        Path(tmp).write_text(json.dumps(record, indent=2))
+    _write_run(out, record, rest, faces, scaler, turns, codes)
     return record
 
 

@@ -352,6 +352,31 @@ class _Run:
         self.ckpt.save(base + done, saved)
 
 
+def _initial_params(params, init_key, n_vertices: int, config: model.Config, dtype) -> tuple:
+    """The parameters :func:`train` starts from: a fresh ``model.init`` from ``init_key`` when ``params`` is
+    None, else copies of the caller's arrays (the step donates its parameters: the caller's stay valid).
+    Returns a tuple of every level's parameters."""
+    if params is None:
+        params = model.init(init_key, n_vertices, config, dtype)
+    else:
+        params = jax.tree_util.tree_map(jnp.copy, params)
+    return tuple(params)
+
+
+def _progress_bar(total: int, initial: int):
+    """A tqdm bar of ``total`` epochs starting at ``initial`` (resumed runs), labelled "components train".
+    The caller closes it."""
+    from tqdm.auto import tqdm
+
+    return tqdm(
+        total=total,
+        initial=initial,
+        desc="components train",
+        unit="epoch",
+        dynamic_ncols=True,
+    )
+
+
 def train(
     data,
     rings: Rings,
@@ -387,11 +412,7 @@ def train(
         data = parallel.replicate(data, mesh)
     dtype = data.dtype
     key, init_key = seed_keys(tc.seed)
-    if params is None:
-        params = model.init(init_key, data.shape[1], config, dtype)
-    else:  # the step donates its parameters: the caller's arrays stay valid
-        params = jax.tree_util.tree_map(jnp.copy, params)
-    params = tuple(params)
+    params = _initial_params(params, init_key, data.shape[1], config, dtype)
     stages = _stages(config, tc)
     history = np.zeros(len(stages) * tc.epochs, np.float32)
     dist = jnp.asarray(dist, dtype)
@@ -403,17 +424,7 @@ def train(
     else:
         opt_state = None
 
-    bar = None
-    if progress:
-        from tqdm.auto import tqdm
-
-        bar = tqdm(
-            total=len(stages) * tc.epochs,
-            initial=start_stage * tc.epochs + start_epoch,
-            desc="components train",
-            unit="epoch",
-            dynamic_ncols=True,
-        )
+    bar = _progress_bar(len(stages) * tc.epochs, start_stage * tc.epochs + start_epoch) if progress else None
     run = _Run(
         data,
         rings,

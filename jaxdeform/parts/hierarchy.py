@@ -158,6 +158,42 @@ def _labels_masked(y, p: MFA, mask: np.ndarray) -> np.ndarray:
 # ------------------------------------------------------------------------------------------ Algorithm 1
 
 
+def _refine_parts(y, y_np, p: MFA, coarse, k0: int, threshold, max_split, min_part_vertices, seed):
+    """Step 2 of Algorithm 1: split every coarse part on its own into 2..``max_split`` parts while that lowers
+    its average variance (and it is above ``threshold``, the part large enough and the AECM converged).
+
+    Takes the normalised shapes (``y`` on device, ``y_np`` on host), the coarse fit ``p`` and its labels
+    ``coarse`` over ``k0`` parts. Returns ``(refined, n_parts, refine_log)``: labels (-1 for vertices of no
+    part), consecutive per coarse part; their count; one log record per non-empty coarse part.
+    """
+    n = y.shape[0]
+    refined = np.full(n, -1, np.int64)
+    next_label = 0
+    refine_log = []
+    for k in range(k0):
+        mask = coarse == k
+        if not mask.any():
+            continue
+        sub = np.zeros(n, np.int64)
+        var = average_variance(y, p, coarse, mask)
+        splits, iters = 1, []
+        for m in range(2, max_split + 1):
+            if var <= threshold or mask.sum() < m * min_part_vertices:
+                break
+            init = mfa.kmeans_labels(y_np, m, w=mask, seed=seed + k)
+            q, _, q_it = fit_from_labels(y, init, m, w=mask, max_iter=REFINE_MAX_ITER + 1)
+            q_lab = _labels_masked(y, q, mask)
+            q_var = average_variance(y, q, np.maximum(q_lab, 0), mask)
+            iters.append(q_it)
+            if q_var >= var or q_it > REFINE_MAX_ITER:  # the variance ceased to decrease, or no convergence
+                break
+            sub, var, splits = q_lab, q_var, m
+        refined[mask] = next_label + sub[mask]
+        next_label += splits
+        refine_log.append({"part": k, "split_into": splits, "average_variance": var, "iterations": iters})
+    return refined, next_label, refine_log
+
+
 def fit(
     vertices,
     faces,
@@ -189,30 +225,9 @@ def fit(
     log(f"coarse: {k0} parts, {it} AECM iterations, average variance {average_variance(y, p, coarse):.3e}")
 
     # 2. refine every coarse part on its own
-    refined = np.full(n, -1, np.int64)
-    next_label = 0
-    refine_log = []
-    for k in range(k0):
-        mask = coarse == k
-        if not mask.any():
-            continue
-        sub = np.zeros(n, np.int64)
-        var = average_variance(y, p, coarse, mask)
-        splits, iters = 1, []
-        for m in range(2, max_split + 1):
-            if var <= threshold or mask.sum() < m * min_part_vertices:
-                break
-            init = mfa.kmeans_labels(y_np, m, w=mask, seed=seed + k)
-            q, _, q_it = fit_from_labels(y, init, m, w=mask, max_iter=REFINE_MAX_ITER + 1)
-            q_lab = _labels_masked(y, q, mask)
-            q_var = average_variance(y, q, np.maximum(q_lab, 0), mask)
-            iters.append(q_it)
-            if q_var >= var or q_it > REFINE_MAX_ITER:  # the variance ceased to decrease, or no convergence
-                break
-            sub, var, splits = q_lab, q_var, m
-        refined[mask] = next_label + sub[mask]
-        next_label += splits
-        refine_log.append({"part": k, "split_into": splits, "average_variance": var, "iterations": iters})
+    refined, next_label, refine_log = _refine_parts(
+        y, y_np, p, coarse, k0, threshold, max_split, min_part_vertices, seed
+    )
     accepted = [r["iterations"][r["split_into"] - 2] for r in refine_log if r["split_into"] > 1]
     stages.append(
         {"stage": "refine", "parts": int(next_label), "iterations": max(accepted, default=0), "per_part": refine_log}
