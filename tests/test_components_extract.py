@@ -394,3 +394,13 @@ def test_figure_camera_frames_typical_meshes_not_an_outlier():
     assert framed.shape == (24, 3) and framed.max() == pytest.approx(1.2)
     same = np.stack([cube, cube * 1.1])  # nothing to drop
     assert figures._framed_points(same).shape == (16, 3)
+
+
+@pytest.mark.parametrize("option", [{"tie_conv": True}, {"decoder_tanh": False}])
+def test_all_components_refuses_a_variant_decoder(setup, option):
+    """Components are one-hot decodes of the default block: a variant decoder is refused, not silently replaced."""
+    import dataclasses
+
+    config = dataclasses.replace(model.Config(), **option)
+    with pytest.raises(ValueError, match="default decoder"):
+        extract.all_components((), None, config)

@@ -240,6 +240,8 @@ def all_components(
     as base instead of zero; otherwise ``scale`` (default ``config.theta``). With a ``scaler`` the values are
     ACAP feature differences (domain ``"acap"``), else scaled-feature differences (``"scaled"``).
     """
+    if config.tie_conv or not config.decoder_tanh:
+        raise ValueError("component extraction needs the default decoder (tie_conv=False, decoder_tanh=True).")
     if not 1 <= len(params) <= config.levels:  # a prefix of the levels is fine (level-by-level training)
         raise ValueError(f"params have {len(params)} levels but the config describes {config.levels}.")
     if reference is not None and latents is None:
