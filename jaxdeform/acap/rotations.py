@@ -208,7 +208,7 @@ def polar_cm(t: Array, steps: int = NEWTON_STEPS) -> tuple[Array, Array]:
         g = jnp.sqrt(frob_cm(xinv) / frob_cm(x))
         return 0.5 * (g * x + t_cm(xinv) / g)
 
-    # A loop, not unrolled: unrolled, XLA on CPU fuses the steps and recomputes shared terms .
+    # A loop, not unrolled: unrolled, XLA on CPU fuses the steps and recomputes shared terms.
     x = jax.lax.fori_loop(0, steps, newton, t)
     p = sym_cm(mm_cm(t_cm(x), t))
     neg = det_cm(t) < 0
