@@ -75,6 +75,17 @@ class Rings:
 
 
 def build_graph(edges: np.ndarray, n: int) -> Graph:
+    """Build the graph structures of one connectivity on the host.
+
+    **Arguments:**
+
+    - `edges`: undirected edges `(E, 2)`, integer vertex indices.
+    - `n`: the number of vertices.
+
+    **Returns:**
+
+    The :class:`Graph`, with one BFS root per connected component (its lowest vertex).
+    """
     edges = np.asarray(edges, dtype=np.int64)
     e = edges.shape[0]
     src = np.r_[edges[:, 0], edges[:, 1]]
@@ -299,20 +310,58 @@ def _temporal_vm(axis, angle, rings: Rings):
 
 @jax.jit
 def spatial_jax(axis, angle, rings: Rings):
-    """(phi, o) (N, V) for axes (N, V, 3) and angles (N, V): each frame on its own, gauge fixed at the roots."""
+    """Spatially consistent angles and orientations, each frame on its own, gauge fixed at the roots.
+
+    **Arguments:**
+
+    - `axis`: unit axes `(N, V, 3)`.
+    - `angle`: angles `(N, V)` in [0, pi].
+    - `rings`: the graph's :class:`Rings`.
+
+    **Returns:**
+
+    `(phi, o)`, both `(N, V)`.
+    """
     phi, o = _spatial_vm(jnp.moveaxis(axis, (0, 1, 2), (2, 1, 0)), angle.T, rings)
     return phi.T, o.T
 
 
 @jax.jit
 def temporal_jax(axis, angle, rings: Rings):
-    """TS-ACAP (phi, o) (N, V): frame 0 as in :func:`spatial_jax`; later frames also agree with their predecessor."""
+    """TS-ACAP angles and orientations: frame 0 as in :func:`spatial_jax`; later frames also agree with their
+    predecessor.
+
+    **Arguments:**
+
+    - `axis`: unit axes `(N, V, 3)`, frames in order.
+    - `angle`: angles `(N, V)` in [0, pi].
+    - `rings`: the graph's :class:`Rings`.
+
+    **Returns:**
+
+    `(phi, o)`, both `(N, V)`.
+    """
     phi, o = _temporal_vm(jnp.moveaxis(axis, (0, 1, 2), (2, 1, 0)), angle.T, rings)
     return phi.T, o.T
 
 
 def consistent_vectors(v: Float[Array, "n v 3"], g: Graph, mode: Consistency | None) -> Float[Array, "n v 3"]:
-    """Consistent axis-angle vectors (phi * o) * axis from raw ones (angles in [0, pi]); jnp in, jnp out."""
+    """Consistent axis-angle vectors (phi * o) * axis from raw ones.
+
+    **Arguments:**
+
+    - `v`: raw axis-angle vectors `(N, V, 3)` with angles in [0, pi].
+    - `g`: the :class:`Graph`.
+    - `mode`: "spatial", "temporal", or "none"/None (returns `v`).
+
+    **Returns:**
+
+    Consistent vectors `(N, V, 3)`, a jnp array.
+
+    **Raises:**
+
+    `ValueError` for an unknown mode.
+    """
     if mode in ("none", None):
         return v
     if mode not in ("spatial", "temporal"):
@@ -328,7 +377,7 @@ def _axis_angle_cm(v):
 
 
 # The spatial solve runs as separately jitted stages: compiled as one program, XLA on CPU chose layouts and
-# fusions that made it 3-4x slower than its parts (horse-gallop: 1.7 against 0.5 ms per frame).
+# fusions that made it several times slower than its parts.
 
 
 @jax.jit
@@ -378,10 +427,23 @@ def _temporal_cm(v, rings: Rings):
 
 
 def consistent_cm(v: Float[Array, "3 v n"], rings: Rings, mode: str) -> Float[Array, "3 v n"]:
-    """:func:`consistent_vectors` in the component-major, vertex-major layout (3, V, N) (jitted stages).
+    """:func:`consistent_vectors` in the component-major, vertex-major layout (jitted stages).
 
-    Traces under jit, vmap, grad and jvp: the integer choices (orientations, turns) are made on
-    ``stop_gradient(v)``, so the derivative holds them fixed and equals v's own where no turn is added.
+    **Arguments:**
+
+    - `v`: raw axis-angle vectors `(3, V, N)`.
+    - `rings`: the graph's :class:`Rings`.
+    - `mode`: "spatial" or "temporal".
+
+    **Returns:**
+
+    Consistent vectors `(3, V, N)`. Traces under jit, vmap, grad and jvp: the integer choices (orientations,
+    turns) are made on `stop_gradient(v)`, so the derivative holds them fixed and equals v's own where no turn
+    is added.
+
+    **Raises:**
+
+    `ValueError` for an unknown mode.
     """
     if mode == "temporal":
         return _temporal_cm(v, rings)
@@ -401,24 +463,67 @@ STAGES = (_orientation_start, _orientation_sweeps, _turns_start, _turns_sweeps, 
 
 
 def edge_signs(axis: np.ndarray, angle: np.ndarray, i: np.ndarray | slice, j: np.ndarray | slice) -> np.ndarray:
-    """s of eq. (3) of seed 002 between (i) and (j) (index arrays or slices along the vertex axis)."""
+    """The edge signs s of eq. (3) of seed 002.
+
+    **Arguments:**
+
+    - `axis`: unit axes `(..., V, 3)`.
+    - `angle`: angles `(..., V)`.
+    - `i`, `j`: index arrays or slices along the vertex axis.
+
+    **Returns:**
+
+    Signs in {-1, 0, 1} between the (i) and (j) vertices: 0 where the axes are near-orthogonal or an angle
+    is near 0.
+    """
     d = np.sum(axis[..., i, :] * axis[..., j, :], axis=-1)
     ok = (np.abs(d) > EPS_DOT) & (angle[..., i] >= EPS_ANGLE) & (angle[..., j] >= EPS_ANGLE)
     return np.where(ok, np.sign(d), 0.0)
 
 
 def orientation_energy(o: np.ndarray, s_edge: np.ndarray, g: Graph) -> np.ndarray | float:
+    """The orientation objective sum_E o_i o_j s_ij (larger is more consistent).
+
+    **Arguments:**
+
+    - `o`: orientations `(..., V)`.
+    - `s_edge`: edge signs `(..., E)`.
+    - `g`: the :class:`Graph`.
+
+    **Returns:**
+
+    The energy per frame `(...)`.
+    """
     return np.sum(o[..., g.edges[:, 0]] * o[..., g.edges[:, 1]] * s_edge, axis=-1)
 
 
 def turn_energy(u: np.ndarray, g: Graph) -> np.ndarray | float:
+    """The turn objective sum_E (u_i - u_j)^2.
+
+    **Arguments:**
+
+    - `u`: angles `(..., V)`.
+    - `g`: the :class:`Graph`.
+
+    **Returns:**
+
+    The energy per frame `(...)`.
+    """
     return np.sum((u[..., g.edges[:, 0]] - u[..., g.edges[:, 1]]) ** 2, axis=-1)
 
 
 def spatial(axis: np.ndarray, angle: np.ndarray, g: Graph) -> tuple[np.ndarray, np.ndarray]:
-    """Consistent (phi, o) for axes (N, V, 3) and angles (N, V) in [0, pi], each frame on its own.
+    """Consistent angles and orientations, each frame on its own (numpy in and out).
 
-    The consistent axis-angle vector of vertex i is ``phi_i * o_i * axis_i``.
+    **Arguments:**
+
+    - `axis`: unit axes `(N, V, 3)`.
+    - `angle`: angles `(N, V)` in [0, pi].
+    - `g`: the :class:`Graph`.
+
+    **Returns:**
+
+    `(phi, o)`, both `(N, V)`; the consistent axis-angle vector of vertex i is `phi_i * o_i * axis_i`.
     """
     phi, o = spatial_jax(jnp.asarray(axis), jnp.asarray(angle), g.rings)
     return np.asarray(phi), np.asarray(o)
@@ -428,12 +533,34 @@ _spatial_turns_jit = jax.jit(_spatial_turns)
 
 
 def spatial_turns(phi: np.ndarray, g: Graph) -> np.ndarray:
-    """Stage 2 of :func:`spatial`: phi + 2 pi r with the integer turns r made consistent (N, V)."""
+    """Stage 2 of :func:`spatial`: integer turns made consistent.
+
+    **Arguments:**
+
+    - `phi`: signed angles `(N, V)`.
+    - `g`: the :class:`Graph`.
+
+    **Returns:**
+
+    phi + 2 pi r, `(N, V)`.
+    """
     return np.asarray(_spatial_turns_jit(jnp.asarray(phi).T, g.rings)).T
 
 
 def temporal(axis: np.ndarray, angle: np.ndarray, g: Graph) -> tuple[np.ndarray, np.ndarray]:
-    """TS-ACAP (phi, o): frame 0 as in :func:`spatial`, each later frame also agrees with its predecessor."""
+    """TS-ACAP angles and orientations: frame 0 as in :func:`spatial`, each later frame also agrees with its
+    predecessor (numpy in and out).
+
+    **Arguments:**
+
+    - `axis`: unit axes `(N, V, 3)`, frames in order.
+    - `angle`: angles `(N, V)` in [0, pi].
+    - `g`: the :class:`Graph`.
+
+    **Returns:**
+
+    `(phi, o)`, both `(N, V)`.
+    """
     phi, o = temporal_jax(jnp.asarray(axis), jnp.asarray(angle), g.rings)
     return np.asarray(phi), np.asarray(o)
 
@@ -441,7 +568,23 @@ def temporal(axis: np.ndarray, angle: np.ndarray, g: Graph) -> tuple[np.ndarray,
 def consistent_angles(
     axis: np.ndarray, angle: np.ndarray, g: Graph, mode: Consistency
 ) -> tuple[np.ndarray, np.ndarray]:
-    """(phi, o) for ``mode`` in spatial / temporal / none (none: phi = angle, o = 1)."""
+    """Consistent angles and orientations for a mode.
+
+    **Arguments:**
+
+    - `axis`: unit axes `(N, V, 3)`.
+    - `angle`: angles `(N, V)` in [0, pi].
+    - `g`: the :class:`Graph`.
+    - `mode`: "spatial", "temporal" or "none"/None (phi = angle, o = 1).
+
+    **Returns:**
+
+    `(phi, o)`, both `(N, V)`.
+
+    **Raises:**
+
+    `ValueError` for an unknown mode.
+    """
     if mode == "spatial":
         return spatial(axis, angle, g)
     if mode == "temporal":
@@ -457,7 +600,22 @@ def consistent_angles(
 
 
 def milp_orientation(axis: np.ndarray, angle: np.ndarray, g: Graph) -> np.ndarray:
-    """Exact maximizer of sum_E o_i o_j s_ij with o = +1 at each component root (scipy.optimize.milp)."""
+    """Exact maximizer of sum_E o_i o_j s_ij with o = +1 at each component root (scipy.optimize.milp).
+
+    **Arguments:**
+
+    - `axis`: unit axes `(V, 3)` of one frame.
+    - `angle`: angles `(V,)`.
+    - `g`: the :class:`Graph`.
+
+    **Returns:**
+
+    Orientations `(V,)` in {-1, 1}.
+
+    **Raises:**
+
+    `RuntimeError` when the MILP fails.
+    """
     from scipy.optimize import Bounds, LinearConstraint, milp
 
     s = edge_signs(axis, angle, g.edges[:, 0], g.edges[:, 1])
@@ -505,7 +663,21 @@ def milp_orientation(axis: np.ndarray, angle: np.ndarray, g: Graph) -> np.ndarra
 
 
 def milp_turns(phi: np.ndarray, g: Graph) -> np.ndarray:
-    """Exact integer turns r minimizing sum_E (phi_i + 2 pi r_i - phi_j - 2 pi r_j)^2, r = 0 at roots."""
+    """Exact integer turns r minimizing sum_E (phi_i + 2 pi r_i - phi_j - 2 pi r_j)^2, r = 0 at roots.
+
+    **Arguments:**
+
+    - `phi`: signed angles `(V,)` of one frame.
+    - `g`: the :class:`Graph`.
+
+    **Returns:**
+
+    Integer-valued turns `(V,)` (float array).
+
+    **Raises:**
+
+    `RuntimeError` when the MILP fails.
+    """
     from scipy.optimize import Bounds, LinearConstraint, milp
 
     n, e = g.n, g.edges.shape[0]
@@ -544,7 +716,22 @@ def milp_turns(phi: np.ndarray, g: Graph) -> np.ndarray:
 
 
 def milp_spatial(axis: np.ndarray, angle: np.ndarray, g: Graph) -> tuple[np.ndarray, np.ndarray]:
-    """Exact two-stage solution for one frame: axis (V, 3), angle (V,) -> (phi (V,), o (V,))."""
+    """Exact two-stage (orientation, then turns) solution for one frame.
+
+    **Arguments:**
+
+    - `axis`: unit axes `(V, 3)`.
+    - `angle`: angles `(V,)`.
+    - `g`: the :class:`Graph`.
+
+    **Returns:**
+
+    `(phi, o)`, both `(V,)`.
+
+    **Raises:**
+
+    `RuntimeError` when a MILP fails.
+    """
     o = milp_orientation(axis, angle, g)
     phi = o * angle
     return phi + TWO_PI * milp_turns(phi, g), o
@@ -563,10 +750,19 @@ def milp_spatial(axis: np.ndarray, angle: np.ndarray, g: Graph) -> tuple[np.ndar
 
 @jax.jit
 def align_turns(v: Float[Array, "... v 3"], reference: Float[Array, "v 3"]) -> Float[Array, "... v 3"]:
-    """Per vertex, the axis-angle vector of the same rotation, (theta + 2 pi k) w, nearest to ``reference``.
+    """Per vertex, the axis-angle vector of the same rotation, (theta + 2 pi k) w, nearest to a reference.
 
     ||(theta + 2 pi k) w - ref||^2 is a parabola in t = theta + 2 pi k with its minimum at t = w . ref, so
-    k = round((w . ref - theta) / 2 pi). Vectors of zero angle (no axis) are left as they are.
+    k = round((w . ref - theta) / 2 pi).
+
+    **Arguments:**
+
+    - `v`: axis-angle vectors `(..., V, 3)`.
+    - `reference`: reference vectors `(V, 3)`.
+
+    **Returns:**
+
+    Vectors `(..., V, 3)` of the same rotations. Vectors of zero angle (no axis) are left as they are.
     """
     sq = jnp.sum(v * v, axis=-1, keepdims=True)
     angle = jnp.sqrt(jnp.where(sq > 0, sq, 1.0))
@@ -577,8 +773,18 @@ def align_turns(v: Float[Array, "... v 3"], reference: Float[Array, "v 3"]) -> F
 
 @jax.jit
 def turn_reference(v: Float[Array, "n v 3"], max_iterations: int = 20) -> Float[Array, "v 3"]:
-    """A per-vertex reference for :func:`align_turns` from a set of shapes: the mean of their vectors, each
-    shape aligned to the mean in turn, repeated until no vector changes branch (at most ``max_iterations``)."""
+    """A per-vertex reference for :func:`align_turns` from a set of shapes.
+
+    **Arguments:**
+
+    - `v`: axis-angle vectors `(N, V, 3)` of the shapes.
+    - `max_iterations`: the most alignment rounds.
+
+    **Returns:**
+
+    The reference `(V, 3)`: the mean of the vectors, each shape aligned to the mean in turn, repeated until no
+    vector changes branch (at most `max_iterations` times).
+    """
 
     def cond(state):
         _, changed, it = state

@@ -55,13 +55,32 @@ _S_IDX = (np.array([0, 0, 0, 1, 1, 2]), np.array([0, 1, 2, 1, 2, 2]))
 def features_from(
     v: Float[jax.typing.ArrayLike, "*batch 3"], s: Float[jax.typing.ArrayLike, "*batch 3 3"]
 ) -> Float[Array, "*batch 9"]:
-    """9-d features from axis-angle vectors and symmetric S."""
+    """9-d ACAP features from axis-angle vectors and symmetric stretch matrices.
+
+    **Arguments:**
+
+    - `v`: axis-angle vectors, shape `(..., 3)`.
+    - `s`: symmetric stretch matrices S, shape `(..., 3, 3)`; only the upper triangle is read.
+
+    **Returns:**
+
+    Features of shape `(..., 9)` in the official order (module docstring), dtype following the inputs.
+    """
     rot = jnp.stack([-v[..., 2], v[..., 1], -v[..., 0]], axis=-1)
     return jnp.concatenate([rot, s[..., _S_IDX[0], _S_IDX[1]]], axis=-1)
 
 
 def split_features_cm(f: Float[Array, "9 ..."]) -> tuple[Array, Array]:
-    """Features in the component-major layout (9, *batch) -> (axis-angle (3, *batch), S (3, 3, *batch))."""
+    """Split features in the component-major layout.
+
+    **Arguments:**
+
+    - `f`: features, shape `(9, ...)` (component axis first).
+
+    **Returns:**
+
+    `(v, s)`: axis-angle vectors `(3, ...)` and symmetric S `(3, 3, ...)`, both component-major.
+    """
     v = jnp.stack([-f[2], f[1], -f[0]])
     s00, s01, s02, s11, s12, s22 = (f[k] for k in range(3, 9))
     return v, jnp.stack([jnp.stack([s00, s01, s02]), jnp.stack([s01, s11, s12]), jnp.stack([s02, s12, s22])])
@@ -70,24 +89,51 @@ def split_features_cm(f: Float[Array, "9 ..."]) -> tuple[Array, Array]:
 def split_features(
     f: Float[jax.typing.ArrayLike, "*batch 9"],
 ) -> tuple[Float[Array, "*batch 3"], Float[Array, "*batch 3 3"]]:
-    """Inverse of :func:`features_from`: (axis-angle vectors (..., 3), S (..., 3, 3))."""
+    """Inverse of :func:`features_from`.
+
+    **Arguments:**
+
+    - `f`: features, shape `(..., 9)`.
+
+    **Returns:**
+
+    `(v, s)`: axis-angle vectors `(..., 3)` and symmetric S `(..., 3, 3)`.
+    """
     v, s = split_features_cm(to_cm(f, 1))
     return from_cm(v, 1), from_cm(s)
 
 
 def gradients_from_features_cm(f: Float[Array, "9 ..."]) -> Float[Array, "3 3 ..."]:
-    """T = exp(log R) S in the component-major layout."""
+    """Deformation gradients T = exp(log R) S in the component-major layout.
+
+    **Arguments:**
+
+    - `f`: features, shape `(9, ...)`.
+
+    **Returns:**
+
+    T of shape `(3, 3, ...)`, dtype following `f`; differentiable in `f`.
+    """
     v, s = split_features_cm(f)
     return mm_cm(exp_rotation_cm(v), s)
 
 
 def gradients_from_features(f: Float[jax.typing.ArrayLike, "*batch 9"]) -> Float[Array, "*batch 3 3"]:
-    """T = exp(log R) S."""
+    """Deformation gradients T = exp(log R) S of features.
+
+    **Arguments:**
+
+    - `f`: features, shape `(..., 9)`.
+
+    **Returns:**
+
+    T of shape `(..., 3, 3)`, dtype following `f`; differentiable in `f`.
+    """
     return from_cm(gradients_from_features_cm(to_cm(f, 1)))
 
 
 # The encoder runs as a few separately jitted stages: compiled as one program, XLA on CPU picked layouts and
-# fusions that made the whole 4x slower than the sum of its parts (horse-gallop: 20 ms against 5 ms/frame).
+# fusions that made the whole several times slower than the sum of its parts.
 
 
 @jax.jit
@@ -220,14 +266,35 @@ class Acap(eqx.Module):
         return _finite_or_raise(x, DegenerateMeshError("a vertex coordinate is NaN or infinite."))
 
     def local(self, vertices) -> tuple[Array, Array]:
-        """(axis-angle vectors (..., V, 3) with angles in [0, pi], S (..., V, 3, 3)) of vertices (..., V, 3)."""
+        """The raw local fits (no consistency) of meshes.
+
+        **Arguments:**
+
+        - `vertices`: positions, shape `(..., V, 3)`.
+
+        **Returns:**
+
+        `(v, s)`: axis-angle vectors `(..., V, 3)` with angles in [0, pi] and S `(..., V, 3, 3)`.
+        """
         return self.encode_parts(vertices, "none")
 
     def encode_parts(self, vertices, consistency: str | None = "spatial") -> tuple[Array, Array]:
-        """(consistent axis-angle vectors (..., V, 3), S (..., V, 3, 3)) of vertices (..., V, 3).
+        """Consistent axis-angle vectors and stretch matrices of meshes.
 
-        "temporal" takes the frames along the first axis of (N, V, 3). Differentiable in the vertices: the
-        integer consistency choices are held fixed in the derivative.
+        **Arguments:**
+
+        - `vertices`: positions, shape `(..., V, 3)`; `(N, V, 3)` frames in order for "temporal".
+        - `consistency`: "spatial" (default), "temporal" (frames along the first axis) or None/"none".
+
+        **Returns:**
+
+        `(v, s)`: consistent axis-angle vectors `(..., V, 3)` and S `(..., V, 3, 3)`, in the vertices' float
+        dtype. Differentiable in the vertices: the integer consistency choices are held fixed in the derivative.
+
+        **Raises:**
+
+        `ValueError` for an unknown `consistency`, a bad shape or non-(N, V, 3) input to "temporal";
+        `ConnectivityError` when V differs from the reference; `DegenerateMeshError` for a non-finite coordinate.
         """
         if consistency not in (None, "none", "spatial", "temporal"):
             raise ValueError(f"unknown consistency '{consistency}'; expected 'spatial', 'temporal' or 'none'.")
@@ -240,13 +307,34 @@ class Acap(eqx.Module):
         return v.reshape(*lead, n, 3), s.reshape(*lead, n, 3, 3)
 
     def encode(self, vertices, consistency: str | None = "spatial") -> Float[Array, "... v 9"]:
-        """ACAP features (..., V, 9) of vertices (..., V, 3) (see :meth:`encode_parts`)."""
+        """ACAP features of meshes.
+
+        **Arguments:**
+
+        - `vertices`: positions, shape `(..., V, 3)`.
+        - `consistency`: as in :meth:`encode_parts`.
+
+        **Returns:**
+
+        Features of shape `(..., V, 9)` (see :meth:`encode_parts` for dtype, derivative and raised errors).
+        """
         v, s = self.encode_parts(vertices, consistency)
         return features_from(v, s)
 
     def reconstructor(self, anchors=None) -> Reconstructor:
-        """The reconstruction for ``anchors`` (vertex indices; None: the prepared default). Concrete anchor
-        sets other than the default are built once and kept (a new factor for the factored solvers)."""
+        """The reconstruction for an anchor set.
+
+        Concrete anchor sets other than the default are built once and kept (a new factor for the factored
+        solvers).
+
+        **Arguments:**
+
+        - `anchors`: vertex indices; None: the prepared default.
+
+        **Returns:**
+
+        The :class:`Reconstructor` holding those anchors.
+        """
         if anchors is None:
             return self.rec
         if is_traced(anchors):
@@ -262,10 +350,19 @@ class Acap(eqx.Module):
         return rec
 
     def with_rest(self, rest: Float[jax.typing.ArrayLike, "v 3"]) -> Acap:
-        """The same Acap with its reference-side constants (fit constants, edge weights, reconstruction
-        weights) recomputed from ``rest``: :meth:`encode` and :meth:`decode` of the result are differentiable
-        with respect to ``rest``. The topology stays; a factored solver solves only at its own reference
-        (see :meth:`Reconstructor.with_rest`)."""
+        """The same Acap with its reference-side constants recomputed from a new reference.
+
+        The fit constants, edge weights and reconstruction weights are recomputed; the topology stays; a
+        factored solver solves only at its own reference (see :meth:`Reconstructor.with_rest`).
+
+        **Arguments:**
+
+        - `rest`: the new reference positions, shape `(V, 3)`.
+
+        **Returns:**
+
+        A new :class:`Acap`; its :meth:`encode` and :meth:`decode` are differentiable with respect to `rest`.
+        """
         rest = jnp.asarray(rest)
         frame = self.frame
         w, c_ring, c_normal = _rest_constants(rest, frame.topo, frame.plan, self.weighting)
@@ -281,10 +378,21 @@ class Acap(eqx.Module):
         )
 
     def deformation_energy(self, features, positions) -> Float[Array, ...]:
-        """The ACAP reconstruction's objective without its anchor term, per shape:
-        sum over edges of w_ij |(p_i - p_j) - (T_i + T_j)/2 (q_i - q_j)|^2, with T the deformation gradients of
-        ``features`` (..., V, 9) and p = ``positions`` (..., V, 3). Zero when the positions realise the features'
-        gradients exactly; :meth:`decode` with ``refine=0`` minimises it under its anchors. Differentiable in both.
+        """The ACAP reconstruction's objective without its anchor term, per shape.
+
+        The sum over edges of w_ij |(p_i - p_j) - (T_i + T_j)/2 (q_i - q_j)|^2, with T the deformation
+        gradients of the features and p the positions. :meth:`decode` with `refine=0` minimises it under its
+        anchors.
+
+        **Arguments:**
+
+        - `features`: features, shape `(..., V, 9)`.
+        - `positions`: positions p, shape `(..., V, 3)`.
+
+        **Returns:**
+
+        The energy per shape, shape `(...)`: zero when the positions realise the features' gradients exactly.
+        Differentiable in both arguments.
         """
         rec = self.rec  # the edge terms are the same for every anchor set
         features = jnp.asarray(features)
@@ -314,17 +422,31 @@ class Acap(eqx.Module):
     def decode_info(
         self, features, *, anchors=None, targets=None, refine: int = DEFAULT_REFINE, initial=None
     ) -> tuple[Float[Array, "... v 3"], SolveInfo]:
-        """(positions (..., V, 3), :class:`SolveInfo` of its linear solves) from features (..., V, 9).
+        """Positions from features, with the diagnostics of the linear solves.
 
-        Positions are in the features' dtype. ``anchors``: vertex indices held at ``targets`` (..., A, 3)
-        (default: their reference positions; without anchors the prepared default, vertex 0). ``initial``:
-        a starting guess of the positions (..., V, 3) for conjugate gradients (default: the reference; e.g. a
-        previous frame's positions); the factored solvers do not need one.
-
-        ``refine=0`` is the plain ACAP reconstruction (one least-squares solve). Each refinement step
+        `refine=0` is the plain ACAP reconstruction (one least-squares solve). Each refinement step
         (defect correction) re-fits the gradients of the current positions with the encoder's own local
         fits and solves the same least-squares problem for the correction, so that the decoded mesh
         reproduces the given gradients more closely.
+
+        **Arguments:**
+
+        - `features`: features, shape `(..., V, 9)`.
+        - `anchors`: vertex indices held at `targets`; None: the prepared default (vertex 0).
+        - `targets`: anchor positions, shape `(..., A, 3)`; None: the anchors' reference positions.
+        - `refine`: number of defect-correction steps (0: plain reconstruction).
+        - `initial`: a starting guess of the positions `(..., V, 3)` for conjugate gradients (default: the
+          reference; e.g. the positions of the frame before); the factored solvers do not need one.
+
+        **Returns:**
+
+        `(positions, info)`: positions `(..., V, 3)` in the features' dtype and the :class:`SolveInfo` of the
+        linear solves.
+
+        **Raises:**
+
+        `ValueError` for a bad feature shape or a non-finite feature; `ConnectivityError` when V differs
+        from the reference.
         """
         f = self._features(features)
         return _decode(self.reconstructor(anchors), _frame_as(self.frame, f.dtype), f, targets, refine, initial)
@@ -332,14 +454,23 @@ class Acap(eqx.Module):
     def decode(
         self, features, *, anchors=None, targets=None, refine: int = DEFAULT_REFINE, initial=None
     ) -> Float[Array, "... v 3"]:
-        """Positions (..., V, 3) from features (..., V, 9); see :meth:`decode_info`. Differentiable in the
-        features and the targets (and the reference, through :meth:`with_rest`)."""
+        """Positions from features.
+
+        **Arguments:**
+
+        As :meth:`decode_info`.
+
+        **Returns:**
+
+        Positions `(..., V, 3)` in the features' dtype. Differentiable in the features and the targets (and
+        the reference, through :meth:`with_rest`).
+        """
         return self.decode_info(features, anchors=anchors, targets=targets, refine=refine, initial=initial)[0]
 
 
 @jax.jit
 def _features_cm(features):
-    """Features (..., V, 9) -> (9, V, B) (its own stage: fused with the next, XLA on CPU ran 2x slower)."""
+    """Features (..., V, 9) -> (9, V, B) (its own stage: fused with the next, XLA on CPU runs slower)."""
     v = features.shape[-2]
     return jnp.moveaxis(features.reshape(-1, v, 9), (0, 1, 2), (2, 1, 0))
 
@@ -358,7 +489,7 @@ def _anchor_targets(rec: Reconstructor, features, targets):
 
 @jax.jit
 def _edge_stage(rec: Reconstructor, t):
-    """Edge targets (E, 3, B) of T (its own stage: fused with either neighbour, XLA on CPU ran 2x slower)."""
+    """Edge targets (E, 3, B) of T (its own stage: fused with either neighbour, XLA on CPU runs slower)."""
     return rec.edge_targets_vm(t)
 
 
@@ -396,7 +527,7 @@ def _initial_stage(rec: Reconstructor, features, initial):
 
 
 def _decode(rec: Reconstructor, frame: RestFrame, features, targets, refine: int, initial=None):
-    # Separately jitted stages (see the encoder's note): one program was 2-4x slower on XLA CPU.
+    # Separately jitted stages (see the encoder's note): as one program, XLA on CPU runs slower.
     t = _decode_gradients(_features_cm(features))
     target = _edge_stage(rec, t)
     targets = None if targets is None else _anchor_targets(rec, features, targets)
@@ -412,8 +543,18 @@ def _decode(rec: Reconstructor, frame: RestFrame, features, targets, refine: int
 
 
 def default_solver(n_vertices: int, backend: str | None = None) -> str:
-    """The solver ``prepare(solver=None)`` picks: the host factor on CPU; on an accelerator the dense factor
-    up to DENSE_MAX_VERTICES vertices, conjugate gradients above."""
+    """The solver `prepare(solver=None)` picks.
+
+    **Arguments:**
+
+    - `n_vertices`: the mesh's vertex count.
+    - `backend`: a JAX backend name; None: `jax.default_backend()`.
+
+    **Returns:**
+
+    "host" (the host factor) on CPU; on an accelerator "dense" up to DENSE_MAX_VERTICES vertices, "cg"
+    (conjugate gradients) above.
+    """
     backend = jax.default_backend() if backend is None else backend
     if backend == "cpu":
         return "host"
@@ -430,13 +571,30 @@ def prepare(
     cg_rtol: float | None = None,
     cg_max_steps: int = CG_MAX_STEPS,
 ) -> Acap:
-    """Build the :class:`Acap` of a reference mesh: all host work (topology, consistency graph, reference
-    fits, edge weights, the reconstruction's factor for ``anchors``; default vertex 0).
+    """Build the :class:`Acap` of a reference mesh.
 
-    ``solver``: "host" (sparse Cholesky on the host), "dense" (XLA Cholesky, on the device), "cg" (matrix-free
-    conjugate gradients to ``cg_rtol``, at most ``cg_max_steps``) or None (:func:`default_solver`). The
-    reference's dtype (float32 or float64; other types become float64) is the Acap's own; each call computes
-    in its input's dtype.
+    Does all host work: topology, consistency graph, reference fits, edge weights and the reconstruction's
+    factor for the anchors.
+
+    **Arguments:**
+
+    - `rest`: reference positions, shape `(V, 3)`; float32 or float64 (other types become float64).
+    - `faces`: triangles, shape `(F, 3)`, integer vertex indices.
+    - `weighting`: the edge weighting of the local fits (default "official").
+    - `solver`: "host" (sparse Cholesky on the host), "dense" (XLA Cholesky, on the device), "cg" (matrix-free
+      conjugate gradients) or None (:func:`default_solver`).
+    - `anchors`: the default anchor vertex indices; None: vertex 0.
+    - `cg_rtol`: relative tolerance of conjugate gradients (None: the solver's default).
+    - `cg_max_steps`: at most this many conjugate-gradient steps.
+
+    **Returns:**
+
+    The :class:`Acap`. The reference's dtype is the Acap's own; each call computes in its input's dtype.
+
+    **Raises:**
+
+    `ValueError` for a reference not `(V, 3)` or an unknown solver; `DegenerateMeshError` for a non-finite
+    reference coordinate; the topology's errors for bad faces (see :func:`build_topology`).
     """
     rest = np.asarray(rest)
     if rest.dtype not in (np.float32, np.float64):
@@ -472,7 +630,16 @@ _CACHE_SIZE = 8
 
 
 def cached(rest, faces, weighting: Weighting = "official", *, solver: str | None = None) -> Acap:
-    """:func:`prepare` with a small LRU cache keyed by the reference and faces bytes."""
+    """:func:`prepare` with a small LRU cache keyed by the reference and faces bytes.
+
+    **Arguments:**
+
+    - `rest`, `faces`, `weighting`, `solver`: as :func:`prepare`.
+
+    **Returns:**
+
+    The cached (or newly prepared) :class:`Acap`.
+    """
     rest = np.asarray(rest)
     faces = np.asarray(faces)
     key = (
@@ -496,11 +663,22 @@ def cached(rest, faces, weighting: Weighting = "official", *, solver: str | None
 def encode(
     rest, faces, vertices, *, consistency: str | None = "spatial", weighting: Weighting = "official"
 ) -> Float[Array, "... v 9"]:
-    """ACAP features (..., V, 9) of ``vertices`` (..., V, 3) relative to ``rest`` (V, 3) (host convenience:
-    :func:`prepare` cached by the reference's bytes; use :meth:`Acap.encode` inside jit).
+    """ACAP features of meshes relative to a reference (host convenience).
 
-    ``consistency``: "spatial" (ACAP), "temporal" (TS-ACAP, frames in order) or None/"none" (angles in
-    [0, pi]).
+    :func:`prepare` cached by the reference's bytes; use :meth:`Acap.encode` inside jit.
+
+    **Arguments:**
+
+    - `rest`: reference positions, shape `(V, 3)`.
+    - `faces`: triangles, shape `(F, 3)`.
+    - `vertices`: positions, shape `(..., V, 3)`.
+    - `consistency`: "spatial" (ACAP), "temporal" (TS-ACAP, frames in order) or None/"none" (angles in
+      [0, pi]).
+    - `weighting`: as :func:`prepare`.
+
+    **Returns:**
+
+    Features of shape `(..., V, 9)` (see :meth:`Acap.encode_parts` for raised errors).
     """
     return cached(rest, faces, weighting).encode(vertices, consistency)
 
@@ -515,26 +693,54 @@ def decode(
     refine: int = DEFAULT_REFINE,
     weighting: Weighting = "official",
 ):
-    """Vertex positions (..., V, 3) from features (..., V, 9) (host convenience, see :func:`encode`).
+    """Vertex positions from features (host convenience, see :func:`encode`).
 
-    ``anchors``: vertex indices held at ``targets`` (default: their reference positions); without anchors
-    vertex 0 is held at its reference position (the features carry no translation). ``refine``: number
-    of defect-correction steps (see :meth:`Acap.decode_info`; 0 = plain ACAP reconstruction).
+    **Arguments:**
+
+    - `features`: features, shape `(..., V, 9)`.
+    - `rest`, `faces`, `weighting`: as :func:`encode`.
+    - `anchors`: vertex indices held at `targets`; without anchors vertex 0 is held at its reference
+      position (the features carry no translation).
+    - `targets`: anchor positions; None: their reference positions.
+    - `refine`: number of defect-correction steps (see :meth:`Acap.decode_info`; 0 = plain ACAP
+      reconstruction).
+
+    **Returns:**
+
+    Positions of shape `(..., V, 3)`.
     """
     return cached(rest, faces, weighting).decode(features, anchors=anchors, targets=targets, refine=refine)
 
 
 def turn_reference(features: Float[jax.typing.ArrayLike, "n v 9"]) -> Float[Array, "v 3"]:
-    """Per-vertex reference rotation vectors (V, 3) of a set of shapes' features, for :func:`align_turns`
-    (the training shapes of a model: see :func:`jaxdeform.acap.consistency.turn_reference`)."""
+    """Per-vertex reference rotation vectors of a set of shapes' features, for :func:`align_turns`.
+
+    **Arguments:**
+
+    - `features`: the features of a set of shapes (e.g. a model's training shapes), shape `(N, V, 9)`.
+
+    **Returns:**
+
+    Reference rotation vectors of shape `(V, 3)` (see :func:`jaxdeform.acap.consistency.turn_reference`).
+    """
     return cons.turn_reference(jnp.asarray(features)[..., :3])
 
 
 def align_turns(
     features: Float[jax.typing.ArrayLike, "*batch v 9"], reference: Float[jax.typing.ArrayLike, "v 3"]
 ) -> Float[Array, "*batch v 9"]:
-    """The same features with every rotation vector on the 2 pi branch nearest ``reference`` (consistency
-    across shapes; the rotations, so the decoded positions, do not change)."""
+    """The same features with every rotation vector on the 2 pi branch nearest a reference.
+
+    **Arguments:**
+
+    - `features`: features, shape `(..., V, 9)`.
+    - `reference`: reference rotation vectors (from :func:`turn_reference`), shape `(V, 3)`.
+
+    **Returns:**
+
+    Features `(..., V, 9)` in the input's dtype, consistent across shapes; the rotations, so the decoded
+    positions, do not change.
+    """
     f = jnp.asarray(features)
     return jnp.concatenate([cons.align_turns(f[..., :3], jnp.asarray(reference, f.dtype)), f[..., 3:]], axis=-1)
 
@@ -548,7 +754,17 @@ SCALE_PAD = 1e-6
 
 
 def check_quantile(quantile: float, name: str = "quantile") -> None:
-    """ValueError unless ``quantile`` (the :meth:`Scaler.fit` argument, or the option ``name``) lies in [0, 0.5)."""
+    """Check a clipping quantile.
+
+    **Arguments:**
+
+    - `quantile`: the :meth:`Scaler.fit` argument.
+    - `name`: the option's name in the error message.
+
+    **Raises:**
+
+    `ValueError` unless `quantile` lies in [0, 0.5).
+    """
     if not 0.0 <= quantile < 0.5:
         raise ValueError(f"{name} must lie in [0, 0.5), got {quantile}.")
 
@@ -572,6 +788,21 @@ class Scaler:
 
     @staticmethod
     def fit(features, quantile: float = 0.0) -> Scaler:
+        """Fit the bounds to a set of features.
+
+        **Arguments:**
+
+        - `features`: features, shape `(..., 9)`.
+        - `quantile`: 0: global min/max; q in (0, 0.5): the q and 1 - q quantiles, with clipping.
+
+        **Returns:**
+
+        The :class:`Scaler`.
+
+        **Raises:**
+
+        `ValueError` unless `quantile` lies in [0, 0.5).
+        """
         f = np.asarray(features)
         check_quantile(quantile)
         if quantile == 0.0:
@@ -593,6 +824,16 @@ class Scaler:
         return lo, hi
 
     def transform(self, features):
+        """Scale features to [-0.95, 0.95].
+
+        **Arguments:**
+
+        - `features`: features, shape `(..., 9)`.
+
+        **Returns:**
+
+        Scaled features of the same shape and dtype (clipped to the bounds first when `quantile` > 0).
+        """
         f = jnp.asarray(features)
         lo, hi = self._bounds(f.dtype)
         if self.quantile > 0.0:
@@ -600,22 +841,55 @@ class Scaler:
         return (2.0 * (f - lo) / (hi - lo) - 1.0) * SCALE_LIMIT
 
     def inverse(self, scaled):
+        """Inverse of :meth:`transform` (up to its clipping).
+
+        **Arguments:**
+
+        - `scaled`: scaled features, shape `(..., 9)`.
+
+        **Returns:**
+
+        Features of the same shape and dtype.
+        """
         x = jnp.asarray(scaled)
         lo, hi = self._bounds(x.dtype)
         return (x / SCALE_LIMIT + 1.0) * 0.5 * (hi - lo) + lo
 
     def to_array(self) -> np.ndarray:
-        """(rot_min, rot_max, s_min, s_max), plus the quantile where it is not 0 (clipping scalers)."""
+        """The scaler as an array, for saving.
+
+        **Returns:**
+
+        `(rot_min, rot_max, s_min, s_max)`, plus the quantile where it is not 0 (clipping scalers).
+        """
         bounds = [self.rot_min, self.rot_max, self.s_min, self.s_max]
         return np.array(bounds + ([self.quantile] if self.quantile > 0.0 else []))
 
     @staticmethod
     def from_array(a) -> Scaler:
-        """From :meth:`to_array` (four entries, as files written before ``quantile`` hold: no clipping)."""
+        """The scaler from :meth:`to_array`.
+
+        **Arguments:**
+
+        - `a`: four entries (a scaler without clipping) or five (with its quantile).
+
+        **Returns:**
+
+        The :class:`Scaler`.
+        """
         a = np.asarray(a, dtype=np.float64).ravel()
         return Scaler(*map(float, a[:5]))
 
 
 def log_matrices(v: Float[jax.typing.ArrayLike, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
-    """Full 3x3 log(R) (skew) from axis-angle vectors."""
+    """Full 3x3 log(R) (skew) from axis-angle vectors.
+
+    **Arguments:**
+
+    - `v`: axis-angle vectors, shape `(..., 3)`.
+
+    **Returns:**
+
+    Skew matrices of shape `(..., 3, 3)`.
+    """
     return skew(v)

@@ -24,8 +24,25 @@ def encode_arrays(
     consistency: str = "spatial",
     weighting: str = "official",
 ) -> dict[str, np.ndarray]:
-    """The arrays of a features file for ``vertices`` (N, V, 3) sharing ``faces`` with ``reference``, computed in
-    their dtype; a :class:`JaxDeformError` when the features are not finite."""
+    """The arrays of a features file (module docstring), computed in the vertices' dtype.
+
+    **Arguments:**
+
+    - `vertices`: frames `(N, V, 3)` sharing `faces` with `reference`.
+    - `reference`: reference positions `(V, 3)`.
+    - `faces`: triangles `(F, 3)`.
+    - `consistency`: "spatial", "temporal" or "none".
+    - `weighting`: "official" or "cotangent".
+
+    **Returns:**
+
+    A dict of the file's arrays by name.
+
+    **Raises:**
+
+    `JaxDeformError` when the features are not finite; the errors of :func:`prepare` and
+    :meth:`Acap.encode_parts`.
+    """
     from jaxdeform.acap.features import Scaler, features_from, log_matrices, prepare
 
     acap = prepare(reference, faces, weighting=weighting)
@@ -51,12 +68,27 @@ def encode_arrays(
 
 
 def rotation_angles(log_r: np.ndarray) -> np.ndarray:
-    """The rotation angles (radians) of skew ``log_r`` (..., 3, 3): the norms of their axis-angle vectors."""
+    """The rotation angles of skew log matrices.
+
+    **Arguments:**
+
+    - `log_r`: skew matrices `(..., 3, 3)`.
+
+    **Returns:**
+
+    Angles in radians `(...)`: the norms of their axis-angle vectors.
+    """
     return np.linalg.norm(np.stack([log_r[..., 2, 1], log_r[..., 0, 2], log_r[..., 1, 0]], axis=-1), axis=-1)
 
 
 def save_features(path: str | os.PathLike, arrays: dict[str, np.ndarray]) -> None:
-    """Write ``arrays`` as one .npz at ``path``, atomically (through a temporary sibling)."""
+    """Write arrays as one .npz file, atomically (through a temporary sibling).
+
+    **Arguments:**
+
+    - `path`: the file to write.
+    - `arrays`: the arrays by name (e.g. from :func:`encode_arrays`).
+    """
     from jaxdeform.mesh.io import atomic_path
 
     with atomic_path(Path(path)) as tmp:
@@ -94,8 +126,21 @@ def _features_array(data: dict, path: Path) -> np.ndarray:
 
 
 def read_features(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray, np.ndarray, str]:
-    """Features (N, V, 9), reference (V, 3), faces (F, 3) int32 and weighting of a features file, checked: one
-    sentence naming ``path`` (a :class:`MeshFormatError` or :class:`ConnectivityError`) for anything wrong."""
+    """Read and check a features file.
+
+    **Arguments:**
+
+    - `path`: the .npz file.
+
+    **Returns:**
+
+    `(features, reference, faces, weighting)`: features `(N, V, 9)` and reference `(V, 3)` in a common float
+    dtype (at least float32), faces `(F, 3)` int32 and the weighting name.
+
+    **Raises:**
+
+    `MeshFormatError` or `ConnectivityError`, one sentence naming `path`, for anything wrong.
+    """
     from jaxdeform.mesh.io import read_npz_arrays
 
     path = Path(path)

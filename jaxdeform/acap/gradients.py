@@ -44,7 +44,16 @@ OFFICIAL_EXPONENT = 0.25
 
 
 def sexp(x: Array) -> Array:
-    """The official positive weight map: e^x for x <= 0, 1 + x above; non-finite or > 1e5 -> 1."""
+    """The official positive weight map.
+
+    **Arguments:**
+
+    - `x`: an array of any shape.
+
+    **Returns:**
+
+    e^x for x <= 0, 1 + x above; non-finite values or values above 1e5 become 1. Same shape, always positive.
+    """
     y = jnp.where(x <= 0, jnp.exp(jnp.minimum(x, 0.0)), 1.0 + x)
     return jnp.where(jnp.isfinite(y) & (y <= 1e5), y, 1.0)
 
@@ -52,6 +61,22 @@ def sexp(x: Array) -> Array:
 def edge_weights(
     rest: Float[jax.typing.ArrayLike, "v 3"], topo: Topology, weighting: Weighting = "official"
 ) -> Float[Array, " e"]:
+    """Per-edge weights of the local fits (module docstring).
+
+    **Arguments:**
+
+    - `rest`: reference positions `(V, 3)`.
+    - `topo`: the mesh topology.
+    - `weighting`: "official" or "cotangent".
+
+    **Returns:**
+
+    Weights `(E,)`, one per undirected edge, finite.
+
+    **Raises:**
+
+    `ValueError` for an unknown weighting.
+    """
     c = cotangent_weights(rest, topo)
     if weighting == "official":
         return sexp(c) ** OFFICIAL_EXPONENT
@@ -102,6 +127,16 @@ class RingPlan:
 
 
 def ring_plan(topo: Topology) -> RingPlan:
+    """Lay out the one-rings for the per-frame kernels (host work, once per connectivity).
+
+    **Arguments:**
+
+    - `topo`: the mesh topology.
+
+    **Returns:**
+
+    The :class:`RingPlan`.
+    """
     degree = np.asarray(topo.degree)
     order = np.argsort(-degree, kind="stable")
     position = np.empty_like(order)
@@ -144,12 +179,29 @@ class RestFrame:
 
     @property
     def dtype(self):
+        """The dtype of the reference constants (that of the reference the frame was built from)."""
         return self.c_ring.dtype
 
 
 def rest_frame(
     rest: Float[jax.typing.ArrayLike, "v 3"], topo: Topology, weighting: Weighting = "official"
 ) -> RestFrame:
+    """Compute the reference-side constants of the local fits.
+
+    **Arguments:**
+
+    - `rest`: reference positions `(V, 3)`; the frame's dtype follows it.
+    - `topo`: the mesh topology.
+    - `weighting`: "official" or "cotangent".
+
+    **Returns:**
+
+    The :class:`RestFrame`.
+
+    **Raises:**
+
+    `ValueError` for an unknown weighting.
+    """
     rest = jnp.asarray(rest)
     if weighting not in ("official", "cotangent"):
         raise ValueError(f"unknown weighting '{weighting}'; expected 'official' or 'cotangent'.")
@@ -161,7 +213,7 @@ def rest_frame(
 @functools.partial(jax.jit, static_argnames=("weighting",))
 def _rest_constants(rest, topo: Topology, plan: RingPlan, weighting: Weighting):
     """Edge weights and the fit constants c_ring (3, V, K), c_normal (3, V) (one compiled program: run
-    op by op, the per-slot steps made the first call take 15 s on horse-gallop)."""
+    op by op, the per-slot steps make the first call slow)."""
     w = edge_weights(rest, topo, weighting)
     # Weight of the half-edge i -> neighbors[i, k]: look up the undirected edge.
     ring_w = jnp.zeros(topo.mask.shape, rest.dtype)
@@ -210,14 +262,33 @@ def _ring_pass(topo: Topology, plan: RingPlan, x: Float[Array, "3 v b"], c_ring=
 
 
 def deformation_gradients_cm(frame: RestFrame, x: Float[Array, "3 v b"]) -> Float[Array, "3 3 v b"]:
-    """T_i of a batch of meshes in the component-major, vertex-major layout (3, V, B) -> (3, 3, V, B)."""
+    """Deformation gradients T_i of a batch of meshes, component-major and vertex-major.
+
+    **Arguments:**
+
+    - `frame`: the reference constants.
+    - `x`: positions `(3, V, B)`.
+
+    **Returns:**
+
+    T of shape `(3, 3, V, B)`.
+    """
     acc, n_def = _ring_pass(frame.topo, frame.plan, x, frame.c_ring)
     t = acc + n_def[:, None] * frame.c_normal[None, :, :, None]
     return t[:, :, frame.plan.position]
 
 
 def to_vertex_major(vertices: Float[jax.typing.ArrayLike, "... v 3"]) -> Float[Array, "3 v b"]:
-    """(..., V, 3) -> (3, V, B) with the leading batch dimensions flattened into B."""
+    """Flatten meshes into the vertex-major layout.
+
+    **Arguments:**
+
+    - `vertices`: positions `(..., V, 3)`.
+
+    **Returns:**
+
+    Positions `(3, V, B)` with the leading batch dimensions flattened into B.
+    """
     v = vertices.shape[-2]
     return jnp.moveaxis(vertices.reshape(-1, v, 3), (0, 2), (2, 0))
 
@@ -225,7 +296,17 @@ def to_vertex_major(vertices: Float[jax.typing.ArrayLike, "... v 3"]) -> Float[A
 def deformation_gradients(
     frame: RestFrame, vertices: Float[jax.typing.ArrayLike, "*batch v 3"]
 ) -> Float[Array, "*batch v 3 3"]:
-    """T_i for each frame (any leading batch shape) relative to the reference of ``frame``."""
+    """Deformation gradients T_i of meshes relative to the reference of `frame`.
+
+    **Arguments:**
+
+    - `frame`: the reference constants (:func:`rest_frame`).
+    - `vertices`: positions `(..., V, 3)`, cast to the frame's dtype.
+
+    **Returns:**
+
+    T of shape `(..., V, 3, 3)`; differentiable in the vertices.
+    """
     vertices = jnp.asarray(vertices, dtype=frame.dtype)
     t = deformation_gradients_cm(frame, to_vertex_major(vertices))  # (3, 3, V, B)
     return jnp.moveaxis(t, (0, 1, 2, 3), (2, 3, 1, 0)).reshape(*vertices.shape[:-1], 3, 3)

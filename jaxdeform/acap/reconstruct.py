@@ -78,7 +78,22 @@ def _release_factors() -> None:
 
 
 def register_factor(n: int, rows: np.ndarray, cols: np.ndarray, vals: np.ndarray) -> int:
-    """Factor the SPD matrix given in COO form with cholespy (float64); return its registry key."""
+    """Factor an SPD matrix given in COO form with cholespy (float64) and register the factor.
+
+    **Arguments:**
+
+    - `n`: the matrix size.
+    - `rows`, `cols`: COO indices (both triangles).
+    - `vals`: COO values.
+
+    **Returns:**
+
+    The factor's registry key (for :func:`solve_factor`).
+
+    **Raises:**
+
+    `DegenerateMeshError` for a non-finite value.
+    """
     from cholespy import CholeskySolverD, MatrixType
 
     vals = np.asarray(vals, dtype=np.float64)
@@ -95,7 +110,21 @@ def register_factor(n: int, rows: np.ndarray, cols: np.ndarray, vals: np.ndarray
 
 
 def solve_factor(key: int, b: np.ndarray) -> np.ndarray:
-    """Host solve with a registered factor; ``b`` is (n,) or (n, k)."""
+    """Host solve with a registered factor.
+
+    **Arguments:**
+
+    - `key`: the key from :func:`register_factor`.
+    - `b`: right-hand sides `(n,)` or `(n, k)`.
+
+    **Returns:**
+
+    x of b's shape, float64 (NaN after the factors are released at interpreter exit).
+
+    **Raises:**
+
+    `KeyError` for an unregistered key.
+    """
     b64 = np.require(b, dtype=np.float64, requirements=["C", "W"])  # nanobind rejects read-only views
     x = np.empty_like(b64)
     factor = _FACTORS.get(key)
@@ -148,12 +177,32 @@ class NormalMatrix(eqx.Module):
     n: int = eqx.field(static=True)
 
     def mv(self, x):
+        """The product M x.
+
+        **Arguments:**
+
+        - `x`: vertex-major `(V, ...)`.
+
+        **Returns:**
+
+        M x of the same shape, in x's dtype.
+        """
         dtype = x.dtype
         w = (self.sqrt_w.astype(dtype) ** 2).reshape((-1,) + (1,) * (x.ndim - 1))
         out = _scatter_edges(w * (x[self.edge_i] - x[self.edge_j]), self.edge_i, self.edge_j, self.n)
         return out.at[self.anchors].add(self.sqrt_a.astype(dtype) ** 2 * x[self.anchors])
 
     def diagonal(self, dtype) -> Array:
+        """The diagonal of M.
+
+        **Arguments:**
+
+        - `dtype`: the result's dtype.
+
+        **Returns:**
+
+        An array `(V,)`.
+        """
         w = self.sqrt_w.astype(dtype) ** 2
         d = jax.ops.segment_sum(w, self.edge_i, self.n, indices_are_sorted=True) + jax.ops.segment_sum(
             w, self.edge_j, self.n
@@ -161,7 +210,16 @@ class NormalMatrix(eqx.Module):
         return d.at[self.anchors].add(self.sqrt_a.astype(dtype) ** 2)
 
     def dense(self, dtype) -> Array:
-        """M as a dense (V, V) array."""
+        """M as a dense array.
+
+        **Arguments:**
+
+        - `dtype`: the result's dtype.
+
+        **Returns:**
+
+        An array `(V, V)`.
+        """
         w = self.sqrt_w.astype(dtype) ** 2
         m = jnp.zeros((self.n, self.n), dtype)
         m = m.at[self.edge_i, self.edge_j].add(-w).at[self.edge_j, self.edge_i].add(-w)
@@ -185,7 +243,20 @@ class HostCholesky(eqx.Module):
 
     @staticmethod
     def build(matrix: NormalMatrix) -> HostCholesky:
-        """Factor ``matrix`` on the host; its arrays must be concrete (not traced)."""
+        """Factor a normal matrix on the host.
+
+        **Arguments:**
+
+        - `matrix`: the normal matrix; its arrays must be concrete (not traced).
+
+        **Returns:**
+
+        The :class:`HostCholesky`.
+
+        **Raises:**
+
+        `ValueError` when `matrix` is traced; `DegenerateMeshError` for non-finite entries.
+        """
         if is_traced(matrix):
             raise ValueError(
                 "the host factor of a new anchor set needs a concrete Acap: call acap.reconstructor(anchors) "
@@ -201,6 +272,18 @@ class HostCholesky(eqx.Module):
         return HostCholesky(register_factor(matrix.n, rows, cols, vals))
 
     def solve(self, matrix: NormalMatrix, b, scale2=None):
+        """Solve M x = b through the host factor (`matrix` and `scale2` are ignored).
+
+        **Arguments:**
+
+        - `matrix`: the normal matrix M.
+        - `b`: right-hand sides, vertex-major `(V, ...)`.
+        - `scale2`: squared right-hand-side norms for the stopping rule (used by :class:`ConjugateGradient` only).
+
+        **Returns:**
+
+        `(x, converged, steps)`: x in b's shape and dtype, a bool scalar and an int32 scalar.
+        """
         del matrix, scale2
         return _callback_solve(self.key, b), jnp.array(True), jnp.array(1, jnp.int32)
 
@@ -213,12 +296,39 @@ class DenseCholesky(eqx.Module):
 
     @staticmethod
     def build(matrix: NormalMatrix, dtype) -> DenseCholesky:
+        """Factor a normal matrix with XLA.
+
+        **Arguments:**
+
+        - `matrix`: the normal matrix.
+        - `dtype`: the factor's dtype.
+
+        **Returns:**
+
+        The :class:`DenseCholesky`.
+
+        **Raises:**
+
+        `DegenerateMeshError` when M is not positive definite (checked when concrete).
+        """
         chol = jax.jit(lambda m: jnp.linalg.cholesky(m.dense(dtype)))(matrix)
         if not is_traced(chol) and not bool(jnp.isfinite(chol[-1, -1])):
             raise DegenerateMeshError("the reconstruction matrix is not positive definite (degenerate reference mesh).")
         return DenseCholesky(chol)
 
     def solve(self, matrix: NormalMatrix, b, scale2=None):
+        """Solve M x = b with the dense factor (`matrix` and `scale2` are ignored).
+
+        **Arguments:**
+
+        - `matrix`: the normal matrix M.
+        - `b`: right-hand sides, vertex-major `(V, ...)`.
+        - `scale2`: squared right-hand-side norms for the stopping rule (used by :class:`ConjugateGradient` only).
+
+        **Returns:**
+
+        `(x, converged, steps)`: x in b's shape and dtype, a bool scalar and an int32 scalar.
+        """
         del matrix, scale2
         n = self.chol.shape[0]
         cols = b.reshape(n, -1).astype(self.chol.dtype)
@@ -240,6 +350,18 @@ class ConjugateGradient(eqx.Module):
     max_steps: int = eqx.field(static=True, default=CG_MAX_STEPS)
 
     def solve(self, matrix: NormalMatrix, b, scale2=None):
+        """Solve M x = b by conjugate gradients from zero (stopping rule in the class docstring).
+
+        **Arguments:**
+
+        - `matrix`: the normal matrix M.
+        - `b`: right-hand sides, vertex-major `(V, ...)`.
+        - `scale2`: squared right-hand-side norms for the stopping rule (used by :class:`ConjugateGradient` only).
+
+        **Returns:**
+
+        `(x, converged, steps)`: x in b's shape and dtype, a bool scalar and an int32 scalar.
+        """
         dtype = b.dtype
         rtol = CG_RTOL[np.dtype(dtype)] if self.rtol is None else self.rtol
         inv_d = (1.0 / matrix.diagonal(dtype)).reshape((-1,) + (1,) * (b.ndim - 1))
@@ -404,9 +526,20 @@ def _residuals(y, args):
 
 
 def edge_targets(t_vm: Float[Array, "v 3 3 b"], rest_edges, sqrt_w, i, j) -> Float[Array, "e 3 b"]:
-    """sqrt(w_ij) (T_i + T_j)/2 (q_i - q_j) per edge, from vertex-major gradients (V, 3, 3, B).
+    """The edge targets sqrt(w_ij) (T_i + T_j)/2 (q_i - q_j) of vertex-major gradients.
 
     The 3x3 products are written out entry by entry: XLA on CPU runs small einsums far slower.
+
+    **Arguments:**
+
+    - `t_vm`: gradients `(V, 3, 3, B)`.
+    - `rest_edges`: reference edge vectors q_i - q_j `(E, 3)`.
+    - `sqrt_w`: square roots of the edge weights `(E,)`.
+    - `i`, `j`: edge endpoints `(E,)`.
+
+    **Returns:**
+
+    Edge targets `(E, 3, B)`, linear in the gradients.
     """
     tsum = t_vm[i] + t_vm[j]  # (E, 3, 3, B): contiguous row gathers
     q = ((0.5 * sqrt_w)[:, None] * rest_edges)[:, :, None]  # (E, 3, 1)
@@ -421,6 +554,16 @@ class SolveInfo(eqx.Module):
     steps: Int[Array, ""]
 
     def merge(self, other: SolveInfo) -> SolveInfo:
+        """Combine the diagnostics of two solves.
+
+        **Arguments:**
+
+        - `other`: the other solve's info.
+
+        **Returns:**
+
+        Converged where both converged, with the larger step count.
+        """
         return SolveInfo(self.converged & other.converged, jnp.maximum(self.steps, other.steps))
 
 
@@ -434,8 +577,17 @@ def _check_anchors(anchors, n: int) -> np.ndarray:
 
 
 def is_traced(*trees) -> bool:
-    """Whether any leaf of ``trees`` holds values the host cannot read now: a tracer, or a global array with
-    parts on other processes (multi-host). Such values are checked inside the computation, not on the host."""
+    """Whether any leaf holds values the host cannot read now.
+
+    **Arguments:**
+
+    - `trees`: any pytrees.
+
+    **Returns:**
+
+    True where a leaf is a tracer or a global array with parts on other processes (multi-host). Such
+    values are checked inside the computation, not on the host.
+    """
     return any(
         isinstance(x, jax.core.Tracer) or (isinstance(x, jax.Array) and not x.is_fully_addressable)
         for x in jax.tree_util.tree_leaves(trees)
@@ -444,7 +596,16 @@ def is_traced(*trees) -> bool:
 
 @jax.jit
 def all_finite(x: ArrayLike) -> Array:
-    """Whether every entry of ``x`` is finite, as a device scalar (an eager check reads one bool, not ``x``)."""
+    """Whether every entry of an array is finite.
+
+    **Arguments:**
+
+    - `x`: an array.
+
+    **Returns:**
+
+    A device bool scalar (an eager check reads one bool, not `x`).
+    """
     return jnp.all(jnp.isfinite(x))
 
 
@@ -476,10 +637,26 @@ class Reconstructor(eqx.Module):
         cg_rtol: float | None = None,
         cg_max_steps: int = CG_MAX_STEPS,
     ) -> Reconstructor:
-        """Host-side construction: checks (positive weights, anchors) and the factor of ``solver``.
+        """Host-side construction: checks (positive weights, anchors) and the factor of `solver`.
 
-        ``rest`` (V, 3) and ``weights`` (E,) may be jax or numpy arrays; ``anchors``: vertex indices (default
-        [0]), a concrete sequence.
+        **Arguments:**
+
+        - `rest`: reference positions `(V, 3)`, a jax or numpy array; its dtype is the problem's.
+        - `topo`: the mesh topology.
+        - `weights`: edge weights `(E,)`, a jax or numpy array; all positive.
+        - `anchors`: vertex indices, a concrete sequence (default [0]).
+        - `anchor_weight`: the anchor weight relative to the mean edge weight.
+        - `solver`: "host", "dense" or "cg".
+        - `cg_rtol`, `cg_max_steps`: conjugate-gradient settings (:class:`ConjugateGradient`).
+
+        **Returns:**
+
+        The :class:`Reconstructor`.
+
+        **Raises:**
+
+        `ValueError` for an unknown solver or bad anchors (out of range, repeated, none);
+        `DegenerateMeshError` for a non-positive weight or a degenerate normal matrix.
         """
         if solver not in SOLVERS:
             raise ValueError(f"unknown solver '{solver}'; expected one of {', '.join(SOLVERS)}.")
@@ -510,7 +687,21 @@ class Reconstructor(eqx.Module):
     def with_method(
         self, solver: Solver, cg_rtol: float | None = None, cg_max_steps: int = CG_MAX_STEPS
     ) -> Reconstructor:
-        """The same problem solved by ``solver`` (factors are built now, on the host for ``"host"``)."""
+        """The same problem solved by another solver (factors are built now, on the host for "host").
+
+        **Arguments:**
+
+        - `solver`: "host", "dense" or "cg".
+        - `cg_rtol`, `cg_max_steps`: conjugate-gradient settings.
+
+        **Returns:**
+
+        A new :class:`Reconstructor`.
+
+        **Raises:**
+
+        `ValueError` for an unknown solver.
+        """
         if solver == "host":
             method = HostCholesky.build(self.matrix())
         elif solver == "dense":
@@ -523,15 +714,34 @@ class Reconstructor(eqx.Module):
 
     @property
     def solver(self) -> Solver:
+        """The solver's name: "host", "dense" or "cg"."""
         return {HostCholesky: "host", DenseCholesky: "dense", ConjugateGradient: "cg"}[type(self.method)]
 
     def matrix(self) -> NormalMatrix:
-        """The normal matrix of this problem (matrix-free)."""
+        """The normal matrix of this problem.
+
+        **Returns:**
+
+        The matrix-free :class:`NormalMatrix`.
+        """
         return NormalMatrix(self.sqrt_w, self.edge_i, self.edge_j, self.anchors, self.sqrt_a, self.rest.shape[0])
 
     def with_anchors(self, anchors) -> Reconstructor:
-        """The same reference with other anchors (vertex indices). The factored solvers need concrete indices
-        (a new factor is built); conjugate gradients take traced ones too."""
+        """The same reference with other anchors.
+
+        **Arguments:**
+
+        - `anchors`: vertex indices. The factored solvers need concrete indices
+          (a new factor is built); conjugate gradients take traced ones too.
+
+        **Returns:**
+
+        A new :class:`Reconstructor`.
+
+        **Raises:**
+
+        `ValueError` for bad concrete anchors, or traced anchors with a factored solver.
+        """
         if is_traced(anchors):
             if not isinstance(self.method, ConjugateGradient):
                 raise ValueError("traced anchor indices need solver='cg'; the factored solvers need concrete indices.")
@@ -545,11 +755,20 @@ class Reconstructor(eqx.Module):
         return rec
 
     def with_rest(self, rest: Float[ArrayLike, "v 3"], weights: Float[ArrayLike, " e"]) -> Reconstructor:
-        """The problem's reference-side constants recomputed from ``rest`` and its edge ``weights`` (which
-        the caller derives from ``rest``), so that positions are differentiable in the reference.
+        """The problem's reference-side constants recomputed from a new reference.
 
         Conjugate gradients solve the new matrix; a factored solver keeps its factor, which is exact only at
         the reference it was built for: there the derivatives are exact, elsewhere the solve is refused.
+
+        **Arguments:**
+
+        - `rest`: reference positions `(V, 3)`.
+        - `weights`: its edge weights `(E,)` (which the caller derives from `rest`).
+
+        **Returns:**
+
+        A new :class:`Reconstructor` whose positions are differentiable in the reference. A factored solver
+        refuses (`equinox.error_if`) a reference other than its own.
         """
         if not isinstance(self.method, ConjugateGradient):
             rest = eqx.error_if(
@@ -567,7 +786,17 @@ class Reconstructor(eqx.Module):
         return eqx.tree_at(lambda r: (r.rest, r.rest_edges, r.sqrt_w, r.sqrt_a), self, new)
 
     def __call__(self, t: Float[ArrayLike, "... v 3 3"], targets: Float[ArrayLike, "... a 3"] | None = None):
-        """Positions (..., V, 3) from gradients (..., V, 3, 3) (see :meth:`solve_vm` for the fast layout)."""
+        """Positions from deformation gradients (see :meth:`solve_vm` for the fast layout).
+
+        **Arguments:**
+
+        - `t`: gradients `(..., V, 3, 3)`.
+        - `targets`: anchor targets `(..., A, 3)`; None: the anchors' reference positions.
+
+        **Returns:**
+
+        Positions `(..., V, 3)` in t's dtype; differentiable in `t` and `targets`.
+        """
         lead = t.shape[:-3]
         v = self.rest.shape[0]
         t_vm = jnp.moveaxis(t.reshape(-1, v, 3, 3), 0, -1)  # (V, 3, 3, B)
@@ -575,13 +804,29 @@ class Reconstructor(eqx.Module):
         return jnp.moveaxis(y, -1, 0).reshape(*lead, v, 3)
 
     def normal_rhs(self) -> EdgeJacobianT:
-        """J^T of this problem's residuals, for the solver."""
+        """J^T of this problem's residuals, for the solver.
+
+        **Returns:**
+
+        The :class:`EdgeJacobianT`.
+        """
         return EdgeJacobianT(self.sqrt_w, self.edge_i, self.edge_j, self.anchors, self.sqrt_a, self.rest.shape[0])
 
     def targets_vm(
         self, targets: Float[ArrayLike, "... a 3"] | None, lead: tuple, dtype
     ) -> Float[Array, "a 3 b"] | None:
-        """Anchor targets broadcast to the batch ``lead`` and laid out vertex-major (A, 3, B); None stays None."""
+        """Anchor targets broadcast to a batch and laid out vertex-major.
+
+        **Arguments:**
+
+        - `targets`: anchor targets `(..., A, 3)` or None.
+        - `lead`: the batch shape.
+        - `dtype`: the result's dtype.
+
+        **Returns:**
+
+        Targets `(A, 3, B)` (B the batch size); None stays None.
+        """
         if targets is None:
             return None
         a = self.anchors.shape[0]
@@ -589,20 +834,59 @@ class Reconstructor(eqx.Module):
         return jnp.moveaxis(targets.reshape(-1, a, 3), 0, -1)
 
     def rest_targets_vm(self, b: int, dtype) -> Float[Array, "a 3 b"]:
-        """The anchors' reference positions for ``b`` frames (A, 3, B)."""
+        """The anchors' reference positions for a number of frames.
+
+        **Arguments:**
+
+        - `b`: the number of frames.
+        - `dtype`: the result's dtype.
+
+        **Returns:**
+
+        Targets `(A, 3, B)`.
+        """
         return jnp.broadcast_to(self.rest[self.anchors].astype(dtype)[:, :, None], (self.anchors.shape[0], 3, b))
 
     def edge_targets_vm(self, t_vm: Float[Array, "v 3 3 b"]) -> Float[Array, "e 3 b"]:
-        """The residuals' edge targets (E, 3, B) of gradients (V, 3, 3, B); linear in the gradients."""
+        """The residuals' edge targets of gradients.
+
+        **Arguments:**
+
+        - `t_vm`: gradients `(V, 3, 3, B)`.
+
+        **Returns:**
+
+        Edge targets `(E, 3, B)` in the gradients' dtype; linear in the gradients.
+        """
         dtype = t_vm.dtype
         return edge_targets(t_vm, self.rest_edges.astype(dtype), self.sqrt_w.astype(dtype), self.edge_i, self.edge_j)
 
     def solve_vm(self, t_vm: Float[Array, "v 3 3 b"], targets_vm: Float[Array, "a 3 b"] | None = None):
-        """Positions (V, 3, B) from gradients (V, 3, 3, B) and anchor targets (A, 3, B) (default: rest)."""
+        """Positions from vertex-major gradients.
+
+        **Arguments:**
+
+        - `t_vm`: gradients `(V, 3, 3, B)`.
+        - `targets_vm`: anchor targets `(A, 3, B)`; None: the reference.
+
+        **Returns:**
+
+        Positions `(V, 3, B)`.
+        """
         return self.solve_targets_vm(self.edge_targets_vm(t_vm), targets_vm)
 
     def solve_targets_vm(self, target: Float[Array, "e 3 b"], targets_vm: Float[Array, "a 3 b"] | None = None):
-        """Positions (V, 3, B) from edge targets (E, 3, B) (:meth:`edge_targets_vm`) and anchor targets."""
+        """Positions from edge targets.
+
+        **Arguments:**
+
+        - `target`: edge targets `(E, 3, B)` (:meth:`edge_targets_vm`).
+        - `targets_vm`: anchor targets `(A, 3, B)`; None: the reference.
+
+        **Returns:**
+
+        Positions `(V, 3, B)`.
+        """
         return self.solve(target, targets_vm)[0]
 
     def solve(
@@ -611,8 +895,20 @@ class Reconstructor(eqx.Module):
         targets_vm: Float[Array, "a 3 b"] | None = None,
         y0: Float[Array, "v 3 b"] | None = None,
     ) -> tuple[Array, SolveInfo]:
-        """(positions (V, 3, B), :class:`SolveInfo`) from edge and anchor targets, starting from ``y0``
-        (default zero; only conjugate gradients depend on the start, up to their tolerance)."""
+        """Positions from edge and anchor targets, with the solve's diagnostics.
+
+        **Arguments:**
+
+        - `target`: edge targets `(E, 3, B)`.
+        - `targets_vm`: anchor targets `(A, 3, B)`; None: the reference.
+        - `y0`: the start `(V, 3, B)` (default zero; only conjugate gradients depend on the start, up to their
+          tolerance).
+
+        **Returns:**
+
+        `(positions, info)`: positions `(V, 3, B)` in the targets' dtype and the :class:`SolveInfo`.
+        Differentiable (implicit adjoint) in the targets and the reference-side constants.
+        """
         dtype = target.dtype
         b = target.shape[-1]
         if targets_vm is None:

@@ -1,7 +1,7 @@
 """Batched 3x3 algebra in closed form: inverse, polar decomposition, rotation log/exp.
 
-Layout. Per-matrix LAPACK calls dominate batched 3x3 work on CPU (jnp.linalg.svd costs ~19 ms per frame of
-8k vertices), and so do XLA's small matrix products and reductions over a trailing axis of size 3. The
+Layout. Per-matrix LAPACK calls dominate batched 3x3 work on CPU (jnp.linalg.svd is far slower than the closed
+forms here), and so do XLA's small matrix products and reductions over a trailing axis of size 3. The
 kernels here therefore work "component-major": a matrix is a ``(3, 3, *batch)`` array and a vector a
 ``(3, *batch)`` array, so that every operation is an elementwise loop over the (long, contiguous) batch
 that XLA fuses. The functions named ``*_cm`` take and return that layout; the public functions without the
@@ -37,12 +37,32 @@ REFLECTION_SHARES = (256, 16)
 
 
 def to_cm(a: jax.typing.ArrayLike, rank: int = 2) -> Array:
-    """(..., 3, 3) -> (3, 3, ...) for rank 2, (..., 3) -> (3, ...) for rank 1."""
+    """Move the trailing matrix or vector axes to the front (component-major layout).
+
+    **Arguments:**
+
+    - `a`: an array `(..., 3, 3)` (rank 2) or `(..., 3)` (rank 1).
+    - `rank`: 2 for matrices, 1 for vectors.
+
+    **Returns:**
+
+    The same entries as `(3, 3, ...)` or `(3, ...)`.
+    """
     return jnp.moveaxis(a, tuple(range(a.ndim - rank, a.ndim)), tuple(range(rank)))
 
 
 def from_cm(a: Array, rank: int = 2) -> Array:
-    """Inverse of :func:`to_cm`."""
+    """Inverse of :func:`to_cm`.
+
+    **Arguments:**
+
+    - `a`: a component-major array `(3, 3, ...)` or `(3, ...)`.
+    - `rank`: 2 for matrices, 1 for vectors.
+
+    **Returns:**
+
+    The same entries as `(..., 3, 3)` or `(..., 3)`.
+    """
     return jnp.moveaxis(a, tuple(range(rank)), tuple(range(a.ndim - rank, a.ndim)))
 
 
@@ -50,34 +70,67 @@ def from_cm(a: Array, rank: int = 2) -> Array:
 
 
 def eye_cm(batch: tuple, dtype) -> Array:
-    """The identity, (3, 3, *batch)."""
+    """The identity matrix, component-major, broadcast over a batch.
+
+    **Arguments:**
+
+    - `batch`: the batch shape.
+    - `dtype`: the dtype.
+
+    **Returns:**
+
+    An array `(3, 3, *batch)`.
+    """
     eye = jnp.eye(3, dtype=dtype).reshape((3, 3) + (1,) * len(batch))
     return jnp.broadcast_to(eye, (3, 3) + tuple(batch))
 
 
 def mv_cm(a: Array, v: Array) -> Array:
-    """(3, 3, *batch) @ (3, *batch), written out entry by entry (XLA fuses it into one elementwise loop)."""
+    """Matrix-vector product, component-major, written out entry by entry (XLA fuses it into one loop).
+
+    **Arguments:**
+
+    - `a`: matrices `(3, 3, *batch)`.
+    - `v`: vectors `(3, *batch)`.
+
+    **Returns:**
+
+    `a @ v`, shape `(3, *batch)`.
+    """
     return jnp.stack([a[i, 0] * v[0] + a[i, 1] * v[1] + a[i, 2] * v[2] for i in range(3)])
 
 
 def mm_cm(a: Array, b: Array) -> Array:
-    """Matrix product of (3, 3, *batch) arrays, entry by entry."""
+    """Matrix product, component-major, entry by entry.
+
+    **Arguments:**
+
+    - `a`, `b`: matrices `(3, 3, *batch)`.
+
+    **Returns:**
+
+    `a @ b`, shape `(3, 3, *batch)`.
+    """
     return jnp.stack([mv_cm(a, b[:, k]) for k in range(3)], axis=1)
 
 
 def t_cm(a: Array) -> Array:
+    """Transpose of component-major matrices `(3, 3, *batch)`; returns the same shape."""
     return jnp.swapaxes(a, 0, 1)
 
 
 def outer_cm(u: Array, v: Array) -> Array:
+    """Outer product u v^T of component-major vectors `(3, *batch)`; returns `(3, 3, *batch)`."""
     return u[:, None] * v[None]
 
 
 def cross_cm(u: Array, v: Array) -> Array:
+    """Cross product of component-major vectors `(3, *batch)`; returns `(3, *batch)`."""
     return jnp.stack([u[1] * v[2] - u[2] * v[1], u[2] * v[0] - u[0] * v[2], u[0] * v[1] - u[1] * v[0]])
 
 
 def det_cm(a: Array) -> Array:
+    """Determinant of component-major matrices `(3, 3, *batch)`; returns `(*batch)`."""
     return (
         a[0, 0] * (a[1, 1] * a[2, 2] - a[1, 2] * a[2, 1])
         - a[0, 1] * (a[1, 0] * a[2, 2] - a[1, 2] * a[2, 0])
@@ -86,12 +139,22 @@ def det_cm(a: Array) -> Array:
 
 
 def adjugate_cm(a: Array) -> Array:
-    """adj(A): its rows are the cross products of pairs of columns of A."""
+    """The adjugate adj(A): its rows are the cross products of pairs of columns of A.
+
+    **Arguments:**
+
+    - `a`: component-major matrices `(3, 3, *batch)`.
+
+    **Returns:**
+
+    adj(A), shape `(3, 3, *batch)`.
+    """
     c0, c1, c2 = a[:, 0], a[:, 1], a[:, 2]
     return jnp.stack([cross_cm(c1, c2), cross_cm(c2, c0), cross_cm(c0, c1)])
 
 
 def inv_cm(a: Array) -> Array:
+    """Inverse adj(A) / det(A) of component-major matrices `(3, 3, *batch)` (not finite where det A = 0)."""
     return adjugate_cm(a) / det_cm(a)
 
 
@@ -102,10 +165,12 @@ def _sum3(x: Array) -> Array:
 
 
 def frob_cm(a: Array) -> Array:
+    """Frobenius norm of component-major matrices `(3, 3, *batch)`; returns `(*batch)`."""
     return jnp.sqrt(_sum3(_sum3(a * a)))
 
 
 def sym_cm(a: Array) -> Array:
+    """Symmetric part (A + A^T) / 2 of component-major matrices `(3, 3, *batch)`."""
     return 0.5 * (a + t_cm(a))
 
 
@@ -126,14 +191,24 @@ def _smallest_eigvec_cm(p: Array) -> Array:
 
 
 def polar_cm(t: Array, steps: int = NEWTON_STEPS) -> tuple[Array, Array]:
-    """T = R S (component-major) with R a proper rotation and S symmetric (official sign convention)."""
+    """Polar decomposition T = R S, component-major, with R a proper rotation and S symmetric.
+
+    **Arguments:**
+
+    - `t`: matrices `(3, 3, *batch)`.
+    - `steps`: number of scaled Newton steps.
+
+    **Returns:**
+
+    `(r, s)`, both `(3, 3, *batch)`; official sign convention when det T < 0 (module docstring).
+    """
 
     def newton(_, x):
         xinv = inv_cm(x)
         g = jnp.sqrt(frob_cm(xinv) / frob_cm(x))
         return 0.5 * (g * x + t_cm(xinv) / g)
 
-    # A loop, not unrolled: unrolled, XLA on CPU fuses the steps and recomputes shared terms (2x slower).
+    # A loop, not unrolled: unrolled, XLA on CPU fuses the steps and recomputes shared terms.
     x = jax.lax.fori_loop(0, steps, newton, t)
     p = sym_cm(mm_cm(t_cm(x), t))
     neg = det_cm(t) < 0
@@ -158,7 +233,7 @@ def polar_cm(t: Array, steps: int = NEWTON_STEPS) -> tuple[Array, Array]:
         pf = pf.at[:, :, idx].set(mm_cm(h, ps), mode="drop")
         return xf.reshape(x.shape), pf.reshape(p.shape)
 
-    # Reflections are rare (horse-gallop: 0.3% of vertex-frames): fix only those entries when they are few,
+    # Reflections are rare (a small fraction of vertex-frames): fix only those entries when they are few,
     # with a gathered batch of one of a few static capacities.
     caps = sorted({max(1, n // share) for share in REFLECTION_SHARES})
     count = jnp.sum(neg.astype(jnp.int32))
@@ -168,13 +243,23 @@ def polar_cm(t: Array, steps: int = NEWTON_STEPS) -> tuple[Array, Array]:
 
 
 def skew_cm(v: Array) -> Array:
+    """Skew matrices `(3, 3, *batch)` of component-major vectors `(3, *batch)` (K u = v x u)."""
     z = jnp.zeros_like(v[0])
     x, y, w = v[0], v[1], v[2]
     return jnp.stack([jnp.stack([z, -w, y]), jnp.stack([w, z, -x]), jnp.stack([-y, x, z])])
 
 
 def vee_cm(k: Array) -> Array:
-    """(K_21, K_02, K_10) of a skew matrix (antisymmetric part taken first)."""
+    """The vector (K_21, K_02, K_10) of a skew matrix (antisymmetric part taken first).
+
+    **Arguments:**
+
+    - `k`: component-major matrices `(3, 3, *batch)`.
+
+    **Returns:**
+
+    Vectors `(3, *batch)`.
+    """
     return 0.5 * jnp.stack([k[2, 1] - k[1, 2], k[0, 2] - k[2, 0], k[1, 0] - k[0, 1]])
 
 
@@ -186,7 +271,16 @@ def _safe_norm0(v: Array) -> Array:
 
 
 def log_rotation_cm(r: Array) -> Array:
-    """Axis-angle vectors (3, *batch), theta in [0, pi]."""
+    """Rotation log as axis-angle vectors, component-major.
+
+    **Arguments:**
+
+    - `r`: rotations `(3, 3, *batch)`.
+
+    **Returns:**
+
+    Axis-angle vectors `(3, *batch)` with theta in [0, pi]; values and gradients finite at 0 and pi.
+    """
     w = vee_cm(r)
     sin = _safe_norm0(w)
     c = 0.5 * (r[0, 0] + r[1, 1] + r[2, 2] - 1.0)
@@ -209,7 +303,16 @@ def log_rotation_cm(r: Array) -> Array:
 
 
 def exp_rotation_cm(v: Array) -> Array:
-    """Rodrigues' formula (3, 3, *batch) for axis-angle vectors (3, *batch), any angle."""
+    """Rodrigues' formula, component-major, for any angle.
+
+    **Arguments:**
+
+    - `v`: axis-angle vectors `(3, *batch)`.
+
+    **Returns:**
+
+    Rotations `(3, 3, *batch)`.
+    """
     th2 = _sum3(v * v)
     small = th2 < 1e-6
     th2s = jnp.where(small, 1.0, th2)
@@ -224,48 +327,146 @@ def exp_rotation_cm(v: Array) -> Array:
 
 
 def det3(a: Float[jax.typing.ArrayLike, "*batch 3 3"]) -> Float[Array, "*batch"]:
+    """Determinant of 3x3 matrices in closed form.
+
+    **Arguments:**
+
+    - `a`: matrices `(..., 3, 3)`.
+
+    **Returns:**
+
+    Determinants `(...)`.
+    """
     return det_cm(to_cm(a))
 
 
 def adjugate3(a: Float[jax.typing.ArrayLike, "*batch 3 3"]) -> Float[Array, "*batch 3 3"]:
+    """Adjugate of 3x3 matrices in closed form.
+
+    **Arguments:**
+
+    - `a`: matrices `(..., 3, 3)`.
+
+    **Returns:**
+
+    adj(A), shape `(..., 3, 3)`.
+    """
     return from_cm(adjugate_cm(to_cm(a)))
 
 
 def inv3(a: Float[jax.typing.ArrayLike, "*batch 3 3"]) -> Float[Array, "*batch 3 3"]:
+    """Inverse of 3x3 matrices in closed form (adjugate over determinant).
+
+    **Arguments:**
+
+    - `a`: matrices `(..., 3, 3)`.
+
+    **Returns:**
+
+    A^-1, shape `(..., 3, 3)`; not finite where det A = 0.
+    """
     return from_cm(inv_cm(to_cm(a)))
 
 
 def sym(a: jax.typing.ArrayLike) -> Array:
+    """Symmetric part (A + A^T) / 2.
+
+    **Arguments:**
+
+    - `a`: matrices `(..., n, n)`.
+
+    **Returns:**
+
+    The symmetric part, same shape.
+    """
     return 0.5 * (a + jnp.swapaxes(a, -1, -2))
 
 
 def polar(
     t: Float[jax.typing.ArrayLike, "*batch 3 3"], steps: int = NEWTON_STEPS
 ) -> tuple[Float[Array, "*batch 3 3"], Float[Array, "*batch 3 3"]]:
-    """T = R S with R a proper rotation and S symmetric (official ACAP sign convention)."""
+    """Polar decomposition T = R S with R a proper rotation and S symmetric.
+
+    **Arguments:**
+
+    - `t`: matrices `(..., 3, 3)`.
+    - `steps`: number of scaled Newton steps.
+
+    **Returns:**
+
+    `(r, s)`, both `(..., 3, 3)`; official ACAP sign convention when det T < 0. Differentiable.
+    """
     r, s = polar_cm(to_cm(t), steps)
     return from_cm(r), from_cm(s)
 
 
 def skew(v: Float[jax.typing.ArrayLike, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
+    """Skew matrices of vectors (K u = v x u).
+
+    **Arguments:**
+
+    - `v`: vectors `(..., 3)`.
+
+    **Returns:**
+
+    Skew matrices `(..., 3, 3)`.
+    """
     return from_cm(skew_cm(to_cm(v, 1)))
 
 
 def vee(k: Float[jax.typing.ArrayLike, "*batch 3 3"]) -> Float[Array, "*batch 3"]:
+    """Inverse of :func:`skew` (antisymmetric part taken first).
+
+    **Arguments:**
+
+    - `k`: matrices `(..., 3, 3)`.
+
+    **Returns:**
+
+    Vectors (K_21, K_02, K_10), shape `(..., 3)`.
+    """
     return from_cm(vee_cm(to_cm(k)), 1)
 
 
 def rotation_angle(r: Float[jax.typing.ArrayLike, "*batch 3 3"]) -> Float[Array, "*batch"]:
+    """Rotation angles of rotation matrices.
+
+    **Arguments:**
+
+    - `r`: rotations `(..., 3, 3)`.
+
+    **Returns:**
+
+    Angles in [0, pi], shape `(...)`.
+    """
     rc = to_cm(r)
     c = 0.5 * (rc[0, 0] + rc[1, 1] + rc[2, 2] - 1.0)
     return jnp.arctan2(_safe_norm0(vee_cm(rc)), c)
 
 
 def log_rotation(r: Float[jax.typing.ArrayLike, "*batch 3 3"]) -> Float[Array, "*batch 3"]:
-    """Axis-angle vector theta * axis with theta in [0, pi]."""
+    """Rotation log as axis-angle vectors theta * axis.
+
+    **Arguments:**
+
+    - `r`: rotations `(..., 3, 3)`.
+
+    **Returns:**
+
+    Axis-angle vectors `(..., 3)` with theta in [0, pi]; values and gradients finite at 0 and pi.
+    """
     return from_cm(log_rotation_cm(to_cm(r)), 1)
 
 
 def exp_rotation(v: Float[jax.typing.ArrayLike, "*batch 3"]) -> Float[Array, "*batch 3 3"]:
-    """Rodrigues' formula for the rotation of axis-angle vector v (any angle)."""
+    """Rodrigues' formula for the rotation of axis-angle vectors (any angle).
+
+    **Arguments:**
+
+    - `v`: axis-angle vectors `(..., 3)`.
+
+    **Returns:**
+
+    Rotations `(..., 3, 3)`.
+    """
     return from_cm(exp_rotation_cm(to_cm(v, 1)))

@@ -34,7 +34,17 @@ FRAMES = "frames"
 
 
 def frames_mesh(devices=None, axis: str = FRAMES) -> Mesh:
-    """A one-axis mesh named ``axis`` over ``devices`` (default: every device of every process)."""
+    """A one-axis device mesh for the frames.
+
+    **Arguments:**
+
+    - `devices`: the devices; None: every device of every process.
+    - `axis`: the axis name.
+
+    **Returns:**
+
+    A :class:`jax.sharding.Mesh` with the one axis `axis`.
+    """
     devices = jax.devices() if devices is None else list(devices)
     return Mesh(np.asarray(devices), (axis,))
 
@@ -48,8 +58,19 @@ def _pad(x, size: int):
 
 
 def map_frames(fn, x, mesh: Mesh, axis: str = FRAMES):
-    """``fn`` applied to the frames (leading axis) of ``x``, split over ``mesh``'s ``axis``; ``fn`` maps
-    (n, ...) to a pytree of (n, ...) arrays. The result is sharded along its leading axis."""
+    """Apply a function to the frames (leading axis) of an array, split over a mesh axis.
+
+    **Arguments:**
+
+    - `fn`: maps `(n, ...)` to a pytree of `(n, ...)` arrays.
+    - `x`: frames `(N, ...)`; N need not be a multiple of the device count.
+    - `mesh`: the device mesh.
+    - `axis`: the mesh axis to split along.
+
+    **Returns:**
+
+    `fn`'s pytree with leading size N, sharded along its leading axis.
+    """
     n = x.shape[0]
     k = mesh.shape[axis]
     size = -(-n // k) * k
@@ -63,7 +84,24 @@ def map_frames(fn, x, mesh: Mesh, axis: str = FRAMES):
 def encode(
     acap: Acap, vertices: Float[ArrayLike, "n v 3"], mesh: Mesh, consistency: str = "spatial", axis: str = FRAMES
 ) -> Float[Array, "n v 9"]:
-    """:meth:`Acap.encode` of frames (N, V, 3), data-parallel over ``mesh`` (spatial or no consistency)."""
+    """:meth:`Acap.encode` of frames, data-parallel over a device mesh.
+
+    **Arguments:**
+
+    - `acap`: the prepared :class:`Acap`.
+    - `vertices`: frames `(N, V, 3)`.
+    - `mesh`: the device mesh.
+    - `consistency`: "spatial" or None/"none" ("temporal" cannot be split over frames).
+    - `axis`: the mesh axis to split along.
+
+    **Returns:**
+
+    Features `(N, V, 9)`, sharded along N; equal to the single-device call's to float round-off.
+
+    **Raises:**
+
+    `ValueError` for "temporal" or vertices not `(N, V, 3)`; the checks of :meth:`Acap.encode`.
+    """
     if consistency == "temporal":
         raise ValueError("temporal consistency runs along the whole sequence and cannot be split over frames.")
     x = acap._vertices(vertices)
@@ -75,7 +113,25 @@ def encode(
 def decode(
     acap: Acap, features: Float[ArrayLike, "n v 9"], mesh: Mesh, *, anchors=None, refine: int = 1, axis: str = FRAMES
 ) -> Float[Array, "n v 3"]:
-    """:meth:`Acap.decode` of features (N, V, 9), data-parallel over ``mesh`` (anchors at their reference)."""
+    """:meth:`Acap.decode` of features, data-parallel over a device mesh (anchors at their reference).
+
+    **Arguments:**
+
+    - `acap`: the prepared :class:`Acap`.
+    - `features`: features `(N, V, 9)`.
+    - `mesh`: the device mesh.
+    - `anchors`: vertex indices; None: the prepared default.
+    - `refine`: number of defect-correction steps.
+    - `axis`: the mesh axis to split along.
+
+    **Returns:**
+
+    Positions `(N, V, 3)`, sharded along N; equal to the single-device call's to float round-off.
+
+    **Raises:**
+
+    `ValueError` for features not `(N, V, 9)`; the checks of :meth:`Acap.decode`.
+    """
     f = acap._features(features)
     if f.ndim != 3:
         raise ValueError(f"features must be (N, V, 9), got {f.shape}.")

@@ -99,10 +99,22 @@ def _finish_row(d: np.ndarray, what: str) -> np.ndarray:
 class HeatGeodesics:
     """Heat-method geodesic distances (Crane et al. 2013) with the factorization done once.
 
-    ``HeatGeodesics(vertices, faces)(sources)`` returns raw (unnormalized) distances of shape (S, V), one
-    row per source; repeated calls reuse the prefactored solvers. ``t`` is the heat time (libigl's default,
-    the squared mean edge length, when None); ``intrinsic_delaunay`` computes the Laplacian on an intrinsic
-    Delaunay triangulation, which helps on meshes with obtuse triangles.
+    `HeatGeodesics(vertices, faces)(sources)` returns raw (unnormalized) distances; repeated calls reuse the
+    prefactored solvers (every component with faces is factored at construction).
+
+    **Arguments:**
+
+    - `vertices`: positions `(V, 3)`.
+    - `faces`: triangles `(F, 3)`, integer.
+    - `t`: the heat time, a positive number; None: libigl's default, the squared mean edge length.
+    - `intrinsic_delaunay`: compute the Laplacian on an intrinsic Delaunay triangulation, which helps on
+      meshes with obtuse triangles.
+
+    **Raises:**
+
+    `MeshFormatError` for vertices not a non-empty finite `(V, 3)` array or faces not a non-empty integer
+    `(F, 3)` array; `ConnectivityError` for a face index out of range;
+    `ValueError` for a non-positive or non-finite `t`.
     """
 
     def __init__(self, vertices, faces, *, t: float | None = None, intrinsic_delaunay: bool = False):
@@ -134,6 +146,20 @@ class HeatGeodesics:
         return self._data[label]
 
     def __call__(self, sources: int | Sequence[int] | np.ndarray) -> np.ndarray:
+        """Raw heat-method distances from each source.
+
+        **Arguments:**
+
+        - `sources`: a vertex index or a non-empty 1-D sequence of them.
+
+        **Returns:**
+
+        float64 distances `(S, V)`, one row per source, non-negative; `inf` for vertices in other components.
+
+        **Raises:**
+
+        `ValueError` for bad sources; `DegenerateMeshError` for non-finite distances (badly shaped faces).
+        """
         s = _check_sources(sources, self.n_vertices)
         comps = self._components
         out = np.full((s.size, self.n_vertices), np.inf)
@@ -179,15 +205,32 @@ def geodesic_distances(
     method: str = "auto",
     normalize: bool = True,
 ) -> np.ndarray:
-    """Geodesic distance from each source vertex to every vertex: float64 array of shape (S, V).
+    """Geodesic distance from each source vertex to every vertex.
 
-    ``method``: ``"exact"`` (libigl's exact MMP algorithm, one run per source), ``"heat"`` (heat method,
-    factored once per call and reused for every source) or ``"auto"`` (exact up to
-    :data:`AUTO_EXACT_MAX_VERTICES` vertices, heat above). ``normalize=True`` divides the whole result by its
-    largest finite entry (the "normalized geodesic distance" of the multiscale deformation components
-    paper), so values lie in [0, 1] and the maximum is 1; with ``normalize=False`` the distances are in the
-    units of ``vertices``. Vertices unreachable from a source (another connected component) are ``inf``.
     For repeated heat-method queries on one mesh, use :class:`HeatGeodesics` directly.
+
+    **Arguments:**
+
+    - `vertices`: positions `(V, 3)`.
+    - `faces`: triangles `(F, 3)`, integer.
+    - `sources`: a vertex index or a non-empty 1-D sequence of them.
+    - `method`: `"exact"` (libigl's exact MMP algorithm, one run per source), `"heat"` (heat method, factored
+      once per call and reused for every source) or `"auto"` (exact up to :data:`AUTO_EXACT_MAX_VERTICES`
+      vertices, heat above).
+    - `normalize`: True divides the whole result by its largest finite entry (the "normalized geodesic
+      distance" of the multiscale deformation components paper); False keeps the units of `vertices`.
+
+    **Returns:**
+
+    A float64 array `(S, V)`, one row per source: with `normalize=True` values lie in [0, 1] and the maximum
+    is 1. Vertices unreachable from a source (another connected component) are `inf`.
+
+    **Raises:**
+
+    `MeshFormatError` for vertices not a non-empty finite `(V, 3)` array or faces not a non-empty integer
+    `(F, 3)` array; `ConnectivityError` for a face index out of range;
+    `ValueError` for an unknown method or bad sources; `DegenerateMeshError` for non-finite distances or
+    (normalizing) when every reachable distance is zero.
     """
     if method not in METHODS:
         raise ValueError(f"method must be one of {', '.join(METHODS)}, got {method!r}.")

@@ -27,7 +27,16 @@ SEQUENCE_SUFFIXES = MESH_SUFFIXES + (".npz",)
 
 
 def natural_key(name: str) -> list:
-    """Sort key that orders 'frame2' before 'frame10'."""
+    """Sort key that orders 'frame2' before 'frame10'.
+
+    **Arguments:**
+
+    - `name`: a file name.
+
+    **Returns:**
+
+    A list of text and integer parts (text lower-cased).
+    """
     return [int(t) if t.isdigit() else t.lower() for t in re.split(r"(\d+)", name)]
 
 
@@ -87,7 +96,21 @@ def _parse_floats(rows: list[str], width: int, path: Path, what: str) -> np.ndar
 
 
 def read_obj(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
-    """Read vertex positions and faces of a Wavefront OBJ (texture/normal indices ignored)."""
+    """Read vertex positions and faces of a Wavefront OBJ (texture/normal indices ignored).
+
+    **Arguments:**
+
+    - `path`: the file.
+
+    **Returns:**
+
+    `(vertices, faces)`: vertices `(V, 3)` float64 and faces `(F, 3)` int32 (polygons fan-triangulated).
+
+    **Raises:**
+
+    `MeshFormatError` (one sentence naming the file) for a missing, empty, truncated, non-numeric or
+    corrupt file, a face indexing a missing vertex or a non-finite coordinate.
+    """
     path = Path(path)
     text = _read_text(path)
     vrows, frows = [], []
@@ -109,7 +132,21 @@ def read_obj(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
 
 
 def read_off(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
-    """Read an ASCII OFF file."""
+    """Read an ASCII OFF file.
+
+    **Arguments:**
+
+    - `path`: the file.
+
+    **Returns:**
+
+    `(vertices, faces)`: vertices `(V, 3)` float64 and faces `(F, 3)` int32 (polygons fan-triangulated).
+
+    **Raises:**
+
+    `MeshFormatError` (one sentence naming the file) for a missing, empty, truncated, non-numeric or
+    corrupt file, a face indexing a missing vertex or a non-finite coordinate.
+    """
     path = Path(path)
     lines = [ln.split("#")[0].strip() for ln in _read_text(path).splitlines()]
     lines = [ln for ln in lines if ln]
@@ -140,7 +177,22 @@ def read_off(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
 
 
 def read_ply(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
-    """Read an ASCII or binary PLY file (through trimesh, vertex order kept)."""
+    """Read an ASCII or binary PLY file (through trimesh, vertex order kept).
+
+    **Arguments:**
+
+    - `path`: the file.
+
+    **Returns:**
+
+    `(vertices, faces)`: vertices `(V, 3)` float64 and faces `(F, 3)` int32 (polygons fan-triangulated).
+
+    **Raises:**
+
+    `MeshFormatError` (one sentence naming the file) for a missing, empty, truncated, non-numeric or
+    corrupt file, a face indexing a missing vertex or a non-finite coordinate. Also when the
+    header's counts disagree with the body.
+    """
     import trimesh
 
     path = Path(path)
@@ -183,7 +235,22 @@ def _ply_counts(path: Path) -> dict[str, int]:
 
 
 def load_mesh(path: str | os.PathLike) -> tuple[Float[np.ndarray, "v 3"], Int[np.ndarray, "f 3"]]:
-    """Load one mesh (OBJ, PLY, OFF) as ``(vertices (V,3) float64, faces (F,3) int32)``."""
+    """Load one mesh (OBJ, PLY, OFF, or a one-shape .npz), chosen by suffix.
+
+    **Arguments:**
+
+    - `path`: the file.
+
+    **Returns:**
+
+    `(vertices, faces)`: vertices `(V, 3)` float64 and faces `(F, 3)` int32 (polygons fan-triangulated).
+
+    **Raises:**
+
+    `MeshFormatError` (one sentence naming the file) for a missing, empty, truncated, non-numeric or
+    corrupt file, a face indexing a missing vertex or a non-finite coordinate. Also for an unknown
+    suffix or a .npz holding more than one shape.
+    """
     path = Path(path)
     suffix = _suffix(path)
     if suffix == ".npz":
@@ -212,7 +279,24 @@ def _expand(paths: Sequence[str | os.PathLike] | str | os.PathLike) -> list[Path
 
 
 def check_same_connectivity(faces_ref: ArrayLike, faces: ArrayLike, n_ref: int, n: int, where: str) -> None:
-    """Raise ConnectivityError unless two meshes have the same vertex count and identical faces."""
+    """Check that two meshes share one connectivity.
+
+    **Arguments:**
+
+    - `faces_ref`: the first mesh's faces `(F, 3)`.
+    - `faces`: the other mesh's faces.
+    - `n_ref`: the first mesh's vertex count.
+    - `n`: the other mesh's vertex count.
+    - `where`: names the other mesh in the message.
+
+    **Returns:**
+
+    None.
+
+    **Raises:**
+
+    `ConnectivityError` unless the vertex counts are equal and the faces identical.
+    """
     if n != n_ref:
         raise ConnectivityError(
             f"{where} has {n} vertices but the first mesh has {n_ref}; meshes must share one connectivity."
@@ -224,10 +308,21 @@ def check_same_connectivity(faces_ref: ArrayLike, faces: ArrayLike, n_ref: int, 
 def load_sequence(
     paths: Sequence[str | os.PathLike] | str | os.PathLike,
 ) -> tuple[Float[np.ndarray, "n v 3"], Int[np.ndarray, "f 3"]]:
-    """Load meshes that share one connectivity as ``(vertices (N,V,3) float64, faces (F,3) int32)``.
+    """Load meshes that share one connectivity.
 
-    ``paths`` is a folder (its mesh files in natural order), one file, or a list of files/folders.
-    A ``.npz`` holds ``vertices`` ``(N,V,3)`` or ``(V,3)`` and ``faces``.
+    **Arguments:**
+
+    - `paths`: a folder (its mesh files in natural order), one file, or a list of files/folders. A `.npz` holds
+      `vertices` `(N, V, 3)` or `(V, 3)` and `faces`.
+
+    **Returns:**
+
+    `(vertices, faces)`: vertices `(N, V, 3)` float64 and faces `(F, 3)` int32.
+
+    **Raises:**
+
+    `MeshFormatError` for an unreadable file or no input; `ConnectivityError` when the meshes do not share
+    one connectivity or a face repeats a vertex.
     """
     frames: list[np.ndarray] = []
     faces_ref: np.ndarray | None = None
@@ -288,13 +383,33 @@ _UMASK = _current_umask()
 
 
 def default_mode(path: str | os.PathLike, directory: bool = False) -> None:
-    """Give a temporary file (0600) or folder (0700) from ``tempfile`` the permissions a normal one would have
-    under the process umask, before it is renamed into place."""
+    """Give a temporary file or folder the permissions a normal one would have under the process umask.
+
+    For a file (0600) or folder (0700) from `tempfile`, before it is renamed into place.
+
+    **Arguments:**
+
+    - `path`: the file or folder.
+    - `directory`: True for a folder.
+    """
     os.chmod(path, (0o777 if directory else 0o666) & ~_UMASK)
 
 
 def read_npz_arrays(path: str | os.PathLike) -> dict[str, np.ndarray]:
-    """All arrays of a .npz (no pickles), with a one-sentence :class:`MeshFormatError` for anything unreadable."""
+    """All arrays of a .npz (no pickles).
+
+    **Arguments:**
+
+    - `path`: the file.
+
+    **Returns:**
+
+    A dict of the arrays by name.
+
+    **Raises:**
+
+    `FileNotFoundError` for a missing file; `MeshFormatError` (one sentence) for anything unreadable.
+    """
     import zipfile
 
     path = Path(path)
@@ -313,7 +428,16 @@ def read_npz_arrays(path: str | os.PathLike) -> dict[str, np.ndarray]:
 
 
 def atomic_path(path: Path):
-    """Context manager yielding a temporary path beside ``path`` that is renamed onto it on success."""
+    """Context manager yielding a temporary path beside `path` that is renamed onto it on success.
+
+    **Arguments:**
+
+    - `path`: the final path; its folder is created if missing.
+
+    **Returns:**
+
+    The context manager; on an exception the temporary file is removed and `path` is untouched.
+    """
     import contextlib
 
     @contextlib.contextmanager
@@ -334,7 +458,18 @@ def atomic_path(path: Path):
 
 
 def save_mesh(path: str | os.PathLike, vertices: Real[ArrayLike, "v 3"], faces: Int[ArrayLike, "f 3"]) -> None:
-    """Write one mesh as OBJ, OFF or PLY (chosen by suffix), atomically."""
+    """Write one mesh as OBJ, OFF, PLY or .npz (chosen by suffix), atomically.
+
+    **Arguments:**
+
+    - `path`: the file to write.
+    - `vertices`: positions `(V, 3)` (written as float64).
+    - `faces`: triangles `(F, 3)`.
+
+    **Raises:**
+
+    `MeshFormatError` for an unknown suffix.
+    """
     path = Path(path)
     suffix = _suffix(path)
     vertices = np.asarray(vertices, dtype=np.float64)
@@ -359,7 +494,18 @@ def save_mesh(path: str | os.PathLike, vertices: Real[ArrayLike, "v 3"], faces: 
 
 
 def save_sequence(path: str | os.PathLike, vertices: Real[ArrayLike, "n v 3"], faces: Int[ArrayLike, "f 3"]) -> None:
-    """Write a sequence ``(N,V,3)`` as one ``.npz`` (arrays ``vertices``, ``faces``), atomically."""
+    """Write a sequence as one `.npz` (arrays `vertices`, `faces`), atomically.
+
+    **Arguments:**
+
+    - `path`: the `.npz` file to write.
+    - `vertices`: positions `(N, V, 3)`.
+    - `faces`: triangles `(F, 3)` (written as int32).
+
+    **Raises:**
+
+    `MeshFormatError` unless the suffix is `.npz`.
+    """
     path = Path(path)
     if path.suffix.lower() != ".npz":
         raise MeshFormatError(f"{path}: a sequence is saved as .npz.")

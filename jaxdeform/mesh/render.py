@@ -82,7 +82,21 @@ def _cmap_anchors(name: str) -> np.ndarray:
 
 
 def colormap(t, cmap: str = "viridis") -> np.ndarray:
-    """Map values ``t`` in [0, 1] (clipped) to RGB floats in [0, 1]: shape ``t.shape + (3,)``."""
+    """Map values to colours.
+
+    **Arguments:**
+
+    - `t`: values in [0, 1] (clipped), any shape.
+    - `cmap`: a colormap name (optionally with a `_r` suffix for reversed).
+
+    **Returns:**
+
+    RGB floats in [0, 1], shape `t.shape + (3,)`.
+
+    **Raises:**
+
+    `ValueError` for an unknown colormap.
+    """
     anchors = _cmap_anchors(cmap)
     t = np.clip(np.asarray(t, dtype=np.float64), 0.0, 1.0)
     x = t * (anchors.shape[0] - 1)
@@ -108,11 +122,23 @@ def _hsv_to_rgb(h: np.ndarray, s: np.ndarray, v: np.ndarray) -> np.ndarray:
 
 
 def categorical_colors(n: int) -> np.ndarray:
-    """``n`` visually distinct RGB colours in [0, 1], shape ``(n, 3)``; deterministic.
+    """Visually distinct RGB colours, deterministic.
 
     Hues step by the golden ratio (so any prefix is spread over the colour wheel and colour ``i`` is the same
     for every ``n``), with value and saturation alternating over a short cycle so that neighbouring hues
     that come close on the wheel still differ in brightness.
+
+    **Arguments:**
+
+    - `n`: the number of colours, non-negative.
+
+    **Returns:**
+
+    Colours in [0, 1], shape `(n, 3)`.
+
+    **Raises:**
+
+    `ValueError` for a negative `n`.
     """
     n = int(n)
     if n < 0:
@@ -144,10 +170,20 @@ Vector3 = Sequence[float | int] | Real[ArrayLike, "3"]
 
 @dataclass(frozen=True)
 class Camera:
-    """A pinhole camera at ``eye`` looking at ``target``; ``up`` need not be orthogonal to the view.
+    """A pinhole camera at `eye` looking at `target`.
 
-    ``fov_deg`` is the field of view across the shorter side of the viewport. Vectors are stored as tuples of
-    floats (the dataclass is hashable).
+    Vectors are stored as tuples of floats (the dataclass is hashable).
+
+    **Arguments:**
+
+    - `eye`: the camera position, 3 finite numbers.
+    - `target`: the point looked at, 3 finite numbers, not `eye`.
+    - `up`: a non-zero vertical hint; it need not be orthogonal to the view.
+    - `fov_deg`: the field of view across the shorter side of the viewport, strictly between 0 and 180.
+
+    **Raises:**
+
+    `ValueError` for any argument outside these rules.
     """
 
     eye: Vector3
@@ -168,7 +204,12 @@ class Camera:
             raise ValueError("camera up must be a non-zero vector.")
 
     def basis(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """(forward, right, up) orthonormal vectors; up is re-chosen if it is parallel to the view."""
+        """The camera's orthonormal frame.
+
+        **Returns:**
+
+        `(forward, right, up)` unit vectors `(3,)`; up is re-chosen if it is parallel to the view.
+        """
         fwd = np.subtract(self.target, self.eye)
         fwd = fwd / np.linalg.norm(fwd)
         up = np.asarray(self.up) / np.linalg.norm(self.up)
@@ -191,9 +232,22 @@ def auto_camera(
 ) -> Camera:
     """A camera looking at the bounding-box centre from where the bounding sphere fits the view.
 
-    ``up_axis`` ("y", the graphics convention of most mesh data sets, or "z") is the world's vertical;
-    azimuth turns around it (0 looks from +z for y-up, from -y for z-up), elevation lifts the eye above the
-    horizontal plane. ``margin`` > 1 leaves a little room around the sphere.
+    **Arguments:**
+
+    - `vertices`: positions `(V, 3)`.
+    - `azimuth_deg`: turns around the vertical (0 looks from +z for y-up, from -y for z-up).
+    - `elevation_deg`: lifts the eye above the horizontal plane.
+    - `fov_deg`: the field of view.
+    - `up_axis`: the world's vertical, "y" (the graphics convention of most mesh data sets) or "z".
+    - `margin`: > 1 leaves a little room around the sphere.
+
+    **Returns:**
+
+    The :class:`Camera`.
+
+    **Raises:**
+
+    `ValueError` for a non-finite angle or an unknown `up_axis`; `MeshFormatError` for bad vertices.
     """
     v = _check_vertices(vertices)
     for name, value in (("azimuth", azimuth_deg), ("elevation", elevation_deg), ("field of view", fov_deg)):
@@ -238,6 +292,7 @@ class RayHits:
 
     @property
     def hit(self) -> np.ndarray:
+        """Whether each pixel hit the mesh, `(H, W)` bool."""
         return self.triangle >= 0
 
 
@@ -313,13 +368,27 @@ class RayCaster:
 
     @property
     def vertex_normals(self) -> np.ndarray:
-        """Area-weighted (unnormalised) vertex normals, (V, 3) float64."""
+        """Area-weighted (unnormalised) vertex normals, `(V, 3)` float64, computed once."""
         if self._normals is None:
             self._normals = _vertex_normals(self.vertices, self.faces)
         return self._normals
 
     def trace(self, camera: Camera, width: int, height: int) -> Trace:
-        """One ray through the centre of every pixel of a ``width`` x ``height`` image."""
+        """Trace one ray through the centre of every pixel of an image.
+
+        **Arguments:**
+
+        - `camera`: the :class:`Camera`.
+        - `width`, `height`: the image size in pixels, at least 1.
+
+        **Returns:**
+
+        The :class:`Trace` of the hit pixels.
+
+        **Raises:**
+
+        `ValueError` for an image smaller than 1 x 1.
+        """
         if int(width) < 1 or int(height) < 1:
             raise ValueError(f"image size must be at least 1 x 1 pixels, got {width} x {height}.")
         width, height = int(width), int(height)
@@ -337,7 +406,17 @@ class RayCaster:
         return Trace(width, height, dirs, pixel, prim[pixel].astype(np.int64), bary)
 
     def shade(self, trace: Trace, ambient: float = AMBIENT) -> np.ndarray:
-        """Two-sided Lambert with a headlight per hit pixel of ``trace``: (m,) values in [ambient, 1]."""
+        """Two-sided Lambert shading with a headlight.
+
+        **Arguments:**
+
+        - `trace`: a :class:`Trace` of this caster.
+        - `ambient`: the darkest value.
+
+        **Returns:**
+
+        One value per hit pixel of `trace`, `(m,)`, in [ambient, 1].
+        """
         return _shade(self.vertices, self.faces, trace, ambient, self.vertex_normals)
 
 
@@ -346,17 +425,37 @@ def _trace(v: np.ndarray, f: np.ndarray, camera: Camera, width: int, height: int
 
 
 def pixel_scale(camera: Camera, width: int, height: int) -> float:
-    """tan(fov / 2) / (min(W, H) / 2): the view-plane size of one pixel at unit depth (as the renderer's rays)."""
+    """The view-plane size of one pixel at unit depth (as the renderer's rays).
+
+    **Arguments:**
+
+    - `camera`: the :class:`Camera`.
+    - `width`, `height`: the image size.
+
+    **Returns:**
+
+    tan(fov / 2) / (min(W, H) / 2).
+    """
     return math.tan(math.radians(camera.fov_deg) / 2.0) / (min(width, height) / 2.0)
 
 
 def project(
     camera: Camera, width: int, height: int, points: Float[ArrayLike, "p 3"]
 ) -> tuple[Float[np.ndarray, "p 2"], Float[np.ndarray, " p"]]:
-    """Display coordinates (P, 2) of points and their depth (P,) along the view direction.
+    """Display coordinates of points and their depth along the view direction.
 
     The inverse of the renderer's rays: the ray through pixel (i, j)'s centre (j + 0.5, i + 0.5) has direction
-    ``forward + (j + 0.5 - W/2) s right + (H/2 - i - 0.5) s up`` with ``s`` = :func:`pixel_scale`.
+    `forward + (j + 0.5 - W/2) s right + (H/2 - i - 0.5) s up` with `s` = :func:`pixel_scale`.
+
+    **Arguments:**
+
+    - `camera`: the :class:`Camera`.
+    - `width`, `height`: the image size.
+    - `points`: positions `(P, 3)`.
+
+    **Returns:**
+
+    `(xy, depth)`: display coordinates `(P, 2)` and depths `(P,)` (non-finite coordinates at zero depth).
     """
     fwd, right, up = camera.basis()
     q = np.asarray(points, dtype=np.float64).reshape(-1, 3) - np.asarray(camera.eye)
@@ -369,7 +468,24 @@ def project(
 
 
 def cast_rays(vertices, faces, camera: Camera, width: int, height: int) -> RayHits:
-    """Trace one ray through the centre of every pixel of a ``width`` x ``height`` image."""
+    """Trace one ray through the centre of every pixel of an image.
+
+    **Arguments:**
+
+    - `vertices`: positions `(V, 3)`.
+    - `faces`: triangles `(F, 3)`.
+    - `camera`: the :class:`Camera`.
+    - `width`, `height`: the image size.
+
+    **Returns:**
+
+    The per-pixel :class:`RayHits`.
+
+    **Raises:**
+
+    `MeshFormatError` for bad vertices or faces; `DegenerateMeshError` for a mesh without faces;
+    `ConnectivityError` for a face index out of range.
+    """
     v, f = _check_mesh(vertices, faces)
     tr = _trace(v, f, camera, width, height)
     n = tr.width * tr.height
@@ -611,19 +727,42 @@ def render(
     supersample: int = 1,
     vertex_colors=None,
 ) -> np.ndarray:
-    """Render a mesh to an ``(height, width, 3)`` uint8 image.
+    """Render a mesh to an image.
 
-        Without ``scalar`` the mesh is drawn in ``base_color``; with a per-vertex ``scalar`` (length V) each
-        pixel gets the scalar interpolated at its hit point, mapped through ``cmap`` over [vmin, vmax] (default:
-        the scalar's range; values outside are clipped), and a colour bar is drawn at the right unless
-        ``colorbar=False`` (or the image is too small to hold one: under 60 pixels high, or the bar and its labels
-    would take more than half the width). ``camera`` defaults to :func:`auto_camera`. ``shading=False`` draws flat colours
-        (no lighting); ``supersample=k`` traces k x k rays per pixel and averages them (anti-aliasing).
+    Without `scalar` the mesh is drawn in `base_color`; with a per-vertex `scalar` each pixel gets the scalar
+    interpolated at its hit point, mapped through `cmap` over [vmin, vmax] (values outside are clipped), and a
+    colour bar is drawn at the right unless `colorbar=False` (or the image is too small to hold one: under 60
+    pixels high, or the bar and its labels would take more than half the width).
 
-        ``vertex_colors`` ((V, 3) RGB floats in [0, 1], e.g. :func:`categorical_colors` indexed by part labels)
-        colours each hit pixel with the colour of the hit triangle's vertex of largest barycentric weight: flat
-        per-region colours, never blended across part boundaries (except by the pixel averaging of
-        ``supersample`` > 1 on boundary pixels), and no colour bar. It cannot be combined with ``scalar``.
+    `vertex_colors` colours each hit pixel with the colour of the hit triangle's vertex of largest
+    barycentric weight: flat per-region colours, never blended across part boundaries (except by the pixel
+    averaging of `supersample` > 1 on boundary pixels), and no colour bar.
+
+    **Arguments:**
+
+    - `vertices`: positions `(V, 3)`.
+    - `faces`: triangles `(F, 3)`.
+    - `scalar`: per-vertex values `(V,)`, or None.
+    - `camera`: the :class:`Camera`; None: :func:`auto_camera`.
+    - `width`, `height`: the image size in pixels.
+    - `cmap`: the colormap name.
+    - `vmin`, `vmax`: the colour range; None: the scalar's range.
+    - `colorbar`: draw a colour bar (with a scalar).
+    - `label`: the colour bar's label.
+    - `base_color`, `background`: RGB colours in [0, 1] of the mesh (without a scalar) and of the background.
+    - `shading`: False draws flat colours (no lighting).
+    - `supersample`: k traces k x k rays per pixel and averages them (anti-aliasing).
+    - `vertex_colors`: `(V, 3)` RGB floats in [0, 1] (e.g. :func:`categorical_colors` indexed by part labels);
+      it cannot be combined with `scalar`.
+
+    **Returns:**
+
+    A `(height, width, 3)` uint8 image.
+
+    **Raises:**
+
+    `ValueError` for bad options (colormap, colours, sizes, scalar, vertex colours); `MeshFormatError` for bad
+    vertices or faces; `DegenerateMeshError` for no faces; `ConnectivityError` for a face index out of range.
     """
     v, f = _check_mesh(vertices, faces)
     vc = _check_vertex_colors(vertex_colors, scalar, v.shape[0])
@@ -651,7 +790,17 @@ def render(
 
 
 def caption(image: np.ndarray, text: str) -> np.ndarray:
-    """Write ``text`` small at the top-left of a panel (dark ink on the white background)."""
+    """Write text small at the top-left of a panel (dark ink on the white background).
+
+    **Arguments:**
+
+    - `image`: a uint8 image `(H, W, 3)`.
+    - `text`: the caption.
+
+    **Returns:**
+
+    A new image of the same shape.
+    """
     pil = Image.fromarray(image)
     draw = ImageDraw.Draw(pil)
     draw.text((6, 4), text, fill=(40, 40, 40))
@@ -659,7 +808,17 @@ def caption(image: np.ndarray, text: str) -> np.ndarray:
 
 
 def hstack(panels: list[np.ndarray], gap: int = 4) -> np.ndarray:
-    """Panels of one height side by side, separated by ``gap`` white columns."""
+    """Panels of one height side by side.
+
+    **Arguments:**
+
+    - `panels`: uint8 images `(H, W_i, 3)`, non-empty list.
+    - `gap`: white columns between panels.
+
+    **Returns:**
+
+    A uint8 image `(H, sum W_i + gaps, 3)`.
+    """
     h = panels[0].shape[0]
     sep = np.full((h, gap, 3), 255, dtype=np.uint8)
     parts: list[np.ndarray] = []
@@ -671,7 +830,21 @@ def hstack(panels: list[np.ndarray], gap: int = 4) -> np.ndarray:
 
 
 def save_png(image, path) -> Path:
-    """Write an (H, W, 3) or (H, W) uint8 image as PNG atomically (temporary file + rename); returns the path."""
+    """Write an image as PNG atomically (temporary file + rename).
+
+    **Arguments:**
+
+    - `image`: a uint8 array `(H, W)`, `(H, W, 3)` or `(H, W, 4)`.
+    - `path`: the file; its folder is created if missing.
+
+    **Returns:**
+
+    The path written.
+
+    **Raises:**
+
+    `ValueError` for an image of another dtype or shape.
+    """
     img = np.asarray(image)
     if img.dtype != np.uint8 or not (img.ndim == 2 or (img.ndim == 3 and img.shape[2] in (3, 4))):
         raise ValueError(f"image must be a uint8 (H, W), (H, W, 3) or (H, W, 4) array, got {img.dtype} {img.shape}.")
@@ -695,7 +868,22 @@ def save_png(image, path) -> Path:
 
 
 def render_png(path, vertices, faces, **kwargs) -> np.ndarray:
-    """:func:`render` the mesh with ``kwargs`` and :func:`save_png` it to ``path``; returns the image."""
+    """:func:`render` a mesh and :func:`save_png` it.
+
+    **Arguments:**
+
+    - `path`: the PNG file.
+    - `vertices`, `faces`: the mesh.
+    - `kwargs`: the options of :func:`render`.
+
+    **Returns:**
+
+    The image, as :func:`render` returns it.
+
+    **Raises:**
+
+    The errors of :func:`render` and :func:`save_png`.
+    """
     image = render(vertices, faces, **kwargs)
     save_png(image, path)
     return image
@@ -715,7 +903,20 @@ VIEWS: dict[str, tuple[float, float]] = {
 
 
 def view_angles(view) -> tuple[float, float]:
-    """(azimuth, elevation) in degrees of a named view or of an (azimuth, elevation) pair."""
+    """The angles of a view.
+
+    **Arguments:**
+
+    - `view`: a name of :data:`VIEWS` or an (azimuth, elevation) pair in degrees.
+
+    **Returns:**
+
+    `(azimuth, elevation)` in degrees, floats.
+
+    **Raises:**
+
+    `ValueError` for an unknown name or a malformed pair.
+    """
     if isinstance(view, str):
         if view not in VIEWS:
             raise ValueError(f"unknown view {view!r}; expected one of {', '.join(VIEWS)} or (azimuth, elevation).")

@@ -28,6 +28,8 @@ from jaxdeform.typing import Int, NonArrayLeaf
 @jax.tree_util.register_dataclass
 @dataclasses.dataclass(frozen=True)
 class Topology:
+    """Everything about one connectivity (module docstring for the conventions), built by :func:`build_topology`."""
+
     faces: Int[ArrayLike, "f 3"] | NonArrayLeaf
     edges: Int[ArrayLike, "e 2"] | NonArrayLeaf
     face_edge: Int[ArrayLike, "f 3"] | NonArrayLeaf
@@ -45,29 +47,63 @@ class Topology:
 
     @property
     def n_half_edges(self) -> int:
+        """The number of half-edges, 2E."""
         return 2 * self.n_edges
 
     def faces_numpy(self) -> np.ndarray:
+        """The faces `(F, 3)` as a numpy array."""
         return np.asarray(self.faces)
 
 
 def unique_edges(faces: Int[ArrayLike, "f 3"]) -> Int[np.ndarray, "e 2"]:
-    """Undirected edges (E, 2) of a triangle list, ``i < j``, sorted lexicographically (numpy, no checks)."""
+    """Undirected edges of a triangle list (numpy, no checks).
+
+    **Arguments:**
+
+    - `faces`: triangles `(F, 3)`.
+
+    **Returns:**
+
+    Edges `(E, 2)` int64 with `i < j`, sorted lexicographically.
+    """
     f = np.asarray(faces, dtype=np.int64)
     e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
     return np.unique(np.sort(e, axis=1), axis=0)
 
 
 def repeated_vertex_face(faces: Int[ArrayLike, "f 3"]) -> int:
-    """Index of the first face that names one vertex twice, or -1 if every face has 3 distinct vertices."""
+    """Find a face that names one vertex twice.
+
+    **Arguments:**
+
+    - `faces`: triangles `(F, 3)`.
+
+    **Returns:**
+
+    The index of the first such face, or -1 if every face has 3 distinct vertices.
+    """
     f = np.asarray(faces)
     repeated = (f[:, 0] == f[:, 1]) | (f[:, 1] == f[:, 2]) | (f[:, 0] == f[:, 2])
     return int(np.argmax(repeated)) if repeated.any() else -1
 
 
 def validate_faces(faces: ArrayLike, n_vertices: int | None = None) -> tuple[Int[np.ndarray, "f 3"], int]:
-    """(faces as int64, vertex count) after the checks every connectivity must pass: a non-empty (F, 3)
-    integer array, indices in range, three distinct vertices per face, every vertex in some face."""
+    """Check faces as every connectivity must pass.
+
+    **Arguments:**
+
+    - `faces`: triangles, a non-empty `(F, 3)` integer array.
+    - `n_vertices`: the vertex count; None: the largest index plus one.
+
+    **Returns:**
+
+    `(faces, n)`: faces `(F, 3)` int64 and the vertex count.
+
+    **Raises:**
+
+    `ConnectivityError` unless faces is a non-empty `(F, 3)` integer array with indices in range, three
+    distinct vertices per face and every vertex in some face.
+    """
     faces = np.asarray(faces)
     if faces.ndim != 2 or faces.shape[1] != 3 or faces.shape[0] == 0:
         raise ConnectivityError(f"faces must be a non-empty (F, 3) integer array, got shape {faces.shape}.")
@@ -90,8 +126,18 @@ def validate_faces(faces: ArrayLike, n_vertices: int | None = None) -> tuple[Int
 
 
 def vertex_components(elements: Int[ArrayLike, "m s"], n_vertices: int) -> tuple[int, Int[np.ndarray, " v"]]:
-    """(number, per-vertex label) of the connected components of the vertex graph of a simplex mesh: triangles
-    (F, 3) or tetrahedra (T, 4); a vertex in no element is a component of its own."""
+    """The connected components of the vertex graph of a simplex mesh.
+
+    **Arguments:**
+
+    - `elements`: triangles `(F, 3)` or tetrahedra `(T, 4)`.
+    - `n_vertices`: the vertex count.
+
+    **Returns:**
+
+    `(count, labels)`: the number of components and a label per vertex `(V,)`; a vertex in no element is a
+    component of its own.
+    """
     from scipy.sparse import coo_matrix
     from scipy.sparse.csgraph import connected_components
 
@@ -105,7 +151,22 @@ def vertex_components(elements: Int[ArrayLike, "m s"], n_vertices: int) -> tuple
 
 
 def build_topology(faces: ArrayLike, n_vertices: int | None = None) -> Topology:
-    """Build the :class:`Topology` of a triangle mesh on the host (numpy), once per connectivity."""
+    """Build the :class:`Topology` of a triangle mesh on the host (numpy), once per connectivity.
+
+    **Arguments:**
+
+    - `faces`: triangles `(F, 3)`.
+    - `n_vertices`: the vertex count; None: the largest index plus one.
+
+    **Returns:**
+
+    The :class:`Topology` (int32/bool arrays, static sizes).
+
+    **Raises:**
+
+    `ConnectivityError` for faces failing :func:`validate_faces` or a non-manifold edge (shared by more than
+    two faces).
+    """
     faces, n = validate_faces(faces, n_vertices)
 
     # Edge opposite corner k: (f[k+1], f[k+2]).

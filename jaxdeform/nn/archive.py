@@ -2,9 +2,10 @@
 
 Layout: ``param:<keystr of the state path>`` for every array of the module's state (or of the part selected
 by ``what``, e.g. ``nnx.Param``), any extra arrays the caller adds, and ``record`` (or another ``key``: a JSON
-string holding at least ``format`` and ``version``). Readers get one-sentence :class:`~jaxdeform.errors.JaxDeformError` for a
-missing file, a file that is not an archive, another format or version, or a parameter that is missing,
-misshapen or not finite. Used by the feature field of seed 004 and the cloth models of seed 002.
+string holding at least ``format`` and ``version``). Readers get one-sentence
+:class:`~jaxdeform.errors.JaxDeformError` for a missing file, a file that is not an archive, another format or
+version, or a parameter that is missing, misshapen or not finite. Used by the feature field of seed 004 and the
+cloth models of seed 002.
 """
 
 from __future__ import annotations
@@ -26,7 +27,17 @@ PREFIX = "param:"
 
 
 def state_arrays(module: nnx.Module, *what) -> dict[str, np.ndarray]:
-    """``{param:<path>: array}`` of the module's state (filtered by ``what``, default all of it)."""
+    """The module's state arrays by archive name.
+
+    **Arguments:**
+
+    - `module`: a flax nnx module.
+    - `what`: nnx state filters (default: all of the state).
+
+    **Returns:**
+
+    `{param:<path>: array}` of numpy arrays.
+    """
     leaves = jax.tree_util.tree_flatten_with_path(nnx.state(module, *what))[0]
     return {PREFIX + jax.tree_util.keystr(path): np.asarray(leaf) for path, leaf in leaves}
 
@@ -39,7 +50,25 @@ def save_module(
     extra: dict[str, np.ndarray] | None = None,
     key: str = "record",
 ) -> Path:
-    """Write the module's state arrays, ``extra`` arrays and the JSON ``record`` to ``path`` atomically."""
+    """Write a module's archive atomically.
+
+    **Arguments:**
+
+    - `path`: the .npz file.
+    - `module`: the flax nnx module.
+    - `record`: a JSON-serialisable dict (at least `format` and `version`).
+    - `what`: nnx state filters (default: all of the state).
+    - `extra`: more arrays to store.
+    - `key`: the name of the record's entry.
+
+    **Returns:**
+
+    The path written.
+
+    **Raises:**
+
+    `ValueError` when `record` is not JSON-serialisable.
+    """
     try:
         text = json.dumps(record)
     except TypeError as exc:
@@ -55,7 +84,25 @@ def save_module(
 def read_archive(
     path: str | os.PathLike, what: str, fmt: str, version: int, key: str = "record"
 ) -> tuple[dict, dict[str, np.ndarray]]:
-    """(record, arrays) of an archive of format ``fmt``; ``what`` names the kind of file in the messages."""
+    """Read an archive and check its format and version.
+
+    **Arguments:**
+
+    - `path`: the .npz file.
+    - `what`: names the kind of file in the messages.
+    - `fmt`: the expected format.
+    - `version`: the expected version.
+    - `key`: the name of the record's entry.
+
+    **Returns:**
+
+    `(record, arrays)`: the record dict and the remaining arrays by name.
+
+    **Raises:**
+
+    `JaxDeformError` (one sentence) for a missing file, a file that is not an archive, another format or
+    version.
+    """
     path = Path(path)
     if not path.is_file():
         raise JaxDeformError(f"{path}: no such {what} file.")
@@ -76,7 +123,19 @@ def read_archive(
 
 
 def load_state(path: str | os.PathLike, module: nnx.Module, arrays: dict[str, np.ndarray], *what) -> None:
-    """Fill the module's state (filtered by ``what``) from ``arrays``, checking every array."""
+    """Fill the module's state from archive arrays, checking every array.
+
+    **Arguments:**
+
+    - `path`: the archive's path, for the messages.
+    - `module`: the flax nnx module, updated in place.
+    - `arrays`: the arrays from :func:`read_archive`.
+    - `what`: nnx state filters (default: all of the state).
+
+    **Raises:**
+
+    `JaxDeformError` for a parameter that is missing, misshapen or not finite.
+    """
     state = nnx.state(module, *what)
     leaves, treedef = jax.tree_util.tree_flatten_with_path(state)
     new = []
@@ -93,10 +152,25 @@ class RecordConfig:
     """Mixin for frozen dataclass configurations that archive records carry as plain dicts."""
 
     def to_dict(self) -> dict:
+        """The configuration as a plain dict."""
         return dataclasses.asdict(self)
 
     @classmethod
     def from_dict(cls, d: dict):
+        """The configuration from a plain dict.
+
+        **Arguments:**
+
+        - `d`: field values by name.
+
+        **Returns:**
+
+        The configuration.
+
+        **Raises:**
+
+        `ValueError` for unknown keys.
+        """
         unknown = set(d) - {f.name for f in dataclasses.fields(cls)}
         if unknown:
             raise ValueError(f"unknown {cls.__name__} keys: {', '.join(sorted(unknown))}.")

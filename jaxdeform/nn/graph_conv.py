@@ -52,7 +52,16 @@ class Rings(NamedTuple):
 
 
 def rings_from_topology(topo) -> Rings:
-    """The :class:`Rings` of a :class:`~jaxdeform.mesh.topology.Topology`."""
+    """The :class:`Rings` of a topology.
+
+    **Arguments:**
+
+    - `topo`: a :class:`~jaxdeform.mesh.topology.Topology`.
+
+    **Returns:**
+
+    The :class:`Rings` (jnp arrays).
+    """
     return Rings(jnp.asarray(topo.neighbors), jnp.asarray(topo.mask), jnp.asarray(topo.degree))
 
 
@@ -64,9 +73,20 @@ def _glorot(key: Array, shape: tuple[int, int], dtype) -> Array:
 
 @partial(jax.jit, static_argnames=("cin", "cout", "dtype"))
 def init_mesh_conv(key: Array, cin: int, cout: int, dtype=jnp.float32) -> dict[str, Array]:
-    """Parameters of one mesh conv layer: ``W_point`` (cin, cout), ``W_neighbor`` (cin, cout), ``b`` (cout,).
+    """Parameters of one mesh conv layer.
 
-    Weights are Glorot-uniform, the bias is zero. Jitted (an entry point); sizes and dtype are static.
+    Jitted (an entry point); sizes and dtype are static.
+
+    **Arguments:**
+
+    - `key`: a PRNG key.
+    - `cin`, `cout`: input and output channels (static).
+    - `dtype`: the parameters' dtype (static).
+
+    **Returns:**
+
+    `W_point` `(cin, cout)`, `W_neighbor` `(cin, cout)` and `b` `(cout,)` by name: weights Glorot-uniform, bias
+    zero.
     """
     kp, kn = jax.random.split(key)
     return {
@@ -116,8 +136,22 @@ def ring_mean(
     mask: Bool[ArrayLike, "v k"],
     degree: Int[ArrayLike, " v"],
 ) -> Float[Array, "b v c"]:
-    """(1/D_i) sum_j x_{n_ij} over the one-rings. The rings must be symmetric (j in ring(i) iff i in ring(j), as
-    mesh one-rings are): the derivatives rely on it."""
+    """The one-ring mean (1/D_i) sum_j x_{n_ij}.
+
+    The rings must be symmetric (j in ring(i) iff i in ring(j), as mesh one-rings are): the derivatives rely
+    on it.
+
+    **Arguments:**
+
+    - `x`: per-vertex values `(B, V, C)`.
+    - `neighbors`: padded one-rings `(V, K)`.
+    - `mask`: their valid slots `(V, K)`.
+    - `degree`: vertex degrees `(V,)` (0 is treated as 1).
+
+    **Returns:**
+
+    Means `(B, V, C)` in x's dtype; differentiable in x (forward and reverse mode).
+    """
     b, v, c = x.shape
     vm = jnp.transpose(x, (1, 0, 2)).reshape(v, b * c)
     inv_deg = 1.0 / jnp.maximum(degree, 1).astype(x.dtype)
@@ -132,22 +166,43 @@ def mesh_conv(
     mask: Bool[ArrayLike, "v k"],
     degree: Int[ArrayLike, " v"],
 ) -> Float[Array, "b v cout"]:
-    """Mesh convolution of eq. (1) without activation: ``x W_point + ring_mean(x) W_neighbor + b``."""
+    """Mesh convolution of eq. (1) without activation: `x W_point + ring_mean(x) W_neighbor + b`.
+
+    **Arguments:**
+
+    - `params`: from :func:`init_mesh_conv`.
+    - `x`: inputs `(B, V, cin)`.
+    - `neighbors`, `mask`, `degree`: as :func:`ring_mean`.
+
+    **Returns:**
+
+    Outputs `(B, V, cout)`.
+    """
     nbr = ring_mean(x, neighbors, mask, degree)
     return x @ params["W_point"] + nbr @ params["W_neighbor"] + params["b"]
 
 
 def _tanh(x: Array) -> Array:
     """tanh over a flat view: XLA on CPU vectorizes elementwise loops along the minor axis, which is only 9
-    channels long in the (B, V, 9) layout (3-5x slower than over the flattened rows)."""
+    channels long in the (B, V, 9) layout (much slower than over the flattened rows)."""
     return jnp.tanh(x.reshape(x.shape[:-2] + (-1,))).reshape(x.shape)
 
 
 @partial(jax.jit, static_argnames=("n_vertices", "kz", "dtype"))
 def init_ae_block(key: Array, n_vertices: int, kz: int, dtype=jnp.float32) -> dict:
-    """Parameters of one autoencoder block: ``conv_enc``, ``conv_dec`` (9 -> 9 each) and ``C`` (Kz, 9V).
+    """Parameters of one autoencoder block.
 
-    ``C`` is Glorot-uniform over its (Kz, 9V) shape; row k reshaped to (V, 9) is component k.
+    **Arguments:**
+
+    - `key`: a PRNG key.
+    - `n_vertices`: V (static).
+    - `kz`: the latent size Kz (static).
+    - `dtype`: the parameters' dtype (static).
+
+    **Returns:**
+
+    `conv_enc`, `conv_dec` (9 -> 9 each, :func:`init_mesh_conv`) and `C` `(Kz, 9V)` by name; `C` is
+    Glorot-uniform over its shape and its row k reshaped to `(V, 9)` is component k.
     """
     ke, kd, kc = jax.random.split(key, 3)
     return {
@@ -158,19 +213,51 @@ def init_ae_block(key: Array, n_vertices: int, kz: int, dtype=jnp.float32) -> di
 
 
 def ae_encode(params: dict, x: Float[ArrayLike, "b v 9"], rings: Rings) -> Float[Array, "b kz"]:
-    """z = flatten(tanh(conv_enc(x))) @ C^T; linear, no tanh on z (see the module docstring)."""
+    """The block's encoder z = flatten(tanh(conv_enc(x))) @ C^T; linear, no tanh on z (module docstring).
+
+    **Arguments:**
+
+    - `params`: from :func:`init_ae_block`.
+    - `x`: features `(B, V, 9)`.
+    - `rings`: the :class:`Rings` of the connectivity.
+
+    **Returns:**
+
+    Codes z `(B, Kz)`.
+    """
     h = _tanh(mesh_conv(params["conv_enc"], x, rings.neighbors, rings.mask, rings.degree))
     return h.reshape(h.shape[0], -1) @ params["C"].T
 
 
 def ae_decode_pre(params: dict, z: Float[ArrayLike, "b kz"]) -> Float[Array, "b v 9"]:
-    """Decoder fully connected pre-activation: (z @ C) reshaped to (B, V, 9)."""
+    """Decoder fully connected pre-activation.
+
+    **Arguments:**
+
+    - `params`: from :func:`init_ae_block`.
+    - `z`: codes `(B, Kz)`.
+
+    **Returns:**
+
+    (z @ C) reshaped to `(B, V, 9)`.
+    """
     out = z @ params["C"]
     return out.reshape(z.shape[0], -1, MU)
 
 
 def ae_decode(params: dict, z: Float[ArrayLike, "b kz"], rings: Rings) -> Float[Array, "b v 9"]:
-    """x_hat = tanh(conv_dec(tanh(reshape(z @ C))))."""
+    """The block's decoder x_hat = tanh(conv_dec(tanh(reshape(z @ C)))).
+
+    **Arguments:**
+
+    - `params`: from :func:`init_ae_block`.
+    - `z`: codes `(B, Kz)`.
+    - `rings`: the :class:`Rings` of the connectivity.
+
+    **Returns:**
+
+    x_hat `(B, V, 9)`, in [-1, 1].
+    """
     g = _tanh(ae_decode_pre(params, z))
     return _tanh(mesh_conv(params["conv_dec"], g, rings.neighbors, rings.mask, rings.degree))
 
@@ -178,8 +265,19 @@ def ae_decode(params: dict, z: Float[ArrayLike, "b kz"], rings: Rings) -> Float[
 def ae_decode_error(
     params: dict, z: Float[ArrayLike, "b kz"], target: Float[ArrayLike, "b v 9"], rings: Rings
 ) -> tuple[Float[Array, "b v 9"], Float[Array, " b"]]:
-    """(x_hat, err): :func:`ae_decode` and err_m = sum over (V, 9) of (x_hat_m - target_m)^2, the block's
-    reconstruction error per shape."""
+    """Decode and measure the block's reconstruction error per shape.
+
+    **Arguments:**
+
+    - `params`: from :func:`init_ae_block`.
+    - `z`: codes `(B, Kz)`.
+    - `target`: features `(B, V, 9)`.
+    - `rings`: the :class:`Rings` of the connectivity.
+
+    **Returns:**
+
+    `(x_hat, err)`: :func:`ae_decode` `(B, V, 9)` and err_m = sum over (V, 9) of (x_hat_m - target_m)^2, `(B,)`.
+    """
     x_hat = ae_decode(params, z, rings)
     flat = x_hat.shape[:-2] + (-1,)  # over rows of 9V: see _tanh
     return x_hat, jnp.sum(jnp.square(x_hat.reshape(flat) - target.reshape(flat)), axis=-1)
@@ -193,14 +291,35 @@ def _latent_code(params: dict, x: Float[ArrayLike, "b v 9"], rings: Rings, laten
 def ae_forward(
     params: dict, x: Float[ArrayLike, "b v 9"], rings: Rings, latent: str = "linear"
 ) -> tuple[Float[Array, "b kz"], Float[Array, "b v 9"]]:
-    """(z, x_hat) of one autoencoder block; ``latent="tanh"`` puts a tanh on z (see the module docstring)."""
+    """One autoencoder block's forward pass.
+
+    **Arguments:**
+
+    - `params`: from :func:`init_ae_block`.
+    - `x`: features `(B, V, 9)`.
+    - `rings`: the :class:`Rings` of the connectivity.
+    - `latent`: "linear" (default) or "tanh" (a tanh on z; module docstring).
+
+    **Returns:**
+
+    `(z, x_hat)`: codes `(B, Kz)` and reconstructions `(B, V, 9)`.
+    """
     z = _latent_code(params, x, rings, latent)
     return z, ae_decode(params, z, rings)
 
 
 def ae_forward_error(params: dict, x: Float[ArrayLike, "b v 9"], rings: Rings, latent: str = "linear") -> tuple:
-    """(z, x_hat, err) of one block: :func:`ae_forward` and the squared error of x_hat against the block's own
-    input x per shape (:func:`ae_decode_error`)."""
+    """One block's forward pass with its reconstruction error.
+
+    **Arguments:**
+
+    - `params`, `x`, `rings`, `latent`: as :func:`ae_forward`.
+
+    **Returns:**
+
+    `(z, x_hat, err)`: :func:`ae_forward` and the squared error of x_hat against the block's own input x per
+    shape `(B,)` (:func:`ae_decode_error`).
+    """
     z = _latent_code(params, x, rings, latent)
     x_hat, err = ae_decode_error(params, z, x, rings)
     return z, x_hat, err
@@ -209,10 +328,22 @@ def ae_forward_error(params: dict, x: Float[ArrayLike, "b v 9"], rings: Rings, l
 def masked_blocks_error(
     params: dict, x: Float[ArrayLike, "n b v 9"], am: Float[ArrayLike, "n k v"], rings: Rings
 ) -> tuple:
-    """(z, x_hat, err) of blocks (n, k) on their masked inputs: block (j, m) (parameters stacked (n, k, ...))
-    runs :func:`ae_forward_error` (linear latent) on am[j, m, :, None] x[j], its error against that same input.
-    Seed 000's children of a level's last blocks: n parents, k children each, am the parents' attention masks,
-    which get no gradient."""
+    """A grid of blocks (n, k) on their masked inputs.
+
+    Seed 000's children of a level's last blocks: n parents, k children each, am the parents' attention masks.
+
+    **Arguments:**
+
+    - `params`: block parameters stacked `(n, k, ...)`.
+    - `x`: features `(n, B, V, 9)`.
+    - `am`: attention masks `(n, k, V)`; they get no gradient.
+    - `rings`: the :class:`Rings` of the connectivity.
+
+    **Returns:**
+
+    `(z, x_hat, err)` stacked over `(n, k)`: block (j, m) runs :func:`ae_forward_error` (linear latent) on
+    am[j, m, :, None] x[j], its error against that same input.
+    """
     am = jax.lax.stop_gradient(am)
     inputs = am[..., None, :, None] * x[:, None]
     blocks = lambda q, xin: ae_forward_error(q, xin, rings, "linear")  # noqa: E731

@@ -26,8 +26,22 @@ FloatScalar = Float[ArrayLike, ""]
 def reconstruction_loss(
     x: Float[ArrayLike, "b v 9"], x_hat: Float[ArrayLike, "b v 9"], reduction: str = "shape"
 ) -> Float[Array, ""]:
-    """MSE reconstruction. ``"shape"`` (paper): mean over shapes of the summed squared error;
-    ``"element"``: mean over all entries."""
+    """MSE reconstruction loss.
+
+    **Arguments:**
+
+    - `x`: features `(B, V, 9)`.
+    - `x_hat`: reconstructions `(B, V, 9)`.
+    - `reduction`: "shape" (paper): mean over shapes of the summed squared error; "element": mean over all entries.
+
+    **Returns:**
+
+    A scalar.
+
+    **Raises:**
+
+    `ValueError` for an unknown reduction.
+    """
     sq = jnp.square(x - x_hat)
     if reduction == "shape":
         return jnp.mean(jnp.sum(sq.reshape(sq.shape[0], -1), axis=1))
@@ -43,17 +57,47 @@ def _sqrt_or_zero(sq: Array) -> Array:
 
 
 def vertex_squared_norms(C: Float[ArrayLike, "kz nine_v"], n_vertices: int) -> Float[Array, "kz v"]:
-    """||C_k,i||_2^2 for every component k and vertex i (rows of C are (V, 9) blocks, vertex-major)."""
+    """Squared per-vertex norms ||C_k,i||_2^2 of every component.
+
+    **Arguments:**
+
+    - `C`: components `(Kz, 9V)`; rows are `(V, 9)` blocks, vertex-major.
+    - `n_vertices`: V.
+
+    **Returns:**
+
+    `(Kz, V)`.
+    """
     return jnp.sum(jnp.square(C.reshape(C.shape[0], n_vertices, MU)), axis=-1)
 
 
 def vertex_norms(C: Float[ArrayLike, "kz nine_v"], n_vertices: int) -> Float[Array, "kz v"]:
-    """||C_k,i||_2 for every component k and vertex i (rows of C are (V, 9) blocks, vertex-major)."""
+    """Per-vertex norms ||C_k,i||_2 of every component.
+
+    **Arguments:**
+
+    - `C`: components `(Kz, 9V)`; rows are `(V, 9)` blocks, vertex-major.
+    - `n_vertices`: V.
+
+    **Returns:**
+
+    `(Kz, V)`, with a finite (zero) gradient at zero norms.
+    """
     return _sqrt_or_zero(vertex_squared_norms(C, n_vertices))
 
 
 def component_centres(C: Float[ArrayLike, "kz nine_v"], n_vertices: int) -> Int[Array, " kz"]:
-    """c_k = argmax_i ||C_k,i||_2 (first index on ties)."""
+    """The component centres c_k = argmax_i ||C_k,i||_2.
+
+    **Arguments:**
+
+    - `C`: components `(Kz, 9V)`.
+    - `n_vertices`: V.
+
+    **Returns:**
+
+    int32 vertex indices `(Kz,)` (first index on ties).
+    """
     return _centres(vertex_squared_norms(C, n_vertices))
 
 
@@ -64,14 +108,36 @@ def _centres(sq: Float[Array, "kz v"]) -> Int[Array, " kz"]:
 def geodesic_step_mask(
     dist: Float[ArrayLike, "v v"], centres: Int[ArrayLike, " kz"], d: FloatScalar
 ) -> Float[Array, "kz v"]:
-    """Lambda_ik = 0 where the normalized geodesic distance dist[c_k, i] < d, else 1 (eq. 3)."""
+    """The step mask of eq. 3: Lambda_ik = 0 where the normalized geodesic distance dist[c_k, i] < d, else 1.
+
+    **Arguments:**
+
+    - `dist`: normalized geodesic distances `(V, V)`.
+    - `centres`: component centres `(Kz,)`.
+    - `d`: the cut-off.
+
+    **Returns:**
+
+    The mask `(Kz, V)` in dist's dtype.
+    """
     return (dist[centres, :] >= d).astype(dist.dtype)
 
 
 def geodesic_linear_mask(
     dist: Float[ArrayLike, "v v"], centres: Int[ArrayLike, " kz"], d_min: FloatScalar, d_max: FloatScalar
 ) -> Float[Array, "kz v"]:
-    """Tan et al. (2018)'s mask: Lambda_ik = clip((dist[c_k, i] - d_min) / (d_max - d_min), 0, 1)."""
+    """Tan et al. (2018)'s mask: Lambda_ik = clip((dist[c_k, i] - d_min) / (d_max - d_min), 0, 1).
+
+    **Arguments:**
+
+    - `dist`: normalized geodesic distances `(V, V)`.
+    - `centres`: component centres `(Kz,)`.
+    - `d_min`, `d_max`: the ramp's ends.
+
+    **Returns:**
+
+    The mask `(Kz, V)` in dist's dtype.
+    """
     return jnp.clip((dist[centres, :] - d_min) / (d_max - d_min), 0.0, 1.0).astype(dist.dtype)
 
 
@@ -96,14 +162,38 @@ def group_sparsity(
     d: FloatScalar | tuple[FloatScalar, FloatScalar],
     mask: str = "step",
 ) -> Float[Array, ""]:
-    """Omega(C) = (1/Kz) sum_k sum_i Lambda_ik ||C_k,i||_2 with centres recomputed from C (no gradient
-    flows through the centres or the mask). ``mask="step"`` (seed 000, eq. 3) takes the cut-off ``d``;
-    ``mask="linear"`` (Tan et al.) takes ``d = (d_min, d_max)``."""
+    """The group sparsity Omega(C) = (1/Kz) sum_k sum_i Lambda_ik ||C_k,i||_2, centres recomputed from C.
+
+    **Arguments:**
+
+    - `C`: components `(Kz, 9V)`.
+    - `dist`: normalized geodesic distances `(V, V)`.
+    - `d`: the cut-off for `mask="step"`; `(d_min, d_max)` for `mask="linear"`.
+    - `mask`: "step" (seed 000, eq. 3) or "linear" (Tan et al.).
+
+    **Returns:**
+
+    A scalar; no gradient flows through the centres or the mask.
+
+    **Raises:**
+
+    `ValueError` for an unknown mask.
+    """
     lam, norms = _sparsity_terms(C, dist, d, mask)
     return jnp.sum(lam * norms) / C.shape[0]
 
 
 def latent_bound(z: Float[ArrayLike, "n kz"], theta: FloatScalar = 5.0) -> Float[Array, ""]:
-    """V(Z) = (1/Kz) sum_k max(max_m |Z_mk| - theta, 0)."""
+    """The latent bound V(Z) = (1/Kz) sum_k max(max_m |Z_mk| - theta, 0).
+
+    **Arguments:**
+
+    - `z`: codes `(N, Kz)`.
+    - `theta`: the bound.
+
+    **Returns:**
+
+    A scalar.
+    """
     peak = jnp.max(jnp.abs(z), axis=0)
     return jnp.mean(jnp.maximum(peak - theta, 0.0))

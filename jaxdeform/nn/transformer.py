@@ -41,7 +41,18 @@ NEG_INF = -1e9  # additive mask value
 
 
 def sinusoidal_encoding(length: int, d_model: int, dtype=jnp.float32) -> Float[Array, "t d"]:
-    """PE (length, d_model) of the module docstring; an odd d_model drops the last cosine channel."""
+    """The sinusoidal positional encoding PE of the module docstring.
+
+    **Arguments:**
+
+    - `length`: the number of positions.
+    - `d_model`: the channels; an odd d_model drops the last cosine channel.
+    - `dtype`: the result's dtype.
+
+    **Returns:**
+
+    PE `(length, d_model)`.
+    """
     pos = np.arange(length, dtype=np.float64)[:, None]
     i2 = np.arange(0, d_model, 2, dtype=np.float64)[None, :]
     angle = pos / np.power(10000.0, i2 / d_model)
@@ -52,12 +63,36 @@ def sinusoidal_encoding(length: int, d_model: int, dtype=jnp.float32) -> Float[A
 
 
 def causal_mask(length: int) -> Bool[Array, "t t"]:
-    """mask[q, k] = k <= q: position q attends to itself and earlier positions only."""
+    """The causal attention mask.
+
+    **Arguments:**
+
+    - `length`: the sequence length.
+
+    **Returns:**
+
+    A bool mask `(length, length)` with mask[q, k] = k <= q: position q attends to itself and earlier
+    positions only.
+    """
     return jnp.tril(jnp.ones((length, length), bool))
 
 
 class MultiHeadAttention(nnx.Module):
-    """MHA(x_q, x_kv, mask) of the module docstring; ``mask`` broadcasts to (..., T_q, T_k), True = attend."""
+    """MHA(x_q, x_kv, mask) of the module docstring.
+
+    **Arguments:**
+
+    - `d_model`: the channels, divisible by `heads`.
+    - `heads`: the number of heads H.
+    - `rngs`: the parameter initialisers' random streams.
+
+    Calling it takes `x_q` `(..., T_q, d)`, `x_kv` `(..., T_k, d)` and an optional bool `mask` that broadcasts
+    to `(..., T_q, T_k)` (True = attend), and returns `(..., T_q, d)`.
+
+    **Raises:**
+
+    `ValueError` when `d_model` is not divisible by `heads`.
+    """
 
     def __init__(self, d_model: int, heads: int = 8, *, rngs: nnx.Rngs):
         if d_model % heads:
@@ -89,7 +124,16 @@ class MultiHeadAttention(nnx.Module):
 
 
 class FeedForward(nnx.Module):
-    """Frame-wise FFN(x) = ReLU(x W_1 + b_1) W_2 + b_2."""
+    """Frame-wise FFN(x) = ReLU(x W_1 + b_1) W_2 + b_2.
+
+    **Arguments:**
+
+    - `d_model`: the input and output channels.
+    - `ffn`: the hidden width.
+    - `rngs`: the parameter initialisers' random streams.
+
+    Calling it maps `(..., d)` to `(..., d)`.
+    """
 
     def __init__(self, d_model: int, ffn: int, *, rngs: nnx.Rngs):
         self.w1 = nnx.Linear(d_model, ffn, rngs=rngs)
@@ -112,7 +156,20 @@ def _drop(layer, x):
 
 
 class EncoderBlock(nnx.Module):
-    """Post-LN encoder block: self-attention and FFN, each with residual + LayerNorm."""
+    """Post-LN encoder block: self-attention and FFN, each with residual + LayerNorm.
+
+    **Arguments:**
+
+    - `d_model`, `heads`, `ffn`: as :class:`MultiHeadAttention` and :class:`FeedForward`.
+    - `dropout`: the dropout rate (0: none; above 0 it needs `rngs`).
+    - `rngs`: the random streams.
+
+    Calling it maps `x` `(..., T, d)` with an optional attention `mask` to `(..., T, d)`.
+
+    **Raises:**
+
+    `ValueError` for dropout above 0 without `rngs`.
+    """
 
     def __init__(self, d_model: int, heads: int, ffn: int, dropout: float = 0.0, *, rngs: nnx.Rngs):
         self.attn = MultiHeadAttention(d_model, heads, rngs=rngs)
@@ -129,7 +186,15 @@ class EncoderBlock(nnx.Module):
 
 
 class DecoderBlock(nnx.Module):
-    """Post-LN decoder block: causal self-attention, cross-attention over the encoder output, FFN."""
+    """Post-LN decoder block: causal self-attention, cross-attention over the encoder output, FFN.
+
+    **Arguments:**
+
+    - `d_model`, `heads`, `ffn`, `dropout`, `rngs`: as :class:`EncoderBlock`.
+
+    Calling it maps `y` `(..., T_t, d)` and the encoder output `memory` `(..., T_s, d)`, with optional
+    `self_mask` and `memory_mask`, to `(..., T_t, d)`.
+    """
 
     def __init__(self, d_model: int, heads: int, ffn: int, dropout: float = 0.0, *, rngs: nnx.Rngs):
         self.self_attn = MultiHeadAttention(d_model, heads, rngs=rngs)
@@ -153,10 +218,23 @@ class DecoderBlock(nnx.Module):
 
 
 class Transformer(nnx.Module):
-    """``blocks`` encoder and ``blocks`` decoder blocks; positions added to both inputs; causal decoder.
+    """`blocks` encoder and `blocks` decoder blocks; positions added to both inputs; causal decoder.
 
-    ``__call__(src (..., Ts, d), tgt (..., Tt, d)) -> (..., Tt, d)``: output position k depends on all of
-    ``src`` and on ``tgt[..., :k + 1, :]`` only.
+    `__call__(src (..., Ts, d), tgt (..., Tt, d)) -> (..., Tt, d)`: output position k depends on all of
+    `src` and on `tgt[..., :k + 1, :]` only.
+
+    **Arguments:**
+
+    - `d_model`: the channels, divisible by `heads`.
+    - `heads`: the number of attention heads.
+    - `blocks`: the number of encoder (and of decoder) blocks, at least 1.
+    - `ffn`: the feed-forward width; None: 4 d_model.
+    - `dropout`: the dropout rate (0: none, deterministic).
+    - `rngs`: the random streams.
+
+    **Raises:**
+
+    `ValueError` for fewer than one block, `d_model` not divisible by `heads`, or dropout without `rngs`.
     """
 
     def __init__(
@@ -177,6 +255,16 @@ class Transformer(nnx.Module):
         self.decoder = nnx.List([DecoderBlock(d_model, heads, ffn, dropout, rngs=rngs) for _ in range(blocks)])
 
     def encode(self, src: Float[ArrayLike, "... ts d"]) -> Float[Array, "... ts d"]:
+        """The encoder stack (positions added).
+
+        **Arguments:**
+
+        - `src`: source sequence `(..., Ts, d)`.
+
+        **Returns:**
+
+        The memory `(..., Ts, d)`.
+        """
         x = src + sinusoidal_encoding(src.shape[-2], self.d_model, src.dtype)
         for block in self.encoder:
             x = block(x)
@@ -185,6 +273,17 @@ class Transformer(nnx.Module):
     def decode(
         self, tgt: Float[ArrayLike, "... tt d"], memory: Float[ArrayLike, "... ts d"]
     ) -> Float[Array, "... tt d"]:
+        """The causal decoder stack (positions added).
+
+        **Arguments:**
+
+        - `tgt`: target sequence `(..., Tt, d)`.
+        - `memory`: the encoder output `(..., Ts, d)`.
+
+        **Returns:**
+
+        `(..., Tt, d)`; position k depends on `tgt[..., :k + 1, :]` only.
+        """
         y = tgt + sinusoidal_encoding(tgt.shape[-2], self.d_model, tgt.dtype)
         mask = causal_mask(tgt.shape[-2])
         for block in self.decoder:
