@@ -22,9 +22,9 @@ Scenes (every sequence is determined by (kind, index, seed) through ``np.random.
   follows phi(t) = -phi0 cos(sqrt(g / l) t) from rest, and its far turning point lies ``reach`` in
   :data:`SHEET_REACH` = [0.05, 0.25] m past the sheet's rest plane (the pivot sits A - reach behind it), so
   the obstacle strikes the sheet at ~0.5-1 m/s, pushes it out, withdraws and strikes again about one period
-  (~2.4 s) later. An earlier version swung the obstacle A past the plane: it then swept under the sheet's
-  hem, a bifurcation that the coarse and the fine sheet took differently in most sequences (the Loop-
-  upsampled coarse sheet was 7-30 cm RMS from the fine one; with the turn-back, 1.6-3.3 cm on indices 0-3).
+  (~2.4 s) later. The swing turns back just past the plane because an obstacle swinging the full A past it
+  sweeps under the sheet's hem, a bifurcation that the coarse and the fine sheet take differently, so the
+  Loop-upsampled coarse sheet would no longer follow the fine one.
 - DISK: the cloth lies centred on a table (capped cylinder, radius 0.45 m, top at y = 0.75 m, height 0.75 m,
   rims rounded to :data:`TABLE_RIM_RADIUS` = 5 cm; ground at y = 0) with a weight in the middle (the vertices
   within 6 cm of the centre are pinned: 1 coarse vertex, the corresponding patch of fine ones). Wind blows
@@ -35,14 +35,10 @@ Scenes (every sequence is determined by (kind, index, seed) through ``np.random.
 Both resolutions use the same :class:`ClothParams` physics and the same obstacle / wind / pin tracks; only the
 iteration budget differs (:data:`COARSE_STEPS` = 10 x 2, :data:`FINE_STEPS` = 40 x 4 (substeps,
 iterations) per frame), and so does the number of obstacle contact points inside each triangle (see
-:data:`MIN_OBSTACLE_RADIUS`: SHEET coarse 12 per triangle, DISK coarse 25, the fine meshes none). Measured
-edge strain |l / L - 1| (2 CPU cores shared with other jobs, load ~6):
-SHEET index 0 fine, 30 frames through the impact: mean 0.13 %, p99 1.5 %, max 6.0 % (20 x 4: max 13 %);
-coarse mean 0.2 %, max 3.3 %. DISK index 5 fine, 60 frames: mean 0.17 %, max 5.7 %; coarse mean 0.24 %,
-max 4.9 % (2 iterations). Max obstacle penetration of every stored SHEET and DISK frame, at the vertices and
-inside the triangles (:func:`max_penetration` with faces): 0 at both resolutions. Time per frame (compilation
-apart, ~3-6 s per mesh): SHEET coarse 4.8 ms (1.7 ms with vertex contacts alone), fine ~0.28-0.41 s; DISK coarse
-~17-23 ms (25 points per triangle; 2 ms with vertex contacts alone), fine ~0.5-0.8 s.
+:data:`MIN_OBSTACLE_RADIUS`: SHEET coarse 12 per triangle, DISK coarse 25, the fine meshes none). With these
+budgets the edge strain |l / L - 1| stays within a few percent (mean ~0.1-0.2 %) at both resolutions, and no
+stored SHEET or DISK frame penetrates an obstacle, at the vertices or inside the triangles
+(:func:`max_penetration` with faces). The fine meshes cost roughly a hundred times the coarse ones per frame.
 DISK's table has a rounded rim: a sharp one gives the contact-point rule no curvature radius to work with.
 Initial state: the flat rest cloth (the fine one = Loop-subdivided coarse one), settled for ``settle_frames``
 frames with the obstacles at their t = 0 position and no wind, then the recorded sequence starts from the

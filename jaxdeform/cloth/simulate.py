@@ -323,8 +323,19 @@ def _colour_tables(et: _EdgeTable, n_vertices: int):
 def build_model(rest_vertices, faces) -> ClothModel:
     """Edges, colours, hinges, lumped areas and rest quantities of a triangle mesh (host numpy, once).
 
-    Raises SimulationError, ConnectivityError or DegenerateMeshError for a malformed, non-manifold or degenerate
-    rest mesh (:func:`_rest_mesh`, :func:`_edge_table`). Float arrays of the result are float32, indices int32.
+    **Arguments:**
+
+    - ``rest_vertices``: the rest positions ``(V, 3)``.
+    - ``faces``: the triangles ``(F, 3)``.
+
+    **Returns:**
+
+    The :class:`ClothModel`; its float arrays are float32, its indices int32.
+
+    **Raises:**
+
+    ``SimulationError``, ``ConnectivityError`` or ``DegenerateMeshError`` for a malformed, non-manifold or degenerate
+    rest mesh (:func:`_rest_mesh`, :func:`_edge_table`).
     """
     X, F, tri_area, area_v = _rest_mesh(rest_vertices, faces)
     et = _edge_table(X, F, tri_area)
@@ -747,8 +758,25 @@ def step(
 ):
     """One frame (``params.substeps`` substeps) from the obstacles ``obstacles_prev`` to ``obstacles_now``.
 
-    Returns the new (x, v). ``key`` draws the turbulence modes (the same key gives the same air field).
     Jitted through the same chunk function as :func:`simulate` (a chunk of one frame).
+
+    **Arguments:**
+
+    - ``model``: the cloth model (:func:`build_model`).
+    - ``params``: the physical and solver parameters.
+    - ``x``, ``v``: positions and velocities ``(V, 3)``.
+    - ``obstacles_prev``, ``obstacles_now``: the obstacles at the start and the end of the frame.
+    - ``key``: draws the turbulence modes (the same key gives the same air field).
+    - ``pinned``: ``(V,)`` bool mask of the pinned vertices (default None: none).
+    - ``pin_prev``, ``pin_now``: the pinned vertices' targets ``(V, 3)`` at the start and end of the frame (defaults:
+        ``x``, then ``pin_prev``).
+    - ``wind_prev``, ``wind_now``: the mean wind ``(3,)`` at the start and end of the frame (defaults: ``params.wind``,
+        then ``wind_prev``).
+    - ``time_s``: the simulation time at the start of the frame, in seconds.
+
+    **Returns:**
+
+    The new ``(x, v)``, each ``(V, 3)``.
     """
     V = np.shape(x)[0]
     pinned = np.zeros(V, bool) if pinned is None else np.asarray(pinned, bool)
@@ -880,12 +908,34 @@ def run(
     desc: str = "simulate",
     chunk: int = CHUNK,
 ) -> SimResult:
-    """Simulate T = len(track) frames; frame t is the state after stepping the obstacles from track[t - 1] to
-    track[t] (track[-1] := track[0]), so every stored frame went through a collision projection.
+    """Simulate T = len(track) frames.
 
-    ``pinned`` (V,) bool; ``pin_track`` (T, V, 3) targets of the pinned vertices (default: their x0);
-    ``wind_track`` (T, 3) mean wind per frame (default: ``params.wind``); ``key`` the PRNG key of the
-    turbulence. Deterministic from the key. Returns frames, last state and timings (compilation apart).
+    Frame t is the state after stepping the obstacles from track[t - 1] to track[t] (track[-1] := track[0]), so
+    every stored frame went through a collision projection. Deterministic from the key.
+
+    **Arguments:**
+
+    - ``model``: the cloth model (:func:`build_model`).
+    - ``params``: the physical and solver parameters.
+    - ``x0``, ``v0``: initial positions and velocities ``(V, 3)``.
+    - ``obstacle_track``: the obstacles of every frame (T frames).
+    - ``pinned``: ``(V,)`` bool mask of the pinned vertices (default None: none).
+    - ``pin_track``: ``(T, V, 3)`` targets of the pinned vertices (default: their ``x0``).
+    - ``key``: the PRNG key of the turbulence (default None: ``PRNGKey(0)``).
+    - ``wind_track``: ``(T, 3)`` mean wind per frame (default: ``params.wind``).
+    - ``start_time``: the simulation time of the first frame.
+    - ``progress``, ``desc``: a progress bar and its label.
+    - ``chunk``: frames per compiled chunk.
+
+    **Returns:**
+
+    A :class:`SimResult`: the frames ``(T, V, 3)`` float32, the last state, the compile time and the seconds per
+    frame (compilation apart).
+
+    **Raises:**
+
+    ``SimulationError`` for inputs of the wrong shape (``x0``, ``v0``, ``pinned``, ``pin_track``,
+    ``wind_track``), an empty obstacle track, or a simulation that diverges (non-finite positions).
     """
     x0, v0, track, T, pinned, pins, wind = _checked_inputs(
         model, params, x0, v0, obstacle_track, pinned, pin_track, wind_track
@@ -925,14 +975,37 @@ def simulate(
     wind_track=None,
     progress: bool = True,
 ) -> np.ndarray:
-    """Frames (T, V, 3) float32 of a simulation (see :func:`run`); one compile per (mesh, static params)."""
+    """Frames of a simulation (see :func:`run`); one compile per (mesh, static params).
+
+    **Arguments:**
+
+    As :func:`run`'s.
+
+    **Returns:**
+
+    The frames ``(T, V, 3)`` float32.
+
+    **Raises:**
+
+    As :func:`run`.
+    """
     return run(
         model, params, x0, v0, obstacle_track, pinned, pin_track, key, wind_track=wind_track, progress=progress
     ).frames
 
 
 def edge_strain(model: ClothModel, frames) -> tuple[float, float]:
-    """Mean and max relative edge stretch |l / L - 1| over frames and edges."""
+    """Mean and max relative edge stretch |l / L - 1| over frames and edges.
+
+    **Arguments:**
+
+    - ``model``: the cloth model.
+    - ``frames``: positions ``(T, V, 3)``.
+
+    **Returns:**
+
+    ``(mean, max)`` as floats.
+    """
     f = jnp.asarray(frames)
     e = model.edges
     ln = jnp.linalg.norm(f[:, e[:, 0]] - f[:, e[:, 1]], axis=-1)

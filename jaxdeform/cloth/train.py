@@ -441,14 +441,28 @@ def train(
 ) -> tuple[DetailModel, History]:
     """Fit a :class:`DetailModel` to paired scaled feature sequences with teacher forcing (module docstring).
 
-    ``coarse_topo`` / ``fine_topo``: Topology (or Rings) of the two meshes; ``coarse_seqs[i]`` (T_i, Vc, C)
-    and ``fine_seqs[i]`` (T_i, Vf, C) are frame-aligned. ``model`` continues training an existing model of the
-    same configuration instead of a fresh one. ``positions`` enables the position term of the loss
-    (``train_cfg.position_weight`` > 0; module docstring); ``upsample`` is the (Vf, Vc) interpolation matrix a
-    ``skip`` model needs. Returns (model, history).
-    ``mesh``: data parallel over ``mesh``'s ``axis`` (module docstring); ValueError before any step unless
-    ``train_cfg.batch_size`` is a multiple of ``mesh.shape[axis]``. The returned model's arrays are then
-    replicated over ``mesh``.
+    **Arguments:**
+
+    - ``model_cfg``: the model's configuration.
+    - ``train_cfg``: the training configuration.
+    - ``coarse_topo``, ``fine_topo``: Topology (or Rings) of the two meshes.
+    - ``coarse_seqs``, ``fine_seqs``: frame-aligned sequences, ``coarse_seqs[i]`` ``(T_i, Vc, C)`` and ``fine_seqs[i]``
+        ``(T_i, Vf, C)``.
+    - ``progress``: show a progress bar.
+    - ``model``: continue training this existing model of the same configuration instead of a fresh one.
+    - ``positions``: enables the position term of the loss (``train_cfg.position_weight`` > 0; module docstring).
+    - ``upsample``: the ``(Vf, Vc)`` interpolation matrix a ``skip`` model needs.
+    - ``mesh``: data parallel over ``mesh``'s ``axis`` (module docstring); None trains on one device.
+
+    **Returns:**
+
+    ``(model, history)``: the trained model and its :class:`History`. With ``mesh`` the model's arrays are replicated
+    over ``mesh``.
+
+    **Raises:**
+
+    ``ValueError`` before any step unless ``train_cfg.batch_size`` is a multiple of ``mesh.shape[axis]``, or if
+    ``model`` was built with another configuration than ``model_cfg``.
     """
     if mesh is not None:
         parallel.check_divisible(int(train_cfg.batch_size), mesh, axis, "batch_size")
@@ -506,7 +520,23 @@ def _predict_fn(graphdef):
 def predict_windows(
     model: DetailModel, coarse_win: Float[Array, "b w vc c"], fine_prev_win: Float[Array, "b w vf c"] | None = None
 ) -> Float[Array, "b w vf c"]:
-    """Teacher-forced prediction ``model(coarse_win, fine_prev_win)``, jitted (one compilation per shape)."""
+    """Teacher-forced prediction ``model(coarse_win, fine_prev_win)``, jitted (one compilation per shape).
+
+    **Arguments:**
+
+    - ``model``: the detail model.
+    - ``coarse_win``: scaled coarse windows ``(B, W, Vc, C)``.
+    - ``fine_prev_win``: the previous fine frames ``(B, W, Vf, C)``; None (zeros) only for a model without temporal
+        feedback (``config.kind == "none"``).
+
+    **Returns:**
+
+    Predicted scaled fine windows ``(B, W, Vf, C)``.
+
+    **Raises:**
+
+    ``ValueError`` if ``fine_prev_win`` is None for a model that needs it.
+    """
     graphdef, state = nnx.split(model)
     if fine_prev_win is None:
         if model.config.kind != "none":
@@ -556,9 +586,21 @@ def _synthesize_fn(graphdef, chunk: int):
 
 
 def synthesize(model: DetailModel, coarse_seq: Float[Array, "t vc c"], *, chunk: int = 32) -> Float[Array, "t vf c"]:
-    """Fine feature sequence (T, Vf, C) from a scaled coarse one (T, Vc, C), autoregressively (module docstring).
+    """Fine feature sequence from a scaled coarse one, autoregressively (module docstring).
 
-    ``chunk``: frames decoded together by the no-temporal model (memory bound only).
+    **Arguments:**
+
+    - ``model``: the detail model.
+    - ``coarse_seq``: scaled coarse features ``(T, Vc, C)``, ``T >= 1``.
+    - ``chunk``: frames decoded together by the no-temporal model (memory bound only).
+
+    **Returns:**
+
+    Scaled fine features ``(T, Vf, C)``.
+
+    **Raises:**
+
+    ``ValueError`` if ``coarse_seq`` is not ``(T >= 1, Vc, C)`` for the model's meshes.
     """
     x = jnp.asarray(coarse_seq, dtype=jnp.float32)
     cfg = model.config
@@ -578,7 +620,18 @@ def _rings_of(model: DetailModel) -> tuple[Rings, Rings]:
 
 
 def save_model(path: str | os.PathLike, model: DetailModel, meta: dict | None = None) -> Path:
-    """Write the model (parameters, both meshes' one-rings, configuration) and JSON ``meta`` atomically."""
+    """Write the model (parameters, both meshes' one-rings, configuration) and JSON ``meta`` atomically.
+
+    **Arguments:**
+
+    - ``path``: the file to write.
+    - ``model``: the detail model.
+    - ``meta``: JSON-serialisable metadata stored with it (default None: empty).
+
+    **Returns:**
+
+    The written path.
+    """
     record = {
         "format": FORMAT,
         "version": FORMAT_VERSION,
@@ -598,7 +651,20 @@ def save_model(path: str | os.PathLike, model: DetailModel, meta: dict | None = 
 
 
 def load_model(path: str | os.PathLike) -> tuple[DetailModel, dict]:
-    """Read a model written by :func:`save_model`: (model, meta). Any other file raises JaxDeformError."""
+    """Read a model written by :func:`save_model`.
+
+    **Arguments:**
+
+    - ``path``: the model file.
+
+    **Returns:**
+
+    ``(model, meta)``: the model (in eval mode) and its metadata dict.
+
+    **Raises:**
+
+    ``JaxDeformError`` for any other file.
+    """
     record, arrays = read_archive(path, "cloth model", FORMAT, FORMAT_VERSION)
     try:
         config = ModelConfig.from_dict(record["config"])

@@ -356,8 +356,23 @@ def fit(
 ) -> dict:
     """Train ``method`` on the training split of ``data`` and write the run into ``out`` (an empty folder).
 
-    ``loaded``: ``load_data(data)``'s result where the caller has it already (the CLI checks the data first).
-    Returns the run record (also written as run.json).
+    **Arguments:**
+
+    - ``out``: the run folder to write.
+    - ``data``: the data folder (shapes and faces, as :func:`load_data` reads it).
+    - ``method``: one of the module docstring's methods (default ``"multiscale"``).
+    - ``config``: the named configuration of ``method`` (default ``"default"``).
+    - ``epochs``, ``seed``: override the configuration's number of epochs and seed (None: keep them).
+    - ``split``, ``split_seed``: the train/test split (:func:`split_indices`; default every 10th shape is a test shape).
+    - ``progress``: show a progress bar while training.
+    - ``scale_quantile``: the quantile of the feature scaling.
+    - ``dtype``: the dtype of the features and the model (default float32).
+    - ``log``: receives the progress lines (what is trained, on how many shapes and vertices).
+    - ``loaded``: ``load_data(data)``'s result where the caller has it already (the CLI checks the data first).
+
+    **Returns:**
+
+    The run record (a dict), also written as run.json.
     """
     out = Path(out)
     cfg, tc = resolve_config(method, config, epochs, seed)
@@ -455,7 +470,20 @@ RECORD_KEYS = ("method", "n_shapes", "n_vertices", "split", "data")
 
 
 def read_record(path: Path) -> dict:
-    """run.json of the run folder ``path``, checked to be a components run's record (one sentence otherwise)."""
+    """run.json of the run folder ``path``, checked to be a components run's record.
+
+    **Arguments:**
+
+    - ``path``: the run folder.
+
+    **Returns:**
+
+    The record (a dict holding every key of ``RECORD_KEYS``, with a known method).
+
+    **Raises:**
+
+    ``RunError`` (one sentence) if run.json is not JSON, lacks a key or names an unknown method.
+    """
     try:
         record = json.loads((path / "run.json").read_text())
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
@@ -472,6 +500,22 @@ def read_record(path: Path) -> dict:
 
 
 def load(path) -> Run:
+    """Load the components run in the folder ``path``.
+
+    **Arguments:**
+
+    - ``path``: a run folder written by :func:`fit`.
+
+    **Returns:**
+
+    The :class:`Run`: record, rest shape, faces, feature scaler, and the model (autoencoder parameters and
+    configuration, or the linear model).
+
+    **Raises:**
+
+    ``RunError`` if run.json, mesh.npz or (linear baselines) model.npz is missing or the record is not a components
+    run's.
+    """
     path = Path(path)
     if not (path / "run.json").is_file() or not (path / "mesh.npz").is_file():
         raise RunError(f"{path} is not a components run (run.json and mesh.npz are missing).")
@@ -507,7 +551,21 @@ def _check_data(run: Run, vertices: np.ndarray, faces: np.ndarray, where: str) -
 
 
 def run_data(run: Run, data=None) -> tuple[np.ndarray, np.ndarray]:
-    """Shapes and faces of ``data`` (default: the folder the run was trained on), checked against the run."""
+    """Shapes and faces of ``data``, checked against the run.
+
+    **Arguments:**
+
+    - ``run``: the run.
+    - ``data``: a data folder (default None: the folder the run was trained on).
+
+    **Returns:**
+
+    ``(vertices, faces)``: ``(N, V, 3)`` and ``(F, 3)``.
+
+    **Raises:**
+
+    ``RunError`` if the data's number of shapes or connectivity differs from the run's.
+    """
     data = run.record["data"] if data is None else data
     vertices, faces = load_data(data)
     _check_data(run, vertices, faces, str(data))
@@ -515,21 +573,54 @@ def run_data(run: Run, data=None) -> tuple[np.ndarray, np.ndarray]:
 
 
 def scaled_features(run: Run, vertices: np.ndarray, dtype=None) -> jnp.ndarray:
-    """The scaled ACAP features (N, V, 9) of ``vertices``, as the run's ACAP-based model sees them (in ``dtype``,
-    default the run's): rotation branches aligned to the run's reference, then scaled."""
+    """The scaled ACAP features of ``vertices``, as the run's ACAP-based model sees them.
+
+    Rotation branches are aligned to the run's reference, then the features are scaled.
+
+    **Arguments:**
+
+    - ``run``: an ACAP-based run.
+    - ``vertices``: shapes ``(N, V, 3)``.
+    - ``dtype``: the dtype of the result (default None: the run's).
+
+    **Returns:**
+
+    Scaled features ``(N, V, 9)``.
+    """
     dtype = np.dtype(run.record.get("dtype", "float32") if dtype is None else dtype)
     feats = np.asarray(acap.encode(run.rest, run.faces, vertices), dtype)
     return jnp.asarray(apply_feature_transform(feats, run.turns, run.scaler, dtype))
 
 
 def positions_from_scaled(run: Run, scaled) -> np.ndarray:
-    """Positions (N, V, 3) of scaled ACAP features (N, V, 9): unscaled, then the ACAP reconstruction (float64)."""
+    """Positions of scaled ACAP features: unscaled, then the ACAP reconstruction.
+
+    **Arguments:**
+
+    - ``run``: an ACAP-based run.
+    - ``scaled``: scaled features ``(N, V, 9)``.
+
+    **Returns:**
+
+    Positions ``(N, V, 3)`` (float64).
+    """
     feats = np.asarray(run.scaler.inverse(scaled))
     return np.asarray(acap.decode(jnp.asarray(feats, jnp.float64), run.rest, run.faces))
 
 
 def reconstruct(run: Run, vertices: np.ndarray) -> dict:
-    """Positions (N, V, 3) of ``vertices`` passed through the run's model; plus features when ACAP-based."""
+    """``vertices`` passed through the run's model.
+
+    **Arguments:**
+
+    - ``run``: the run.
+    - ``vertices``: shapes ``(N, V, 3)``.
+
+    **Returns:**
+
+    A dict: ``"positions"`` ``(N, V, 3)``; for ACAP-based methods also ``"scaled"`` and ``"scaled_hat"``
+    ``(N, V, 9)``, the scaled features and their reconstruction.
+    """
     if run.method in ACAP_METHODS:
         x = scaled_features(run, vertices)
         if run.method == "pca":
@@ -548,6 +639,19 @@ def _reconstruct_features(params, x, rings, config, chunk: int = 16):
 
 
 def set_metrics(ref: np.ndarray, rec: dict, faces: np.ndarray) -> dict:
+    """Error metrics of one set's reconstruction.
+
+    **Arguments:**
+
+    - ``ref``: the reference shapes ``(N, V, 3)``.
+    - ``rec``: :func:`reconstruct`'s result for ``ref``.
+    - ``faces``: ``(F, 3)``.
+
+    **Returns:**
+
+    A dict: ``shapes``, ``erms`` (the RMS of the per-shape Erms, so the set's Erms under one normalization),
+    ``erms_per_shape``, ``sted``; with features also ``max_relative_squared_error`` and ``mean_relative_squared_error``.
+    """
     per_shape = metrics.erms_per_shape(ref, rec["positions"])  # one normalization; their RMS is the set's Erms
     out = {
         "shapes": int(ref.shape[0]),
@@ -563,7 +667,21 @@ def set_metrics(ref: np.ndarray, rec: dict, faces: np.ndarray) -> dict:
 
 
 def evaluate(run: Run, data) -> dict:
-    """``{"train": {...}, "test": {...}}`` metrics of the run on its split of ``data``."""
+    """Metrics of the run on its train and test split of ``data``.
+
+    **Arguments:**
+
+    - ``run``: the run.
+    - ``data``: the data folder (checked against the run as in :func:`run_data`).
+
+    **Returns:**
+
+    ``{"method", "config", "train": {...}, "test": {...}}``, each set's :func:`set_metrics` plus its ``seconds``.
+
+    **Raises:**
+
+    ``RunError`` if ``data`` does not match the run.
+    """
     vertices, faces = run_data(run, data)
     result = {"method": run.method, "config": run.record["config_name"]}
     for name, idx in (("train", run.train_idx), ("test", run.test_idx)):
@@ -578,11 +696,23 @@ def evaluate(run: Run, data) -> dict:
 
 
 def components(run: Run):
-    """The run's components (:class:`~jaxdeform.components.extract.ComponentSet`) and their meshes (K, V, 3).
+    """The run's components and their meshes.
 
     Autoencoders: decoder outputs of one-hot codes at the training codes' extremes (Tan et al.'s rule), as
     ACAP feature differences applied to the reference. Linear baselines: each component at its largest
     training weight, added to the mean (features decoded by ACAP, or coordinates).
+
+    **Arguments:**
+
+    - ``run``: the run.
+
+    **Returns:**
+
+    ``(component_set, meshes)``: a :class:`~jaxdeform.components.extract.ComponentSet` and its meshes ``(K, V, 3)``.
+
+    **Raises:**
+
+    ``RunError`` if the run folder lacks codes.npz.
     """
     from jaxdeform.components import extract
 
@@ -610,7 +740,18 @@ def components(run: Run):
 
 
 def show(run: Run, out: Path) -> dict:
-    """Write components.png (kept components, one row per block), similarity.png and components.json."""
+    """Write the run's component figures and their summary into ``out``.
+
+    **Arguments:**
+
+    - ``run``: the run.
+    - ``out``: the folder to write components.png (kept components, one row per block), similarity.png and
+        components.json into.
+
+    **Returns:**
+
+    The summary written as components.json (method, number of components, number kept, the redundancy removal).
+    """
     from jaxdeform.components import extract, figures
 
     out = Path(out)
@@ -685,7 +826,17 @@ class Editor:
 
 
 def editor(run: Run) -> Editor:
-    """The run's :class:`Editor`; it computes in float64 (the ACAP reconstruction's dtype), whatever the run's."""
+    """The run's :class:`Editor`.
+
+    **Arguments:**
+
+    - ``run``: the run.
+
+    **Returns:**
+
+    An :class:`Editor` over the run's latent codes (autoencoders) or component weights (linear baselines); it
+    computes in float64 (the ACAP reconstruction's dtype), whatever the run's dtype.
+    """
     dtype = np.float64
     to64 = lambda a: jnp.asarray(a, dtype)  # noqa: E731
     if run.method in AUTOENCODERS:

@@ -399,12 +399,32 @@ def train(
 ):
     """Train for ``tc.epochs`` epochs (per level when ``tc.joint`` is False).
 
-    Returns (params, loss history (stages * epochs,)). ``params``: start from these instead of a fresh
-    initialization. ``progress``: a tqdm bar with the loss terms (refreshed every ``log_every`` epochs).
-    ``snapshot(epochs_done, params)`` is called every ``snapshot_every`` epochs of a stage (learning curves).
-    ``mesh``: data parallel over ``mesh``'s ``axis`` (module docstring); ValueError before any step if
-    ``min(len(data), tc.batch)`` is not a multiple of ``mesh.shape[axis]``. The returned parameters are then
-    replicated over ``mesh``.
+    **Arguments:**
+
+    - ``data``: scaled ACAP features ``(N, V, 9)`` of the training shapes.
+    - ``rings``: the mesh's one-ring neighbourhoods (the convolutions' topology).
+    - ``dist``: normalized geodesic distances ``(V, V)`` (the sparsity term's masks).
+    - ``config``: the model's hyper-parameters.
+    - ``tc``: the training hyper-parameters (epochs, batch, learning rate, seed, joint or level by level).
+    - ``params``: start from these instead of a fresh initialization (default None: fresh).
+    - ``checkpoint_dir``: write the training state there every ``checkpoint_every`` epochs (module docstring).
+    - ``resume``: continue from the newest checkpoint in ``checkpoint_dir``.
+    - ``progress``: a tqdm bar with the loss terms (refreshed every ``log_every`` epochs).
+    - ``log``: called every ``log_every`` epochs with the epoch, the loss and its terms.
+    - ``timing``: a dict that receives the compile and training times.
+    - ``snapshot``: ``snapshot(epochs_done, params)`` is called every ``snapshot_every`` epochs of a stage (learning
+        curves).
+    - ``mesh``: data parallel over ``mesh``'s ``axis`` (module docstring); None trains on one device.
+
+    **Returns:**
+
+    ``(params, history)``: the trained parameters (one dict per level) and the loss history ``(stages * epochs,)``.
+    With ``mesh`` the returned parameters are replicated over ``mesh``.
+
+    **Raises:**
+
+    ``ValueError`` before any step if ``mesh`` is given and ``min(len(data), tc.batch)`` is not a multiple of
+    ``mesh.shape[axis]``.
     """
     data = jnp.asarray(data)
     if mesh is not None:
@@ -467,18 +487,57 @@ def _reconstruct_jit():
 
 
 def reconstruct(params, data, rings: Rings, config: model.Config):
-    """The model's reconstruction (N, V, 9) of scaled features (N, V, 9) (jitted)."""
+    """The model's reconstruction of scaled features (jitted).
+
+    **Arguments:**
+
+    - ``params``: the model's parameters (one dict per level).
+    - ``data``: scaled ACAP features ``(N, V, 9)``.
+    - ``rings``: the mesh's one-ring neighbourhoods.
+    - ``config``: the model's hyper-parameters.
+
+    **Returns:**
+
+    The reconstructed scaled features ``(N, V, 9)``.
+    """
     return _reconstruct_jit()(params, data, rings, config=config)
 
 
 def save_params(checkpoint_dir, params: tuple, step: int) -> None:
-    """Write ``params`` as the checkpoint of ``step`` in ``checkpoint_dir`` (parameters only: :func:`load_params`
-    reads them; a training cannot resume from it)."""
+    """Write ``params`` as the checkpoint of ``step`` in ``checkpoint_dir``.
+
+    Parameters only: :func:`load_params` reads them; a training cannot resume from it.
+
+    **Arguments:**
+
+    - ``checkpoint_dir``: the checkpoint folder.
+    - ``params``: the model's parameters (one dict per level).
+    - ``step``: the step number the checkpoint is saved under.
+
+    **Returns:**
+
+    Nothing.
+    """
     _Checkpoints(checkpoint_dir, 1).save(int(step), {"params": tuple(params)})
 
 
 def load_params(checkpoint_dir, like: tuple):
-    """The parameters of the newest checkpoint in ``checkpoint_dir`` (structure and dtypes of ``like``)."""
+    """The parameters of the newest checkpoint in ``checkpoint_dir``.
+
+    **Arguments:**
+
+    - ``checkpoint_dir``: the checkpoint folder.
+    - ``like``: parameters of the same configuration; they give the structure and the dtypes.
+
+    **Returns:**
+
+    The parameters, with the structure and dtypes of ``like``.
+
+    **Raises:**
+
+    ``FileNotFoundError`` if the folder holds no checkpoint; ``ValueError`` if the checkpoint does not hold parameters
+    of ``like``'s configuration (other structure or shapes).
+    """
     ckpt = _Checkpoints(checkpoint_dir, 1)
     latest = ckpt.latest()
     if latest is None:

@@ -40,7 +40,7 @@ from jaxdeform.parts.mfa import MFA
 THRESHOLD = 2.5e-5
 MAX_SPLIT = 6
 #: A candidate split whose AECM has not converged after this many iterations is rejected (its analyzers
-#: compete for one motion; horse-poses: one 5-way split ran to 100 iterations without settling).
+#: compete for one motion and can run for a hundred iterations without settling).
 REFINE_MAX_ITER = 20
 MIN_PART_VERTICES = 20
 INITIAL_PARTS = 8
@@ -67,6 +67,22 @@ class PartsFit:
 
 
 def check_shapes(vertices, faces) -> tuple[np.ndarray, np.ndarray]:
+    """Shapes and faces of a parts fit, checked.
+
+    **Arguments:**
+
+    - ``vertices``: shapes ``(M, V, 3)``, ``M >= 2``.
+    - ``faces``: triangles ``(F, 3)`` over the ``V`` vertices.
+
+    **Returns:**
+
+    ``(vertices, faces)``: the shapes as float64 and the validated faces.
+
+    **Raises:**
+
+    ``ValueError`` if ``vertices`` is not ``(M, V, 3)`` or ``M < 2``; ``DegenerateMeshError`` if a coordinate is NaN or
+    infinite; the errors of :func:`~jaxdeform.mesh.topology.validate_faces` for bad faces.
+    """
     vertices = np.asarray(vertices, dtype=np.float64)
     faces = np.asarray(faces)
     if vertices.ndim != 3 or vertices.shape[-1] != 3:
@@ -142,7 +158,21 @@ def average_variance(y, p: MFA, labels: np.ndarray, mask: np.ndarray | None = No
 
 
 def fit_from_labels(y, labels: np.ndarray, k: int, w=None, max_iter: int = mfa.MAX_ITER):
-    """AECM started from hard ``labels`` (V,) in [-1, k) (-1: outside the fit); returns (params, history, iters)."""
+    """AECM started from hard labels.
+
+    **Arguments:**
+
+    - ``y``: normalised shapes ``(V, M, 3)``.
+    - ``labels``: ``(V,)`` in [-1, k) (-1: outside the fit).
+    - ``k``: the number of parts.
+    - ``w``: per-vertex weights ``(V,)`` (default None: ones).
+    - ``max_iter``: the AECM's iteration cap.
+
+    **Returns:**
+
+    ``(params, history, iters)``: the fitted :class:`MFA`, the log-likelihood per iteration and the number of
+    iterations.
+    """
     w = jnp.ones(y.shape[0], y.dtype) if w is None else jnp.asarray(w, y.dtype)
     p0 = mfa.init_from_weights(y, jnp.asarray(mfa.one_hot(labels, k)))
     p, hist, it = mfa.aecm(y, w, p0, max_iter=max_iter)
@@ -205,7 +235,30 @@ def fit(
     seed: int = 0,
     log: Callable[[str], None] = lambda s: None,
 ) -> PartsFit:
-    """Fit the hierarchy of Algorithm 1 to shapes (M, V, 3) sharing ``faces``; see the module docstring."""
+    """Fit the hierarchy of Algorithm 1 to shapes sharing ``faces``; see the module docstring.
+
+    **Arguments:**
+
+    - ``vertices``: shapes ``(M, V, 3)``, ``M >= 2``.
+    - ``faces``: triangles ``(F, 3)``.
+    - ``initial_parts``: parts of the coarse fit (at least 1; at most V are used).
+    - ``threshold``: a coarse part whose average variance is at or below this is not split.
+    - ``max_split``: the most parts a coarse part is split into.
+    - ``min_part_vertices``: the fewest vertices of a part; smaller islands join a neighbouring region.
+    - ``seed``: the seed of the k-means initializations.
+    - ``log``: receives one line per stage.
+
+    **Returns:**
+
+    A :class:`PartsFit` in data units: parameters, labels ``(V,)`` in [0, K), latent images ``(V, 3)``,
+    reconstruction ``(M, V, 3)``, the stages' records, the time taken and the parts that are not one connected
+    region. Parts that lost all their vertices in the final AECM are dropped (labels renumbered).
+
+    **Raises:**
+
+    ``ValueError`` if ``initial_parts < 1``, and :func:`check_shapes`'s errors; ``DegenerateMeshError`` if all shapes
+    collapse to a single point.
+    """
     t0 = time.perf_counter()
     vertices, faces = check_shapes(vertices, faces)
     if initial_parts < 1:
@@ -268,7 +321,17 @@ def fit(
 
 
 def rmse(vertices: np.ndarray, reconstruction: np.ndarray) -> float:
-    """Root mean square per-vertex distance over all shapes and vertices (data units)."""
+    """Root mean square per-vertex distance over all shapes and vertices (data units).
+
+    **Arguments:**
+
+    - ``vertices``: shapes ``(M, V, 3)``.
+    - ``reconstruction``: their reconstruction ``(M, V, 3)``.
+
+    **Returns:**
+
+    The RMS distance as a float.
+    """
     return float(np.sqrt(np.mean(np.sum((np.asarray(vertices) - np.asarray(reconstruction)) ** 2, axis=-1))))
 
 
@@ -281,6 +344,19 @@ def bbox_diagonal(vertices: np.ndarray) -> float:
 
 
 def summary(fit_: PartsFit, vertices: np.ndarray) -> dict:
+    """The summary record of a fit.
+
+    **Arguments:**
+
+    - ``fit_``: the fit.
+    - ``vertices``: the shapes it was fitted to ``(M, V, 3)``.
+
+    **Returns:**
+
+    A dict: parts, iterations and parts per stage, rmse (also over the first shape's bounding-box diagonal),
+    seconds, shapes, vertices, disconnected parts, the range of the rotations' determinants, and whether every
+    stage's log-likelihood is monotone.
+    """
     err = rmse(vertices, fit_.reconstruction)
     dets = np.linalg.det(np.asarray(fit_.params.rot))
     return {
@@ -301,9 +377,20 @@ def summary(fit_: PartsFit, vertices: np.ndarray) -> dict:
 
 
 def save_run(path, fit_: PartsFit, vertices: np.ndarray, faces: np.ndarray, extra: dict | None = None) -> dict:
-    """Write RUN/model.npz (parameters, labels, latent, shapes, faces) and RUN/summary.json; returns the summary.
+    """Write RUN/model.npz (parameters, labels, latent, shapes, faces) and RUN/summary.json.
 
     Files are written under temporary names and renamed, so an interrupted run leaves no half-written file.
+
+    **Arguments:**
+
+    - ``path``: the run folder (created if needed).
+    - ``fit_``: the fit.
+    - ``vertices``, ``faces``: the shapes ``(M, V, 3)`` and faces ``(F, 3)`` it was fitted to.
+    - ``extra``: more entries for the summary.
+
+    **Returns:**
+
+    The summary written (:func:`summary`, ``extra`` and the stages).
     """
     path = Path(path)
     path.mkdir(parents=True, exist_ok=True)
@@ -333,8 +420,20 @@ _RUN_ARRAYS = ("log_pi", "mu", "rot", "d", "sigma2", "labels", "latent", "vertic
 
 
 def load_run(path) -> tuple[PartsFit, np.ndarray, np.ndarray]:
-    """(fit, vertices (M, V, 3), faces) from a run folder written by :func:`save_run`; a damaged run gets one
-    :class:`MeshFormatError` sentence."""
+    """The fit, shapes and faces of a run folder written by :func:`save_run`.
+
+    **Arguments:**
+
+    - ``path``: the run folder.
+
+    **Returns:**
+
+    ``(fit, vertices (M, V, 3), faces)``.
+
+    **Raises:**
+
+    ``FileNotFoundError`` if model.npz is missing; a damaged run gets one :class:`MeshFormatError` sentence.
+    """
     path = Path(path)
     model = path / "model.npz"
     if not model.is_file():

@@ -195,12 +195,28 @@ def bfs_tree(adjacency: Sequence[set[int]], angles: np.ndarray) -> tuple[list[in
 def joint_points(
     vertices_m: np.ndarray, faces: np.ndarray, labels: np.ndarray, pairs: np.ndarray, *, weighting: str = "uniform"
 ) -> np.ndarray:
-    """Contact points (n, 3) of the part pairs ``pairs`` (n, 2) in one shape ``vertices_m`` (V, 3).
+    """Contact points of the part pairs ``pairs`` in one shape.
 
     The contact point of (a, b) is the mass centre of the triangles that have vertices in both a and b:
     ``weighting="uniform"`` (default) gives every triangle the same mass (plain mean of the triangle
     centroids); ``"area"`` weights each centroid by the triangle's area in this shape (falling back to the
-    plain mean where the total area is ~0). NaN for a pair that shares no triangle.
+    plain mean where the total area is ~0).
+
+    **Arguments:**
+
+    - ``vertices_m``: one shape ``(V, 3)``.
+    - ``faces``: triangles ``(F, 3)``.
+    - ``labels``: the part of every vertex ``(V,)``.
+    - ``pairs``: part pairs ``(n, 2)``.
+    - ``weighting``: ``"uniform"`` or ``"area"``.
+
+    **Returns:**
+
+    The contact points ``(n, 3)``; NaN for a pair that shares no triangle.
+
+    **Raises:**
+
+    ``ValueError`` if ``weighting`` is neither ``"uniform"`` nor ``"area"``.
     """
     if weighting not in ("uniform", "area"):
         raise ValueError(f"weighting must be 'uniform' or 'area', got {weighting!r}")
@@ -233,10 +249,22 @@ def joint_latents(
     *,
     weighting: str = "uniform",
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Latent images of the joints of ``pairs`` (n, 2) = (a, b) in the given shapes.
+    """Latent images of the joints of ``pairs`` = (a, b) in the given shapes, used by eq. (23).
 
-    Returns (z_a, z_b), each (len(shapes), n, 3), with z_a^m = R_a^m^T (c^m - t_a^m), z_b^m = R_b^m^T (c^m - t_b^m)
-    and c^m the contact point of (a, b) in shape m (:func:`joint_points`), used by eq. (23).
+    **Arguments:**
+
+    - ``params``: the fitted mixture.
+    - ``labels``: the part of every vertex ``(V,)``.
+    - ``faces``: triangles ``(F, 3)``.
+    - ``vertices``: the training shapes ``(M, V, 3)``.
+    - ``pairs``: part pairs ``(n, 2)``.
+    - ``shapes``: the indices of the shapes.
+    - ``weighting``: the contact points' mass centre (:func:`joint_points`).
+
+    **Returns:**
+
+    ``(z_a, z_b)``, each ``(len(shapes), n, 3)``, with z_a^m = R_a^m^T (c^m - t_a^m), z_b^m = R_b^m^T (c^m - t_b^m)
+    and c^m the contact point of (a, b) in shape m (:func:`joint_points`).
     """
     rot, mu = np.asarray(params.rot, np.float64), np.asarray(params.mu, np.float64)
     pairs = np.asarray(pairs, np.int64).reshape(-1, 2)
@@ -283,7 +311,22 @@ def pose_path(
     *,
     weighting: str = "uniform",
 ) -> PosePath:
-    """Rotations (slerp) and translations (linear for roots, eq. (23) otherwise) of every part at every t."""
+    """Rotations (slerp) and translations (linear for roots, eq. (23) otherwise) of every part at every t.
+
+    **Arguments:**
+
+    - ``params``: the fitted mixture (:class:`~jaxdeform.parts.mfa.MFA`, data units).
+    - ``labels``: the part of every vertex ``(V,)``.
+    - ``faces``: triangles ``(F, 3)``.
+    - ``vertices``: the training shapes ``(M, V, 3)``.
+    - ``source``, ``target``: indices of the two end shapes among the training shapes.
+    - ``ts``: the interpolation parameters (0: ``source``, 1: ``target``).
+    - ``weighting``: the joint points' mass centre, ``"uniform"`` or ``"area"`` (:func:`joint_points`).
+
+    **Returns:**
+
+    A :class:`PosePath`; its rotations are exactly the end shapes' at t = 0 and t = 1.
+    """
     rot = np.asarray(params.rot, np.float64)
     mu = np.asarray(params.mu, np.float64)
     k = rot.shape[0]
@@ -332,14 +375,27 @@ def interpolate(
     *,
     weighting: str = "uniform",
 ) -> np.ndarray:
-    """Poses between training shapes ``source`` and ``target`` (Algorithm 2); returns (len(ts), V, 3).
+    """Poses between training shapes ``source`` and ``target`` (Algorithm 2).
 
-    ``labels`` (V,) parts, ``latent`` (V, 3) latent images z_i (``mfa.latent_images``), ``vertices`` (M, V, 3)
-    the training shapes, ``faces`` (F, 3). Part motions come from :func:`pose_path` (slerp, eq. (23)); vertex i
-    of part k is p_i(t) = R_k(t) (z_i + (1 - t) e_i^s + t e_i^g) + t_k(t) (eq. (24)) with the latent residuals
-    e_i^m = R_k^m^T (p_i^m - t_k^m) - z_i. At t = 0 / 1 the source / target shape is reproduced (exactly up to
-    round-off, since the joint latents are those of the end shapes). Vertices labelled -1 move linearly.
-    ``weighting`` chooses the joint points' mass centre (:func:`joint_points`).
+    Part motions come from :func:`pose_path` (slerp, eq. (23)); vertex i of part k is
+    p_i(t) = R_k(t) (z_i + (1 - t) e_i^s + t e_i^g) + t_k(t) (eq. (24)) with the latent residuals
+    e_i^m = R_k^m^T (p_i^m - t_k^m) - z_i. Vertices labelled -1 move linearly.
+
+    **Arguments:**
+
+    - ``params``: the fitted mixture (:class:`~jaxdeform.parts.mfa.MFA`, data units).
+    - ``labels``: the part of every vertex ``(V,)``.
+    - ``latent``: the latent images z_i ``(V, 3)`` (``mfa.latent_images``).
+    - ``faces``: triangles ``(F, 3)``.
+    - ``vertices``: the training shapes ``(M, V, 3)``.
+    - ``source``, ``target``: indices of the two end shapes among the training shapes.
+    - ``ts``: the interpolation parameters (0: ``source``, 1: ``target``).
+    - ``weighting``: the joint points' mass centre, ``"uniform"`` or ``"area"`` (:func:`joint_points`).
+
+    **Returns:**
+
+    The poses ``(len(ts), V, 3)``. At t = 0 / 1 the source / target shape is reproduced (exactly up to round-off,
+    since the joint latents are those of the end shapes).
     """
     rot = np.asarray(params.rot, np.float64)
     mu = np.asarray(params.mu, np.float64)
@@ -372,11 +428,26 @@ def contact_gaps(
     *,
     weighting: str = "uniform",
 ) -> np.ndarray:
-    """Contact gaps (len(ts), n_joints): |R_a(t) z_a(t) + t_a(t) - (R_b(t) z_b(t) + t_b(t))| per tree edge.
+    """Contact gaps |R_a(t) z_a(t) + t_a(t) - (R_b(t) z_b(t) + t_b(t))| per tree edge.
 
     The joints are the BFS tree edges (child a, parent b) in visit order (``pose_path(...).joints``). Eq. (23)
-    makes every gap zero up to round-off; the function reports it as a check. ``latent`` is accepted for a
-    signature parallel to :func:`interpolate` (the joints' latent images come from the end shapes).
+    makes every gap zero up to round-off; the function reports it as a check.
+
+    **Arguments:**
+
+    - ``params``: the fitted mixture (:class:`~jaxdeform.parts.mfa.MFA`, data units).
+    - ``labels``: the part of every vertex ``(V,)``.
+    - ``latent``: the latent images z_i ``(V, 3)`` (``mfa.latent_images``); accepted for a signature parallel to
+        :func:`interpolate` and unused (the joints' latent images come from the end shapes).
+    - ``faces``: triangles ``(F, 3)``.
+    - ``vertices``: the training shapes ``(M, V, 3)``.
+    - ``source``, ``target``: indices of the two end shapes among the training shapes.
+    - ``ts``: the interpolation parameters (0: ``source``, 1: ``target``).
+    - ``weighting``: the joint points' mass centre, ``"uniform"`` or ``"area"`` (:func:`joint_points`).
+
+    **Returns:**
+
+    The gaps ``(len(ts), n_joints)`` (zero columns when the parts form no joint).
     """
     del latent
     path = pose_path(params, labels, faces, vertices, source, target, ts, weighting=weighting)
