@@ -399,31 +399,17 @@ def train(
 ):
     """Train for ``tc.epochs`` epochs (per level when ``tc.joint`` is False).
 
-    **Arguments:**
+    **Arguments:** ``data``: scaled ACAP features ``(N, V, 9)``; ``rings``, ``dist`` ``(V, V)``: one-rings and
+    normalized geodesics; ``config``, ``tc``: model and training hyper-parameters; ``params``: start from these instead
+    of a fresh initialization; ``checkpoint_dir``, ``checkpoint_every``, ``resume``: checkpoints; ``progress``: a tqdm
+    bar with the loss terms and ``log(epoch, loss, terms)``, both every ``log_every`` epochs; ``timing``: receives the
+    compile and training times; ``snapshot(epochs_done, params)``: called every ``snapshot_every`` epochs of a stage;
+    ``mesh``: data parallel over ``mesh``'s ``axis`` (module docstring).
 
-    - ``data``: scaled ACAP features ``(N, V, 9)`` of the training shapes.
-    - ``rings``: the mesh's one-ring neighbourhoods (the convolutions' topology).
-    - ``dist``: normalized geodesic distances ``(V, V)`` (the sparsity term's masks).
-    - ``config``: the model's hyper-parameters.
-    - ``tc``: the training hyper-parameters (epochs, batch, learning rate, seed, joint or level by level).
-    - ``params``: start from these instead of a fresh initialization (default None: fresh).
-    - ``checkpoint_dir``: write the training state there every ``checkpoint_every`` epochs (module docstring).
-    - ``resume``: continue from the newest checkpoint in ``checkpoint_dir``.
-    - ``progress``: a tqdm bar with the loss terms (refreshed every ``log_every`` epochs).
-    - ``log``: called every ``log_every`` epochs with the epoch, the loss and its terms.
-    - ``timing``: a dict that receives the compile and training times.
-    - ``snapshot``: ``snapshot(epochs_done, params)`` is called every ``snapshot_every`` epochs of a stage (learning
-        curves).
-    - ``mesh``: data parallel over ``mesh``'s ``axis`` (module docstring); None trains on one device.
+    **Returns:** ``(params, history)``: the parameters (one dict per level; replicated over ``mesh`` when given) and the
+    loss history ``(stages * epochs,)``.
 
-    **Returns:**
-
-    ``(params, history)``: the trained parameters (one dict per level) and the loss history ``(stages * epochs,)``.
-    With ``mesh`` the returned parameters are replicated over ``mesh``.
-
-    **Raises:**
-
-    ``ValueError`` before any step if ``mesh`` is given and ``min(len(data), tc.batch)`` is not a multiple of
+    **Raises:** ``ValueError`` before any step if ``min(len(data), tc.batch)`` is not a multiple of
     ``mesh.shape[axis]``.
     """
     data = jnp.asarray(data)

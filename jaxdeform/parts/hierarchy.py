@@ -237,27 +237,12 @@ def fit(
 ) -> PartsFit:
     """Fit the hierarchy of Algorithm 1 to shapes sharing ``faces``; see the module docstring.
 
-    **Arguments:**
+    **Arguments:** ``vertices`` ``(M, V, 3)``, ``M >= 2``; ``faces`` ``(F, 3)``; ``initial_parts`` (>= 1),
+    ``threshold``, ``max_split``, ``min_part_vertices``, ``seed``: Algorithm 1's parameters; ``log``: one line a stage.
 
-    - ``vertices``: shapes ``(M, V, 3)``, ``M >= 2``.
-    - ``faces``: triangles ``(F, 3)``.
-    - ``initial_parts``: parts of the coarse fit (at least 1; at most V are used).
-    - ``threshold``: a coarse part whose average variance is at or below this is not split.
-    - ``max_split``: the most parts a coarse part is split into.
-    - ``min_part_vertices``: the fewest vertices of a part; smaller islands join a neighbouring region.
-    - ``seed``: the seed of the k-means initializations.
-    - ``log``: receives one line per stage.
+    **Returns:** a :class:`PartsFit` in data units; parts that lost all their vertices are dropped (relabelled).
 
-    **Returns:**
-
-    A :class:`PartsFit` in data units: parameters, labels ``(V,)`` in [0, K), latent images ``(V, 3)``,
-    reconstruction ``(M, V, 3)``, the stages' records, the time taken and the parts that are not one connected
-    region. Parts that lost all their vertices in the final AECM are dropped (labels renumbered).
-
-    **Raises:**
-
-    ``ValueError`` if ``initial_parts < 1``, and :func:`check_shapes`'s errors; ``DegenerateMeshError`` if all shapes
-    collapse to a single point.
+    **Raises:** ``ValueError`` (``initial_parts < 1``, :func:`check_shapes`); ``DegenerateMeshError``.
     """
     t0 = time.perf_counter()
     vertices, faces = check_shapes(vertices, faces)
