@@ -403,8 +403,8 @@ def train(
     normalized geodesics; ``config``, ``tc``: model and training hyper-parameters; ``params``: start from these instead
     of a fresh initialization; ``checkpoint_dir``, ``checkpoint_every``, ``resume``: checkpoints; ``progress``: a tqdm
     bar with the loss terms and ``log(epoch, loss, terms)``, both every ``log_every`` epochs; ``timing``: receives the
-    compile and training times; ``snapshot(epochs_done, params)``: called every ``snapshot_every`` epochs of a stage;
-    ``mesh``: data parallel over ``mesh``'s ``axis`` (module docstring).
+    compile and training times; ``snapshot(epochs_done, params)`` (learning curves): every ``snapshot_every`` epochs of
+    a stage; ``mesh``: data parallel over ``mesh``'s ``axis`` (module docstring).
 
     **Returns:** ``(params, history)``: the parameters (one dict per level; replicated over ``mesh`` when given) and the
     loss history ``(stages * epochs,)``.
