@@ -280,7 +280,18 @@ def _check_inputs(points, view_idx, pixel_yx, patch_feats, image_hw):
 
 
 def new_field(features: int, bbox_min, bbox_max, config: FieldConfig = FieldConfig()) -> FeatureField:
-    """A freshly initialised field (parameters from ``config.seed``)."""
+    """A freshly initialised field (parameters from ``config.seed``).
+
+    **Arguments:**
+
+    - ``features``: the output feature size C.
+    - ``bbox_min``, ``bbox_max``: the input normalisation box, ``(3,)`` each.
+    - ``config``: the field's configuration.
+
+    **Returns:**
+
+    A :class:`FeatureField`.
+    """
     return FeatureField(features, bbox_min, bbox_max, config, rngs=nnx.Rngs(config.seed))
 
 
@@ -298,9 +309,25 @@ def distill(
 ) -> tuple[FeatureField, History]:
     """Fit a :class:`FeatureField` to the pixel features by minimising eq. (3); see the module docstring.
 
-    ``points``, ``view_idx``, ``pixel_yx``: the covered pixels (``RenderedViews.covered()``); ``patch_feats``:
-    the backbone's patch tokens of the N views; ``image_hw``: the renders' (H, W). ``bbox`` ((3,), (3,)) is
-    the input normalisation (default: the bounding box of ``points``; pass the mesh's own).
+    **Arguments:**
+
+    - ``points``, ``view_idx``, ``pixel_yx``: the covered pixels (``RenderedViews.covered()``): surface points
+        ``(P, 3)``, view indices ``(P,)``, pixel coordinates ``(P, 2)``.
+    - ``patch_feats``: the backbone's patch tokens of the N views ``(N, h, w, C)``.
+    - ``image_hw``: the renders' (H, W).
+    - ``config``: the field's configuration (steps, batch, learning rate, jitter, seed).
+    - ``progress``: show a progress bar.
+    - ``bbox``: ``((3,), (3,))``, the input normalisation (default: the bounding box of ``points``; pass the
+        mesh's own).
+    - ``log_every``: steps between progress-bar updates (the loss shown is the mean of the last ``log_every``).
+
+    **Returns:**
+
+    ``(field, history)``: the fitted field and its :class:`History`.
+
+    **Raises:**
+
+    ``ValueError`` for inputs of the wrong shape or dtype, view indices out of range, or non-finite points.
     """
     hw = _check_inputs(points, view_idx, pixel_yx, patch_feats, image_hw)
     pts = jnp.asarray(points, dtype=jnp.float32)
@@ -354,7 +381,22 @@ def _apply(graphdef, state, x):
 
 
 def evaluate_field(field: FeatureField, points, batch: int = 65536) -> Float[np.ndarray, "p c"]:
-    """``Phi(points)`` as a float32 (P, C) array, in chunks of ``batch`` rows (the last one padded)."""
+    """``Phi(points)``, evaluated in chunks of ``batch`` rows (the last one padded).
+
+    **Arguments:**
+
+    - ``field``: the feature field.
+    - ``points``: ``(P, 3)``.
+    - ``batch``: rows per evaluation.
+
+    **Returns:**
+
+    The features ``(P, C)`` float32.
+
+    **Raises:**
+
+    ``ValueError`` if ``points`` is not ``(P, 3)``.
+    """
     x = np.asarray(points, dtype=np.float32)
     if x.ndim != 2 or x.shape[1] != 3:
         raise ValueError(f"points must be a (P, 3) array, got shape {x.shape}.")
@@ -379,9 +421,23 @@ _REQUIRED_META = ("n_vertices", "n_faces", "backbone")
 
 
 def save_field(path: str | os.PathLike, field: FeatureField, meta: dict) -> Path:
-    """Write the field and ``meta`` (must hold n_vertices, n_faces and backbone; JSON-serialisable) atomically.
+    """Write the field and ``meta`` atomically.
 
-    The stored record adds the format, feature size, bounding box and configuration. Returns the path.
+    The stored record adds the format, feature size, bounding box and configuration.
+
+    **Arguments:**
+
+    - ``path``: the file to write.
+    - ``field``: the feature field.
+    - ``meta``: JSON-serialisable; must hold n_vertices, n_faces and backbone.
+
+    **Returns:**
+
+    The path written.
+
+    **Raises:**
+
+    ``ValueError`` if ``meta`` lacks one of the required keys.
     """
     missing = [k for k in _REQUIRED_META if k not in meta]
     if missing:
@@ -398,7 +454,20 @@ def save_field(path: str | os.PathLike, field: FeatureField, meta: dict) -> Path
 
 
 def load_field(path: str | os.PathLike) -> tuple[FeatureField, dict]:
-    """Read a field written by :func:`save_field`: (field, meta). Any other file raises JaxDeformError."""
+    """Read a field written by :func:`save_field`.
+
+    **Arguments:**
+
+    - ``path``: the field file.
+
+    **Returns:**
+
+    ``(field, meta)``.
+
+    **Raises:**
+
+    ``JaxDeformError`` for any other file.
+    """
     meta, arrays = read_archive(path, "feature-field", FORMAT, FORMAT_VERSION, key="meta")
     try:
         config = FieldConfig.from_dict(meta["config"])
