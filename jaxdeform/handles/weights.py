@@ -167,7 +167,20 @@ def dfd_weights(Z: Float[Array, "v c"], handles: Int[Array, " k"]) -> Float[Arra
     """DFD weights (eq. 6): W_ik = max(1 - ||z_i - z_{h_k}||_2, 0) for unit-norm features Z, W[h_k, k] = 1.
 
     One matmul, jitted; K is padded to :func:`bucket` (K) inside, so new handle counts rarely recompile.
-    Computed in the dtype of Z (float32 recommended: the rebind reads Z once, it is memory-bound).
+
+    **Arguments:**
+
+    - ``Z``: unit-norm features ``(V, C)``; the weights are computed in its dtype (float32 recommended: the rebind
+        reads Z once, it is memory-bound).
+    - ``handles``: the handle vertices ``(K,)``.
+
+    **Returns:**
+
+    The weights ``(V, K)`` in [0, 1], 1 at each handle's own vertex; ``(V, 0)`` without handles.
+
+    **Raises:**
+
+    ``ValueError`` if ``handles`` is not 1-D integer vertex indices in range, or ``Z`` is not ``(V, C)``.
     """
     Z = jnp.asarray(Z)
     if Z.ndim != 2:
@@ -183,7 +196,20 @@ def dfd_weights(Z: Float[Array, "v c"], handles: Int[Array, " k"]) -> Float[Arra
 def anchor_weights(W: Float[Array, "v k"], Z: Float[Array, "v c"], anchors: Int[Array, " a"]) -> Float[Array, "v k"]:
     """Feature-space point constraints (eq. 7): W_ik <- max(W_ik - max_a F(z_i, z_a), 0), F the DFD weight.
 
-    An anchor's own row becomes exactly 0; weights never increase. No anchors: W is returned unchanged.
+    **Arguments:**
+
+    - ``W``: weights ``(V, K)``.
+    - ``Z``: unit-norm features ``(V, C)``.
+    - ``anchors``: the anchor vertices ``(A,)``.
+
+    **Returns:**
+
+    The constrained weights ``(V, K)``: an anchor's own row becomes exactly 0; weights never increase. No
+    anchors: ``W`` is returned unchanged.
+
+    **Raises:**
+
+    ``ValueError`` if ``W`` and ``Z`` do not have the same number of rows or ``anchors`` are not valid vertex indices.
     """
     W = jnp.asarray(W)
     Z = jnp.asarray(Z)
@@ -199,10 +225,21 @@ def anchor_weights(W: Float[Array, "v k"], Z: Float[Array, "v c"], anchors: Int[
 
 
 def handle_geodesics(geo, handles) -> np.ndarray:
-    """Per-handle normalised geodesic distances (V, K): column k = heat-method distance from handle k / its max.
+    """Per-handle normalised geodesic distances: column k = heat-method distance from handle k / its max.
 
-    ``geo`` is a :class:`jaxdeform.mesh.geodesic.HeatGeodesics`. Values lie in [0, 1], 0 at the handle; vertices
-    unreachable from the handle (another connected component) are set to 1.
+    **Arguments:**
+
+    - ``geo``: a :class:`jaxdeform.mesh.geodesic.HeatGeodesics`.
+    - ``handles``: the handle vertices ``(K,)``.
+
+    **Returns:**
+
+    ``(V, K)`` float64 in [0, 1], 0 at the handle; vertices unreachable from the handle (another connected
+    component) are set to 1.
+
+    **Raises:**
+
+    ``ValueError`` if ``handles`` are not valid vertex indices.
     """
     h = _index_array(handles, geo.n_vertices, "handles")
     if h.size == 0:
@@ -217,8 +254,20 @@ def handle_geodesics(geo, handles) -> np.ndarray:
 def locality_weights(W: Float[Array, "v k"], G: Float[Array, "v k"], lam: float) -> Float[Array, "v k"]:
     """Locality weighting (eq. 8): W (1 - G)^lam, each column rescaled so its maximum (the handle's weight) is 1.
 
-    G: per-handle normalised geodesic distance in [0, 1] (:func:`handle_geodesics`). ``lam = 0`` returns W
-    unchanged (for DFD weights, whose handle weight is 1); larger ``lam`` suppresses far vertices more.
+    **Arguments:**
+
+    - ``W``: weights ``(V, K)``.
+    - ``G``: per-handle normalised geodesic distance in [0, 1] ``(V, K)`` (:func:`handle_geodesics`).
+    - ``lam``: the exponent, >= 0; ``lam = 0`` returns W unchanged (for DFD weights, whose handle weight is 1);
+        larger ``lam`` suppresses far vertices more.
+
+    **Returns:**
+
+    The weights ``(V, K)``.
+
+    **Raises:**
+
+    ``ValueError`` if ``lam`` is not a finite number >= 0 or ``W`` and ``G`` are not ``(V, K)`` arrays of one shape.
     """
     if not (np.isfinite(lam) and lam >= 0):
         raise ValueError(f"the locality exponent must be a finite number >= 0, got {lam}.")
@@ -325,9 +374,25 @@ def blend(
 
     Default: ``V'_i = V_i + sum_k W_ik (D_k [V_i; 1] - V_i)`` (zero motion returns the input exactly).
     ``pou=True`` (eq. 10): weights (w0 = max(1 - sum_k W_ik, 0), W_i1..W_iK) renormalised to sum to 1 per vertex,
-    ``V'_i = w0 D0 [V_i; 1] + sum_k W_ik D_k [V_i; 1]`` with ``D0`` the identity unless given.
-    Computed in the floating dtype of ``vertices`` (W and the transforms are cast to it); compiles once per
-    (V, K, dtype, pou). With ``pou`` the normalisation is a separate jitted call (faster here, see _pou_scales).
+    ``V'_i = w0 D0 [V_i; 1] + sum_k W_ik D_k [V_i; 1]``. Computed in the floating dtype of ``vertices`` (W and the
+    transforms are cast to it); compiles once per (V, K, dtype, pou). With ``pou`` the normalisation is a separate
+    jitted call (faster here, see _pou_scales).
+
+    **Arguments:**
+
+    - ``vertices``: rest positions ``(V, 3)``.
+    - ``W``: weights ``(V, K)``.
+    - ``transforms``: per-handle affine maps ``(K, 3, 4)``.
+    - ``pou``: the partition-of-unity extension (eq. 10).
+    - ``d0``: the ``(3, 4)`` transform of the rest weight w0 (default None: the identity); used only with ``pou``.
+
+    **Returns:**
+
+    The deformed positions ``(V, 3)``.
+
+    **Raises:**
+
+    ``ValueError`` for arrays of the wrong shapes.
     """
     v, W, T = _check_blend(vertices, W, transforms)
     if not pou:
@@ -412,11 +477,26 @@ def detect_symmetry(
     pca: bool = True,
     max_points: int | None = SYMMETRY_MAX_POINTS,
 ) -> list[Plane]:
-    """Semantic symmetry planes (eq. 9), every candidate scored, best (lowest score) first.
+    """Semantic symmetry planes (eq. 9), every candidate scored.
 
-    ``field_fn(points (P, 3)) -> features (P, C)`` (unit-norm, e.g. the distilled field). Candidates: see
-    :func:`candidate_planes`. Score: mean over vertices of ||Phi(v) - Phi(R_P v)||_2; ``symmetric`` when < eps.
-    The mean is estimated on a random subset (seed 0) of at most ``max_points`` vertices (None: all).
+    Candidates: see :func:`candidate_planes`. Score: mean over vertices of ||Phi(v) - Phi(R_P v)||_2;
+    ``symmetric`` when < eps. The mean is estimated on a random subset (seed 0) of at most ``max_points`` vertices.
+
+    **Arguments:**
+
+    - ``field_fn``: ``field_fn(points (P, 3)) -> features (P, C)`` (unit-norm, e.g. the distilled field).
+    - ``vertices``: the mesh's vertices ``(V, 3)``.
+    - ``eps``: the score below which a plane is symmetric.
+    - ``pca``: also try the principal planes (:func:`candidate_planes`).
+    - ``max_points``: the most vertices scored (None: all).
+
+    **Returns:**
+
+    The candidate planes (:class:`Plane`, each with its score and ``symmetric`` flag), best (lowest score) first.
+
+    **Raises:**
+
+    ``ValueError`` if ``vertices`` is not a non-empty ``(V, 3)`` array.
     """
     v = np.asarray(vertices, dtype=np.float64)
     if v.ndim != 2 or v.shape[1] != 3 or v.shape[0] == 0:
@@ -508,6 +588,23 @@ def symmetric_blend(
     """Symmetry-preserving blending (eq. 9): handles on the vertex's side of the plane apply D_k, the others S D_k S.
 
     Same displacement form (exact for zero motion), dtype rules and ``pou`` option (D0 = identity) as :func:`blend`.
+
+    **Arguments:**
+
+    - ``vertices``: rest positions ``(V, 3)``.
+    - ``W``: weights ``(V, K)``.
+    - ``transforms``: per-handle affine maps ``(K, 3, 4)``.
+    - ``handle_positions``: the handles' positions ``(K, 3)`` (which side of the plane each lies on).
+    - ``plane``: the symmetry plane.
+    - ``pou``: the partition-of-unity extension (eq. 10).
+
+    **Returns:**
+
+    The deformed positions ``(V, 3)``.
+
+    **Raises:**
+
+    ``ValueError`` for arrays of the wrong shapes.
     """
     v, W, T = _check_blend(vertices, W, transforms)
     hp = jnp.asarray(handle_positions).astype(v.dtype)
@@ -524,9 +621,18 @@ def symmetric_blend(
 
 
 def make_transform(centre, translate=(0.0, 0.0, 0.0), axis=None, degrees: float = 0.0) -> np.ndarray:
-    """The (3, 4) affine map x -> R (x - centre) + centre + translate, R the rotation by ``degrees`` about ``axis``.
+    """The affine map x -> R (x - centre) + centre + translate, R the rotation by ``degrees`` about ``axis``.
 
-    ``axis=None`` or ``degrees=0`` gives R = I exactly (a pure translation).
+    **Arguments:**
+
+    - ``centre``: the rotation centre ``(3,)``.
+    - ``translate``: the translation ``(3,)``.
+    - ``axis``: the rotation axis ``(3,)`` (default None: no rotation).
+    - ``degrees``: the rotation angle.
+
+    **Returns:**
+
+    The ``(3, 4)`` float64 map; ``axis=None`` or ``degrees=0`` gives R = I exactly (a pure translation).
     """
     c = np.asarray(centre, dtype=np.float64).reshape(3)
     t = np.asarray(translate, dtype=np.float64).reshape(3)
