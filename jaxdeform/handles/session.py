@@ -78,11 +78,14 @@ def _locked(method):
 class EditSession:
     """Handles, transforms, anchors, options and view of one mesh, with its deformed mesh and rendered frames.
 
-    Arguments:
-        vertices: (V, 3) finite rest positions. faces: (F, 3) vertex indices.
-        Z: (V, C) per-vertex features (unit rows after normalisation by :class:`Deformer`).
-        field_fn: points (P, 3) -> features (P, C); enables symmetry detection (``symmetry_available``).
-        width, height: the displayed image in pixels, at least 16 each. up_axis: the camera's up axis.
+    **Arguments:**
+
+    - ``vertices``: ``(V, 3)`` finite rest positions.
+    - ``faces``: ``(F, 3)`` vertex indices.
+    - ``Z``: ``(V, C)`` per-vertex features (unit rows after normalisation by :class:`Deformer`).
+    - ``field_fn``: points ``(P, 3)`` -> features ``(P, C)``; enables symmetry detection (``symmetry_available``).
+    - ``width``, ``height``: the displayed image in pixels, at least 16 each.
+    - ``up_axis``: the camera's up axis.
     """
 
     def __init__(self, vertices, faces, Z, *, field_fn=None, width: int = 512, height: int = 512, up_axis: str = "y"):
@@ -248,14 +251,16 @@ class EditSession:
     def image_bytes(self, scale: int = 1, fmt: str = "png") -> tuple[int, bytes]:
         """The current view, encoded; rendered once per version and scale.
 
-        Arguments:
-            scale: one of ``PREVIEW_SCALES``; > 1 renders (W / scale, H / scale) pixels with the same camera, so
-                preview pixel (i, j) covers display block [scale j, scale (j + 1)) x [scale i, scale (i + 1)).
-            fmt: "png" (lossless) or "jpeg" (quality ``JPEG_QUALITY``, cheaper to encode: drag frames).
+        **Arguments:**
 
-        Returns:
-            (version, image bytes). With ``show_weights`` and a selected handle the mesh is coloured by that
-            handle's weights through ``WEIGHT_COLORMAP`` over ``WEIGHT_RANGE``.
+        - ``scale``: one of ``PREVIEW_SCALES``; > 1 renders (W / scale, H / scale) pixels with the same camera, so
+            preview pixel (i, j) covers display block [scale j, scale (j + 1)) x [scale i, scale (i + 1)).
+        - ``fmt``: "png" (lossless) or "jpeg" (quality ``JPEG_QUALITY``, cheaper to encode: drag frames).
+
+        **Returns:**
+
+        (version, image bytes). With ``show_weights`` and a selected handle the mesh is coloured by that
+        handle's weights through ``WEIGHT_COLORMAP`` over ``WEIGHT_RANGE``.
         """
         scalar = lambda: self.selected_weights() if self.options.show_weights else None  # noqa: E731
         data = self.view.frame(self.version, self._deformed64(), self.faces, scalar, scale, fmt, self.timings)
@@ -364,15 +369,17 @@ class EditSession:
     def pick(self, x: float, y: float, action: str = "query") -> dict:
         """Pick the displayed mesh at display pixel (x, y).
 
-        Arguments:
-            x, y: display coordinates in [0, width] x [0, height].
-            action: ``query`` (report only), ``handle`` (select the handle whose marker is under the cursor, else
-                add a handle at the picked vertex), ``rotate`` (the marker's handle, else keep the selection, else
-                add a handle) or ``anchor`` (toggle an anchor at the picked vertex).
+        **Arguments:**
 
-        Returns:
-            ``{"hit", "triangle", "vertex", "point", "handle"}``: the hit triangle and its corner nearest the hit
-            point (None on the background), the world hit point, and the handle the action selected (or None).
+        - ``x``, ``y``: display coordinates in [0, width] x [0, height].
+        - ``action``: ``query`` (report only), ``handle`` (select the handle whose marker is under the cursor, else
+            add a handle at the picked vertex), ``rotate`` (the marker's handle, else keep the selection, else
+            add a handle) or ``anchor`` (toggle an anchor at the picked vertex).
+
+        **Returns:**
+
+        ``{"hit", "triangle", "vertex", "point", "handle"}``: the hit triangle and its corner nearest the hit
+        point (None on the background), the world hit point, and the handle the action selected (or None).
         """
         x = check_number(x, "x", 0.0, self.width)
         y = check_number(y, "y", 0.0, self.height)
@@ -401,15 +408,16 @@ class EditSession:
     def drag(self, mode: str, start, end, handle: int | None = None) -> None:
         """One step of a drag from display pixel ``start`` (x, y) to ``end``.
 
-        Arguments:
-            mode: ``translate``: the handle moves by ``s (dx r - dy u)`` (camera right / up vectors, ``s`` the world
-                size of a pixel at the handle's depth), so its projection follows the cursor exactly; ``rotate``:
-                about the view axis through the handle's current position p by the angle the cursor sweeps around
-                p's projection (counter-clockwise on screen is positive); ``orbit``: the camera turns about the
-                mesh's bounding-box centre, ``ORBIT_DEG_PER_PIXEL`` per pixel. Handle steps are composed on the
-                left of the handle's transform (``D <- M D``) and select the handle.
-            start, end: (x, y) display coordinates.
-            handle: the handle index, or None for the selected one (ignored by ``orbit``).
+        **Arguments:**
+
+        - ``mode``: ``translate``: the handle moves by ``s (dx r - dy u)`` (camera right / up vectors, ``s`` the world
+            size of a pixel at the handle's depth), so its projection follows the cursor exactly; ``rotate``:
+            about the view axis through the handle's current position p by the angle the cursor sweeps around
+            p's projection (counter-clockwise on screen is positive); ``orbit``: the camera turns about the
+            mesh's bounding-box centre, ``ORBIT_DEG_PER_PIXEL`` per pixel. Handle steps are composed on the
+            left of the handle's transform (``D <- M D``) and select the handle.
+        - ``start``, ``end``: (x, y) display coordinates.
+        - ``handle``: the handle index, or None for the selected one (ignored by ``orbit``).
         """
         mode = check_choice(mode, "mode", DRAG_MODES)
         start = check_array(start, (2,), "'from' must be a pair [x, y] of display pixel coordinates.")
