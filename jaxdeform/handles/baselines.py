@@ -151,7 +151,18 @@ def _check_every_component_constrained(labels: np.ndarray, constrained: np.ndarr
 def handle_targets(
     vertices: Float[np.ndarray, "v 3"], handles: Int[np.ndarray, " k"], transforms: Float[np.ndarray, "k 3 4"]
 ) -> Float[np.ndarray, "k 3"]:
-    """Target position ``D_k [v_h; 1]`` of every handle vertex."""
+    """Target position ``D_k [v_h; 1]`` of every handle vertex.
+
+    **Arguments:**
+
+    - ``vertices``: rest positions ``(V, 3)``.
+    - ``handles``: the handle vertices ``(K,)``.
+    - ``transforms``: per-handle affine maps ``(K, 3, 4)``.
+
+    **Returns:**
+
+    The targets ``(K, 3)`` float64.
+    """
     p = np.asarray(vertices, dtype=np.float64)[np.asarray(handles)]
     d = np.asarray(transforms, dtype=np.float64)
     return np.einsum("kij,kj->ki", d[:, :, :3], p) + d[:, :, 3]
@@ -328,7 +339,22 @@ class BiharmonicBaseline:
 
 
 def make_baseline(method: str, vertices, faces, **options) -> ARAPBaseline | BiharmonicBaseline:
-    """The preprocessed baseline ``method`` (one of :data:`METHODS`); options go to its constructor."""
+    """The preprocessed baseline ``method``.
+
+    **Arguments:**
+
+    - ``method``: one of :data:`METHODS`.
+    - ``vertices``, ``faces``: the mesh, ``(V, 3)`` and ``(F, 3)``.
+    - ``options``: passed to the baseline's constructor.
+
+    **Returns:**
+
+    An :class:`ARAPBaseline` or a :class:`BiharmonicBaseline`.
+
+    **Raises:**
+
+    ``ValueError`` for an unknown ``method``.
+    """
     if method not in METHODS:
         raise ValueError(f"method must be one of {', '.join(METHODS)}, got {method!r}.")
     if method == "arap":
@@ -339,7 +365,24 @@ def make_baseline(method: str, vertices, faces, **options) -> ARAPBaseline | Bih
 def run_baseline(
     method: str, vertices, faces, handles, transforms, *, fixed=(), **options
 ) -> tuple[Float[np.ndarray, "v 3"], dict[str, float]]:
-    """Preprocess, bind and pose once: (deformed vertices (V, 3) float64, {phase: seconds})."""
+    """Preprocess, bind and pose once.
+
+    **Arguments:**
+
+    - ``method``, ``vertices``, ``faces``, ``options``: as :func:`make_baseline`'s.
+    - ``handles``: the handle vertices ``(K,)``.
+    - ``transforms``: per-handle affine maps ``(K, 3, 4)``.
+    - ``fixed``: vertices held at rest.
+
+    **Returns:**
+
+    ``(deformed vertices (V, 3) float64, {phase: seconds})``.
+
+    **Raises:**
+
+    As :func:`make_baseline`; :class:`HandleError` for handles, fixed vertices or transforms inconsistent with the
+    mesh or with each other (a vertex both handle and fixed, a connected component with neither).
+    """
     model = make_baseline(method, vertices, faces, **options)
     out = model.bind(handles, fixed=fixed).pose(transforms)
     return out, {phase: model.timings[phase] for phase in PHASES}

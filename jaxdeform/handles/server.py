@@ -438,11 +438,22 @@ def serve(
     up_axis: str = "y",
     announce: Callable[[str], None] | None = None,
 ) -> PageServer:
-    """Serve the interactive page for a mesh with per-vertex features ``Z`` (V, C), unit-norm rows.
+    """Serve the interactive page for a mesh with per-vertex features.
 
-    ``field_fn`` (points (P, 3) -> unit features (P, C)) enables symmetry detection (eq. 9). ``port=0`` takes
-    a free port. ``announce(url)`` is called once the socket is bound. With ``block`` the call serves until
-    Ctrl-C (then shuts down); otherwise it returns the running :class:`PageServer` at once.
+    **Arguments:**
+
+    - ``vertices``, ``faces``: the mesh, ``(V, 3)`` and ``(F, 3)``.
+    - ``Z``: per-vertex features ``(V, C)``, unit-norm rows.
+    - ``field_fn``: points ``(P, 3)`` -> unit features ``(P, C)``; enables symmetry detection (eq. 9).
+    - ``host``: the address to bind.
+    - ``port``: the port; 0 takes a free port.
+    - ``block``: serve until Ctrl-C (then shut down) before returning.
+    - ``width``, ``height``, ``up_axis``: the displayed image and the camera's up axis (:class:`EditSession`).
+    - ``announce``: ``announce(url)`` is called once the socket is bound.
+
+    **Returns:**
+
+    The :class:`PageServer`; without ``block`` it is returned at once, running.
     """
     session = EditSession(vertices, faces, Z, field_fn=field_fn, width=width, height=height, up_axis=up_axis)
     server = PageServer(session, host, port)

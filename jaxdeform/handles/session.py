@@ -447,10 +447,25 @@ class EditSession:
         pou: bool | None = None,
         show_weights: bool | None = None,
     ) -> dict:
-        """Change the given options (None keeps one); returns them as :meth:`Options.as_json`.
+        """Change the given options (None keeps one).
 
-        ``lam`` lies in [0, 100]; ``symmetric`` needs a detected plane (``ValueError`` otherwise). The mesh is
-        deformed again only when an option of the deformation changed.
+        The mesh is deformed again only when an option of the deformation changed.
+
+        **Arguments:**
+
+        - ``locality``: use the locality weighting (eq. 8).
+        - ``lam``: the locality exponent, in [0, 100].
+        - ``symmetric``: symmetry-preserving blending; needs a detected plane.
+        - ``pou``: the partition-of-unity extension (eq. 10).
+        - ``show_weights``: colour the mesh by the selected handle's weights.
+
+        **Returns:**
+
+        The options as :meth:`Options.as_json`.
+
+        **Raises:**
+
+        ``ValueError`` for ``lam`` outside [0, 100] or ``symmetric`` without a detected plane.
         """
         new = Options(**vars(self.options))
         if locality is not None:
@@ -487,8 +502,21 @@ class EditSession:
 
     @_locked
     def reset(self, what: str = "all") -> None:
-        """``transforms``: every handle back to the identity; ``all``: no handles, anchors, selection, default
-        options (the rest mesh is displayed); ``view``: the initial camera."""
+        """Reset part of the session.
+
+        **Arguments:**
+
+        - ``what``: ``transforms``: every handle back to the identity; ``all``: no handles, anchors, selection, default
+            options (the rest mesh is displayed); ``view``: the initial camera.
+
+        **Returns:**
+
+        Nothing.
+
+        **Raises:**
+
+        ``ValueError`` for another ``what``.
+        """
         what = check_choice(what, "what", RESET_TARGETS)
         if what == "view":
             self.view.reset()
