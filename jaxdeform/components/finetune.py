@@ -168,7 +168,20 @@ def make_step(run: crun.Run, rings, dist, weight: float, opt: optax.GradientTran
 
 
 def check_run(run: crun.Run) -> None:
-    """One sentence (RunError) for a run without an autoencoder."""
+    """Check that ``run`` can be fine-tuned.
+
+    **Arguments:**
+
+    - ``run``: a components run.
+
+    **Returns:**
+
+    Nothing.
+
+    **Raises:**
+
+    ``RunError`` (one sentence) for a run without an autoencoder.
+    """
     if run.method not in crun.AUTOENCODERS:
         raise crun.RunError(f"{run.path} is a {run.method} run: only multiscale and tan runs can be fine-tuned.")
 
@@ -184,7 +197,20 @@ def check_options(
     generated: int = 0,
     code_noise: float = 1.0,
 ) -> None:
-    """One sentence (ValueError) for an option out of range."""
+    """Check the fine-tuning options.
+
+    **Arguments:**
+
+    As :func:`finetune`'s.
+
+    **Returns:**
+
+    Nothing.
+
+    **Raises:**
+
+    ``ValueError`` (one sentence) for an option out of range.
+    """
     if seed < 0:
         raise ValueError(f"--seed must be a non-negative integer, got {seed}.")
     if steps < 1 or batch < 1:
@@ -225,7 +251,31 @@ def finetune(
     generated: int = 0,
     code_noise: float = 1.0,
 ):
-    """(params, history (steps, 2): model loss and position term of each step's batch before its update)."""
+    """Fine-tune the run's model on its training shapes and their mixes (module docstring).
+
+    **Arguments:**
+
+    - ``run``: an autoencoder run.
+    - ``x_train``: the training shapes' scaled ACAP features ``(N, V, 9)``.
+    - ``mixes``: regional mixes of the training shapes added to the pool (:func:`regional_mixes`).
+    - ``steps``, ``batch``: Adam steps and shapes per step.
+    - ``position_weight``: the weight w of the position term.
+    - ``lr``, ``lr_final``: the learning rate, constant or falling to ``lr_final`` (:func:`schedule`).
+    - ``seed``: the seed of the mixes and the batches.
+    - ``progress``: show a progress bar.
+    - ``rigid``: the position term after rotating each reconstruction onto its target (:func:`rigid_residual`).
+    - ``generated``, ``code_noise``: shapes the model generates from noisy codes of regional mixes, added to the pool
+        (:func:`generated_meshes`).
+
+    **Returns:**
+
+    ``(params, history)``: the fine-tuned parameters and ``(steps, 2)``: the model loss and position term of each
+    step's batch before its update.
+
+    **Raises:**
+
+    ``ValueError`` for an option out of range (:func:`check_options`); ``RunError`` for a run without an autoencoder.
+    """
     check_options(steps, batch, mixes, position_weight, lr, seed, lr_final, generated, code_noise)
     check_run(run)
     faces, rest = run.faces, run.rest
@@ -281,11 +331,23 @@ def fit(
     generated: int = 0,
     code_noise: float = 1.0,
 ) -> dict:
-    """Fine-tune ``run`` on its training shapes (read from ``data``, default the run's data folder) and write the
-    result into the empty folder ``out``: a copy of the run with the new parameters and training codes, run.json
-    with ``finetune`` (options, seconds, first and last loss terms, source run). Returns that record. The options
-    and the run are checked by :func:`finetune`; a caller that wants them refused before the features are read calls
-    :func:`check_options` and :func:`check_run` first, as the CLI does."""
+    """Fine-tune ``run`` and write the result as a new run folder.
+
+    The options and the run are checked by :func:`finetune`; a caller that wants them refused before the features
+    are read calls :func:`check_options` and :func:`check_run` first, as the CLI does.
+
+    **Arguments:**
+
+    - ``run``: an autoencoder run.
+    - ``out``: the empty folder to write: a copy of the run with the new parameters and training codes, and
+        run.json with ``finetune``.
+    - ``data``: the data folder to read the training shapes from (default None: the run's data folder).
+    - the other options: as :func:`finetune`'s.
+
+    **Returns:**
+
+    The ``finetune`` record: options, seconds, first and last loss terms, source run.
+    """
     vertices, _ = crun.run_data(run, data)
     x_train = crun.scaled_features(run, vertices[run.train_idx])
     t0 = time.perf_counter()
