@@ -515,7 +515,7 @@ def regional_projection(
 
     This is the best any model can do that reconstructs every region as a linear combination of the training
     shapes' deviations there (independently per region): a ceiling for localized linear components learned
-    from these training shapes, and the reference point of the ``ceiling`` experiment (issue 3's notes).
+    from these training shapes, and the reference point of the ``ceiling`` experiment.
     """
     train, test = np.asarray(train, np.float64), np.asarray(test, np.float64)
     if train.ndim != 3 or test.ndim != 3 or train.shape[1:] != test.shape[1:]:

@@ -96,8 +96,8 @@ CONFIGS: dict[str, dict[str, tuple[model.Config | None, train.TrainConfig]]] = {
         "levels1": (_multiscale(kz=(10,), d=(0.4,)), train.TrainConfig()),
         "levels3": (_multiscale(kz=(10, 5, 2), d=(0.4, 0.2, 0.1)), train.TrainConfig()),
         # tanh on the latent codes as well (the paper's "all the layers use tanh" read literally). On horse-gallop
-        # AE0's codes saturate and it outputs a near-constant shape; the second level carries the deformation:
-        # test Erms 22.7 / STED 0.0357 against the default's 20.2 / 0.042 (README, issue 3 notes).
+        # AE0's codes saturate and it outputs a near-constant shape; the second level carries the deformation,
+        # at a slightly higher test Erms and a lower STED than the default (README).
         "latent-tanh": (_multiscale(latent="tanh"), train.TrainConfig()),
         "test": (_multiscale(kz=(3, 2)), train.TrainConfig(epochs=30)),
         "test-no-attention": (_multiscale(kz=(3, 2), attention=False), train.TrainConfig(epochs=30)),
@@ -448,7 +448,9 @@ class Run:
     config: model.Config | None
     params: tuple | None
     linear: baselines.LinearModel | None
-    turns: np.ndarray | None = None  # (V, 3) rotation reference of the features' branches (None: older runs)
+    turns: np.ndarray | None = (
+        None  # (V, 3) rotation reference of the features' branches (None: a run written without one)
+    )
 
     @property
     def method(self) -> str:
