@@ -34,7 +34,7 @@ the decoder, one primal pass) when K <= 3M, else, or when the decoder has a cust
 (the multiscale model's mesh convolution), by reverse mode.
 
 - ``method="bfgs"`` (default): ``optimistix.BFGS`` on E. On horse-gallop (PCA, 4 latents, 20-50 controls)
-  it reaches the optimum in 17-21 iterations (0.4-0.9 s on 2 CPU cores), where Gauss-Newton-type methods
+  it reaches the optimum in 17-21 iterations, where Gauss-Newton-type methods
   need 22-50: the target lies outside the subspace, the residual at the optimum is large, and the
   Gauss-Newton model misses its curvature.
 - ``method="lm"``: Levenberg-Marquardt (``optimistix.least_squares``) on the residuals
@@ -99,7 +99,7 @@ OBJECTIVES = ("controls", "deformation")
 
 # A cap, not a count: BFGS and LM stop on the tolerance. On horse-gallop at 20 controls BFGS needs 74-112
 # iterations for Tan et al.'s 50 codes and up to about 180 in the multiscale model's second stage (60 codes);
-# the earlier cap of 50 cut both short (EditResult.converged).
+# a cap of 50 would cut both short (EditResult.converged).
 DEFAULT_STEPS = 500
 DEFAULT_LEARNING_RATE = 1e-2
 DEFAULT_REGULARIZATION = 1e-6

@@ -394,7 +394,7 @@ def fit(
     t0 = time.perf_counter()
     record["timing"] = {}
     # The autoencoders' geodesics (libigl's C++) run on a thread beside the features (mostly
-    # XLA compiling the ACAP encoder): on horse-gallop, 2 cores, 25.5 s for both against 42 s one after the other.
+    # XLA compiling the ACAP encoder): overlapped, the two take about 60 % of their time one after the other.
     with ThreadPoolExecutor(max_workers=1) as pool:
         geo = pool.submit(_timed_geodesics, rest, faces, dtype) if method in AUTOENCODERS else None
         if method in ACAP_METHODS:

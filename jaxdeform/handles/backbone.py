@@ -40,9 +40,8 @@ size with an antialiased bilinear filter (``jax.image.resize``, half-pixel align
 normalised with the ImageNet mean/std. :func:`extract_patch_features` runs a backbone over many views in
 fixed-size batches (the last one padded) so the jitted forward compiles once.
 
-Cost (ViT-S/14 at 224 x 224, 257 tokens): about 12 GFLOP per image. On the 2-core CPU this runs at about
-155-165 ms of CPU time per image for batches of 1 to 8 (about 80 ms wall uncontended, 8-9 s for 100 views),
-near the cores' float32 FMA peak, so XLA flags or another attention formulation (einsum vs
+Cost (ViT-S/14 at 224 x 224, 257 tokens): about 12 GFLOP per image. On a CPU this runs near the cores'
+float32 FMA peak for batches of 1 to 8, so XLA flags or another attention formulation (einsum vs
 ``jax.nn.dot_product_attention``, measured equal) cannot buy much; batches of 16 are slightly slower.
 """
 

@@ -50,7 +50,7 @@ Pose (all kinds) is linear blend skinning in displacement form,
 computed by DFD's own :func:`jaxdeform.handles.weights.blend` (the same formula, so both methods pose alike).
 It equals plain LBS when the weights sum to one and returns the input exactly when nothing moves. The
 product is jitted JAX: NumPy's multithreaded OpenBLAS GEMM for this tall, thin
-shape took 16 ms instead of 0.6 ms on the 2-core test machine whenever other processes were busy. It is
+shape slows down by more than an order of magnitude whenever other processes keep the cores busy. It is
 compiled once per handle count at the end of :meth:`BiharmonicBaseline.bind`, outside the timed window
 (``compile_seconds``), so ``pose`` times the blend only, as for DFD.
 

