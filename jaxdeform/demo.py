@@ -10,7 +10,7 @@ decode times per frame after a warm-up call (median of a few repeats).
 Writes to OUT: ``reference.png`` (the rest tube), ``deformed.png`` (the last frame), ``error.png`` (the last
 frame as decoded from spatial-ACAP features, coloured by its per-vertex round-trip error), ``rotation_angle.png``
 (the last frame coloured by the per-vertex TS-ACAP rotation angle |v| in rad) and ``summary.json`` (the
-table's numbers and the set-up). Runs in well under a minute on a 2-core CPU.
+table's numbers and the set-up). Small enough to run in under a minute on a CPU.
 """
 
 from __future__ import annotations

@@ -88,7 +88,7 @@ class FieldConfig(RecordConfig):
     fourier_features: int = 0  # m Gaussian frequencies (0: plain normalised coordinates)
     fourier_sigma: float = 5.0
     learning_rate: float = 1e-3
-    steps: int = 1500  # x batch 1024 = 1.5M pixel samples: ~25 s on 2 CPU cores (module docstring)
+    steps: int = 1500  # x batch 1024 = 1.5M pixel samples (the budget: module docstring)
     batch_size: int = 1024
     seed: int = 0
     jitter: float = 0.05  # std of a Gaussian offset of each sample point, in bbox half-diagonals (module doc)
