@@ -299,7 +299,8 @@ def _displacement(u: Float[Array, "v 3"], B: Float[Array, "v 12"]) -> Float[Arra
 
 def _row_sums(W: Float[Array, "v k"]) -> Float[Array, "v 1"]:
     """sum_k W_ik as K elementwise adds: XLA fuses them into the consumer's pass over W, where jnp.sum would be
-    one more kernel (and on a busy machine with few cores every extra parallel kernel can wait a scheduler time slice)."""
+    one more kernel (and on a busy machine with few cores every extra parallel kernel can wait a scheduler time
+    slice)."""
     s = jnp.zeros((W.shape[0], 1), W.dtype)
     for k in range(W.shape[1]):
         s = s + W[:, k : k + 1]
