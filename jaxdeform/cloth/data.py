@@ -235,7 +235,21 @@ def _sequence_files(root: Path) -> tuple[list[Path], dict]:
 
 
 def load_dataset(root: str | Path) -> ClothDataset:
-    """Every sequence of a dataset folder, checked (one connectivity per resolution, equal lengths)."""
+    """Every sequence of a dataset folder, checked (one connectivity per resolution, equal lengths).
+
+    **Arguments:**
+
+    - ``root``: the dataset folder (dataset.json and seq_*.npz).
+
+    **Returns:**
+
+    The :class:`ClothDataset`: its sequences, both rest meshes, the scenario and the split.
+
+    **Raises:**
+
+    ``FileNotFoundError`` if the folder does not exist; ``MeshFormatError`` if it holds no sequence or a damaged one;
+    ``ConnectivityError`` if the sequences do not share one connectivity per resolution.
+    """
     root = Path(root)
     if not root.is_dir():
         raise FileNotFoundError(f"{root}: no such dataset folder.")

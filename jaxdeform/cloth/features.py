@@ -228,7 +228,21 @@ def place(fine: np.ndarray, coarse: np.ndarray, n_coarse: int) -> np.ndarray:
 def fit_representation(
     kind: Kind, dataset, train_names: list[str] | None = None, progress: bool = True, residual: bool = False
 ):
-    """(Representation fitted on the training sequences, {name: (coarse features, fine target)} scaled)."""
+    """Fit a feature representation on the training sequences and scale every sequence with it.
+
+    **Arguments:**
+
+    - ``kind``: the representation kind.
+    - ``dataset``: the :class:`~jaxdeform.cloth.data.ClothDataset`.
+    - ``train_names``: the training sequences (default None: the dataset's training split).
+    - ``progress``: show a progress bar.
+    - ``residual``: the fine target is features(fine) - features(Loop(coarse)) (module docstring).
+
+    **Returns:**
+
+    ``(representation, scaled)``: the :class:`Representation` fitted on the training sequences and
+    ``{name: (coarse features, fine target)}``, scaled, for every sequence.
+    """
     _check_kind(kind)
     seqs = dataset.sequences
     train = set(train_names if train_names is not None else [s.name for s in dataset.subset("train")])

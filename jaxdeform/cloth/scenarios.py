@@ -308,8 +308,25 @@ def _disk_track(rng, index: int, n_per: int, T: int, dt: float):
 def scenario(
     kind: str, index: int, seed: int = 0, n_frames: int = N_FRAMES, n_sequences: int = 10, levels: int = 3
 ) -> Scenario:
-    """Sequence ``index`` of a scenario kind; deterministic from (kind, index, seed). ``n_sequences`` spreads
-    the disk's wind speeds over [1, 5] m/s across indices; ``levels`` = Loop levels of the fine mesh."""
+    """Sequence ``index`` of a scenario kind; deterministic from (kind, index, seed).
+
+    **Arguments:**
+
+    - ``kind``: ``"sheet"`` or ``"disk"`` (:data:`KINDS`).
+    - ``index``: the sequence's index (non-negative).
+    - ``seed``: the seed of the random draws.
+    - ``n_frames``: frames of the sequence (at least 2).
+    - ``n_sequences``: spreads the disk's wind speeds over [1, 5] m/s across indices.
+    - ``levels``: Loop levels of the fine mesh.
+
+    **Returns:**
+
+    The :class:`Scenario`: meshes' start states, pins, obstacle and wind tracks, physics and its record.
+
+    **Raises:**
+
+    ``ScenarioError`` for an unknown kind, a negative index or fewer than 2 frames.
+    """
     if kind not in KINDS:
         raise ScenarioError(f"Unknown scenario kind {kind!r}; expected one of {KINDS}.")
     if index < 0 or n_frames < 2:
@@ -427,8 +444,15 @@ def pins(sc: Scenario) -> dict:
 def simulate_pair(sc: Scenario, *, progress: bool = True) -> dict:
     """Simulate the coarse and the fine cloth of a scenario separately (same tracks and physics).
 
-    Returns "coarse" (T, Vc, 3) and "fine" (T, Vf, 3) float32 frames, "coarse_faces", "fine_faces",
-    "coarse_rest", "fine_rest", "obstacles" (the track as a dict of arrays), "wind" (T, 3), "meta" (with the
+    **Arguments:**
+
+    - ``sc``: the scenario (:func:`scenario`).
+    - ``progress``: show progress bars.
+
+    **Returns:**
+
+    A dict: "coarse" ``(T, Vc, 3)`` and "fine" ``(T, Vf, 3)`` float32 frames, "coarse_faces", "fine_faces",
+    "coarse_rest", "fine_rest", "obstacles" (the track as a dict of arrays), "wind" ``(T, 3)``, "meta" (with the
     measured timings and edge strains) and "coarse_seconds_per_frame" / "fine_seconds_per_frame" (compilation
     excluded; settling excluded).
     """
@@ -513,8 +537,23 @@ def _penetration(frames, track, faces, bary):
 
 
 def max_penetration(frames, obstacle_track: Obstacles, faces=None) -> float:
-    """Max over frames of -min(sdf, 0) (metres) at the vertices and, given ``faces``, at the points of an order-
-    :data:`PENETRATION_SAMPLES` grid inside every triangle; frame t is tested against track frame t."""
+    """Max over frames of -min(sdf, 0) (metres), frame t tested against track frame t.
+
+    **Arguments:**
+
+    - ``frames``: positions ``(T, V, 3)``.
+    - ``obstacle_track``: the obstacles of the T frames.
+    - ``faces``: triangles ``(F, 3)``; given, the points of an order-:data:`PENETRATION_SAMPLES` grid inside every
+        triangle are tested too (default None: the vertices only).
+
+    **Returns:**
+
+    The largest penetration depth as a float (0 when nothing penetrates).
+
+    **Raises:**
+
+    ``ScenarioError`` if ``frames`` and the track have different numbers of frames.
+    """
     frames = np.asarray(frames, np.float32)
     track = jax.tree_util.tree_map(lambda a: np.asarray(a, np.float32), obstacle_track)
     if frames.shape[0] != obst.n_frames(track):
