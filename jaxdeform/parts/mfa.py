@@ -169,8 +169,18 @@ MAX_ITER = 100
 def aecm(y: Float[Array, "v m 3"], w: Float[Array, " v"], p0: MFA, *, max_iter: int = MAX_ITER, tol: float = TOL):
     """Run AECM from ``p0`` until an iteration gains less than ``tol`` times |log-likelihood|.
 
-    Returns (parameters, log-likelihood history (max_iter + 1,) with NaN after the last iteration,
-    iterations run). history[0] is the log-likelihood of ``p0``.
+    **Arguments:**
+
+    - ``y``: normalised shapes ``(V, M, 3)``.
+    - ``w``: per-vertex weights ``(V,)``.
+    - ``p0``: the starting parameters.
+    - ``max_iter``: the most iterations.
+    - ``tol``: the relative gain below which the iteration stops.
+
+    **Returns:**
+
+    ``(parameters, history, iterations)``: the fitted :class:`MFA`, the log-likelihood history ``(max_iter + 1,)``
+    with NaN after the last iteration (history[0] is the log-likelihood of ``p0``), and the iterations run.
     """
     floor = _scale_floor(y, w)
     scale = jnp.sum(w) * y.shape[1]  # a floor for |L| near 0 (one nat per weighted vertex and shape)
@@ -242,7 +252,20 @@ def _init_from_weights(y, resp, procrustes_iters: int) -> MFA:
 
 
 def kmeans_labels(y: np.ndarray, k: int, w: np.ndarray | None = None, *, seed: int = 0, iters: int = 30) -> np.ndarray:
-    """k-means (k-means++ start, fixed seed) of the weighted vertices' trajectories; labels (V,), -1 where w = 0."""
+    """k-means (k-means++ start, fixed seed) of the weighted vertices' trajectories.
+
+    **Arguments:**
+
+    - ``y``: shapes ``(V, M, 3)`` (each vertex's trajectory is one point).
+    - ``k``: the number of clusters.
+    - ``w``: per-vertex weights ``(V,)`` (default None: all ones); vertices of weight 0 are left out.
+    - ``seed``: the seed of the k-means++ start.
+    - ``iters``: Lloyd iterations.
+
+    **Returns:**
+
+    The labels ``(V,)``, -1 where w = 0.
+    """
     x = np.asarray(y, np.float64).reshape(y.shape[0], -1)
     idx = np.flatnonzero(np.ones(len(x), bool) if w is None else np.asarray(w) > 0)
     xs = x[idx]
@@ -271,7 +294,18 @@ def kmeans_labels(y: np.ndarray, k: int, w: np.ndarray | None = None, *, seed: i
 
 
 def one_hot(labels: np.ndarray, k: int, dtype=np.float64) -> np.ndarray:
-    """(V, K) one-hot matrix of labels in [0, K) (rows of -1 are all zero)."""
+    """One-hot matrix of labels.
+
+    **Arguments:**
+
+    - ``labels``: ``(V,)`` in [0, K), or -1.
+    - ``k``: K.
+    - ``dtype``: the dtype of the result.
+
+    **Returns:**
+
+    ``(V, K)``; rows of -1 are all zero.
+    """
     labels = np.asarray(labels)
     oh = np.zeros((labels.shape[0], k), dtype)
     ok = labels >= 0
@@ -283,14 +317,35 @@ def one_hot(labels: np.ndarray, k: int, dtype=np.float64) -> np.ndarray:
 
 
 def labels_of(y, p: MFA) -> np.ndarray:
-    """Maximum-responsibility part of every vertex (eq. 20)."""
+    """Maximum-responsibility part of every vertex (eq. 20).
+
+    **Arguments:**
+
+    - ``y``: shapes ``(V, M, 3)``.
+    - ``p``: the mixture's parameters.
+
+    **Returns:**
+
+    The labels ``(V,)`` in [0, K).
+    """
     tau, _ = jax.jit(e_step)(y, jnp.ones(y.shape[0], y.dtype), p)
     return np.asarray(jnp.argmax(tau, axis=1))
 
 
 @jax.jit
 def latent_images(y, p: MFA, labels) -> Float[Array, "v 3"]:
-    """Latent image z_i = D_k E[x | y_i, k] of every vertex in its part k = labels[i] (eq. 21)."""
+    """Latent image z_i = D_k E[x | y_i, k] of every vertex in its part k = labels[i] (eq. 21).
+
+    **Arguments:**
+
+    - ``y``: shapes ``(V, M, 3)``.
+    - ``p``: the mixture's parameters.
+    - ``labels``: the part of every vertex ``(V,)``.
+
+    **Returns:**
+
+    The latent images ``(V, 3)``.
+    """
     ex, _ = posterior(y, p)
     z = p.d[None] * ex  # (V, K, 3)
     return jnp.take_along_axis(z, labels[:, None, None], axis=1)[:, 0]
@@ -298,6 +353,17 @@ def latent_images(y, p: MFA, labels) -> Float[Array, "v 3"]:
 
 @jax.jit
 def reconstruct(p: MFA, labels, z) -> Float[Array, "m v 3"]:
-    """Shape m, vertex i: R_k^m z_i + t_k^m with k = labels[i] (eq. 22); returns (M, V, 3)."""
+    """Shape m, vertex i: R_k^m z_i + t_k^m with k = labels[i] (eq. 22).
+
+    **Arguments:**
+
+    - ``p``: the mixture's parameters.
+    - ``labels``: the part of every vertex ``(V,)``.
+    - ``z``: the latent images ``(V, 3)``.
+
+    **Returns:**
+
+    The reconstructed shapes ``(M, V, 3)``.
+    """
     rot = p.rot[labels]  # (V, M, 3, 3)
     return jnp.einsum("vmxy,vy->mvx", rot, z) + jnp.swapaxes(p.mu[labels], 0, 1)
