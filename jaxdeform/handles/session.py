@@ -274,9 +274,21 @@ class EditSession:
 
     @_locked
     def add_handle(self, vertex: int) -> int:
-        """Make ``vertex`` a handle with the identity transform and select it; returns its handle index.
+        """Make ``vertex`` a handle with the identity transform and select it.
 
-        A vertex that already is a handle is only selected; an anchor is refused (``ValueError``).
+        A vertex that already is a handle is only selected.
+
+        **Arguments:**
+
+        - ``vertex``: a vertex index.
+
+        **Returns:**
+
+        Its handle index.
+
+        **Raises:**
+
+        ``ValueError`` for an anchor or an invalid vertex.
         """
         vertex = self._vertex(vertex)
         if vertex in self.anchors:
@@ -292,7 +304,20 @@ class EditSession:
 
     @_locked
     def select_handle(self, handle: int | None = None) -> int:
-        """Select handle ``handle`` (an index into ``handles``; None: keep the selected one); returns its index."""
+        """Select a handle.
+
+        **Arguments:**
+
+        - ``handle``: an index into ``handles`` (None: keep the selected one).
+
+        **Returns:**
+
+        Its index.
+
+        **Raises:**
+
+        ``ValueError`` for an invalid index, or None with no handle selected.
+        """
         self._select(self._handle(handle))
         return self.selected
 
@@ -303,7 +328,20 @@ class EditSession:
 
     @_locked
     def remove_handle(self, handle: int | None = None) -> None:
-        """Remove a handle (default: the selected one); the selection moves to the next remaining handle."""
+        """Remove a handle; the selection moves to the next remaining handle.
+
+        **Arguments:**
+
+        - ``handle``: an index into ``handles`` (default None: the selected one).
+
+        **Returns:**
+
+        Nothing.
+
+        **Raises:**
+
+        ``ValueError`` for an invalid index, or None with no handle selected.
+        """
         k = self._handle(handle)
         del self.handles[k], self.transforms[k]
         self.selected = None if not self.handles else min(k, len(self.handles) - 1)
@@ -311,7 +349,21 @@ class EditSession:
 
     @_locked
     def set_transform(self, handle: int | None, transform) -> None:
-        """Set a handle's (3, 4) affine map (``handle`` None: the selected one); the identity resets it."""
+        """Set a handle's affine map; the identity resets it.
+
+        **Arguments:**
+
+        - ``handle``: an index into ``handles`` (default None: the selected one).
+        - ``transform``: the ``(3, 4)`` affine map.
+
+        **Returns:**
+
+        Nothing.
+
+        **Raises:**
+
+        ``ValueError`` for an invalid handle or a transform that is not a finite ``(3, 4)`` array.
+        """
         k = self._handle(handle)
         self.transforms[k] = check_array(
             transform, (3, 4), "'transform' must be 3 rows of 4 finite numbers (an affine map)."
@@ -319,22 +371,56 @@ class EditSession:
         self._changed()
 
     def reset_handle(self, handle: int | None = None) -> None:
-        """Give a handle (default: the selected one) the identity transform."""
+        """Give a handle the identity transform.
+
+        **Arguments:**
+
+        - ``handle``: an index into ``handles`` (default None: the selected one).
+
+        **Returns:**
+
+        Nothing.
+        """
         self.set_transform(handle, np.eye(3, 4))
 
     @_locked
     def translate_handle(self, translation, handle: int | None = None) -> None:
-        """Translate a handle (default: the selected one) by the (3,) world vector ``translation``, composed on
-        the left of its transform. Without symmetry or partition of unity every vertex i moves by ``W_ik t``: the
-        handle vertex by ``t`` when its own weight is 1 (always, unless an anchor with similar features lowers it)."""
+        """Translate a handle by a world vector, composed on the left of its transform.
+
+        Without symmetry or partition of unity every vertex i moves by ``W_ik t``: the handle vertex by ``t`` when its
+        own weight is 1 (always, unless an anchor with similar features lowers it).
+
+        **Arguments:**
+
+        - ``translation``: the world vector t ``(3,)``.
+        - ``handle``: an index into ``handles`` (default None: the selected one).
+
+        **Returns:**
+
+        Nothing.
+        """
         k = self._handle(handle)
         t = check_array(translation, (3,), "'translation' must be 3 finite numbers.")
         self._apply(k, make_transform(self._deformed64()[self.handles[k]], translate=t))
 
     @_locked
     def rotate_handle(self, axis, degrees: float, handle: int | None = None) -> None:
-        """Rotate a handle (default: the selected one) by ``degrees`` about ``axis`` (3,) through the handle's
-        current position, composed on the left of its transform."""
+        """Rotate a handle about an axis through the handle's current position, composed on the left of its transform.
+
+        **Arguments:**
+
+        - ``axis``: the rotation axis ``(3,)``, non-zero.
+        - ``degrees``: the angle.
+        - ``handle``: an index into ``handles`` (default None: the selected one).
+
+        **Returns:**
+
+        Nothing.
+
+        **Raises:**
+
+        ``ValueError`` for a zero axis or an invalid handle.
+        """
         k = self._handle(handle)
         a = check_array(axis, (3,), "'axis' must be 3 finite numbers.")
         if not np.linalg.norm(a) > 0.0:
@@ -346,7 +432,20 @@ class EditSession:
 
     @_locked
     def toggle_anchor(self, vertex: int) -> bool:
-        """Pin ``vertex`` as an anchor or unpin it; returns whether it is an anchor now (a handle is refused)."""
+        """Pin ``vertex`` as an anchor or unpin it.
+
+        **Arguments:**
+
+        - ``vertex``: a vertex index.
+
+        **Returns:**
+
+        Whether it is an anchor now.
+
+        **Raises:**
+
+        ``ValueError`` for a handle or an invalid vertex.
+        """
         vertex = self._vertex(vertex)
         if vertex in self.handles:
             raise ValueError(f"vertex {vertex} is a handle; a handle cannot also be an anchor.")
