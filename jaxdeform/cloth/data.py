@@ -181,7 +181,7 @@ def read_sequence(path: Path) -> tuple[Sequence, dict]:
     **Raises:**
 
     ``MeshFormatError`` for a missing array, wrong shapes, non-finite values, a damaged meta record or pins that
-    do not match the mesh; ``ConnectivityError`` for faces that do not fit the vertices.
+    do not match the mesh; ``ConnectivityError`` for frames whose vertex count differs from the rest mesh's.
     """
     path = Path(path)
     arrays = read_npz_arrays(path)
