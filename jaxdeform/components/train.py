@@ -63,11 +63,30 @@ class TrainConfig:
 
 
 def schedule(tc: TrainConfig) -> optax.Schedule:
-    """Learning rate per step: ``learning_rate * decay_rate ** (step / decay_steps)``."""
+    """Learning rate per step: ``learning_rate * decay_rate ** (step / decay_steps)``.
+
+    **Arguments:**
+
+    - ``tc``: the training hyper-parameters.
+
+    **Returns:**
+
+    The optax schedule.
+    """
     return optax.exponential_decay(tc.learning_rate, tc.decay_steps, tc.decay_rate)
 
 
 def optimizer(tc: TrainConfig) -> optax.GradientTransformation:
+    """Adam on :func:`schedule`, after clipping the gradient's global norm to ``tc.clip_norm`` when it is set.
+
+    **Arguments:**
+
+    - ``tc``: the training hyper-parameters.
+
+    **Returns:**
+
+    The optax gradient transformation.
+    """
     if tc.clip_norm is None:
         return optax.adam(schedule(tc))
     return optax.chain(optax.clip_by_global_norm(tc.clip_norm), optax.adam(schedule(tc)))
@@ -81,7 +100,17 @@ def _batch(key, data, batch: int):
 
 
 def step_batch(n_data: int, tc: TrainConfig) -> int:
-    """The number of shapes in each step's batch for a training set of ``n_data`` shapes."""
+    """The number of shapes in each step's batch for a training set of ``n_data`` shapes.
+
+    **Arguments:**
+
+    - ``n_data``: the training set's size.
+    - ``tc``: the training hyper-parameters.
+
+    **Returns:**
+
+    ``min(n_data, tc.batch)``.
+    """
     return min(int(n_data), tc.batch)
 
 
@@ -195,8 +224,17 @@ def _state(params, opt_state, key, history, stage_index, epoch):
 
 
 def seed_keys(seed: int) -> tuple:
-    """(batch key, initialisation key): the two keys :func:`train` draws from ``seed``, the second for
-    :func:`jaxdeform.components.model.init` where no parameters are given."""
+    """The two keys :func:`train` draws from ``seed``.
+
+    **Arguments:**
+
+    - ``seed``: the training seed.
+
+    **Returns:**
+
+    ``(batch key, initialisation key)``, the second for :func:`jaxdeform.components.model.init` where no
+    parameters are given.
+    """
     key, init_key = jax.random.split(jax.random.PRNGKey(seed))
     return key, init_key
 
