@@ -175,7 +175,21 @@ def _as_sequences(seqs, what: str) -> list[np.ndarray]:
 def windows(coarse_seqs: Sequence, fine_seqs: Sequence, window: int) -> Windows:
     """Every window of ``window`` consecutive frames of every paired (coarse, fine) sequence (module docstring).
 
-    Sequences shorter than the window give no window; if none gives one, ValueError.
+    Sequences shorter than the window give no window.
+
+    **Arguments:**
+
+    - ``coarse_seqs``: scaled coarse sequences, each ``(T_i, Vc, C)``.
+    - ``fine_seqs``: the frame-aligned fine sequences, each ``(T_i, Vf, C)``.
+    - ``window``: W.
+
+    **Returns:**
+
+    The :class:`Windows`.
+
+    **Raises:**
+
+    ``ValueError`` for unpaired or mismatched sequences, or if no sequence gives a window.
     """
     cs, fs = _as_sequences(coarse_seqs, "coarse"), _as_sequences(fine_seqs, "fine")
     if len(cs) != len(fs):
@@ -203,7 +217,19 @@ def windows(coarse_seqs: Sequence, fine_seqs: Sequence, window: int) -> Windows:
 def gather_windows(
     coarse: Float[Array, "n vc c"], fine: Float[Array, "n vf c"], starts: Int[Array, " b"], window: int
 ) -> tuple[Float[Array, "b w vc c"], Float[Array, "b w vf c"], Float[Array, "b w vf c"]]:
-    """(coarse window, teacher-forced fine input, fine target) of the windows starting at rows ``starts``."""
+    """The windows starting at rows ``starts`` of :class:`Windows`' stacked sequences.
+
+    **Arguments:**
+
+    - ``coarse``, ``fine``: the stacked sequences (:class:`Windows`).
+    - ``starts``: rows of the windows' first target frames ``(B,)``.
+    - ``window``: W.
+
+    **Returns:**
+
+    ``(coarse window, teacher-forced fine input, fine target)``: ``(B, W, Vc, C)``, ``(B, W, Vf, C)`` and
+    ``(B, W, Vf, C)``.
+    """
     idx = starts[:, None] + jnp.arange(window)[None, :]
     return coarse[idx], fine[idx - 1], fine[idx]
 
@@ -213,9 +239,18 @@ def self_fed_inputs(
 ) -> Float[Array, "b w vf c"]:
     """The fine inputs of a window as synthesis would feed them (module docstring, "Self-feeding").
 
-    ``predict(coarse_win, fine_prev_win)`` is the model; W - 1 passes without gradient, each moving the
-    previous pass's predictions of the target frames 0..W-2 into the input positions 1..W-1; position 0 keeps
-    ``fine_prev[:, 0]``. With W = 1 the inputs are returned unchanged.
+    W - 1 passes without gradient, each moving the previous pass's predictions of the target frames 0..W-2 into
+    the input positions 1..W-1; position 0 keeps ``fine_prev[:, 0]``.
+
+    **Arguments:**
+
+    - ``predict``: the model, ``predict(coarse_win, fine_prev_win)``.
+    - ``coarse_win``: coarse windows ``(B, W, Vc, C)``.
+    - ``fine_prev``: the teacher-forced fine inputs ``(B, W, Vf, C)``.
+
+    **Returns:**
+
+    The self-fed inputs ``(B, W, Vf, C)``; with W = 1 the inputs unchanged.
     """
     fed = fine_prev
     for _ in range(fine_prev.shape[1] - 1):  # W - 1 <= a few passes, unrolled once at trace time
@@ -225,7 +260,18 @@ def self_fed_inputs(
 
 
 def self_feed_probability(p: float, step: Array, steps: int) -> Array:
-    """p_t of the module docstring: 0 at step 0, p from half the training on."""
+    """p_t of the module docstring: 0 at step 0, rising linearly to p at half the training, p from then on.
+
+    **Arguments:**
+
+    - ``p``: the final probability.
+    - ``step``: the current step.
+    - ``steps``: the training's steps.
+
+    **Returns:**
+
+    p_t as a scalar array.
+    """
     return p * jnp.minimum(1.0, step.astype(jnp.float32) / max(steps / 2.0, 1.0))
 
 
@@ -259,14 +305,34 @@ class PositionTarget:
 
 
 def stack_like_windows(seqs: Sequence) -> Float[Array, "n v c"]:
-    """Sequences (T_i, V, C) one after another, each preceded by a zero frame (the rows of :class:`Windows`)."""
+    """Sequences one after another, each preceded by a zero frame (the rows of :class:`Windows`).
+
+    **Arguments:**
+
+    - ``seqs``: sequences ``(T_i, V, C)``.
+
+    **Returns:**
+
+    ``(sum_i (T_i + 1), V, C)`` float32.
+    """
     seqs = [np.asarray(x, np.float32) for x in seqs]
     zero = np.zeros((1,) + seqs[0].shape[1:], np.float32)
     return jnp.asarray(np.concatenate([x for s in seqs for x in (zero, s)]))
 
 
 def position_error(pos: PositionTarget, scaled: Float[Array, "b vf c"], rows: Int[Array, " b"]) -> Array:
-    """Mean squared vertex distance over ell^2 of scaled fine features decoded to positions, rows of ``pos``."""
+    """Mean squared vertex distance over ell^2 of scaled fine features decoded to positions.
+
+    **Arguments:**
+
+    - ``pos``: the position target (module docstring).
+    - ``scaled``: scaled fine features ``(B, Vf, C)``.
+    - ``rows``: the rows of ``pos`` they belong to ``(B,)``.
+
+    **Returns:**
+
+    The error as a scalar array.
+    """
     from jaxdeform.acap.features import gradients_from_features
     from jaxdeform.cloth.features import LIMIT
 
