@@ -124,6 +124,22 @@ N_LINEAR = {"default": 50, "test": 8}
 
 
 def resolve_config(method: str, name: str, epochs: int | None = None, seed: int | None = None):
+    """The model and training configuration of a named configuration of ``method``.
+
+    **Arguments:**
+
+    - ``method``: one of the methods (module docstring).
+    - ``name``: one of ``method``'s named configurations.
+    - ``epochs``, ``seed``: override the configuration's epochs and seed (None: keep them).
+
+    **Returns:**
+
+    ``(config, train_config)``; ``config`` is None for the linear baselines.
+
+    **Raises:**
+
+    ``ValueError`` for an unknown method or configuration, or ``epochs < 1``.
+    """
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r}; expected one of {', '.join(METHODS)}.")
     if name not in CONFIGS[method]:
@@ -141,11 +157,24 @@ def resolve_config(method: str, name: str, epochs: int | None = None, seed: int 
 def stale_reason(
     record: dict, method: str, name: str, epochs: int | None = None, split: str | None = None
 ) -> str | None:
-    """Why a stored run (its run.json ``record``) is not what ``resolve_config(method, name, epochs)`` and this
-    code's feature preparation would train now, or None. The epoch count is compared only when ``epochs`` is
-    given (a run trained with ``--epochs N`` is reused by a later call without it), the split only when ``split``
-    is given. A run written before a field existed (of the model or the training configuration) is compared with
-    that field's default. Linear baselines have no training configuration to compare."""
+    """Why a stored run is not what ``resolve_config(method, name, epochs)`` and this code's feature preparation
+    would train now.
+
+    The epoch count is compared only when ``epochs`` is given (a run trained with ``--epochs N`` is reused by a
+    later call without it), the split only when ``split`` is given. A record that lacks a field (of the model or
+    the training configuration) is compared with that field's default. Linear baselines have no training
+    configuration to compare.
+
+    **Arguments:**
+
+    - ``record``: the stored run's run.json.
+    - ``method``, ``name``, ``epochs``: as :func:`resolve_config`'s.
+    - ``split``: the split mode to compare (default None: not compared).
+
+    **Returns:**
+
+    The reason as a short sentence fragment, or None when the run matches.
+    """
     if record.get("method") != method:
         return f"it is a {record.get('method')} run, not {method}"
     if split is not None and record.get("split", {}).get("mode") != split:
@@ -174,9 +203,24 @@ def stale_reason(
 
 
 def split_indices(n: int, mode: str = "every10", seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """(train, test) shape indices: every 10th shape (0, 10, ...), a seeded random half, or "all": every shape
-    trains and the "test" set is the whole data set again (the representation error of Table 5, eq. 8, read as
-    the maximum "in the whole dataset")."""
+    """Train and test shape indices.
+
+    **Arguments:**
+
+    - ``n``: the number of shapes (at least 2).
+    - ``mode``: ``"every10"``: every 10th shape (0, 10, ...) is a test shape; ``"half"``: a seeded random half;
+        ``"all"``: every shape trains and the "test" set is the whole data set again (the representation error of
+        Table 5, eq. 8, read as the maximum "in the whole dataset").
+    - ``seed``: the seed of ``"half"``.
+
+    **Returns:**
+
+    ``(train, test)`` int64 index arrays.
+
+    **Raises:**
+
+    ``ValueError`` for ``n < 2`` or an unknown mode.
+    """
     if n < 2:
         raise ValueError(f"a components run needs at least 2 shapes, got {n}.")
     if mode == "every10":
@@ -196,7 +240,20 @@ def split_indices(n: int, mode: str = "every10", seed: int = 0) -> tuple[np.ndar
 
 
 def load_data(data) -> tuple[np.ndarray, np.ndarray]:
-    """Shapes (N, V, 3) and faces of a folder or file list; at least 2 shapes of one connectivity."""
+    """Shapes and faces of a folder or file list.
+
+    **Arguments:**
+
+    - ``data``: a folder or a list of mesh files of one connectivity.
+
+    **Returns:**
+
+    ``(vertices (N, V, 3), faces (F, 3))``, N >= 2, checked by :func:`check_nondegenerate`.
+
+    **Raises:**
+
+    ``ValueError`` for fewer than 2 shapes; :func:`check_nondegenerate`'s errors; the mesh reader's errors.
+    """
     vertices, faces = load_sequence(data)
     if vertices.shape[0] < 2:
         raise ValueError(f"a components run needs at least 2 shapes; {data} holds {vertices.shape[0]}.")
@@ -205,8 +262,25 @@ def load_data(data) -> tuple[np.ndarray, np.ndarray]:
 
 
 def check_nondegenerate(vertices: np.ndarray, faces: np.ndarray, where: str) -> None:
-    """Refuse coincident edge ends in any shape (Erms and STED divide by edge lengths) and zero-area faces in the
-    rest shape, shape 0 (its geodesic distances and cotangent weights): one sentence naming the first."""
+    """Refuse coincident edge ends in any shape and zero-area faces in the rest shape.
+
+    Erms and STED divide by edge lengths; the rest shape (shape 0) gives the geodesic distances and cotangent
+    weights.
+
+    **Arguments:**
+
+    - ``vertices``: shapes ``(N, V, 3)``.
+    - ``faces``: triangles ``(F, 3)``.
+    - ``where``: the start of the error sentence.
+
+    **Returns:**
+
+    Nothing.
+
+    **Raises:**
+
+    ``DegenerateMeshError``, one sentence naming the first offending edge or face.
+    """
     edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
     lengths = np.linalg.norm(vertices[:, edges[:, 0]] - vertices[:, edges[:, 1]], axis=-1)  # (N, 3F)
     if np.any(lengths <= 0):
@@ -226,9 +300,21 @@ def check_nondegenerate(vertices: np.ndarray, faces: np.ndarray, where: str) -> 
 def fit_feature_transform(
     train_features: np.ndarray, scale_quantile: float = SCALE_QUANTILE, align: bool = True
 ) -> tuple[np.ndarray | None, acap.Scaler]:
-    """What the ACAP methods fit on the training shapes' features (N, V, 9) before learning: the rotation
-    reference the 2 pi branches are aligned to (None with ``align=False``: per-shape branches) and the feature
-    scaler, fitted on the aligned features at ``scale_quantile``. Apply both with :func:`apply_feature_transform`."""
+    """What the ACAP methods fit on the training shapes' features before learning.
+
+    Apply both with :func:`apply_feature_transform`.
+
+    **Arguments:**
+
+    - ``train_features``: ACAP features ``(N, V, 9)``.
+    - ``scale_quantile``: the scaler's quantile.
+    - ``align``: align the 2 pi rotation branches to a common reference (False: per-shape branches).
+
+    **Returns:**
+
+    ``(turns, scaler)``: the rotation reference ``(V, 3)`` (None with ``align=False``) and the feature scaler, fitted
+    on the aligned features.
+    """
     dtype = np.asarray(train_features).dtype
     turns = np.asarray(acap.turn_reference(train_features), dtype) if align else None
     aligned = train_features if turns is None else np.asarray(acap.align_turns(train_features, turns), dtype)
@@ -238,7 +324,19 @@ def fit_feature_transform(
 def apply_feature_transform(
     features: np.ndarray, turns: np.ndarray | None, scaler: acap.Scaler, dtype=None
 ) -> np.ndarray:
-    """Features (N, V, 9) as the ACAP methods see them: branches aligned to ``turns`` (when given), then scaled."""
+    """Features as the ACAP methods see them: branches aligned to ``turns`` (when given), then scaled.
+
+    **Arguments:**
+
+    - ``features``: ACAP features ``(N, V, 9)``.
+    - ``turns``: the rotation reference, or None.
+    - ``scaler``: the feature scaler.
+    - ``dtype``: the result's dtype (default None: that of ``features``).
+
+    **Returns:**
+
+    Scaled features ``(N, V, 9)``.
+    """
     dtype = np.asarray(features).dtype if dtype is None else np.dtype(dtype)
     feats = np.asarray(features, dtype)
     if turns is not None:
@@ -247,7 +345,18 @@ def apply_feature_transform(
 
 
 def normalized_geodesics(rest: np.ndarray, faces: np.ndarray, dtype=np.float32) -> np.ndarray:
-    """Normalized geodesic distances (V, V) on the reference shape (exact up to 5000 vertices, heat above)."""
+    """Normalized geodesic distances on the reference shape (exact up to 5000 vertices, heat method above).
+
+    **Arguments:**
+
+    - ``rest``: the reference shape ``(V, 3)``.
+    - ``faces``: triangles ``(F, 3)``.
+    - ``dtype``: the result's dtype.
+
+    **Returns:**
+
+    ``(V, V)`` distances.
+    """
     return geodesic.geodesic_distances(rest, faces, np.arange(rest.shape[0])).astype(dtype)
 
 
