@@ -980,8 +980,20 @@ def editor(run: Run) -> Editor:
 
 
 def read_controls(path) -> tuple[np.ndarray, np.ndarray]:
-    """Control vertices and targets from a .json ``{"indices": [...], "targets": [[x, y, z], ...]}`` or a text
-    file of lines ``index x y z``."""
+    """Control vertices and targets of an edit from a file.
+
+    **Arguments:**
+
+    - ``path``: a .json ``{"indices": [...], "targets": [[x, y, z], ...]}`` or a text file of lines ``index x y z``.
+
+    **Returns:**
+
+    ``(indices (M,) int, targets (M, 3))``, M >= 1.
+
+    **Raises:**
+
+    ``RunError`` (one sentence) for an unreadable file, non-integer indices or targets that are not ``(M, 3)``.
+    """
     path = Path(path)
     try:
         if path.suffix.lower() == ".json":

@@ -65,7 +65,16 @@ class BadRequest(ValueError):
 
 
 def encode_vertices(v: np.ndarray) -> dict:
-    """(V, 3) floats as ``{"dtype", "shape", "data"}`` with base64 little-endian bytes (non-floats as float64)."""
+    """Vertices as a JSON value with base64 little-endian bytes.
+
+    **Arguments:**
+
+    - ``v``: ``(V, 3)`` floats (non-floats are sent as float64).
+
+    **Returns:**
+
+    ``{"dtype", "shape", "data"}``.
+    """
     a = np.asarray(v)
     if a.dtype not in (np.float32, np.float64):
         a = a.astype(np.float64)
@@ -74,7 +83,16 @@ def encode_vertices(v: np.ndarray) -> dict:
 
 
 def decode_vertices(payload: dict) -> np.ndarray:
-    """Inverse of :func:`encode_vertices`: a read-only array of the encoded dtype and shape."""
+    """Inverse of :func:`encode_vertices`.
+
+    **Arguments:**
+
+    - ``payload``: ``{"dtype", "shape", "data"}``.
+
+    **Returns:**
+
+    A read-only array of the encoded dtype and shape.
+    """
     dtype = np.dtype(payload["dtype"]).newbyteorder("<")
     return np.frombuffer(base64.b64decode(payload["data"]), dtype=dtype).reshape(payload["shape"])
 
@@ -367,7 +385,20 @@ class _Server(ThreadingHTTPServer):
 
 
 def loopback_host(host: str) -> str:
-    """The IPv4 loopback address to bind for ``host`` (``localhost`` -> 127.0.0.1); anything else is refused."""
+    """The IPv4 loopback address to bind for ``host``.
+
+    **Arguments:**
+
+    - ``host``: ``localhost`` (-> 127.0.0.1) or an IPv4 loopback address.
+
+    **Returns:**
+
+    The address to bind.
+
+    **Raises:**
+
+    ``ValueError`` for anything else.
+    """
     name = "127.0.0.1" if host == "localhost" else host
     try:
         addr = ipaddress.ip_address(name)
