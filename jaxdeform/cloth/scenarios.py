@@ -175,7 +175,18 @@ def _disk():
 
 
 def loop_subdivide(verts, faces, levels: int = 3):
-    """``igl.loop`` (original vertices first): positions (V', 3) float64 and faces (F', 3) int64."""
+    """Loop subdivision by ``igl.loop`` (original vertices first).
+
+    **Arguments:**
+
+    - ``verts``: ``(V, 3)``.
+    - ``faces``: ``(F, 3)``.
+    - ``levels``: the number of subdivisions.
+
+    **Returns:**
+
+    ``(positions (V', 3) float64, faces (F', 3) int64)``.
+    """
     v, f = igl.loop(np.ascontiguousarray(verts, np.float64), np.ascontiguousarray(faces, np.int64), levels)
     return np.asarray(v), np.asarray(f)
 
@@ -195,16 +206,37 @@ def _meshes(kind: str, levels: int = 3):
 
 
 def meshes(kind: str, levels: int = 3):
-    """Rest meshes (coarse_v, coarse_f, fine_v, fine_f) of a scenario kind (host numpy, float64 / int64).
+    """Rest meshes of a scenario kind (host numpy).
 
-    ``levels``: Loop subdivisions from coarse to fine (3: the paper's resolutions; fewer for quick tests).
+    **Arguments:**
+
+    - ``kind``: ``"sheet"`` or ``"disk"``.
+    - ``levels``: Loop subdivisions from coarse to fine (3: the paper's resolutions; fewer for quick tests).
+
+    **Returns:**
+
+    ``(coarse_v, coarse_f, fine_v, fine_f)``, float64 / int64.
+
+    **Raises:**
+
+    ``ScenarioError`` for an unknown kind or ``levels < 1``.
     """
     return tuple(np.array(a) for a in _meshes(kind, levels))
 
 
 @functools.cache
 def models(kind: str, levels: int = 3) -> tuple[sim.ClothModel, sim.ClothModel]:
-    """The coarse and fine :class:`ClothModel` of a kind (built once per process)."""
+    """The coarse and fine :class:`ClothModel` of a kind (built once per process).
+
+    **Arguments:**
+
+    - ``kind``: ``"sheet"`` or ``"disk"``.
+    - ``levels``: Loop subdivisions from coarse to fine.
+
+    **Returns:**
+
+    ``(coarse model, fine model)``.
+    """
     cv, cf, fv, ff = _meshes(kind, levels)
     return sim.build_model(cv, cf), sim.build_model(fv, ff)
 
@@ -415,7 +447,16 @@ def _run_one(model, params, x0, sc: Scenario, pinned, progress: bool, desc: str)
 
 
 def fine_start(sc: Scenario) -> np.ndarray:
-    """The fine cloth's initial (pre-settling) positions: the coarse start Loop-subdivided, (Vf, 3) float32."""
+    """The fine cloth's initial (pre-settling) positions: the coarse start Loop-subdivided.
+
+    **Arguments:**
+
+    - ``sc``: the scenario.
+
+    **Returns:**
+
+    ``(Vf, 3)`` float32.
+    """
     _, cf, _, _ = _meshes(sc.kind, sc.levels)
     return loop_subdivide(sc.x0_coarse, cf, sc.levels)[0].astype(np.float32)
 
@@ -428,9 +469,19 @@ def _run_fine(sc: Scenario, x0: np.ndarray, progress: bool):
 
 
 def pins(sc: Scenario) -> dict:
-    """The pinned vertices of both meshes and where they are held (they never move): "coarse_pins" /
-    "fine_pins" (int32 indices) and "coarse_pin_positions" / "fine_pin_positions" (float32 (P, 3)). These are
-    part of the scenario, like the obstacles: the synthesis anchors its reconstruction on them."""
+    """The pinned vertices of both meshes and where they are held (they never move).
+
+    These are part of the scenario, like the obstacles: the synthesis anchors its reconstruction on them.
+
+    **Arguments:**
+
+    - ``sc``: the scenario.
+
+    **Returns:**
+
+    A dict: "coarse_pins" / "fine_pins" (int32 indices) and "coarse_pin_positions" / "fine_pin_positions"
+    (float32 ``(P, 3)``).
+    """
     x0f = fine_start(sc)
     pc, pf = np.flatnonzero(sc.pinned_coarse), np.flatnonzero(sc.pinned_fine)
     return {
@@ -499,12 +550,26 @@ def simulate_pair(sc: Scenario, *, progress: bool = True) -> dict:
 
 
 def simulate_fine(sc: Scenario, *, perturbation: float = 0.0, seed: int = 1) -> np.ndarray:
-    """The fine cloth of a scenario alone, (T, Vf, 3) float32, optionally from a start whose free vertices are
-    moved by Gaussian noise of ``perturbation`` metres RMS per coordinate (``seed`` draws it).
+    """The fine cloth of a scenario alone, optionally from a perturbed start.
 
     Two runs that differ only by a tiny perturbation measure how far the fine simulation itself is determined
     by its scenario: their distance is a floor below which no predictor of the fine cloth from the scenario
     (let alone from the coarse cloth) can be expected to go (the ``floor`` stage of ``experiments/cloth``).
+
+    **Arguments:**
+
+    - ``sc``: the scenario.
+    - ``perturbation``: the RMS per coordinate, in metres, of Gaussian noise added to the free vertices' start
+        (non-negative; 0: none).
+    - ``seed``: draws the noise.
+
+    **Returns:**
+
+    The frames ``(T, Vf, 3)`` float32.
+
+    **Raises:**
+
+    ``ScenarioError`` for a negative or non-finite perturbation.
     """
     if not (perturbation >= 0 and np.isfinite(perturbation)):
         raise ScenarioError(f"the perturbation must be a non-negative number of metres, got {perturbation}.")
