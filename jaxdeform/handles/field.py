@@ -162,7 +162,17 @@ class FeatureField(nnx.Module):
 
 
 def unit(z: Float[Array, "... c"], eps: float = 1e-12) -> Float[Array, "... c"]:
-    """``z / max(||z||, eps)`` along the last axis."""
+    """``z / max(||z||, eps)`` along the last axis.
+
+    **Arguments:**
+
+    - ``z``: ``(..., C)``.
+    - ``eps``: the smallest norm divided by.
+
+    **Returns:**
+
+    Same shape as ``z``.
+    """
     return z / jnp.maximum(jnp.linalg.norm(z, axis=-1, keepdims=True), eps)
 
 
@@ -178,8 +188,18 @@ def sample_pixel_features(
     """Bilinear interpolation of patch tokens at image points (y, x) of the given views, edge-clamped.
 
     Patch (a, b) of an h x w grid has its centre at ((a + 1/2) H / h, (b + 1/2) W / w) in an H x W image, so
-    the point (y, x) sits at fractional patch coordinates (y h / H - 1/2, x w / W - 1/2). ``image_hw`` must be
-    static (Python ints) under ``jit``. Returns float32.
+    the point (y, x) sits at fractional patch coordinates (y h / H - 1/2, x w / W - 1/2).
+
+    **Arguments:**
+
+    - ``patch_feats``: patch tokens ``(N, h, w, C)``.
+    - ``view_idx``: the view of each point ``(P,)``.
+    - ``pixel_yx``: image points ``(P, 2)``.
+    - ``image_hw``: (H, W); must be static (Python ints) under ``jit``.
+
+    **Returns:**
+
+    The features ``(P, C)`` float32.
     """
     _, h, w, _ = patch_feats.shape
     big_h, big_w = image_hw

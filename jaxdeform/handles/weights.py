@@ -99,7 +99,16 @@ class NoSymmetryError(JaxDeformError):
 
 
 def bucket(k: int) -> int:
-    """The padded column count used for k handles: the next power of two (0 and 1 stay as they are)."""
+    """The padded column count used for k handles.
+
+    **Arguments:**
+
+    - ``k``: the number of handles.
+
+    **Returns:**
+
+    The next power of two (0 and 1 stay as they are).
+    """
     return k if k <= 1 else 1 << (k - 1).bit_length()
 
 
@@ -427,14 +436,33 @@ def _plane_arrays(plane: Plane) -> tuple[np.ndarray, float]:
 
 
 def reflect_points(plane: Plane, points) -> np.ndarray:
-    """Mirror images R_P(p) = p - 2 (n . p - offset) n of points (..., 3) across the plane."""
+    """Mirror images R_P(p) = p - 2 (n . p - offset) n of points across the plane.
+
+    **Arguments:**
+
+    - ``plane``: the plane.
+    - ``points``: ``(..., 3)``.
+
+    **Returns:**
+
+    The mirror images, same shape (float64).
+    """
     n, d = _plane_arrays(plane)
     p = np.asarray(points, dtype=np.float64)
     return p - 2.0 * (p @ n - d)[..., None] * n
 
 
 def reflection_matrix(plane: Plane) -> np.ndarray:
-    """The affine reflection S (4 x 4, homogeneous) across the plane; S S = I."""
+    """The affine reflection S across the plane; S S = I.
+
+    **Arguments:**
+
+    - ``plane``: the plane.
+
+    **Returns:**
+
+    S, ``(4, 4)`` homogeneous.
+    """
     n, d = _plane_arrays(plane)
     S = np.eye(4)
     S[:3, :3] -= 2.0 * np.outer(n, n)
@@ -443,7 +471,17 @@ def reflection_matrix(plane: Plane) -> np.ndarray:
 
 
 def reflect_transform(plane: Plane, D) -> np.ndarray:
-    """R_P(D) = S D S (3 x 4): the transform D seen in the mirror (eq. 9)."""
+    """R_P(D) = S D S: the transform D seen in the mirror (eq. 9).
+
+    **Arguments:**
+
+    - ``plane``: the plane.
+    - ``D``: a ``(3, 4)`` affine map.
+
+    **Returns:**
+
+    The mirrored ``(3, 4)`` map.
+    """
     D = np.asarray(D, dtype=np.float64)
     if D.shape != (3, 4):
         raise ValueError(f"D must be a (3, 4) affine transform, got shape {D.shape}.")
@@ -457,7 +495,17 @@ def _canonical_sign(n: np.ndarray) -> np.ndarray:
 
 
 def candidate_planes(vertices, *, pca: bool = True) -> list[Plane]:
-    """Unscored candidate planes through the vertex centroid: normals x, y, z, then new principal axes."""
+    """Unscored candidate planes through the vertex centroid: normals x, y, z, then new principal axes.
+
+    **Arguments:**
+
+    - ``vertices``: ``(V, 3)``.
+    - ``pca``: add the principal axes not already among x, y, z (needs at least 3 vertices).
+
+    **Returns:**
+
+    The candidate planes (:class:`Plane`, unscored, each naming its ``source``).
+    """
     v = np.asarray(vertices, dtype=np.float64)
     centroid = v.mean(axis=0)
     normals = [(name, np.asarray(axis)) for name, axis in _COORD_AXES]
