@@ -47,10 +47,26 @@ def regional_mixes(
     sigma: float = 0.15,
     alpha: float = 0.5,
 ) -> np.ndarray:
-    """(n, V, C) mixes of the S shapes ``x`` (S, V, C): a mix picks R ~ U{regions} random centre vertices, gives
-    each a Dirichlet(alpha) combination of the S shapes, and blends the centres' combinations over the mesh by the
-    normalized Gaussian weights exp(-(dist / sigma)^2) of the geodesic distances ``dist`` (V, V): every vertex is a
-    convex combination of the shapes, varying smoothly over the surface."""
+    """Regional mixes of shapes: every vertex a convex combination of the shapes, varying smoothly over the surface.
+
+    A mix picks R ~ U{regions} random centre vertices, gives each a Dirichlet(alpha) combination of the S shapes,
+    and blends the centres' combinations over the mesh by the normalized Gaussian weights exp(-(dist / sigma)^2)
+    of the geodesic distances.
+
+    **Arguments:**
+
+    - ``x``: the S shapes ``(S, V, C)`` (e.g. scaled features).
+    - ``dist``: geodesic distances ``(V, V)``.
+    - ``n``: the number of mixes.
+    - ``rng``: the random generator.
+    - ``regions``: the range of R.
+    - ``sigma``: the Gaussian's width, in the units of ``dist``.
+    - ``alpha``: the Dirichlet concentration.
+
+    **Returns:**
+
+    The mixes ``(n, V, C)``.
+    """
     s, v, _ = x.shape
     out = np.empty((n,) + x.shape[1:], x.dtype)
     for i in range(n):  # data preparation, once per run
@@ -105,12 +121,24 @@ def rigid_residual(p, g):
 
 
 def position_loss_fn(run: crun.Run, rings, dist, weight: float, rigid: bool = False):
-    """(loss, positions, term): loss(params, x (B, V, 9) scaled features, g (B, V, 3) their positions) ->
-    (total, (model loss, position term)), the module docstring's loss, one differentiable function;
-    positions(x) the plain ACAP reconstruction of scaled features that the position term compares (the targets g
-    come from it too); term(x_hat, g) the position term of the model's output x_hat. With ``rigid`` the term is
-    taken after rotating each reconstruction onto its target (:func:`rigid_residual`), so a global rotation,
-    which Erms does not count, costs nothing."""
+    """The fine-tuning loss and its parts, as functions.
+
+    **Arguments:**
+
+    - ``run``: the autoencoder run.
+    - ``rings``: the mesh's one-rings.
+    - ``dist``: normalized geodesic distances ``(V, V)``.
+    - ``weight``: the position term's weight w.
+    - ``rigid``: take the term after rotating each reconstruction onto its target (:func:`rigid_residual`), so a
+        global rotation, which Erms does not count, costs nothing.
+
+    **Returns:**
+
+    ``(loss, positions, term)``: ``loss(params, x (B, V, 9) scaled features, g (B, V, 3) their positions)`` ->
+    ``(total, (model loss, position term))``, the module docstring's loss, one differentiable function;
+    ``positions(x)`` the plain ACAP reconstruction of scaled features that the position term compares (the targets
+    g come from it too); ``term(x_hat, g)`` the position term of the model's output x_hat.
+    """
     machinery = acap.cached(run.rest, run.faces)
     machinery.reconstructor(None)  # factorized on the host now, not inside a trace
     inv_r2 = 1.0 / float(np.mean(np.sum((run.rest - run.rest.mean(axis=0)) ** 2, axis=-1)))
