@@ -48,10 +48,18 @@ SLERP_LINEAR_DOT = 1.0 - 1e-10
 
 
 def quat_from_matrix(r: np.ndarray) -> np.ndarray:
-    """Unit quaternions (w, x, y, z), w >= 0, of proper rotations ``r`` (..., 3, 3) (Shepperd's method).
+    """Unit quaternions of proper rotations (Shepperd's method).
 
     The largest of the four candidates 4w^2, 4x^2, 4y^2, 4z^2 (from the trace and the diagonal) is used as
     the pivot, so the division is always by a number >= 1 and the result is accurate for every angle.
+
+    **Arguments:**
+
+    - ``r``: proper rotations ``(..., 3, 3)``.
+
+    **Returns:**
+
+    Quaternions (w, x, y, z) ``(..., 4)``, unit, w >= 0.
     """
     r = np.asarray(r, np.float64)
     r00, r11, r22 = r[..., 0, 0], r[..., 1, 1], r[..., 2, 2]
@@ -77,7 +85,16 @@ def quat_from_matrix(r: np.ndarray) -> np.ndarray:
 
 
 def matrix_from_quat(q: np.ndarray) -> np.ndarray:
-    """Rotation matrices (..., 3, 3) of quaternions (w, x, y, z) (..., 4); ``q`` is normalised first."""
+    """Rotation matrices of quaternions.
+
+    **Arguments:**
+
+    - ``q``: quaternions (w, x, y, z) ``(..., 4)``; normalised first.
+
+    **Returns:**
+
+    ``(..., 3, 3)``.
+    """
     q = np.asarray(q, np.float64)
     q = q / np.linalg.norm(q, axis=-1, keepdims=True)
     w, x, y, z = (q[..., j] for j in range(4))
@@ -92,9 +109,17 @@ def matrix_from_quat(q: np.ndarray) -> np.ndarray:
 def slerp(q0: np.ndarray, q1: np.ndarray, t) -> np.ndarray:
     """Spherical linear interpolation of unit quaternions along the shortest arc (Lengyel 2001).
 
-    ``q0``, ``q1`` (..., 4); ``t`` scalar or array; the result has shape broadcast(t.shape + (1,), q.shape)
-    with ``t`` broadcast against the leading axes, e.g. t (T, 1) and q (K, 4) give (T, K, 4). q1 is negated
-    when q0 . q1 < 0 (q and -q are the same rotation); nearly identical quaternions use normalised lerp.
+    q1 is negated when q0 . q1 < 0 (q and -q are the same rotation); nearly identical quaternions use
+    normalised lerp.
+
+    **Arguments:**
+
+    - ``q0``, ``q1``: ``(..., 4)``.
+    - ``t``: scalar or array, broadcast against the leading axes.
+
+    **Returns:**
+
+    Shape broadcast(t.shape + (1,), q.shape), e.g. t ``(T, 1)`` and q ``(K, 4)`` give ``(T, K, 4)``.
     """
     q0 = np.asarray(q0, np.float64)
     q1 = np.asarray(q1, np.float64)
@@ -114,7 +139,16 @@ def slerp(q0: np.ndarray, q1: np.ndarray, t) -> np.ndarray:
 
 
 def rotation_angle(r: np.ndarray) -> np.ndarray:
-    """Rotation angle in [0, pi] of rotation matrices (..., 3, 3), via the quaternion (accurate near 0)."""
+    """Rotation angle of rotation matrices, via the quaternion (accurate near 0).
+
+    **Arguments:**
+
+    - ``r``: ``(..., 3, 3)``.
+
+    **Returns:**
+
+    Angles ``(...)`` in [0, pi].
+    """
     q = quat_from_matrix(r)
     return 2.0 * np.arctan2(np.linalg.norm(q[..., 1:], axis=-1), np.abs(q[..., 0]))
 
@@ -123,7 +157,17 @@ def rotation_angle(r: np.ndarray) -> np.ndarray:
 
 
 def between_faces(faces: np.ndarray, labels: np.ndarray) -> np.ndarray:
-    """Boolean mask (F,) of the "between" triangles: faces whose (assigned) vertices carry more than one label."""
+    """The "between" triangles: faces whose (assigned) vertices carry more than one label.
+
+    **Arguments:**
+
+    - ``faces``: ``(F, 3)``.
+    - ``labels``: ``(V,)`` parts (-1: unassigned).
+
+    **Returns:**
+
+    A boolean mask ``(F,)``.
+    """
     fl = np.asarray(labels)[np.asarray(faces)]  # (F, 3)
     ok = fl >= 0
     lo = np.where(ok, fl, np.iinfo(fl.dtype).max).min(axis=1)
@@ -142,7 +186,15 @@ def _face_label_pairs(faces: np.ndarray, labels: np.ndarray) -> np.ndarray:
 def part_adjacency(faces: np.ndarray, labels: np.ndarray, k: int) -> list[set[int]]:
     """Part adjacency: ``adj[a]`` is the set of parts b != a such that some triangle has vertices of a and b.
 
-    Labels -1 (unassigned vertices) are ignored. Returns a list of K sets.
+    **Arguments:**
+
+    - ``faces``: ``(F, 3)``.
+    - ``labels``: ``(V,)`` parts; -1 (unassigned vertices) is ignored.
+    - ``k``: K.
+
+    **Returns:**
+
+    A list of K sets.
     """
     adj: list[set[int]] = [set() for _ in range(k)]
     for a, b in np.unique(_face_label_pairs(faces, labels), axis=0):
@@ -155,8 +207,16 @@ def bfs_tree(adjacency: Sequence[set[int]], angles: np.ndarray) -> tuple[list[in
     """Breadth-first spanning forest of the part graph (Algorithm 2).
 
     Each connected component is rooted at its part with the smallest rotation angle ``angles[k]`` (ties: the
-    lowest index); neighbours are visited in increasing index order. Returns (visit order, parent (K,) with -1
-    for roots, roots).
+    lowest index); neighbours are visited in increasing index order.
+
+    **Arguments:**
+
+    - ``adjacency``: :func:`part_adjacency`'s K sets.
+    - ``angles``: ``(K,)`` rotation angles.
+
+    **Returns:**
+
+    ``(visit order, parent (K,) with -1 for roots, roots)``.
     """
     k = len(adjacency)
     parent = np.full(k, -1, np.int64)
