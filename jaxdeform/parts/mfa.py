@@ -65,7 +65,16 @@ class MFA:
 
 
 def proper_procrustes(a: Float[Array, "... 3 3"]) -> Float[Array, "... 3 3"]:
-    """argmax over proper rotations R of tr(R^T A) (Lemma 1: flip the last singular direction if needed)."""
+    """argmax over proper rotations R of tr(R^T A) (Lemma 1: flip the last singular direction if needed).
+
+    **Arguments:**
+
+    - ``a``: ``(..., 3, 3)``.
+
+    **Returns:**
+
+    Proper rotations ``(..., 3, 3)``.
+    """
     u, _, vt = jnp.linalg.svd(a)
     det = jnp.linalg.det(u @ vt)
     flip = jnp.where(det < 0, -1.0, 1.0).astype(a.dtype)
@@ -86,7 +95,17 @@ def _projections(y, p: MFA):
 
 
 def log_densities(y: Float[Array, "v m 3"], p: MFA) -> Float[Array, "v k"]:
-    """log N(y_i | mu_k, Sigma_k) for every vertex and part."""
+    """log N(y_i | mu_k, Sigma_k) for every vertex and part.
+
+    **Arguments:**
+
+    - ``y``: normalised shapes ``(V, M, 3)``.
+    - ``p``: the mixture's parameters.
+
+    **Returns:**
+
+    ``(V, K)``.
+    """
     m = y.shape[1]
     b, r2 = _projections(y, p)
     c = p.sigma2[:, None] + m * p.d**2  # (K, 3)
@@ -96,14 +115,35 @@ def log_densities(y: Float[Array, "v m 3"], p: MFA) -> Float[Array, "v k"]:
 
 
 def e_step(y, w, p: MFA):
-    """(responsibilities (V, K), weighted log-likelihood sum_i w_i log sum_k pi_k N_ik)."""
+    """The E-step.
+
+    **Arguments:**
+
+    - ``y``: normalised shapes ``(V, M, 3)``.
+    - ``w``: per-vertex weights ``(V,)``.
+    - ``p``: the mixture's parameters.
+
+    **Returns:**
+
+    ``(responsibilities (V, K), weighted log-likelihood sum_i w_i log sum_k pi_k N_ik)``.
+    """
     lj = p.log_pi[None] + log_densities(y, p)
     lse = jax.scipy.special.logsumexp(lj, axis=1)
     return jnp.exp(lj - lse[:, None]), jnp.sum(w * lse)
 
 
 def posterior(y, p: MFA):
-    """E[x | y_i, k] (V, K, 3) and the diagonal of Cov[x | y, k] (K, 3)."""
+    """The latent posterior of every vertex in every part.
+
+    **Arguments:**
+
+    - ``y``: normalised shapes ``(V, M, 3)``.
+    - ``p``: the mixture's parameters.
+
+    **Returns:**
+
+    ``(E[x | y_i, k] (V, K, 3), the diagonal of Cov[x | y, k] (K, 3))``.
+    """
     m = y.shape[1]
     b, _ = _projections(y, p)
     c = p.sigma2[:, None] + m * p.d**2
@@ -111,6 +151,18 @@ def posterior(y, p: MFA):
 
 
 def log_likelihood(y, w, p: MFA) -> Array:
+    """The weighted log-likelihood sum_i w_i log sum_k pi_k N_ik (:func:`e_step`'s second output).
+
+    **Arguments:**
+
+    - ``y``: normalised shapes ``(V, M, 3)``.
+    - ``w``: per-vertex weights ``(V,)``.
+    - ``p``: the mixture's parameters.
+
+    **Returns:**
+
+    A scalar array.
+    """
     return e_step(y, w, p)[1]
 
 
@@ -125,6 +177,18 @@ def _scale_floor(y, w):
 
 
 def cycle1(y, w, p: MFA) -> MFA:
+    """The AECM's first cycle: mixing weights pi and translations mu from the responsibilities.
+
+    **Arguments:**
+
+    - ``y``: normalised shapes ``(V, M, 3)``.
+    - ``w``: per-vertex weights ``(V,)``.
+    - ``p``: the mixture's parameters.
+
+    **Returns:**
+
+    ``p`` with new ``log_pi`` and ``mu``.
+    """
     tau, _ = e_step(y, w, p)
     tw = tau * w[:, None]
     n = jnp.sum(tw, axis=0) + 1e-12
@@ -134,6 +198,19 @@ def cycle1(y, w, p: MFA) -> MFA:
 
 
 def cycle2(y, w, p: MFA, floor) -> MFA:
+    """The AECM's second cycle: rotations R (Procrustes), scales d and noise sigma^2 from the latent posterior.
+
+    **Arguments:**
+
+    - ``y``: normalised shapes ``(V, M, 3)``.
+    - ``w``: per-vertex weights ``(V,)``.
+    - ``p``: the mixture's parameters.
+    - ``floor``: the data's scale floor; d and sigma^2 are kept above multiples of it.
+
+    **Returns:**
+
+    ``p`` with new ``rot``, ``d`` and ``sigma2``.
+    """
     m = y.shape[1]
     tau, _ = e_step(y, w, p)
     tw = tau * w[:, None]
@@ -205,11 +282,21 @@ def aecm(y: Float[Array, "v m 3"], w: Float[Array, " v"], p0: MFA, *, max_iter: 
 
 
 def init_from_weights(y: Float[Array, "v m 3"], resp: Float[Array, "v k"], procrustes_iters: int = 4) -> MFA:
-    """Parameters from (hard or soft) assignments ``resp``: per-part generalised Procrustes alignment.
+    """Parameters from (hard or soft) assignments: per-part generalised Procrustes alignment.
 
     mu_km = weighted centroid of part k in shape m; the latent cloud z starts as shape 0 and is re-estimated
     as the mean of the shapes rotated back; the latent frame is put on the principal axes of z, and D from
     the eigenvalues of z's covariance (paper eq. 18); sigma^2 from the residual.
+
+    **Arguments:**
+
+    - ``y``: normalised shapes ``(V, M, 3)``.
+    - ``resp``: assignments ``(V, K)``.
+    - ``procrustes_iters``: the alignment's iterations.
+
+    **Returns:**
+
+    The initial :class:`MFA`.
     """
     return _init_from_weights(jnp.asarray(y), jnp.asarray(resp, y.dtype), procrustes_iters)
 
