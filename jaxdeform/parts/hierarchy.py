@@ -96,7 +96,20 @@ def check_shapes(vertices, faces) -> tuple[np.ndarray, np.ndarray]:
 
 
 def normalize(vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
-    """(y (V, M, 3) in the unit box, offset (3,), scale): data = y * scale + offset."""
+    """Shapes in the unit box, as the fit works on them.
+
+    **Arguments:**
+
+    - ``vertices``: shapes ``(M, V, 3)``.
+
+    **Returns:**
+
+    ``(y (V, M, 3) in the unit box, offset (3,), scale)``: data = y * scale + offset.
+
+    **Raises:**
+
+    ``DegenerateMeshError`` if all shapes collapse to a single point.
+    """
     lo = vertices.min(axis=(0, 1))
     scale = float((vertices.max(axis=(0, 1)) - lo).max())
     if scale <= 0:
@@ -105,14 +118,34 @@ def normalize(vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
 
 
 def to_data_units(p: MFA, offset: np.ndarray, scale: float) -> MFA:
-    """Parameters of the same mixture for data = y * scale + offset."""
+    """Parameters of the same mixture for data = y * scale + offset.
+
+    **Arguments:**
+
+    - ``p``: parameters fitted to normalised shapes.
+    - ``offset``, ``scale``: :func:`normalize`'s.
+
+    **Returns:**
+
+    The :class:`MFA` in data units.
+    """
     return MFA(
         log_pi=p.log_pi, mu=p.mu * scale + jnp.asarray(offset), rot=p.rot, d=p.d * scale, sigma2=p.sigma2 * scale**2
     )
 
 
 def components_of_labels(labels: np.ndarray, edges: np.ndarray) -> np.ndarray:
-    """Connected-component id (V,) of every vertex in the graph of edges whose ends share a label."""
+    """Connected-component id of every vertex in the graph of edges whose ends share a label.
+
+    **Arguments:**
+
+    - ``labels``: ``(V,)``.
+    - ``edges``: the mesh's edges ``(E, 2)``.
+
+    **Returns:**
+
+    ``(V,)`` component ids.
+    """
     n = labels.shape[0]
     same = labels[edges[:, 0]] == labels[edges[:, 1]]
     e = edges[same]
@@ -121,8 +154,20 @@ def components_of_labels(labels: np.ndarray, edges: np.ndarray) -> np.ndarray:
 
 
 def split_regions(labels: np.ndarray, edges: np.ndarray, min_size: int) -> np.ndarray:
-    """Relabel so that every part is one connected region; islands smaller than ``min_size`` join the
-    neighbouring region they share most edges with. Labels are renumbered 0..K-1."""
+    """Relabel so that every part is one connected region.
+
+    Islands smaller than ``min_size`` join the neighbouring region they share most edges with.
+
+    **Arguments:**
+
+    - ``labels``: ``(V,)``.
+    - ``edges``: the mesh's edges ``(E, 2)``.
+    - ``min_size``: the fewest vertices of a region that stays on its own.
+
+    **Returns:**
+
+    Labels ``(V,)`` renumbered 0..K-1.
+    """
     labels = labels.copy()
     for _ in range(10):  # merging can create new small regions only rarely; a few passes settle it
         comp = components_of_labels(labels, edges)
@@ -150,7 +195,19 @@ def split_regions(labels: np.ndarray, edges: np.ndarray, min_size: int) -> np.nd
 
 
 def average_variance(y, p: MFA, labels: np.ndarray, mask: np.ndarray | None = None) -> float:
-    """Mean over (masked) vertices and shapes of |y_im - (R_k^m z_i + t_k^m)|^2 with k = labels[i]."""
+    """Mean over (masked) vertices and shapes of |y_im - (R_k^m z_i + t_k^m)|^2 with k = labels[i].
+
+    **Arguments:**
+
+    - ``y``: normalised shapes ``(V, M, 3)``.
+    - ``p``: the mixture's parameters.
+    - ``labels``: ``(V,)`` parts.
+    - ``mask``: ``(V,)`` bool, the vertices to average over (default None: all).
+
+    **Returns:**
+
+    The mean as a float.
+    """
     lab = jnp.asarray(labels)
     rec = mfa.reconstruct(p, lab, mfa.latent_images(y, p, lab))  # (M, V, 3)
     err = np.sum((np.asarray(rec) - np.asarray(y).transpose(1, 0, 2)) ** 2, axis=-1)  # (M, V)
@@ -321,6 +378,16 @@ def rmse(vertices: np.ndarray, reconstruction: np.ndarray) -> float:
 
 
 def bbox_diagonal(vertices: np.ndarray) -> float:
+    """The bounding-box diagonal of the first shape.
+
+    **Arguments:**
+
+    - ``vertices``: shapes ``(M, V, 3)``.
+
+    **Returns:**
+
+    Its length as a float.
+    """
     v = np.asarray(vertices)[0]
     return float(np.linalg.norm(v.max(axis=0) - v.min(axis=0)))
 
