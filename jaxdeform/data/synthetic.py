@@ -294,11 +294,26 @@ def twisted_bar(
 ):
     """A closed rectangular bar along ``y``, twisted about its axis and bent in ``x``: no mirror symmetry.
 
-    The cross-section (``width`` x ``depth`` in ``x``, ``z``) at height ``y = s length`` (``s`` in [0, 1]) turns
-    by ``2 pi twist_turns s`` about the axis, and the axis bends sideways by ``bend s^2`` in ``x``. The twist
-    makes the bar chiral (a mirror image twists the other way) and the one-sided bend breaks the remaining
-    planes, so it serves as the asymmetric case of symmetry detection (DFD eq. 9). Returns (vertices (V, 3)
-    float64, faces (F, 3) int32), outward-facing, capped at both ends.
+    The cross-section (``width`` x ``depth`` in ``x``, ``z``) at height ``y = s length`` (``s`` in [0, 1]) turns by
+    ``2 pi twist_turns s`` about the axis, and the axis bends sideways by ``bend s^2`` in ``x``. The twist makes the
+    bar chiral (a mirror image twists the other way) and the one-sided bend breaks the remaining planes, so it
+    serves as the asymmetric case of symmetry detection (DFD eq. 9).
+
+    **Arguments:**
+
+    - ``n_along``: rings along the bar (at least 2).
+    - ``width``, ``depth``, ``length``: the bar's size.
+    - ``twist_turns``: the twist of the top end, in full turns.
+    - ``bend``: the sideways bend of the top end.
+    - ``n_width``, ``n_depth``: segments of the cross-section's sides (at least 1).
+
+    **Returns:**
+
+    ``(vertices (V, 3) float64, faces (F, 3) int32)``, outward-facing, capped at both ends.
+
+    **Raises:**
+
+    ``ValueError`` for ``n_along < 2`` or ``n_width``, ``n_depth < 1``.
     """
     if n_along < 2 or n_width < 1 or n_depth < 1:
         raise ValueError("twisted_bar needs n_along >= 2 and n_width, n_depth >= 1.")
