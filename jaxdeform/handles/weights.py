@@ -783,17 +783,49 @@ class Deformer:
         return W, h.size
 
     def weights(self, handles, *, anchors=(), locality: float = 0.0) -> np.ndarray:
-        """DFD weights (V, K) of the handles, with optional anchors (eq. 7) and locality exponent (eq. 8)."""
+        """DFD weights of the handles, with optional anchors (eq. 7) and locality exponent (eq. 8).
+
+        **Arguments:**
+
+        - ``handles``: the handle vertices ``(K,)``.
+        - ``anchors``: the anchor vertices.
+        - ``locality``: the locality exponent lam (0: no locality weighting).
+
+        **Returns:**
+
+        The weights ``(V, K)``.
+
+        **Raises:**
+
+        ``ValueError`` for invalid vertex indices or a negative locality exponent.
+        """
         W, k = self._padded_weights(handles, anchors, locality)
         return np.array(W[:, :k])
 
     def deform(
         self, handles, transforms, *, anchors=(), locality: float = 0.0, symmetric: bool = False, pou: bool = False
     ) -> np.ndarray:
-        """Deformed vertices (V, 3) for one (3, 4) affine transform per handle (eq. 1, 9 or 10).
+        """Deformed vertices for one affine transform per handle (eq. 1, 9 or 10).
 
         The weights of the last request are reused (pou: their normalised eq.-10 form too), so a new frame of the
         same handles costs one blend: a (V, K) x (K, 12) matmul and one elementwise pass.
+
+        **Arguments:**
+
+        - ``handles``: the handle vertices ``(K,)``.
+        - ``transforms``: one ``(3, 4)`` affine map per handle, ``(K, 3, 4)``.
+        - ``anchors``, ``locality``: as :meth:`weights`.
+        - ``symmetric``: symmetry-preserving blending (eq. 9) about the detected plane.
+        - ``pou``: the partition-of-unity extension (eq. 10).
+
+        **Returns:**
+
+        The deformed vertices ``(V, 3)``.
+
+        **Raises:**
+
+        ``ValueError`` for transforms of another shape; ``NoSymmetryError`` for ``symmetric`` when no symmetry plane was
+        detected (or no feature field was given).
         """
         W, k = self._padded_weights(handles, anchors, locality)
         T = np.asarray(transforms, dtype=self.dtype)
