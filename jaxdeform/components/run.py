@@ -913,6 +913,26 @@ class Editor:
         return kw
 
     def edit(self, controls, targets, **kw):
+        """Edit the run's reference shape so that the ``controls`` vertices meet ``targets``.
+
+        :func:`jaxdeform.components.edit.edit` for feature-space runs,
+        :func:`~jaxdeform.components.edit.edit_positions` for coordinate runs (which ignore ``objective``), from
+        ``latent0`` and with the editor's ``stages`` unless given.
+
+        **Arguments:**
+
+        - ``controls``: the control vertices ``(M,)``.
+        - ``targets``: their targets ``(M, 3)``.
+        - ``kw``: the editor's options (steps, regularization, method, ...).
+
+        **Returns:**
+
+        An :class:`~jaxdeform.components.edit.EditResult`.
+
+        **Raises:**
+
+        :class:`~jaxdeform.components.edit.EditInputError` for inconsistent arguments.
+        """
         from jaxdeform.components import edit as ed
 
         kw = self._options(kw)
@@ -921,6 +941,22 @@ class Editor:
         return ed.edit_positions(self.decode, self.latent0, controls, targets, **kw)
 
     def edit_error(self, ground_truth, n_controls: int, **kw):
+        """:func:`jaxdeform.components.edit.edit_error` of the run on one unseen shape.
+
+        **Arguments:**
+
+        - ``ground_truth``: the unseen shape ``(V, 3)``.
+        - ``n_controls``: the number of control vertices (furthest point sampling on the rest shape).
+        - ``kw``: the editor's options, as :meth:`edit`.
+
+        **Returns:**
+
+        An :class:`~jaxdeform.components.edit.EditErrorReport`.
+
+        **Raises:**
+
+        :class:`~jaxdeform.components.edit.EditInputError` for inconsistent arguments.
+        """
         from jaxdeform.components import edit as ed
 
         rest_arg = self._acap() if self.space == "features" else self.run.rest
