@@ -192,7 +192,21 @@ class ARAPBaseline:
         self._data: igl.ARAPData | None = None
 
     def bind(self, handles: Sequence[int] | np.ndarray, *, fixed: Sequence[int] | np.ndarray = ()) -> ARAPBaseline:
-        """Precompute for this handle set (and vertices held at rest); returns self."""
+        """Precompute for this handle set (and vertices held at rest).
+
+        **Arguments:**
+
+        - ``handles``: the handle vertices ``(K,)``.
+        - ``fixed``: vertices held at rest.
+
+        **Returns:**
+
+        ``self``.
+
+        **Raises:**
+
+        :class:`HandleError` for handles or fixed vertices inconsistent with the mesh or with each other.
+        """
         h, x = _check_constraints(handles, fixed, self.vertices.shape[0])
         _check_every_component_constrained(self._labels, np.concatenate([h, x]))
         t0 = time.perf_counter()
@@ -210,7 +224,18 @@ class ARAPBaseline:
         initial: np.ndarray | None = None,
         iterations: int | None = None,
     ) -> Float[np.ndarray, "v 3"]:
-        """Deformed vertices (V, 3) float64 for one transform per handle, from ``initial`` (rest pose if None)."""
+        """Deformed vertices for one transform per handle.
+
+        **Arguments:**
+
+        - ``transforms``: ``(K, 3, 4)`` affine maps.
+        - ``initial``: the start of the ARAP iterations ``(V, 3)`` (default None: the rest pose).
+        - ``iterations``: ARAP iterations (default None: the baseline's count).
+
+        **Returns:**
+
+        ``(V, 3)`` float64.
+        """
         if self._data is None or self.handles is None:
             raise HandleError("call bind(handles) before pose(transforms).")
         d = _check_transforms(transforms, self.handles.size)
@@ -234,7 +259,17 @@ class ARAPBaseline:
 def tetrahedralize(
     vertices: np.ndarray, faces: np.ndarray, flags: str = DEFAULT_TET_FLAGS
 ) -> tuple[np.ndarray, np.ndarray]:
-    """TetGen volume mesh (TV, TT) of a closed surface whose first V vertices are the surface vertices."""
+    """TetGen volume mesh of a closed surface.
+
+    **Arguments:**
+
+    - ``vertices``, ``faces``: the closed surface.
+    - ``flags``: TetGen's switches.
+
+    **Returns:**
+
+    ``(TV, TT)``: tet-mesh vertices, whose first V are the surface vertices, and tetrahedra.
+    """
     import igl.copyleft.tetgen as tetgen
 
     try:
@@ -304,7 +339,22 @@ class BiharmonicBaseline:
     def bind(
         self, handles: Sequence[int] | np.ndarray, *, fixed: Sequence[int] | np.ndarray = ()
     ) -> BiharmonicBaseline:
-        """Solve the weights for this handle set (plus vertices held at rest); returns self."""
+        """Solve the weights for this handle set (plus vertices held at rest).
+
+        **Arguments:**
+
+        - ``handles``: the handle vertices ``(K,)``.
+        - ``fixed``: vertices held at rest.
+
+        **Returns:**
+
+        ``self``.
+
+        **Raises:**
+
+        :class:`HandleError` for handles or fixed vertices inconsistent with the mesh or with each other, or a
+        connected component with neither.
+        """
         h, x = _check_constraints(handles, fixed, self.vertices.shape[0])
         b = np.concatenate([h, x])
         _check_every_component_constrained(self._labels, b)
@@ -325,7 +375,16 @@ class BiharmonicBaseline:
         return self
 
     def pose(self, transforms: Float[np.ndarray, "k 3 4"]) -> Float[np.ndarray, "v 3"]:
-        """Deformed vertices (V, 3) float64: displacement-form LBS of one transform per handle."""
+        """Deformed vertices: displacement-form LBS of one transform per handle.
+
+        **Arguments:**
+
+        - ``transforms``: ``(K, 3, 4)`` affine maps.
+
+        **Returns:**
+
+        ``(V, 3)`` float64.
+        """
         if self.weights is None or self.handles is None:
             raise HandleError("call bind(handles) before pose(transforms).")
         d = _check_transforms(transforms, self.handles.size)
