@@ -230,11 +230,16 @@ class ARAPBaseline:
 
         - ``transforms``: ``(K, 3, 4)`` affine maps.
         - ``initial``: the start of the ARAP iterations ``(V, 3)`` (default None: the rest pose).
-        - ``iterations``: ARAP iterations (default None: the baseline's count).
+        - ``iterations``: ARAP iterations, at least 1 (default None: the baseline's count).
 
         **Returns:**
 
         ``(V, 3)`` float64.
+
+        **Raises:**
+
+        :class:`HandleError` before :meth:`bind` or for an ``initial`` of another shape; ``ValueError`` for
+        ``iterations < 1``; the transforms' checks.
         """
         if self._data is None or self.handles is None:
             raise HandleError("call bind(handles) before pose(transforms).")
@@ -384,6 +389,10 @@ class BiharmonicBaseline:
         **Returns:**
 
         ``(V, 3)`` float64.
+
+        **Raises:**
+
+        :class:`HandleError` before :meth:`bind`; the transforms' checks.
         """
         if self.weights is None or self.handles is None:
             raise HandleError("call bind(handles) before pose(transforms).")
