@@ -228,12 +228,26 @@ class EditSession:
 
     @_locked
     def deformed_vertices(self, dtype=None) -> np.ndarray:
-        """A copy (V, 3) of the displayed mesh, in ``dtype`` (None: as computed, float32 once deformed)."""
+        """A copy of the displayed mesh.
+
+        **Arguments:**
+
+        - ``dtype``: the copy's dtype (None: as computed, float32 once deformed).
+
+        **Returns:**
+
+        ``(V, 3)``.
+        """
         return np.array(self.deformed, dtype=dtype)
 
     @_locked
     def weights(self) -> np.ndarray:
-        """DFD weights (V, K) of the handles under the current anchors and locality ((V, 0) without handles)."""
+        """DFD weights of the handles under the current anchors and locality.
+
+        **Returns:**
+
+        ``(V, K)``; ``(V, 0)`` without handles.
+        """
         if not self.handles:
             return np.zeros((self.rest.shape[0], 0))
         return np.asarray(
@@ -244,7 +258,12 @@ class EditSession:
 
     @_locked
     def selected_weights(self) -> np.ndarray | None:
-        """The selected handle's weight column (V,) as float64, or None when no handle is selected."""
+        """The selected handle's weight column.
+
+        **Returns:**
+
+        ``(V,)`` float64, or None when no handle is selected.
+        """
         return None if self.selected is None else np.asarray(self.weights()[:, self.selected], dtype=np.float64)
 
     @_locked
@@ -267,7 +286,16 @@ class EditSession:
         return self.version, data
 
     def image(self, scale: int = 1) -> np.ndarray:
-        """The current view as an (H, W, 3) uint8 array (decoded from the PNG of :meth:`image_bytes`)."""
+        """The current view as an array (decoded from the PNG of :meth:`image_bytes`).
+
+        **Arguments:**
+
+        - ``scale``: as :meth:`image_bytes`.
+
+        **Returns:**
+
+        ``(H, W, 3)`` uint8.
+        """
         return np.asarray(Image.open(io.BytesIO(self.image_bytes(scale, "png")[1])).convert("RGB"))
 
     # ------------------------------------------------------------------------------------------------- handles
@@ -595,7 +623,22 @@ class EditSession:
         elevation: float | None = None,
         reset: bool = False,
     ) -> None:
-        """Change the camera; see :meth:`Viewport.set` (zoom multiplies the distance; angles in degrees)."""
+        """Change the camera; see :meth:`Viewport.set`.
+
+        **Arguments:**
+
+        - ``zoom``: in [0.01, 100], multiplies the camera's distance (kept within 0.1 to 10 times the initial one).
+        - ``azimuth``, ``elevation``: the camera's angles, in [-180, 180] and [-89, 89] degrees.
+        - ``reset``: back to the initial camera first.
+
+        **Returns:**
+
+        Nothing.
+
+        **Raises:**
+
+        ``ValueError`` for an argument out of range (all are checked before anything changes).
+        """
         self.view.set(zoom=zoom, azimuth=azimuth, elevation=elevation, reset=reset)
         self._changed(geometry=False)
 
