@@ -10,7 +10,7 @@ decode times per frame after a warm-up call (median of a few repeats).
 Writes to OUT: ``reference.png`` (the rest tube), ``deformed.png`` (the last frame), ``error.png`` (the last
 frame as decoded from spatial-ACAP features, coloured by its per-vertex round-trip error), ``rotation_angle.png``
 (the last frame coloured by the per-vertex TS-ACAP rotation angle |v| in rad) and ``summary.json`` (the
-table's numbers and the set-up). Runs in well under a minute on a 2-core CPU.
+table's numbers and the set-up). Small enough to run in under a minute on a CPU.
 """
 
 from __future__ import annotations
@@ -49,7 +49,17 @@ def _timed(fn, repeats: int = REPEATS) -> tuple[object, float]:
 
 
 def round_trip_errors(original: np.ndarray, decoded: np.ndarray) -> np.ndarray:
-    """Per-vertex error (N, V) after removing each frame's mean translation, over each frame's bbox diagonal."""
+    """Per-vertex error after removing each frame's mean translation, over each frame's bbox diagonal.
+
+    **Arguments:**
+
+    - ``original``: the frames ``(N, V, 3)``.
+    - ``decoded``: their round trip ``(N, V, 3)``.
+
+    **Returns:**
+
+    The relative errors ``(N, V)``.
+    """
     a = original - original.mean(axis=1, keepdims=True)
     b = decoded - decoded.mean(axis=1, keepdims=True)
     diag = np.linalg.norm(original.max(axis=1) - original.min(axis=1), axis=-1)  # (N,)
@@ -57,6 +67,16 @@ def round_trip_errors(original: np.ndarray, decoded: np.ndarray) -> np.ndarray:
 
 
 def format_table(rows: list[dict]) -> str:
+    """The demo's result rows as a plain-text table.
+
+    **Arguments:**
+
+    - ``rows``: one dict per consistency mode (consistency, angles, errors, encode / decode times).
+
+    **Returns:**
+
+    The table as one string.
+    """
     headers = [
         "consistency",
         "max angle (rad)",
@@ -189,6 +209,18 @@ def _write_summary(out: Path, n, nv, faces, rows, prepare_s, compute_s, render_s
 
 
 def run(out: Path, n_frames: int = 24) -> dict:
+    """Run the demo: ACAP round trips of a bending tube, figures and a summary.
+
+    **Arguments:**
+
+    - ``out``: the folder for the PNGs and summary.json (created if needed).
+    - ``n_frames``: frames of the bending tube sequence.
+
+    **Returns:**
+
+    A dict: ``rows`` (one per consistency mode), ``paths`` (the files written), ``n``, ``nv``, ``nf`` (frames, vertices,
+    faces) and the seconds ``prepare_s``, ``compute_s``, ``render_s``, ``total_s``.
+    """
     from jaxdeform.mesh.render import save_png
 
     t_start = time.perf_counter()
@@ -224,6 +256,16 @@ def run(out: Path, n_frames: int = 24) -> dict:
 
 
 def main(argv: Sequence[str] | None = None) -> int:
+    """Command-line entry point (``python -m jaxdeform.demo``).
+
+    **Arguments:**
+
+    - ``argv``: the arguments (default None: ``sys.argv[1:]``); ``--out`` folder, ``--frames`` (at least 2).
+
+    **Returns:**
+
+    The exit status, 0.
+    """
     parser = argparse.ArgumentParser(prog="python -m jaxdeform.demo", description=__doc__.splitlines()[0])
     parser.add_argument("--out", default="out/demo", help="folder for the PNGs and summary.json (default out/demo)")
     parser.add_argument("--frames", type=int, default=24, help="number of frames (default 24)")

@@ -77,10 +77,22 @@ class ClothDataset:
 
 
 def default_split(names: list[str], every: int = 5, offset: int = 2) -> dict:
-    """Every ``every``-th sequence from index ``offset`` on is a test sequence (the last one if that picks
-    none; never all). Interleaved rather than the last ones: the scenarios spread their parameters over the
-    sequence index (the DISK's mean wind speed grows with it), so an interleaved test set lies inside the
-    range the training sequences cover instead of beyond it."""
+    """The default train/test split of a dataset's sequences.
+
+    Every ``every``-th sequence from index ``offset`` on is a test sequence (the last one if that picks none; never
+    all). Interleaved rather than the last ones: the scenarios spread their parameters over the sequence index
+    (the DISK's mean wind speed grows with it), so an interleaved test set lies inside the range the training
+    sequences cover instead of beyond it.
+
+    **Arguments:**
+
+    - ``names``: the sequences' names in index order.
+    - ``every``, ``offset``: the test sequences are those with index % ``every`` == ``offset``.
+
+    **Returns:**
+
+    ``{"train": [...], "test": [...]}``, lists of names.
+    """
     n = len(names)
     test = [i for i in range(n) if i % every == offset] or ([n - 1] if n > 1 else [])
     if len(test) >= n:
@@ -89,7 +101,17 @@ def default_split(names: list[str], every: int = 5, offset: int = 2) -> dict:
 
 
 def write_sequence(path: Path, pair: dict) -> None:
-    """One sequence file from a :func:`jaxdeform.cloth.scenarios.simulate_pair`-like dict, atomically."""
+    """Write one sequence file, atomically.
+
+    **Arguments:**
+
+    - ``path``: the file to write.
+    - ``pair``: a :func:`jaxdeform.cloth.scenarios.simulate_pair`-like dict.
+
+    **Returns:**
+
+    Nothing.
+    """
     arrays = {
         "coarse": np.asarray(pair["coarse"], np.float32),
         "fine": np.asarray(pair["fine"], np.float32),
@@ -109,7 +131,20 @@ def write_sequence(path: Path, pair: dict) -> None:
 
 
 def write_index(root: Path, scenario: str, names: list[str], split: dict | None = None, **info) -> Path:
-    """``dataset.json`` (written last, atomically)."""
+    """Write ``dataset.json`` (written last, atomically).
+
+    **Arguments:**
+
+    - ``root``: the dataset folder.
+    - ``scenario``: the scenario kind.
+    - ``names``: the sequence files, in index order.
+    - ``split``: the split (default None: :func:`default_split`).
+    - ``info``: more entries of the record.
+
+    **Returns:**
+
+    The path of dataset.json.
+    """
     record = {
         "format": FORMAT,
         "version": VERSION,
@@ -133,7 +168,21 @@ def _jsonable(x):
 
 
 def read_sequence(path: Path) -> tuple[Sequence, dict]:
-    """One sequence file and its rest meshes / faces (checked for presence, shapes and finiteness)."""
+    """One sequence file and its rest meshes / faces, checked for presence, shapes and finiteness.
+
+    **Arguments:**
+
+    - ``path``: the sequence file.
+
+    **Returns:**
+
+    ``(sequence, shared)``: the :class:`Sequence` and a dict of the rest meshes and faces.
+
+    **Raises:**
+
+    ``MeshFormatError`` for a missing array, wrong shapes, non-finite values, a damaged meta record or pins that
+    do not match the mesh; ``ConnectivityError`` for frames whose vertex count differs from the rest mesh's.
+    """
     path = Path(path)
     arrays = read_npz_arrays(path)
     missing = [k for k in REQUIRED if k not in arrays]
@@ -204,8 +253,22 @@ def _obstacle_track(path: Path, arrays: dict, frames: int) -> dict:
 
 
 def check_split(split, where, names=None) -> None:
-    """A split must map each part to a list of sequence names, and with ``names`` (the sequences there) name only
-    those; one sentence starting with ``where`` otherwise."""
+    """Check a dataset's split.
+
+    **Arguments:**
+
+    - ``split``: must map each part to a list of sequence names.
+    - ``where``: the start of the error sentence (the file).
+    - ``names``: the dataset's sequences; with them, the split may name only those.
+
+    **Returns:**
+
+    Nothing.
+
+    **Raises:**
+
+    ``MeshFormatError`` (one sentence starting with ``where``) otherwise.
+    """
     if not (
         isinstance(split, dict)
         and all(isinstance(v, list) and all(isinstance(n, str) for n in v) for v in split.values())
@@ -235,7 +298,21 @@ def _sequence_files(root: Path) -> tuple[list[Path], dict]:
 
 
 def load_dataset(root: str | Path) -> ClothDataset:
-    """Every sequence of a dataset folder, checked (one connectivity per resolution, equal lengths)."""
+    """Every sequence of a dataset folder, checked (one connectivity per resolution, equal lengths).
+
+    **Arguments:**
+
+    - ``root``: the dataset folder (dataset.json and seq_*.npz).
+
+    **Returns:**
+
+    The :class:`ClothDataset`: its sequences, both rest meshes, the scenario and the split.
+
+    **Raises:**
+
+    ``FileNotFoundError`` if the folder does not exist; ``MeshFormatError`` if it holds no sequence or a damaged one;
+    ``ConnectivityError`` if the sequences do not share one connectivity per resolution.
+    """
     root = Path(root)
     if not root.is_dir():
         raise FileNotFoundError(f"{root}: no such dataset folder.")

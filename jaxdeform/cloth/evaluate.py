@@ -55,13 +55,21 @@ class Upsampler:
 
 
 def coarse_level_split(upsampler: Upsampler, offsets: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Split fine-mesh offsets (T, Vf, 3) into the part Loop-upsampled coarse offsets can express and the rest.
+    """Split fine-mesh offsets into the part Loop-upsampled coarse offsets can express and the rest.
 
-    The first part is ``U d`` with ``d`` (T, Vc, 3) the least-squares fit (``U^T U d = U^T offsets``, U the
-    (Vf, Vc) subdivision matrix), the second is orthogonal to every column of U; the two add up to ``offsets``.
-    Applied to fine - upsampled coarse, it tells how much of that gap lies at the coarse mesh's own scale (the
-    two simulations moving the cloth differently) and how much is finer detail (wrinkles the coarse mesh cannot
-    hold).
+    The first part is ``U d`` with ``d`` ``(T, Vc, 3)`` the least-squares fit (``U^T U d = U^T offsets``, U the
+    ``(Vf, Vc)`` subdivision matrix), the second is orthogonal to every column of U. Applied to fine - upsampled
+    coarse, it tells how much of that gap lies at the coarse mesh's own scale (the two simulations moving the
+    cloth differently) and how much is finer detail (wrinkles the coarse mesh cannot hold).
+
+    **Arguments:**
+
+    - ``upsampler``: the coarse-to-fine subdivision.
+    - ``offsets``: fine-mesh offsets ``(T, Vf, 3)``.
+
+    **Returns:**
+
+    ``(coarse_part, rest)``, each ``(T, Vf, 3)``; the two add up to ``offsets``.
     """
     u = upsampler.matrix
     d = np.asarray(offsets, np.float64)
@@ -75,7 +83,23 @@ def coarse_level_split(upsampler: Upsampler, offsets: np.ndarray) -> tuple[np.nd
 
 
 def sequence_errors(ref: np.ndarray, rec: np.ndarray, faces: np.ndarray, fps: float = 30.0) -> dict:
-    """rmse, hausdorff (frame mean) and sted (with its spatial/temporal parts) of one sequence."""
+    """rmse, hausdorff (frame mean) and sted (with its spatial/temporal parts) of one sequence.
+
+    **Arguments:**
+
+    - ``ref``: the reference frames ``(T, V, 3)``.
+    - ``rec``: the reconstruction, same shape.
+    - ``faces``: triangles ``(F, 3)``.
+    - ``fps``: frames per second (STED's temporal part).
+
+    **Returns:**
+
+    A dict: ``frames``, ``sum_sq``, ``count`` (for pooling), ``rmse``, ``hausdorff``, ``sted``, ``sted_s``, ``sted_t``.
+
+    **Raises:**
+
+    ``ValueError`` if the shapes differ.
+    """
     ref = np.asarray(ref, np.float64)
     rec = np.asarray(rec, np.float64)
     if ref.shape != rec.shape:
@@ -96,7 +120,20 @@ def sequence_errors(ref: np.ndarray, rec: np.ndarray, faces: np.ndarray, fps: fl
 
 
 def pool(per_sequence: list[dict]) -> dict:
-    """Pooled errors of several sequences (rmse over all vertices and frames; others frame-weighted)."""
+    """Pooled errors of several sequences (rmse over all vertices and frames; others frame-weighted).
+
+    **Arguments:**
+
+    - ``per_sequence``: :func:`sequence_errors`' results, at least one.
+
+    **Returns:**
+
+    A dict of the pooled errors with the total ``frames`` and the number of ``sequences``.
+
+    **Raises:**
+
+    ``ValueError`` for an empty list.
+    """
     if not per_sequence:
         raise ValueError("no sequences to pool.")
     frames = np.array([r["frames"] for r in per_sequence], np.float64)
@@ -111,8 +148,21 @@ def pool(per_sequence: list[dict]) -> dict:
 
 
 def pooled_rmse(pairs) -> float:
-    """RMSE over every vertex and frame of (reference, reconstruction) sequence pairs: :func:`pool`'s ``rmse``
-    without the Hausdorff and STED work."""
+    """RMSE over every vertex and frame of sequence pairs: :func:`pool`'s ``rmse`` without the Hausdorff and STED
+    work.
+
+    **Arguments:**
+
+    - ``pairs``: ``(reference, reconstruction)`` pairs of ``(T, V, 3)`` sequences of one shape each.
+
+    **Returns:**
+
+    The RMSE as a float.
+
+    **Raises:**
+
+    ``ValueError`` for a pair of other shapes.
+    """
     sq = count = 0.0
     for ref, rec in pairs:
         ref, rec = np.asarray(ref, np.float64), np.asarray(rec, np.float64)

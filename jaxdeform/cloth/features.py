@@ -61,7 +61,18 @@ def _check_kind(kind: str) -> None:
 
 
 def encode_sequence(kind: Kind, rest: np.ndarray, faces: np.ndarray, frames: np.ndarray) -> np.ndarray:
-    """Unscaled features (T, V, C) of one sequence of frames (T, V, 3)."""
+    """Unscaled features of one sequence of frames.
+
+    **Arguments:**
+
+    - ``kind``: the representation kind.
+    - ``rest``, ``faces``: the mesh's rest shape ``(V, 3)`` and triangles ``(F, 3)``.
+    - ``frames``: ``(T, V, 3)``.
+
+    **Returns:**
+
+    Features ``(T, V, C)``, C = :func:`channels` (kind).
+    """
     _check_kind(kind)
     frames = np.asarray(frames, np.float64)
     if kind == "coords":
@@ -155,7 +166,21 @@ class Representation:
         return base
 
     def encode(self, res: str, frames: np.ndarray) -> np.ndarray:
-        """Scaled features (T, V, C) of frames of resolution ``res`` ("coarse" or "fine")."""
+        """Scaled features of frames of one resolution.
+
+        **Arguments:**
+
+        - ``res``: "coarse" or "fine".
+        - ``frames``: ``(T, V, 3)``.
+
+        **Returns:**
+
+        Scaled features ``(T, V, C)``.
+
+        **Raises:**
+
+        ``ValueError`` for another resolution.
+        """
         rest, faces, sc = self._mesh(res)
         return sc.transform(encode_sequence(self.kind, rest, faces, frames))
 
@@ -169,11 +194,22 @@ class Representation:
     def decode_fine(
         self, scaled, coarse_frames, refine: int = acapf.DEFAULT_REFINE, base=None, pins=None, pin_positions=None
     ) -> np.ndarray:
-        """Fine positions (T, Vf, 3) from scaled fine features (T, Vf, C) and the coarse frames (T, Vc, 3).
+        """Fine positions from scaled fine features and the coarse frames.
 
-        With ``residual`` the scaled features are a residual over ``base`` (default: :meth:`base` of the
-        coarse frames). ``pins`` (fine vertex indices) held at ``pin_positions`` (P, 3), the scenario's fixed
-        vertices, anchor the reconstruction; without pins it is placed on the coarse centroid (:func:`place`).
+        With ``residual`` the scaled features are a residual over ``base``. The pins, the scenario's fixed vertices,
+        anchor the reconstruction; without pins it is placed on the coarse centroid (:func:`place`).
+
+        **Arguments:**
+
+        - ``scaled``: scaled fine features ``(T, Vf, C)``.
+        - ``coarse_frames``: ``(T, Vc, 3)``.
+        - ``refine``: defect-correction steps of the ACAP reconstruction.
+        - ``base``: the residual's base (default None: :meth:`base` of the coarse frames).
+        - ``pins``: fine vertex indices ``(P,)``; ``pin_positions``: where they are held ``(P, 3)``.
+
+        **Returns:**
+
+        Fine positions ``(T, Vf, 3)``.
         """
         f = np.asarray(self.fine_scaling.inverse(np.asarray(scaled, np.float64)))
         if self.residual:
@@ -220,7 +256,18 @@ class Representation:
 
 
 def place(fine: np.ndarray, coarse: np.ndarray, n_coarse: int) -> np.ndarray:
-    """Translate each fine frame so its first ``n_coarse`` vertices have the coarse frame's centroid."""
+    """Translate each fine frame so its first ``n_coarse`` vertices have the coarse frame's centroid.
+
+    **Arguments:**
+
+    - ``fine``: fine frames ``(T, Vf, 3)`` (Loop order: the coarse vertices first).
+    - ``coarse``: coarse frames ``(T, Vc, 3)``.
+    - ``n_coarse``: Vc.
+
+    **Returns:**
+
+    The translated fine frames ``(T, Vf, 3)``.
+    """
     shift = coarse.mean(axis=-2, keepdims=True) - fine[..., :n_coarse, :].mean(axis=-2, keepdims=True)
     return fine + shift
 
@@ -228,7 +275,21 @@ def place(fine: np.ndarray, coarse: np.ndarray, n_coarse: int) -> np.ndarray:
 def fit_representation(
     kind: Kind, dataset, train_names: list[str] | None = None, progress: bool = True, residual: bool = False
 ):
-    """(Representation fitted on the training sequences, {name: (coarse features, fine target)} scaled)."""
+    """Fit a feature representation on the training sequences and scale every sequence with it.
+
+    **Arguments:**
+
+    - ``kind``: the representation kind.
+    - ``dataset``: the :class:`~jaxdeform.cloth.data.ClothDataset`.
+    - ``train_names``: the training sequences (default None: the dataset's training split).
+    - ``progress``: show a progress bar.
+    - ``residual``: the fine target is features(fine) - features(Loop(coarse)) (module docstring).
+
+    **Returns:**
+
+    ``(representation, scaled)``: the :class:`Representation` fitted on the training sequences and
+    ``{name: (coarse features, fine target)}``, scaled, for every sequence.
+    """
     _check_kind(kind)
     seqs = dataset.sequences
     train = set(train_names if train_names is not None else [s.name for s in dataset.subset("train")])
@@ -270,8 +331,17 @@ def largest_frame_change(features: np.ndarray) -> float:
 
 
 def frame_change_stats(seqs: list[np.ndarray]) -> dict:
-    """Largest, 99th and 99.9th percentile frame-to-frame change over sequences, and the fraction above pi
-    (a rotation log jumping by a 2 pi turn or an axis flip)."""
+    """Frame-to-frame change statistics over sequences.
+
+    **Arguments:**
+
+    - ``seqs``: unscaled features of each sequence, ``(T_i, V, C)``.
+
+    **Returns:**
+
+    A dict: the largest, 99th and 99.9th percentile change, and the fraction above pi (a rotation log jumping by
+    a 2 pi turn or an axis flip).
+    """
     c = np.concatenate([frame_changes(f) for f in seqs])
     return {
         "max": float(c.max()),

@@ -238,9 +238,33 @@ class DetailModel(nnx.Module):
 
     # ----------------------------------------------------------------------------- per-frame pieces
     def encode_coarse(self, x: Float[Array, "n vc c"]) -> Float[Array, "n l"]:
+        """Coarse latents of coarse frames.
+
+        **Arguments:**
+
+        - ``x``: scaled coarse features ``(N, Vc, C)``.
+
+        **Returns:**
+
+        The latents ``(N, L)``.
+        """
         return self.coarse_encoder(x)
 
     def encode_fine(self, x: Float[Array, "n vf c"]) -> Float[Array, "n l"]:
+        """Fine latents of fine frames (the temporal models' feedback).
+
+        **Arguments:**
+
+        - ``x``: scaled fine features ``(N, Vf, C)``.
+
+        **Returns:**
+
+        The latents ``(N, L)``.
+
+        **Raises:**
+
+        ``ValueError`` for the no-temporal model (``config.kind == "none"``), which has no fine encoder.
+        """
         if self.config.kind == "none":
             raise ValueError("the no-temporal model has no fine encoder.")
         return self.fine_encoder(x)
@@ -248,7 +272,21 @@ class DetailModel(nnx.Module):
     def decode_fine(
         self, z: Float[Array, "n l"], coarse: Float[Array, "n vc c"] | None = None
     ) -> Float[Array, "n vf c"]:
-        """Fine features from fine latents; a ``skip`` model also needs the same frames' coarse features."""
+        """Fine features from fine latents.
+
+        **Arguments:**
+
+        - ``z``: fine latents ``(N, L)``.
+        - ``coarse``: the same frames' scaled coarse features ``(N, Vc, C)``; a ``skip`` model needs them.
+
+        **Returns:**
+
+        Scaled fine features ``(N, Vf, C)``.
+
+        **Raises:**
+
+        ``ValueError`` if a ``skip`` model gets no ``coarse``.
+        """
         if not self.config.skip:
             return self.fine_decoder(z)
         if coarse is None:
@@ -256,7 +294,18 @@ class DetailModel(nnx.Module):
         return self.fine_decoder(z, jnp.einsum("fc,nck->nfk", self.upsample[...], coarse))
 
     def temporal(self, zc: Float[Array, "b w l"], zp: Float[Array, "b w l"] | None) -> Float[Array, "b w l"]:
-        """Fine latents of the W target frames from coarse latents ``zc`` and previous-fine latents ``zp``."""
+        """Fine latents of the W target frames from coarse latents and previous-fine latents.
+
+        **Arguments:**
+
+        - ``zc``: coarse latents ``(B, W, L)``.
+        - ``zp``: the previous fine frames' latents ``(B, W, L)``; unused (may be None) by the no-temporal model and
+            an LSTM without fine input.
+
+        **Returns:**
+
+        The fine latents ``(B, W, L)``.
+        """
         kind = self.config.kind
         if kind == "transformer":
             return self.head(self.transformer(self.proj_coarse(zc), self.proj_fine(zp)))
@@ -269,7 +318,22 @@ class DetailModel(nnx.Module):
     def __call__(
         self, coarse_win: Float[Array, "b w vc c"], fine_prev_win: Float[Array, "b w vf c"] | None = None
     ) -> Float[Array, "b w vf c"]:
-        """Fine features of the W target frames; ``fine_prev_win[:, k]`` is the fine frame before target k."""
+        """Fine features of the W target frames (teacher forcing).
+
+        **Arguments:**
+
+        - ``coarse_win``: scaled coarse windows ``(B, W, Vc, C)``.
+        - ``fine_prev_win``: ``fine_prev_win[:, k]`` is the fine frame before target k, ``(B, W, Vf, C)``; None only
+            for the no-temporal model.
+
+        **Returns:**
+
+        Scaled fine features ``(B, W, Vf, C)``.
+
+        **Raises:**
+
+        ``ValueError`` if a temporal model gets no ``fine_prev_win``.
+        """
         b, w = coarse_win.shape[:2]
         zc = self.encode_coarse(coarse_win.reshape((b * w,) + coarse_win.shape[2:])).reshape(b, w, -1)
         zp = None
@@ -283,11 +347,34 @@ class DetailModel(nnx.Module):
 
 
 def new_model(coarse, fine, config: ModelConfig = ModelConfig(), upsample=None) -> DetailModel:
-    """A freshly initialised :class:`DetailModel` (parameters from ``config.seed``); ``upsample``: the (Vf, Vc)
-    interpolation matrix a ``skip`` model needs."""
+    """A freshly initialised :class:`DetailModel` (parameters from ``config.seed``).
+
+    **Arguments:**
+
+    - ``coarse``, ``fine``: Topology or Rings of the two meshes.
+    - ``config``: the model's configuration.
+    - ``upsample``: the ``(Vf, Vc)`` interpolation matrix a ``skip`` model needs.
+
+    **Returns:**
+
+    The model.
+
+    **Raises:**
+
+    ``ValueError`` if a ``skip`` model gets no ``(Vf, Vc)`` matrix.
+    """
     return DetailModel(coarse, fine, config, rngs=nnx.Rngs(config.seed), upsample=upsample)
 
 
 def parameter_count(model: Any) -> int:
-    """Number of trainable scalars."""
+    """Number of trainable scalars.
+
+    **Arguments:**
+
+    - ``model``: an nnx module.
+
+    **Returns:**
+
+    The count of scalars in its ``nnx.Param`` leaves.
+    """
     return int(sum(x.size for x in jax.tree_util.tree_leaves(nnx.state(model, nnx.Param))))

@@ -71,8 +71,24 @@ def check_rims(radius, height, rim, error=ValueError, where: str = "") -> None:
 
 
 def make(spheres=(), capsules=(), cylinders=(), ground: float = NO_GROUND, dtype=np.float32) -> Obstacles:
-    """Obstacles from lists: spheres [(c, r)], capsules [(a, b, r)], cylinders [(top_centre, r, h)] or
-    [(top_centre, r, h, rim_radius)] (host numpy)."""
+    """Obstacles from lists (host numpy).
+
+    **Arguments:**
+
+    - ``spheres``: ``[(centre, radius)]``.
+    - ``capsules``: ``[(a, b, radius)]``.
+    - ``cylinders``: ``[(top_centre, radius, height)]`` or ``[(top_centre, radius, height, rim_radius)]``.
+    - ``ground``: the ground plane's height (default: disabled).
+    - ``dtype``: the arrays' dtype.
+
+    **Returns:**
+
+    The :class:`Obstacles` of one instant.
+
+    **Raises:**
+
+    ``ValueError`` for a cylinder of another form or invalid rims (:func:`check_rims`).
+    """
     s = list(spheres)
     c = list(capsules)
     if any(len(p) not in (3, 4) for p in cylinders):
@@ -222,9 +238,19 @@ def _candidates(obs: Obstacles, x):
 
 @jax.jit
 def signed_distance(obs: Obstacles, x: Float[Array, "p 3"]) -> tuple[Float[Array, " p"], Float[Array, "p 3"]]:
-    """Signed distance (negative inside) of each point to the union of all shapes and the closest shape's normal.
+    """Signed distance of each point to the union of all shapes, and the closest shape's normal.
 
-    Jitted; computed in the dtype of ``x`` (the obstacles are cast to it)."""
+    Jitted; computed in the dtype of ``x`` (the obstacles are cast to it).
+
+    **Arguments:**
+
+    - ``obs``: the obstacles of one instant.
+    - ``x``: points ``(P, 3)``.
+
+    **Returns:**
+
+    ``(distance (P,), normal (P, 3))``, the distance negative inside.
+    """
     x = jnp.asarray(x)
     if not jnp.issubdtype(x.dtype, jnp.floating):
         x = x.astype(jnp.float32)
@@ -237,8 +263,20 @@ def signed_distance(obs: Obstacles, x: Float[Array, "p 3"]) -> tuple[Float[Array
 def query(
     obs: Obstacles, prev: Obstacles, x: Float[Array, "p 3"]
 ) -> tuple[Float[Array, " p"], Float[Array, "p 3"], Float[Array, "p 3"], Int[Array, " p"]]:
-    """Distance, normal, displacement of the closest shape's surface point since ``prev`` (shapes translate; a
-    capsule's point moves with its end points blended at the closest-point parameter), and the shape index."""
+    """Closest-shape query of points against the obstacles and their motion since ``prev``.
+
+    **Arguments:**
+
+    - ``obs``: the obstacles now.
+    - ``prev``: the same obstacles at the previous instant.
+    - ``x``: points ``(P, 3)``.
+
+    **Returns:**
+
+    ``(distance (P,), normal (P, 3), displacement (P, 3), shape (P,))``: the signed distance and normal of the
+    closest shape, the displacement of its surface point since ``prev`` (shapes translate; a capsule's point moves
+    with its end points blended at the closest-point parameter), and its index.
+    """
     x = jnp.asarray(x)
     d, n = _candidates(obs, x)
     k = jnp.argmin(d, axis=1)

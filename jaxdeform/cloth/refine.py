@@ -15,8 +15,8 @@ positions ``P0`` (V, 3) and the obstacles' signed distance ``d(x)`` with outward
    0.1`` (the Euclidean term of Wang et al.: keeps the push local; the diagonal of L^T L is ~ deg^2 + deg ~ 40). The normal matrix
    ``L^T L + w I_C + eps I`` is solved on the region the push can reach: the constrained vertices and those
    within ``rings`` (6) + 2 edges of them; every other vertex keeps its position exactly (a sparse solve of a
-   few hundred to a few thousand unknowns per iteration, where the whole-mesh factorisation took ~40 ms per
-   iteration at 4,225 vertices).
+   few hundred to a few thousand unknowns per iteration, much cheaper than factorising the whole mesh in
+   every iteration).
 3. repeat from 1 on the result, at most ``iterations`` (3, the paper: "usually takes less than 3
    iterations") or until no vertex is inside.
 

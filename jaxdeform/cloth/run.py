@@ -46,12 +46,30 @@ def generate(
     progress: bool = True,
     levels: int = 3,
 ) -> dict:
-    """Simulate ``n_sequences`` paired sequences of a scenario into ``out``; returns the dataset index record.
+    """Simulate ``n_sequences`` paired (coarse, fine) sequences of a scenario into ``out``.
 
-    ``levels``: Loop levels from the coarse to the fine mesh (3: the paper's SHEET / DISK sizes). A sequence
-    file already in ``out`` whose stored scenario record equals the one asked for is kept, not simulated
-    again (an interrupted generation resumes; a dataset grows by raising ``n_sequences`` where the
+    A sequence file already in ``out`` whose stored scenario record equals the one asked for is kept, not
+    simulated again (an interrupted generation resumes; a dataset grows by raising ``n_sequences`` where the
     scenarios do not depend on it).
+
+    **Arguments:**
+
+    - ``kind``: the scenario (``"sheet"`` or ``"disk"``, :mod:`jaxdeform.cloth.scenarios`).
+    - ``out``: the dataset folder.
+    - ``n_sequences``: how many sequences (at least 2: one to train on, one to test).
+    - ``n_frames``: frames per sequence (default None: the scenarios' ``N_FRAMES``).
+    - ``seed``: the scenarios' seed.
+    - ``progress``: show a progress bar.
+    - ``levels``: Loop levels from the coarse to the fine mesh (3: the paper's SHEET / DISK sizes).
+
+    **Returns:**
+
+    The dataset index record (dataset.json as written): frames, seed, vertex counts, the maximum obstacle
+    penetrations (also relative to the mean edge length) and the median seconds per frame of both resolutions.
+
+    **Raises:**
+
+    ``JaxDeformError`` if ``n_sequences < 2``.
     """
     from jaxdeform.cloth import scenarios
 
@@ -71,7 +89,9 @@ def generate(
         m = pair["meta"]
         pen_c.append(m["coarse_max_penetration"])
         pen_f.append(m["fine_max_penetration"])
-        pen_n.append(int(m.get("penetration_samples", 0)))  # 0: measured at the vertices only (older data)
+        pen_n.append(
+            int(m.get("penetration_samples", 0))
+        )  # 0: a record without the count was measured at the vertices only
         t_c.append(m["coarse_seconds_per_frame"])
         t_f.append(m["fine_seconds_per_frame"])
         edge_c.append(_mean_edge(pair["coarse_rest"], pair["coarse_faces"]))
@@ -163,7 +183,28 @@ def train_run(
     features: tuple | None = None,
     residual: bool = False,
 ) -> Run:
-    """Train a detail model on the dataset's training split; ``features`` = a cached fit_representation result."""
+    """Train a detail model on the dataset's training split.
+
+    **Arguments:**
+
+    - ``data``: a dataset folder or a loaded :class:`~jaxdeform.cloth.data.ClothDataset`.
+    - ``representation``: the feature representation (default ``"ts-acap"``).
+    - ``model_cfg``: the model's configuration (default None: ``ModelConfig()``; its ``in_channels`` follows the
+        representation).
+    - ``train_cfg``: the training configuration (default None: ``TrainConfig()``).
+    - ``progress``: show progress bars.
+    - ``features``: a cached ``fit_representation`` result ``(representation, scaled features)`` (default None: fit it).
+    - ``residual``: the fine target is features(fine) - features(Loop(coarse)) (:mod:`jaxdeform.cloth.features`).
+
+    **Returns:**
+
+    The :class:`Run` (model, representation and record: dataset, split, configurations, final loss, timings,
+    thickness); not yet saved (:func:`save_run`).
+
+    **Raises:**
+
+    ``JaxDeformError`` if the dataset cannot train a model with this window (:func:`check_training_data`).
+    """
     from jaxdeform.cloth import model as cmodel
     from jaxdeform.cloth import train as ctrain
 
@@ -251,6 +292,17 @@ RUN_FILES = ("model.npz", "representation.npz", "run.json")
 
 
 def save_run(run: Run, root: str | Path) -> Path:
+    """Write the run into the folder ``root`` (created if needed): model.npz, representation.npz and run.json.
+
+    **Arguments:**
+
+    - ``run``: the run; its ``root`` is set to ``root``.
+    - ``root``: the run folder.
+
+    **Returns:**
+
+    ``root`` as a ``Path``.
+    """
     from jaxdeform.cloth import train as ctrain
 
     root = Path(root)
@@ -265,6 +317,21 @@ def save_run(run: Run, root: str | Path) -> Path:
 
 
 def load_run(root: str | Path) -> Run:
+    """Load the cloth run in the folder ``root``.
+
+    **Arguments:**
+
+    - ``root``: a folder written by :func:`save_run`.
+
+    **Returns:**
+
+    The :class:`Run` (model, representation, record, root).
+
+    **Raises:**
+
+    ``JaxDeformError`` if run.json is missing, not JSON or not a cloth run record, its split or thickness is
+    invalid, or representation.npz is not a cloth feature representation.
+    """
     from jaxdeform.cloth import train as ctrain
 
     root = Path(root)
@@ -314,10 +381,21 @@ def obstacle_sdf(obstacles: dict, t: int):
 def synthesize_timed(
     run: Run, coarse: np.ndarray, obstacles: dict | None = None, refine: bool = True, pins: dict | None = None
 ) -> tuple[np.ndarray, dict]:
-    """Fine frames (T, Vf, 3) from coarse frames (T, Vc, 3), and seconds per frame of each stage.
+    """Fine frames from coarse frames, and seconds per frame of each stage.
 
-    ``obstacles``: the scenario's obstacle track (for the refinement); ``pins``: its fixed vertices
-    (``Sequence.pins``: fine_pins, fine_pin_positions) that anchor the reconstruction.
+    **Arguments:**
+
+    - ``run``: the cloth run.
+    - ``coarse``: coarse frames ``(T, Vc, 3)``.
+    - ``obstacles``: the scenario's obstacle track (for the refinement; None: no refinement).
+    - ``refine``: refine the frames against the obstacles (when ``obstacles`` is given).
+    - ``pins``: the scenario's fixed vertices (``Sequence.pins``: fine_pins, fine_pin_positions) that anchor the
+        reconstruction.
+
+    **Returns:**
+
+    ``(fine, timing)``: fine frames ``(T, Vf, 3)`` and a dict of seconds per frame of ``extraction``, ``synthesis``,
+    ``reconstruction`` and ``refinement``, plus the number of ``refined_frames``.
     """
     from jaxdeform.cloth import train as ctrain
 
@@ -373,7 +451,20 @@ def check_dataset(run: Run, ds: cdata.ClothDataset, data: str | Path, run_dir: s
 def evaluate_run(
     run: Run, ds: cdata.ClothDataset, part: str = "test", refine: bool = True, progress: bool = True
 ) -> dict:
-    """Errors of the run's synthesis and of the upsampled coarse baseline on a split of a dataset."""
+    """Errors of the run's synthesis and of the upsampled coarse baseline on a split of a dataset.
+
+    **Arguments:**
+
+    - ``run``: the cloth run.
+    - ``ds``: the dataset.
+    - ``part``: the split to evaluate (default ``"test"``).
+    - ``refine``: refine the synthesised frames against the obstacles.
+    - ``progress``: show a progress bar.
+
+    **Returns:**
+
+    ``{part: pooled errors, "upsampled_coarse": {part: pooled errors}}`` (:func:`jaxdeform.cloth.evaluate.pool`).
+    """
     ups = ceval.Upsampler(ds.coarse_faces, ds.coarse_rest.shape[0], ds.fine_faces)
     ours, coarse = [], []
     for s in tqdm(ds.subset(part), desc=f"evaluate {part}", unit="seq", disable=not progress):

@@ -22,9 +22,9 @@ Scenes (every sequence is determined by (kind, index, seed) through ``np.random.
   follows phi(t) = -phi0 cos(sqrt(g / l) t) from rest, and its far turning point lies ``reach`` in
   :data:`SHEET_REACH` = [0.05, 0.25] m past the sheet's rest plane (the pivot sits A - reach behind it), so
   the obstacle strikes the sheet at ~0.5-1 m/s, pushes it out, withdraws and strikes again about one period
-  (~2.4 s) later. An earlier version swung the obstacle A past the plane: it then swept under the sheet's
-  hem, a bifurcation that the coarse and the fine sheet took differently in most sequences (the Loop-
-  upsampled coarse sheet was 7-30 cm RMS from the fine one; with the turn-back, 1.6-3.3 cm on indices 0-3).
+  (~2.4 s) later. The swing turns back just past the plane because an obstacle swinging the full A past it
+  sweeps under the sheet's hem, a bifurcation that the coarse and the fine sheet take differently, so the
+  Loop-upsampled coarse sheet would no longer follow the fine one.
 - DISK: the cloth lies centred on a table (capped cylinder, radius 0.45 m, top at y = 0.75 m, height 0.75 m,
   rims rounded to :data:`TABLE_RIM_RADIUS` = 5 cm; ground at y = 0) with a weight in the middle (the vertices
   within 6 cm of the centre are pinned: 1 coarse vertex, the corresponding patch of fine ones). Wind blows
@@ -35,14 +35,11 @@ Scenes (every sequence is determined by (kind, index, seed) through ``np.random.
 Both resolutions use the same :class:`ClothParams` physics and the same obstacle / wind / pin tracks; only the
 iteration budget differs (:data:`COARSE_STEPS` = 10 x 2, :data:`FINE_STEPS` = 40 x 4 (substeps,
 iterations) per frame), and so does the number of obstacle contact points inside each triangle (see
-:data:`MIN_OBSTACLE_RADIUS`: SHEET coarse 12 per triangle, DISK coarse 25, the fine meshes none). Measured
-edge strain |l / L - 1| (2 CPU cores shared with other jobs, load ~6):
-SHEET index 0 fine, 30 frames through the impact: mean 0.13 %, p99 1.5 %, max 6.0 % (20 x 4: max 13 %);
-coarse mean 0.2 %, max 3.3 %. DISK index 5 fine, 60 frames: mean 0.17 %, max 5.7 %; coarse mean 0.24 %,
-max 4.9 % (2 iterations). Max obstacle penetration of every stored SHEET and DISK frame, at the vertices and
-inside the triangles (:func:`max_penetration` with faces): 0 at both resolutions. Time per frame (compilation
-apart, ~3-6 s per mesh): SHEET coarse 4.8 ms (1.7 ms with vertex contacts alone), fine ~0.28-0.41 s; DISK coarse
-~17-23 ms (25 points per triangle; 2 ms with vertex contacts alone), fine ~0.5-0.8 s.
+:data:`MIN_OBSTACLE_RADIUS`: SHEET coarse 12 per triangle, DISK coarse 25, the fine meshes none). With these
+budgets the edge strain |l / L - 1| stays below ~6 % (mean ~0.1-0.2 %) at both resolutions (20 x 4 on the
+fine SHEET lets it reach ~13 %, hence 40 x 4), and no
+stored SHEET or DISK frame penetrates an obstacle, at the vertices or inside the triangles
+(:func:`max_penetration` with faces). A fine frame costs tens of times a coarse one.
 DISK's table has a rounded rim: a sharp one gives the contact-point rule no curvature radius to work with.
 Initial state: the flat rest cloth (the fine one = Loop-subdivided coarse one), settled for ``settle_frames``
 frames with the obstacles at their t = 0 position and no wind, then the recorded sequence starts from the
@@ -179,7 +176,18 @@ def _disk():
 
 
 def loop_subdivide(verts, faces, levels: int = 3):
-    """``igl.loop`` (original vertices first): positions (V', 3) float64 and faces (F', 3) int64."""
+    """Loop subdivision by ``igl.loop`` (original vertices first).
+
+    **Arguments:**
+
+    - ``verts``: ``(V, 3)``.
+    - ``faces``: ``(F, 3)``.
+    - ``levels``: the number of subdivisions.
+
+    **Returns:**
+
+    ``(positions (V', 3) float64, faces (F', 3) int64)``.
+    """
     v, f = igl.loop(np.ascontiguousarray(verts, np.float64), np.ascontiguousarray(faces, np.int64), levels)
     return np.asarray(v), np.asarray(f)
 
@@ -199,16 +207,37 @@ def _meshes(kind: str, levels: int = 3):
 
 
 def meshes(kind: str, levels: int = 3):
-    """Rest meshes (coarse_v, coarse_f, fine_v, fine_f) of a scenario kind (host numpy, float64 / int64).
+    """Rest meshes of a scenario kind (host numpy).
 
-    ``levels``: Loop subdivisions from coarse to fine (3: the paper's resolutions; fewer for quick tests).
+    **Arguments:**
+
+    - ``kind``: ``"sheet"`` or ``"disk"``.
+    - ``levels``: Loop subdivisions from coarse to fine (3: the paper's resolutions; fewer for quick tests).
+
+    **Returns:**
+
+    ``(coarse_v, coarse_f, fine_v, fine_f)``, float64 / int64.
+
+    **Raises:**
+
+    ``ScenarioError`` for an unknown kind or ``levels < 1``.
     """
     return tuple(np.array(a) for a in _meshes(kind, levels))
 
 
 @functools.cache
 def models(kind: str, levels: int = 3) -> tuple[sim.ClothModel, sim.ClothModel]:
-    """The coarse and fine :class:`ClothModel` of a kind (built once per process)."""
+    """The coarse and fine :class:`ClothModel` of a kind (built once per process).
+
+    **Arguments:**
+
+    - ``kind``: ``"sheet"`` or ``"disk"``.
+    - ``levels``: Loop subdivisions from coarse to fine.
+
+    **Returns:**
+
+    ``(coarse model, fine model)``.
+    """
     cv, cf, fv, ff = _meshes(kind, levels)
     return sim.build_model(cv, cf), sim.build_model(fv, ff)
 
@@ -312,8 +341,25 @@ def _disk_track(rng, index: int, n_per: int, T: int, dt: float):
 def scenario(
     kind: str, index: int, seed: int = 0, n_frames: int = N_FRAMES, n_sequences: int = 10, levels: int = 3
 ) -> Scenario:
-    """Sequence ``index`` of a scenario kind; deterministic from (kind, index, seed). ``n_sequences`` spreads
-    the disk's wind speeds over [1, 5] m/s across indices; ``levels`` = Loop levels of the fine mesh."""
+    """Sequence ``index`` of a scenario kind; deterministic from (kind, index, seed).
+
+    **Arguments:**
+
+    - ``kind``: ``"sheet"`` or ``"disk"`` (:data:`KINDS`).
+    - ``index``: the sequence's index (non-negative).
+    - ``seed``: the seed of the random draws.
+    - ``n_frames``: frames of the sequence (at least 2).
+    - ``n_sequences``: spreads the disk's wind speeds over [1, 5] m/s across indices.
+    - ``levels``: Loop levels of the fine mesh.
+
+    **Returns:**
+
+    The :class:`Scenario`: meshes' start states, pins, obstacle and wind tracks, physics and its record.
+
+    **Raises:**
+
+    ``ScenarioError`` for an unknown kind, a negative index or fewer than 2 frames.
+    """
     if kind not in KINDS:
         raise ScenarioError(f"Unknown scenario kind {kind!r}; expected one of {KINDS}.")
     if index < 0 or n_frames < 2:
@@ -402,7 +448,16 @@ def _run_one(model, params, x0, sc: Scenario, pinned, progress: bool, desc: str)
 
 
 def fine_start(sc: Scenario) -> np.ndarray:
-    """The fine cloth's initial (pre-settling) positions: the coarse start Loop-subdivided, (Vf, 3) float32."""
+    """The fine cloth's initial (pre-settling) positions: the coarse start Loop-subdivided.
+
+    **Arguments:**
+
+    - ``sc``: the scenario.
+
+    **Returns:**
+
+    ``(Vf, 3)`` float32.
+    """
     _, cf, _, _ = _meshes(sc.kind, sc.levels)
     return loop_subdivide(sc.x0_coarse, cf, sc.levels)[0].astype(np.float32)
 
@@ -415,9 +470,19 @@ def _run_fine(sc: Scenario, x0: np.ndarray, progress: bool):
 
 
 def pins(sc: Scenario) -> dict:
-    """The pinned vertices of both meshes and where they are held (they never move): "coarse_pins" /
-    "fine_pins" (int32 indices) and "coarse_pin_positions" / "fine_pin_positions" (float32 (P, 3)). These are
-    part of the scenario, like the obstacles: the synthesis anchors its reconstruction on them."""
+    """The pinned vertices of both meshes and where they are held (they never move).
+
+    These are part of the scenario, like the obstacles: the synthesis anchors its reconstruction on them.
+
+    **Arguments:**
+
+    - ``sc``: the scenario.
+
+    **Returns:**
+
+    A dict: "coarse_pins" / "fine_pins" (int32 indices) and "coarse_pin_positions" / "fine_pin_positions"
+    (float32 ``(P, 3)``).
+    """
     x0f = fine_start(sc)
     pc, pf = np.flatnonzero(sc.pinned_coarse), np.flatnonzero(sc.pinned_fine)
     return {
@@ -431,8 +496,15 @@ def pins(sc: Scenario) -> dict:
 def simulate_pair(sc: Scenario, *, progress: bool = True) -> dict:
     """Simulate the coarse and the fine cloth of a scenario separately (same tracks and physics).
 
-    Returns "coarse" (T, Vc, 3) and "fine" (T, Vf, 3) float32 frames, "coarse_faces", "fine_faces",
-    "coarse_rest", "fine_rest", "obstacles" (the track as a dict of arrays), "wind" (T, 3), "meta" (with the
+    **Arguments:**
+
+    - ``sc``: the scenario (:func:`scenario`).
+    - ``progress``: show progress bars.
+
+    **Returns:**
+
+    A dict: "coarse" ``(T, Vc, 3)`` and "fine" ``(T, Vf, 3)`` float32 frames, "coarse_faces", "fine_faces",
+    "coarse_rest", "fine_rest", "obstacles" (the track as a dict of arrays), "wind" ``(T, 3)``, "meta" (with the
     measured timings and edge strains) and "coarse_seconds_per_frame" / "fine_seconds_per_frame" (compilation
     excluded; settling excluded).
     """
@@ -479,12 +551,26 @@ def simulate_pair(sc: Scenario, *, progress: bool = True) -> dict:
 
 
 def simulate_fine(sc: Scenario, *, perturbation: float = 0.0, seed: int = 1) -> np.ndarray:
-    """The fine cloth of a scenario alone, (T, Vf, 3) float32, optionally from a start whose free vertices are
-    moved by Gaussian noise of ``perturbation`` metres RMS per coordinate (``seed`` draws it).
+    """The fine cloth of a scenario alone, optionally from a perturbed start.
 
     Two runs that differ only by a tiny perturbation measure how far the fine simulation itself is determined
     by its scenario: their distance is a floor below which no predictor of the fine cloth from the scenario
     (let alone from the coarse cloth) can be expected to go (the ``floor`` stage of ``experiments/cloth``).
+
+    **Arguments:**
+
+    - ``sc``: the scenario.
+    - ``perturbation``: the RMS per coordinate, in metres, of Gaussian noise added to the free vertices' start
+        (non-negative; 0: none).
+    - ``seed``: draws the noise.
+
+    **Returns:**
+
+    The frames ``(T, Vf, 3)`` float32.
+
+    **Raises:**
+
+    ``ScenarioError`` for a negative or non-finite perturbation.
     """
     if not (perturbation >= 0 and np.isfinite(perturbation)):
         raise ScenarioError(f"the perturbation must be a non-negative number of metres, got {perturbation}.")
@@ -517,8 +603,23 @@ def _penetration(frames, track, faces, bary):
 
 
 def max_penetration(frames, obstacle_track: Obstacles, faces=None) -> float:
-    """Max over frames of -min(sdf, 0) (metres) at the vertices and, given ``faces``, at the points of an order-
-    :data:`PENETRATION_SAMPLES` grid inside every triangle; frame t is tested against track frame t."""
+    """Max over frames of -min(sdf, 0) (metres), frame t tested against track frame t.
+
+    **Arguments:**
+
+    - ``frames``: positions ``(T, V, 3)``.
+    - ``obstacle_track``: the obstacles of the T frames.
+    - ``faces``: triangles ``(F, 3)``; given, the points of an order-:data:`PENETRATION_SAMPLES` grid inside every
+        triangle are tested too (default None: the vertices only).
+
+    **Returns:**
+
+    The largest penetration depth as a float (0 when nothing penetrates).
+
+    **Raises:**
+
+    ``ScenarioError`` if ``frames`` and the track have different numbers of frames.
+    """
     frames = np.asarray(frames, np.float32)
     track = jax.tree_util.tree_map(lambda a: np.asarray(a, np.float32), obstacle_track)
     if frames.shape[0] != obst.n_frames(track):

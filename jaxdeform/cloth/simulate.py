@@ -323,8 +323,19 @@ def _colour_tables(et: _EdgeTable, n_vertices: int):
 def build_model(rest_vertices, faces) -> ClothModel:
     """Edges, colours, hinges, lumped areas and rest quantities of a triangle mesh (host numpy, once).
 
-    Raises SimulationError, ConnectivityError or DegenerateMeshError for a malformed, non-manifold or degenerate
-    rest mesh (:func:`_rest_mesh`, :func:`_edge_table`). Float arrays of the result are float32, indices int32.
+    **Arguments:**
+
+    - ``rest_vertices``: the rest positions ``(V, 3)``.
+    - ``faces``: the triangles ``(F, 3)``.
+
+    **Returns:**
+
+    The :class:`ClothModel`; its float arrays are float32, its indices int32.
+
+    **Raises:**
+
+    ``SimulationError``, ``ConnectivityError`` or ``DegenerateMeshError`` for a malformed, non-manifold or degenerate
+    rest mesh (:func:`_rest_mesh`, :func:`_edge_table`).
     """
     X, F, tri_area, area_v = _rest_mesh(rest_vertices, faces)
     et = _edge_table(X, F, tri_area)
@@ -359,7 +370,18 @@ ClothModel.build = staticmethod(build_model)
 
 
 def turbulence_modes(key, dtype=jnp.float32) -> dict:
-    """Unit-scale random Fourier modes of the turbulence (q in 1/length units, omega in 1/time units)."""
+    """Unit-scale random Fourier modes of the turbulence (q in 1/length units, omega in 1/time units).
+
+    **Arguments:**
+
+    - ``key``: the PRNG key.
+    - ``dtype``: the arrays' dtype.
+
+    **Returns:**
+
+    A dict of the K = TURBULENCE_MODES modes: wave vectors ``q`` ``(K, 3)``, frequencies ``omega`` ``(K,)``,
+    ``phase`` ``(K,)`` in [0, 2 pi) and amplitudes ``amp`` ``(K, 3)``.
+    """
     kq, kw, kp, ka = jax.random.split(key, 4)
     K = TURBULENCE_MODES
     return dict(
@@ -373,13 +395,40 @@ def turbulence_modes(key, dtype=jnp.float32) -> dict:
 def wind_velocity(
     params: ClothParams, modes: dict, mean: Float[Array, " 3"], x: Float[Array, "p 3"], t
 ) -> Float[Array, "p 3"]:
-    """Air velocity at points x and time t: mean + turbulence * sum_k a_k sin(q_k.x / l - omega_k t / tau + phi_k)."""
+    """Air velocity at points x and time t: mean + turbulence * sum_k a_k sin(q_k.x / l - omega_k t / tau + phi_k).
+
+    **Arguments:**
+
+    - ``params``: the physical parameters (turbulence strength and scales).
+    - ``modes``: :func:`turbulence_modes`' result.
+    - ``mean``: the mean wind ``(3,)``.
+    - ``x``: points ``(P, 3)``.
+    - ``t``: the time.
+
+    **Returns:**
+
+    The velocities ``(P, 3)``.
+    """
     arg = x @ (modes["q"].T / params.turbulence_length) - modes["omega"] * (t / params.turbulence_time) + modes["phase"]
     return mean + params.turbulence * (jnp.sin(arg) @ modes["amp"])
 
 
 def air_force(model: ClothModel, params: ClothParams, modes: dict, mean, x, v, t) -> Float[Array, "v 3"]:
-    """Per-vertex aerodynamic force (N) of the flat-plate drag + lift model (module docstring)."""
+    """Per-vertex aerodynamic force (N) of the flat-plate drag + lift model (module docstring).
+
+    **Arguments:**
+
+    - ``model``: the cloth model.
+    - ``params``: the physical parameters.
+    - ``modes``: :func:`turbulence_modes`' result.
+    - ``mean``: the mean wind ``(3,)``.
+    - ``x``, ``v``: positions and velocities ``(V, 3)``.
+    - ``t``: the time.
+
+    **Returns:**
+
+    The forces ``(V, 3)``.
+    """
     f = model.faces
     a, b, c = x[f[:, 0]], x[f[:, 1]], x[f[:, 2]]
     cr = jnp.cross(b - a, c - a)
@@ -444,7 +493,19 @@ _OFFSETS = np.stack(np.meshgrid([-1, 0, 1], [-1, 0, 1], [-1, 0, 1], indexing="ij
 
 
 def self_candidates(model: ClothModel, x: Float[Array, "v 3"], radius) -> tuple[Int[Array, "v k"], Bool[Array, "v k"]]:
-    """Up to SELF_NEIGHBOURS nearest vertices within 2 r of each vertex whose rest distance exceeds 2 r (hash grid)."""
+    """Self-collision candidates from a hash grid.
+
+    **Arguments:**
+
+    - ``model``: the cloth model.
+    - ``x``: positions ``(V, 3)``.
+    - ``radius``: r.
+
+    **Returns:**
+
+    ``(neighbours (V, k), valid (V, k))``: up to SELF_NEIGHBOURS nearest vertices within 2 r of each vertex whose
+    rest distance exceeds 2 r, and which entries are real.
+    """
     x = jnp.asarray(x, jnp.float32)
     V = x.shape[0]
     size = 1 << max(4, int(math.ceil(math.log2(2 * V))))
@@ -492,8 +553,21 @@ def _push_out(params: ClothParams, w, obs: Obstacles, p):
 
 
 def face_barycentrics(n: int) -> np.ndarray:
-    """Barycentric coordinates (S, 3) of the order-``n`` grid on a triangle without its corners (the vertices
-    are tested already): S = (n + 1)(n + 2) / 2 - 3 points, n intervals per edge (none for n <= 1)."""
+    """Barycentric coordinates of the order-``n`` grid on a triangle without its corners (the vertices are tested
+    already).
+
+    **Arguments:**
+
+    - ``n``: intervals per edge (>= 0).
+
+    **Returns:**
+
+    ``(S, 3)`` float32, S = (n + 1)(n + 2) / 2 - 3 points (none for n <= 1).
+
+    **Raises:**
+
+    ``SimulationError`` for ``n < 0``.
+    """
     if n < 0:
         raise SimulationError(f"face_samples must be >= 0, got {n}.")
     pts = [(i, j, n - i - j) for i in range(n + 1) for j in range(n + 1 - i) if max(i, j, n - i - j) < n]
@@ -505,9 +579,20 @@ def face_samples_for(rest_vertices, faces, thickness: float, min_radius: float) 
     triangle by more than half the ``thickness`` between contact points.
 
     A sphere of radius r sinks ~ R^2 / (2 r) into a triangle whose corners are on it, R the radius of the
-    triangle's smallest enclosing circle (its circumradius, or half its longest edge if it is obtuse). The order-n
-    grid splits a triangle into copies scaled by 1 / n, so (R / n)^2 / (2 r) <= thickness / 2 needs
-    n = ceil(R_max / sqrt(thickness r)) over the rest triangles; 0 (vertex contacts only) when n <= 1."""
+    triangle's smallest enclosing circle (its circumradius, or half its longest edge if it is obtuse). The
+    order-n grid splits a triangle into copies scaled by 1 / n, so (R / n)^2 / (2 r) <= thickness / 2 needs
+    n = ceil(R_max / sqrt(thickness r)) over the rest triangles.
+
+    **Arguments:**
+
+    - ``rest_vertices``, ``faces``: the rest mesh.
+    - ``thickness``: the cloth's thickness.
+    - ``min_radius``: the smallest obstacle curvature radius.
+
+    **Returns:**
+
+    n; 0 (vertex contacts only) when n <= 1.
+    """
     X = np.asarray(rest_vertices, np.float64)
     F = np.asarray(faces, np.int64)
     a, b, c = (np.linalg.norm(X[F[:, (k + 1) % 3]] - X[F[:, (k + 2) % 3]], axis=1) for k in range(3))
@@ -669,7 +754,12 @@ _TRACES = 0
 
 
 def trace_count() -> int:
-    """How many times the frame-chunk function has been traced in this process (for retracing tests)."""
+    """How many times the frame-chunk function has been traced in this process (for retracing tests).
+
+    **Returns:**
+
+    The count.
+    """
     return _TRACES
 
 
@@ -690,7 +780,12 @@ def _signature(args):
 
 
 def clear_compiled() -> None:
-    """Drop the compiled frame-chunk executables (each holds mapped machine code; see tests/conftest.py)."""
+    """Drop the compiled frame-chunk executables (each holds mapped machine code; see tests/conftest.py).
+
+    **Returns:**
+
+    Nothing.
+    """
     _COMPILED.clear()
 
 
@@ -710,8 +805,19 @@ def _params_leaves(params: ClothParams) -> ClothParams:
 
 
 def tethers(model: ClothModel, pinned) -> tuple[Int[Array, " v"], Float[Array, " v"], Bool[Array, " v"]]:
-    """Nearest pinned vertex of every free vertex and its rest distance (host; the rest meshes are flat and
-    convex, where that distance is the geodesic one). All inactive when nothing is pinned."""
+    """Nearest pinned vertex of every free vertex and its rest distance (host).
+
+    The rest meshes are flat and convex, where that distance is the geodesic one.
+
+    **Arguments:**
+
+    - ``model``: the cloth model.
+    - ``pinned``: ``(V,)`` bool mask.
+
+    **Returns:**
+
+    ``(anchor (V,) int32, length (V,) float32, active (V,) bool)``; all inactive when nothing is pinned.
+    """
     pinned = np.asarray(pinned, bool)
     rest = np.asarray(model.rest)
     V = len(rest)
@@ -725,7 +831,18 @@ def tethers(model: ClothModel, pinned) -> tuple[Int[Array, " v"], Float[Array, "
 
 
 def inverse_mass(model: ClothModel, params: ClothParams, pinned) -> Float[Array, " v"]:
-    """1 / (density * lumped area), 0 at pinned vertices."""
+    """Per-vertex inverse mass: 1 / (density * lumped area), 0 at pinned vertices.
+
+    **Arguments:**
+
+    - ``model``: the cloth model.
+    - ``params``: the physical parameters.
+    - ``pinned``: ``(V,)`` bool mask.
+
+    **Returns:**
+
+    ``(V,)`` float32.
+    """
     return jnp.where(jnp.asarray(pinned), 0.0, 1.0 / (params.density * model.area_v)).astype(jnp.float32)
 
 
@@ -747,8 +864,25 @@ def step(
 ):
     """One frame (``params.substeps`` substeps) from the obstacles ``obstacles_prev`` to ``obstacles_now``.
 
-    Returns the new (x, v). ``key`` draws the turbulence modes (the same key gives the same air field).
     Jitted through the same chunk function as :func:`simulate` (a chunk of one frame).
+
+    **Arguments:**
+
+    - ``model``: the cloth model (:func:`build_model`).
+    - ``params``: the physical and solver parameters.
+    - ``x``, ``v``: positions and velocities ``(V, 3)``.
+    - ``obstacles_prev``, ``obstacles_now``: the obstacles at the start and the end of the frame.
+    - ``key``: draws the turbulence modes (the same key gives the same air field).
+    - ``pinned``: ``(V,)`` bool mask of the pinned vertices (default None: none).
+    - ``pin_prev``, ``pin_now``: the pinned vertices' targets ``(V, 3)`` at the start and end of the frame (defaults:
+        ``x``, then ``pin_prev``).
+    - ``wind_prev``, ``wind_now``: the mean wind ``(3,)`` at the start and end of the frame (defaults: ``params.wind``,
+        then ``wind_prev``).
+    - ``time_s``: the simulation time at the start of the frame, in seconds.
+
+    **Returns:**
+
+    The new ``(x, v)``, each ``(V, 3)``.
     """
     V = np.shape(x)[0]
     pinned = np.zeros(V, bool) if pinned is None else np.asarray(pinned, bool)
@@ -880,12 +1014,34 @@ def run(
     desc: str = "simulate",
     chunk: int = CHUNK,
 ) -> SimResult:
-    """Simulate T = len(track) frames; frame t is the state after stepping the obstacles from track[t - 1] to
-    track[t] (track[-1] := track[0]), so every stored frame went through a collision projection.
+    """Simulate T = len(track) frames.
 
-    ``pinned`` (V,) bool; ``pin_track`` (T, V, 3) targets of the pinned vertices (default: their x0);
-    ``wind_track`` (T, 3) mean wind per frame (default: ``params.wind``); ``key`` the PRNG key of the
-    turbulence. Deterministic from the key. Returns frames, last state and timings (compilation apart).
+    Frame t is the state after stepping the obstacles from track[t - 1] to track[t] (track[-1] := track[0]), so
+    every stored frame went through a collision projection. Deterministic from the key.
+
+    **Arguments:**
+
+    - ``model``: the cloth model (:func:`build_model`).
+    - ``params``: the physical and solver parameters.
+    - ``x0``, ``v0``: initial positions and velocities ``(V, 3)``.
+    - ``obstacle_track``: the obstacles of every frame (T frames).
+    - ``pinned``: ``(V,)`` bool mask of the pinned vertices (default None: none).
+    - ``pin_track``: ``(T, V, 3)`` targets of the pinned vertices (default: their ``x0``).
+    - ``key``: the PRNG key of the turbulence (default None: ``PRNGKey(0)``).
+    - ``wind_track``: ``(T, 3)`` mean wind per frame (default: ``params.wind``).
+    - ``start_time``: the simulation time of the first frame.
+    - ``progress``, ``desc``: a progress bar and its label.
+    - ``chunk``: frames per compiled chunk.
+
+    **Returns:**
+
+    A :class:`SimResult`: the frames ``(T, V, 3)`` float32, the last state, the compile time and the seconds per
+    frame (compilation apart).
+
+    **Raises:**
+
+    ``SimulationError`` for inputs of the wrong shape (``x0``, ``v0``, ``pinned``, ``pin_track``,
+    ``wind_track``), an empty obstacle track, or a simulation that diverges (non-finite positions).
     """
     x0, v0, track, T, pinned, pins, wind = _checked_inputs(
         model, params, x0, v0, obstacle_track, pinned, pin_track, wind_track
@@ -925,14 +1081,37 @@ def simulate(
     wind_track=None,
     progress: bool = True,
 ) -> np.ndarray:
-    """Frames (T, V, 3) float32 of a simulation (see :func:`run`); one compile per (mesh, static params)."""
+    """Frames of a simulation (see :func:`run`); one compile per (mesh, static params).
+
+    **Arguments:**
+
+    As :func:`run`'s.
+
+    **Returns:**
+
+    The frames ``(T, V, 3)`` float32.
+
+    **Raises:**
+
+    As :func:`run`.
+    """
     return run(
         model, params, x0, v0, obstacle_track, pinned, pin_track, key, wind_track=wind_track, progress=progress
     ).frames
 
 
 def edge_strain(model: ClothModel, frames) -> tuple[float, float]:
-    """Mean and max relative edge stretch |l / L - 1| over frames and edges."""
+    """Mean and max relative edge stretch |l / L - 1| over frames and edges.
+
+    **Arguments:**
+
+    - ``model``: the cloth model.
+    - ``frames``: positions ``(T, V, 3)``.
+
+    **Returns:**
+
+    ``(mean, max)`` as floats.
+    """
     f = jnp.asarray(frames)
     e = model.edges
     ln = jnp.linalg.norm(f[:, e[:, 0]] - f[:, e[:, 1]], axis=-1)

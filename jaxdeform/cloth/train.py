@@ -175,7 +175,21 @@ def _as_sequences(seqs, what: str) -> list[np.ndarray]:
 def windows(coarse_seqs: Sequence, fine_seqs: Sequence, window: int) -> Windows:
     """Every window of ``window`` consecutive frames of every paired (coarse, fine) sequence (module docstring).
 
-    Sequences shorter than the window give no window; if none gives one, ValueError.
+    Sequences shorter than the window give no window.
+
+    **Arguments:**
+
+    - ``coarse_seqs``: scaled coarse sequences, each ``(T_i, Vc, C)``.
+    - ``fine_seqs``: the frame-aligned fine sequences, each ``(T_i, Vf, C)``.
+    - ``window``: W.
+
+    **Returns:**
+
+    The :class:`Windows`.
+
+    **Raises:**
+
+    ``ValueError`` for unpaired or mismatched sequences, or if no sequence gives a window.
     """
     cs, fs = _as_sequences(coarse_seqs, "coarse"), _as_sequences(fine_seqs, "fine")
     if len(cs) != len(fs):
@@ -203,7 +217,19 @@ def windows(coarse_seqs: Sequence, fine_seqs: Sequence, window: int) -> Windows:
 def gather_windows(
     coarse: Float[Array, "n vc c"], fine: Float[Array, "n vf c"], starts: Int[Array, " b"], window: int
 ) -> tuple[Float[Array, "b w vc c"], Float[Array, "b w vf c"], Float[Array, "b w vf c"]]:
-    """(coarse window, teacher-forced fine input, fine target) of the windows starting at rows ``starts``."""
+    """The windows starting at rows ``starts`` of :class:`Windows`' stacked sequences.
+
+    **Arguments:**
+
+    - ``coarse``, ``fine``: the stacked sequences (:class:`Windows`).
+    - ``starts``: rows of the windows' first target frames ``(B,)``.
+    - ``window``: W.
+
+    **Returns:**
+
+    ``(coarse window, teacher-forced fine input, fine target)``: ``(B, W, Vc, C)``, ``(B, W, Vf, C)`` and
+    ``(B, W, Vf, C)``.
+    """
     idx = starts[:, None] + jnp.arange(window)[None, :]
     return coarse[idx], fine[idx - 1], fine[idx]
 
@@ -213,9 +239,18 @@ def self_fed_inputs(
 ) -> Float[Array, "b w vf c"]:
     """The fine inputs of a window as synthesis would feed them (module docstring, "Self-feeding").
 
-    ``predict(coarse_win, fine_prev_win)`` is the model; W - 1 passes without gradient, each moving the
-    previous pass's predictions of the target frames 0..W-2 into the input positions 1..W-1; position 0 keeps
-    ``fine_prev[:, 0]``. With W = 1 the inputs are returned unchanged.
+    W - 1 passes without gradient, each moving the previous pass's predictions of the target frames 0..W-2 into
+    the input positions 1..W-1; position 0 keeps ``fine_prev[:, 0]``.
+
+    **Arguments:**
+
+    - ``predict``: the model, ``predict(coarse_win, fine_prev_win)``.
+    - ``coarse_win``: coarse windows ``(B, W, Vc, C)``.
+    - ``fine_prev``: the teacher-forced fine inputs ``(B, W, Vf, C)``.
+
+    **Returns:**
+
+    The self-fed inputs ``(B, W, Vf, C)``; with W = 1 the inputs unchanged.
     """
     fed = fine_prev
     for _ in range(fine_prev.shape[1] - 1):  # W - 1 <= a few passes, unrolled once at trace time
@@ -225,7 +260,18 @@ def self_fed_inputs(
 
 
 def self_feed_probability(p: float, step: Array, steps: int) -> Array:
-    """p_t of the module docstring: 0 at step 0, p from half the training on."""
+    """p_t of the module docstring: 0 at step 0, rising linearly to p at half the training, p from then on.
+
+    **Arguments:**
+
+    - ``p``: the final probability.
+    - ``step``: the current step.
+    - ``steps``: the training's steps.
+
+    **Returns:**
+
+    p_t as a scalar array.
+    """
     return p * jnp.minimum(1.0, step.astype(jnp.float32) / max(steps / 2.0, 1.0))
 
 
@@ -259,14 +305,34 @@ class PositionTarget:
 
 
 def stack_like_windows(seqs: Sequence) -> Float[Array, "n v c"]:
-    """Sequences (T_i, V, C) one after another, each preceded by a zero frame (the rows of :class:`Windows`)."""
+    """Sequences one after another, each preceded by a zero frame (the rows of :class:`Windows`).
+
+    **Arguments:**
+
+    - ``seqs``: sequences ``(T_i, V, C)``.
+
+    **Returns:**
+
+    ``(sum_i (T_i + 1), V, C)`` float32.
+    """
     seqs = [np.asarray(x, np.float32) for x in seqs]
     zero = np.zeros((1,) + seqs[0].shape[1:], np.float32)
     return jnp.asarray(np.concatenate([x for s in seqs for x in (zero, s)]))
 
 
 def position_error(pos: PositionTarget, scaled: Float[Array, "b vf c"], rows: Int[Array, " b"]) -> Array:
-    """Mean squared vertex distance over ell^2 of scaled fine features decoded to positions, rows of ``pos``."""
+    """Mean squared vertex distance over ell^2 of scaled fine features decoded to positions.
+
+    **Arguments:**
+
+    - ``pos``: the position target (module docstring).
+    - ``scaled``: scaled fine features ``(B, Vf, C)``.
+    - ``rows``: the rows of ``pos`` they belong to ``(B,)``.
+
+    **Returns:**
+
+    The error as a scalar array.
+    """
     from jaxdeform.acap.features import gradients_from_features
     from jaxdeform.cloth.features import LIMIT
 
@@ -441,14 +507,28 @@ def train(
 ) -> tuple[DetailModel, History]:
     """Fit a :class:`DetailModel` to paired scaled feature sequences with teacher forcing (module docstring).
 
-    ``coarse_topo`` / ``fine_topo``: Topology (or Rings) of the two meshes; ``coarse_seqs[i]`` (T_i, Vc, C)
-    and ``fine_seqs[i]`` (T_i, Vf, C) are frame-aligned. ``model`` continues training an existing model of the
-    same configuration instead of a fresh one. ``positions`` enables the position term of the loss
-    (``train_cfg.position_weight`` > 0; module docstring); ``upsample`` is the (Vf, Vc) interpolation matrix a
-    ``skip`` model needs. Returns (model, history).
-    ``mesh``: data parallel over ``mesh``'s ``axis`` (module docstring); ValueError before any step unless
-    ``train_cfg.batch_size`` is a multiple of ``mesh.shape[axis]``. The returned model's arrays are then
-    replicated over ``mesh``.
+    **Arguments:**
+
+    - ``model_cfg``: the model's configuration.
+    - ``train_cfg``: the training configuration.
+    - ``coarse_topo``, ``fine_topo``: Topology (or Rings) of the two meshes.
+    - ``coarse_seqs``, ``fine_seqs``: frame-aligned sequences, ``coarse_seqs[i]`` ``(T_i, Vc, C)`` and ``fine_seqs[i]``
+        ``(T_i, Vf, C)``.
+    - ``progress``: show a progress bar.
+    - ``model``: continue training this existing model of the same configuration instead of a fresh one.
+    - ``positions``: enables the position term of the loss (``train_cfg.position_weight`` > 0; module docstring).
+    - ``upsample``: the ``(Vf, Vc)`` interpolation matrix a ``skip`` model needs.
+    - ``mesh``: data parallel over ``mesh``'s ``axis`` (module docstring); None trains on one device.
+
+    **Returns:**
+
+    ``(model, history)``: the trained model and its :class:`History`. With ``mesh`` the model's arrays are replicated
+    over ``mesh``.
+
+    **Raises:**
+
+    ``ValueError`` before any step unless ``train_cfg.batch_size`` is a multiple of ``mesh.shape[axis]``, or if
+    ``model`` was built with another configuration than ``model_cfg``.
     """
     if mesh is not None:
         parallel.check_divisible(int(train_cfg.batch_size), mesh, axis, "batch_size")
@@ -506,7 +586,23 @@ def _predict_fn(graphdef):
 def predict_windows(
     model: DetailModel, coarse_win: Float[Array, "b w vc c"], fine_prev_win: Float[Array, "b w vf c"] | None = None
 ) -> Float[Array, "b w vf c"]:
-    """Teacher-forced prediction ``model(coarse_win, fine_prev_win)``, jitted (one compilation per shape)."""
+    """Teacher-forced prediction ``model(coarse_win, fine_prev_win)``, jitted (one compilation per shape).
+
+    **Arguments:**
+
+    - ``model``: the detail model.
+    - ``coarse_win``: scaled coarse windows ``(B, W, Vc, C)``.
+    - ``fine_prev_win``: the previous fine frames ``(B, W, Vf, C)``; None (zeros) only for a model without temporal
+        feedback (``config.kind == "none"``).
+
+    **Returns:**
+
+    Predicted scaled fine windows ``(B, W, Vf, C)``.
+
+    **Raises:**
+
+    ``ValueError`` if ``fine_prev_win`` is None for a model that needs it.
+    """
     graphdef, state = nnx.split(model)
     if fine_prev_win is None:
         if model.config.kind != "none":
@@ -556,9 +652,21 @@ def _synthesize_fn(graphdef, chunk: int):
 
 
 def synthesize(model: DetailModel, coarse_seq: Float[Array, "t vc c"], *, chunk: int = 32) -> Float[Array, "t vf c"]:
-    """Fine feature sequence (T, Vf, C) from a scaled coarse one (T, Vc, C), autoregressively (module docstring).
+    """Fine feature sequence from a scaled coarse one, autoregressively (module docstring).
 
-    ``chunk``: frames decoded together by the no-temporal model (memory bound only).
+    **Arguments:**
+
+    - ``model``: the detail model.
+    - ``coarse_seq``: scaled coarse features ``(T, Vc, C)``, ``T >= 1``.
+    - ``chunk``: frames decoded together by the no-temporal model (memory bound only).
+
+    **Returns:**
+
+    Scaled fine features ``(T, Vf, C)``.
+
+    **Raises:**
+
+    ``ValueError`` if ``coarse_seq`` is not ``(T >= 1, Vc, C)`` for the model's meshes.
     """
     x = jnp.asarray(coarse_seq, dtype=jnp.float32)
     cfg = model.config
@@ -578,7 +686,18 @@ def _rings_of(model: DetailModel) -> tuple[Rings, Rings]:
 
 
 def save_model(path: str | os.PathLike, model: DetailModel, meta: dict | None = None) -> Path:
-    """Write the model (parameters, both meshes' one-rings, configuration) and JSON ``meta`` atomically."""
+    """Write the model (parameters, both meshes' one-rings, configuration) and JSON ``meta`` atomically.
+
+    **Arguments:**
+
+    - ``path``: the file to write.
+    - ``model``: the detail model.
+    - ``meta``: JSON-serialisable metadata stored with it (default None: empty).
+
+    **Returns:**
+
+    The written path.
+    """
     record = {
         "format": FORMAT,
         "version": FORMAT_VERSION,
@@ -598,7 +717,20 @@ def save_model(path: str | os.PathLike, model: DetailModel, meta: dict | None = 
 
 
 def load_model(path: str | os.PathLike) -> tuple[DetailModel, dict]:
-    """Read a model written by :func:`save_model`: (model, meta). Any other file raises JaxDeformError."""
+    """Read a model written by :func:`save_model`.
+
+    **Arguments:**
+
+    - ``path``: the model file.
+
+    **Returns:**
+
+    ``(model, meta)``: the model (in eval mode) and its metadata dict.
+
+    **Raises:**
+
+    ``JaxDeformError`` for any other file.
+    """
     record, arrays = read_archive(path, "cloth model", FORMAT, FORMAT_VERSION)
     try:
         config = ModelConfig.from_dict(record["config"])

@@ -166,7 +166,21 @@ def _check_batch(model: LinearModel, data) -> None:
 
 
 def decode(model: LinearModel, weights: Float[Array, "b k"]) -> Float[Array, "b v c"]:
-    """Shapes (B, V, c) = mean + scale * weights @ components (pure JAX)."""
+    """Shapes = mean + scale * weights @ components (pure JAX).
+
+    **Arguments:**
+
+    - ``model``: the linear model.
+    - ``weights``: ``(B, K)``.
+
+    **Returns:**
+
+    Shapes ``(B, V, c)``.
+
+    **Raises:**
+
+    ``JaxDeformError`` if ``weights`` is not ``(B, K)``.
+    """
     if jnp.ndim(weights) != 2 or jnp.shape(weights)[1] != model.n_components:
         raise JaxDeformError(
             f"weights must be a (B, {model.n_components}) array for this model, got shape {jnp.shape(weights)}."
@@ -181,10 +195,19 @@ def _pinv_rows(components: Float[Array, "k d"]) -> Float[Array, "d k"]:
 
 
 def project(model: LinearModel, data: Float[Array, "b v c"]) -> Float[Array, "b k"]:
-    """Least-squares weights (B, K) of shapes (B, V, c): argmin_w ||mean + scale w C - x||, minimum norm.
+    """Least-squares weights of shapes: argmin_w ||mean + scale w C - x||, minimum norm.
 
     Unconstrained (SPLOCS's training box |w| <= 1 is not imposed on unseen shapes); zero or linearly
     dependent components are handled by the pseudo-inverse (cut-off PINV_RTOL_EPS * eps relative).
+
+    **Arguments:**
+
+    - ``model``: the linear model.
+    - ``data``: shapes ``(B, V, c)``.
+
+    **Returns:**
+
+    The weights ``(B, K)``.
     """
     _check_batch(model, data)
     b = jnp.shape(data)[0]
@@ -193,7 +216,17 @@ def project(model: LinearModel, data: Float[Array, "b v c"]) -> Float[Array, "b 
 
 
 def reconstruct(model: LinearModel, data: Float[Array, "b v c"]) -> Float[Array, "b v c"]:
-    """The model's closest shapes to ``data``: decode(project(data))."""
+    """The model's closest shapes to ``data``: decode(project(data)).
+
+    **Arguments:**
+
+    - ``model``: the linear model.
+    - ``data``: shapes ``(B, V, c)``.
+
+    **Returns:**
+
+    Shapes ``(B, V, c)``.
+    """
     return decode(model, project(model, data))
 
 
@@ -201,7 +234,17 @@ def reconstruct(model: LinearModel, data: Float[Array, "b v c"]) -> Float[Array,
 
 
 def save(model: LinearModel, path: str | os.PathLike) -> None:
-    """Write the model to an .npz archive atomically (temporary file, then rename)."""
+    """Write the model to an .npz archive atomically (temporary file, then rename).
+
+    **Arguments:**
+
+    - ``model``: the linear model.
+    - ``path``: the archive.
+
+    **Returns:**
+
+    Nothing.
+    """
     path = Path(path)
     arrays = dict(
         format_version=np.asarray(FORMAT_VERSION),
@@ -216,7 +259,21 @@ def save(model: LinearModel, path: str | os.PathLike) -> None:
 
 
 def load(path: str | os.PathLike) -> LinearModel:
-    """Read a model written by :func:`save`."""
+    """Read a model written by :func:`save`.
+
+    **Arguments:**
+
+    - ``path``: the archive.
+
+    **Returns:**
+
+    The :class:`LinearModel`.
+
+    **Raises:**
+
+    ``FileNotFoundError`` for a missing file; ``MeshFormatError`` for a file that is not a linear model archive (or
+    holds NaN, infinite or non-positive values where they are not allowed).
+    """
     path = Path(path)
     try:
         with np.load(path, allow_pickle=False) as z:
@@ -255,9 +312,22 @@ def pca_components(x: Float[np.ndarray, "n d"], k: int) -> Float[np.ndarray, "k 
 
 
 def fit_pca(data: Float[np.ndarray, "n v c"], n_components: int = 50, *, domain: str | None = None) -> LinearModel:
-    """PCA of N shapes (ACAP features (N, V, 9) or coordinates (N, V, 3)); K = min(n_components, N - 1, V c).
+    """PCA of N shapes; K = min(n_components, N - 1, V c).
 
-    ``domain`` defaults to "xyz" for c = 3 and "acap" for c = 9.
+    **Arguments:**
+
+    - ``data``: ACAP features ``(N, V, 9)`` or coordinates ``(N, V, 3)``.
+    - ``n_components``: the most components (at least 1).
+    - ``domain``: defaults to "xyz" for c = 3 and "acap" for c = 9.
+
+    **Returns:**
+
+    The :class:`LinearModel` (mean, K components, scale, domain).
+
+    **Raises:**
+
+    ``JaxDeformError`` for ``n_components < 1``; ``MeshFormatError`` or ``ConnectivityError`` for data that is not an
+    ``(N, V, c)`` array of numbers.
     """
     if int(n_components) < 1:
         raise JaxDeformError(f"n_components must be at least 1, got {n_components}.")
@@ -441,10 +511,20 @@ def fit_splocs(
     inner: int = 10,
     progress: Callable[[int, float], None] | None = None,
 ) -> LinearModel:
-    """SPLOCS on coordinates (N, V, 3) with the public code's defaults; see the module docstring.
+    """SPLOCS on coordinates with the public code's defaults; see the module docstring.
 
-    ``dist``: normalized geodesic distances, a (V, V) array or a callable ``rows(indices) -> (len, V)``.
-    ``progress(iteration, objective)`` is called after every outer iteration.
+    **Arguments:**
+
+    - ``vertices``: shapes ``(N, V, 3)``.
+    - ``dist``: normalized geodesic distances, a ``(V, V)`` array or a callable ``rows(indices) -> (len, V)``.
+    - ``n_components``: K.
+    - ``sparsity``, ``d_min``, ``d_max``, ``rho``, ``outer``, ``inner``: the sparsity weight, the support's distance
+        ramp, the ADMM penalty, and the outer and ADMM iterations (module docstring).
+    - ``progress``: ``progress(iteration, objective)`` is called after every outer iteration.
+
+    **Returns:**
+
+    The :class:`LinearModel`.
     """
     return fit_splocs_detailed(vertices, dist, n_components, sparsity, d_min, d_max, rho, outer, inner, progress)[0]
 
@@ -515,7 +595,7 @@ def regional_projection(
 
     This is the best any model can do that reconstructs every region as a linear combination of the training
     shapes' deviations there (independently per region): a ceiling for localized linear components learned
-    from these training shapes, and the reference point of the ``ceiling`` experiment (issue 3's notes).
+    from these training shapes, and the reference point of the ``ceiling`` experiment.
     """
     train, test = np.asarray(train, np.float64), np.asarray(test, np.float64)
     if train.ndim != 3 or test.ndim != 3 or train.shape[1:] != test.shape[1:]:

@@ -34,7 +34,7 @@ the decoder, one primal pass) when K <= 3M, else, or when the decoder has a cust
 (the multiscale model's mesh convolution), by reverse mode.
 
 - ``method="bfgs"`` (default): ``optimistix.BFGS`` on E. On horse-gallop (PCA, 4 latents, 20-50 controls)
-  it reaches the optimum in 17-21 iterations (0.4-0.9 s on 2 CPU cores), where Gauss-Newton-type methods
+  it reaches the optimum in 17-21 iterations, where Gauss-Newton-type methods
   need 22-50: the target lies outside the subspace, the residual at the optimum is large, and the
   Gauss-Newton model misses its curvature.
 - ``method="lm"``: Levenberg-Marquardt (``optimistix.least_squares``) on the residuals
@@ -99,7 +99,7 @@ OBJECTIVES = ("controls", "deformation")
 
 # A cap, not a count: BFGS and LM stop on the tolerance. On horse-gallop at 20 controls BFGS needs 74-112
 # iterations for Tan et al.'s 50 codes and up to about 180 in the multiscale model's second stage (60 codes);
-# the earlier cap of 50 cut both short (EditResult.converged).
+# a cap of 50 would cut both short (EditResult.converged).
 DEFAULT_STEPS = 500
 DEFAULT_LEARNING_RATE = 1e-2
 DEFAULT_REGULARIZATION = 1e-6
@@ -166,6 +166,20 @@ def furthest_point_sampling(vertices: Float[Array, "v 3"], n: int, start: int = 
     """``n`` distinct vertex indices by greedy furthest point sampling (Euclidean), beginning at ``start``.
 
     Each next index maximises the distance to the nearest already chosen vertex; ties go to the lowest index.
+
+    **Arguments:**
+
+    - ``vertices``: ``(V, 3)``, non-empty and finite.
+    - ``n``: the number of samples, in [1, V].
+    - ``start``: the first sample, in [0, V).
+
+    **Returns:**
+
+    The indices ``(n,)``, distinct, ``start`` first.
+
+    **Raises:**
+
+    ``EditInputError`` for invalid ``vertices``, ``n`` or ``start``.
     """
     v = np.asarray(vertices)
     if v.ndim != 2 or v.shape[1] != 3 or v.shape[0] == 0:
@@ -643,22 +657,24 @@ def edit(
     stages: tuple[int, ...] | None = None,
     objective: Objective = "controls",
 ) -> EditResult:
-    """Latent weights whose ACAP-reconstructed mesh meets ``targets`` at the ``controls`` vertices.
+    """Latent weights whose ACAP-reconstructed mesh meets ``targets`` (M, 3) at the ``controls`` (M,) vertices.
 
-    ``decode_features(w (K,)) -> (V, 9)`` ACAP features (scaled when ``scaler`` is given; ``scaler.inverse``
-    is applied before reconstruction). ``acap_or_rest_faces``: an :class:`~jaxdeform.acap.Acap` or a
-    ``(rest, faces)`` pair. ``anchor``: vertex pinned at its rest position by the reconstruction (translation
-    is then optimised in closed form unless ``free_translation=False``). ``refine``: defect-correction steps
-    of :meth:`Acap.decode`. ``method``: "bfgs", "lm" or "adam" (module docstring). ``steps``: at most that
-    many BFGS/LM iterations (exactly that many Adam steps, with ``learning_rate``). ``regularization``
-    weighs |w - latent0|^2 against squared control distances (length^2 per squared latent unit).
-    ``tolerance``: relative (and, times the targets' spread, absolute) stopping tolerance; default 1e-6 for
-    float64 positions, 1e-5 for float32. ``stages``: increasing latent-prefix counts ending at K for a
-    coarse-to-fine edit (module docstring); ``steps`` then applies per stage. ``objective``: "controls" (the
-    decoded mesh's distance to the targets) or "deformation" (the data-driven deformation of seed 000's ref.
-    [19]: the control vertices are held at the targets and the latents minimise the deformation energy; "bfgs"
-    or "adam" only; ``anchor``, ``refine`` and ``free_translation`` do not apply). Pass the same
-    ``decode_features`` object again to reuse the compiled editor.
+    **Arguments:** ``decode_features(w (K,)) -> (V, 9)`` ACAP features (scaled when ``scaler`` is given;
+    ``scaler.inverse`` is applied before reconstruction); ``latent0`` (K,): the start. ``acap_or_rest_faces``: an
+    :class:`~jaxdeform.acap.Acap` or a ``(rest, faces)`` pair. ``anchor``: vertex pinned at its rest position by the
+    reconstruction (translation is then optimised in closed form unless ``free_translation=False``). ``refine``:
+    defect-correction steps of :meth:`Acap.decode`. ``method``: "bfgs", "lm" or "adam" (module docstring).
+    ``steps``: at most that many BFGS/LM iterations (exactly that many Adam steps, with ``learning_rate``).
+    ``regularization`` weighs |w - latent0|^2 against squared control distances (length^2 per squared latent unit).
+    ``tolerance``: relative (and, times the targets' spread, absolute) stopping tolerance; default 1e-6 for float64
+    positions, 1e-5 for float32. ``stages``: increasing latent-prefix counts ending at K for a coarse-to-fine edit
+    (module docstring); ``steps`` then applies per stage. ``objective``: "controls" (the decoded mesh's distance to
+    the targets) or "deformation" (the data-driven deformation of seed 000's ref. [19]: the control vertices are
+    held at the targets and the latents minimise the deformation energy; "bfgs" or "adam" only; ``anchor``,
+    ``refine`` and ``free_translation`` do not apply). Pass the same ``decode_features`` object again to reuse the
+    compiled editor.
+
+    **Returns:** an :class:`EditResult`. **Raises:** :class:`EditInputError` for inconsistent arguments.
     """
     acap = _resolve_acap(acap_or_rest_faces)
     n = acap.topo.n_vertices
@@ -719,6 +735,23 @@ def edit_positions(
     """:func:`edit` for coordinate-space models: ``decode_positions(w (K,)) -> (V, 3)`` positions directly.
 
     Same objective, optimiser and free translation as :func:`edit`, so methods compare under one protocol.
+
+    **Arguments:**
+
+    - ``decode_positions``: maps latent weights ``(K,)`` to positions ``(V, 3)``.
+    - ``latent0``: the starting weights ``(K,)`` (the regularization's reference).
+    - ``controls``, ``targets``: the control vertices ``(M,)`` and their targets ``(M, 3)``.
+    - ``steps``, ``learning_rate``, ``regularization``, ``method``, ``free_translation``, ``tolerance``, ``stages``: as
+        :func:`edit`'s.
+
+    **Returns:**
+
+    An :class:`EditResult`.
+
+    **Raises:**
+
+    ``EditInputError`` if ``decode_positions`` is not a callable that gives ``(V, 3)`` from ``latent0``, or for
+    inconsistent controls, targets or options.
     """
     w0 = jnp.asarray(latent0)
     if not callable(decode_positions):
@@ -761,7 +794,16 @@ def edit_positions(
 
 
 def bounding_box_diagonal(vertices: Float[Array, "v 3"]) -> float:
-    """Length of the axis-aligned bounding-box diagonal."""
+    """Length of the axis-aligned bounding-box diagonal.
+
+    **Arguments:**
+
+    - ``vertices``: ``(V, 3)``.
+
+    **Returns:**
+
+    The length as a float.
+    """
     v = np.asarray(vertices, dtype=np.float64)
     return float(np.linalg.norm(v.max(axis=0) - v.min(axis=0)))
 
@@ -782,11 +824,31 @@ def edit_error(
 
     ``n_controls`` control vertices by furthest point sampling on the rest shape (from ``start``), targets =
     ``ground_truth`` at those vertices, one edit from ``latent0`` (the code of the rest shape), then the error
-    of the whole edited mesh against ``ground_truth``: mean (and RMS) vertex distance over all vertices, in
-    units of the rest shape's bounding-box diagonal, and the mean control residual in the same unit.
-    ``space="features"``: ``decode`` gives ACAP features and :func:`edit` is used; ``"positions"``: ``decode``
-    gives positions (:func:`edit_positions`) and ``acap_or_rest_faces`` may also be a bare (V, 3) rest array
-    (``scaler`` is then ignored). ``edit_kwargs`` go to the editor (steps, regularization, method, ...).
+    of the whole edited mesh against ``ground_truth``.
+
+    **Arguments:**
+
+    - ``decode``: latent weights ``(K,)`` -> ACAP features ``(V, 9)`` (``space="features"``, :func:`edit`) or positions
+        ``(V, 3)`` (``space="positions"``, :func:`edit_positions`).
+    - ``latent0``: the code of the rest shape ``(K,)``.
+    - ``acap_or_rest_faces``: an :class:`~jaxdeform.acap.Acap` or a ``(rest, faces)`` pair; with ``"positions"`` also a
+        bare ``(V, 3)`` rest array.
+    - ``scaler``: the features' scaler (ignored with ``"positions"``).
+    - ``ground_truth``: the unseen shape ``(V, 3)``, finite.
+    - ``n_controls``: the number of control vertices.
+    - ``space``: ``"features"`` or ``"positions"``.
+    - ``start``: the first furthest-point sample.
+    - ``edit_kwargs``: go to the editor (steps, regularization, method, ...).
+
+    **Returns:**
+
+    An :class:`EditErrorReport`: mean (and RMS) vertex distance over all vertices, in units of the rest shape's
+    bounding-box diagonal, and the mean control residual in the same unit, with the controls and the edit.
+
+    **Raises:**
+
+    ``EditInputError`` for an unknown ``space``, a ground truth of another shape or with non-finite values, and the
+    editor's input errors.
     """
     if space not in ("features", "positions"):
         raise EditInputError(f"unknown space '{space}'; expected 'features' or 'positions'.")

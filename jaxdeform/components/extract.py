@@ -235,10 +235,27 @@ def all_components(
 ) -> ComponentSet:
     """Every block's components, level by level (K = sum_l n_l Kz_l; 60 with the paper's Kz = [10, 5]).
 
-    ``params`` may hold a prefix of the config's levels. Magnitudes: with ``latents`` (the training codes, per level (n_l, B, Kz_l) as in ``Output.latents``) the
-    data extreme of [10] (:func:`latent_extremes`), and with ``reference`` (an index into B) that shape's code
-    as base instead of zero; otherwise ``scale`` (default ``config.theta``). With a ``scaler`` the values are
-    ACAP feature differences (domain ``"acap"``), else scaled-feature differences (``"scaled"``).
+    **Arguments:**
+
+    - ``params``: the model's parameters; may hold a prefix of the config's levels.
+    - ``rings``: the mesh's one-rings.
+    - ``config``: the model's configuration; it must use the default decoder (``tie_conv=False``,
+        ``decoder_tanh=True``).
+    - ``scale``: the code magnitude without ``latents`` (default None: ``config.theta``).
+    - ``latents``: the training codes, per level ``(n_l, B, Kz_l)`` as in ``Output.latents``; the magnitudes are then
+        the data extreme of [10] (:func:`latent_extremes`).
+    - ``reference``: an index into B (needs ``latents``): that shape's code as base instead of zero.
+    - ``scaler``: with it the values are ACAP feature differences (domain ``"acap"``), else scaled-feature
+        differences (``"scaled"``).
+
+    **Returns:**
+
+    A :class:`ComponentSet` of K components ``(K, V, 9)`` with their level, block, index and magnitude.
+
+    **Raises:**
+
+    ``ValueError`` for a variant decoder, more levels of ``params`` than ``config`` describes, ``reference`` without
+    ``latents`` or out of range, or ``latents`` with another number of levels.
     """
     if config.tie_conv or not config.decoder_tanh:
         raise ValueError("component extraction needs the default decoder (tie_conv=False, decoder_tanh=True).")
@@ -319,11 +336,29 @@ def unscale(cs: ComponentSet, scaler: Scaler) -> ComponentSet:
 def component_meshes(
     cs: ComponentSet, rest, faces, *, scaler: Scaler | None = None, base=None, refine: int | None = None
 ) -> np.ndarray:
-    """Each component applied alone to the reference: vertex positions (K, V, 3).
+    """Each component applied alone to the reference: vertex positions.
 
-    ``"acap"``: ``decode(base + diff)`` with ``base`` (V, 9) defaulting to the reference's own features
-    (identity); ``"scaled"`` needs the ``scaler`` first; ``"xyz"``: ``base + displacement`` with ``base``
-    (V, 3) defaulting to ``rest`` (pass a linear model's mean shape or mean features as ``base``).
+    ``"acap"``: ``decode(base + diff)`` with ``base`` ``(V, 9)`` defaulting to the reference's own features (identity);
+    ``"scaled"`` needs the ``scaler`` first; ``"xyz"``: ``base + displacement`` with ``base`` ``(V, 3)`` defaulting to
+    ``rest`` (pass a linear model's mean shape or mean features as ``base``).
+
+    **Arguments:**
+
+    - ``cs``: the components.
+    - ``rest``: the reference shape ``(V, 3)``.
+    - ``faces``: triangles ``(F, 3)``.
+    - ``scaler``: the training features' scaler (needed for ``"scaled"`` components).
+    - ``base``: the base features ``(V, 9)`` or positions ``(V, 3)`` (see above).
+    - ``refine``: defect-correction steps of the ACAP decode (default None: the decoder's default).
+
+    **Returns:**
+
+    The meshes ``(K, V, 3)``.
+
+    **Raises:**
+
+    ``ValueError`` for a rest shape, base or scaler that does not fit; ``ConnectivityError`` if the components have
+    another number of vertices than ``rest``; ``DegenerateMeshError`` if a decoded mesh is not finite.
     """
     rest = np.asarray(rest, dtype=np.float64)
     if rest.ndim != 2 or rest.shape[1] != 3:
@@ -411,9 +446,27 @@ class Removal:
 def remove_redundant(
     cs: ComponentSet, eps1: float = EPS1, eps2: float = EPS2, duplicate_cos: float | None = DUPLICATE_COS
 ) -> Removal:
-    """Sec. 4.3: drop components whose strength (eq. (7)) is below ``eps2``; then (not in the paper, see the
-    module docstring) drop a component whose |cosine similarity| with an earlier kept one reaches
-    ``duplicate_cos`` (``None``: skip this check). Earlier = level, block, index order."""
+    """Sec. 4.3: drop weak components, then duplicates.
+
+    Drops components whose strength (eq. (7)) is below ``eps2``; then (not in the paper, see the module docstring)
+    a component whose |cosine similarity| with an earlier kept one reaches ``duplicate_cos``. Earlier = level,
+    block, index order.
+
+    **Arguments:**
+
+    - ``cs``: the components.
+    - ``eps1``: the vertex-strength threshold of eq. (7) (non-negative).
+    - ``eps2``: the least strength of a kept component (non-negative).
+    - ``duplicate_cos``: in (0, 1], or None to skip the duplicate check.
+
+    **Returns:**
+
+    A :class:`Removal`: which components are kept, their strengths and the reasons for the removed ones.
+
+    **Raises:**
+
+    ``ValueError`` for thresholds out of range.
+    """
     if not eps1 >= 0 or not eps2 >= 0:
         raise ValueError(f"eps1 and eps2 must be non-negative, got {eps1} and {eps2}.")
     if duplicate_cos is not None and not 0 < duplicate_cos <= 1:

@@ -65,7 +65,18 @@ def _check_cmap(cmap: str) -> None:
 
 
 def blend(t, cmap: str = "viridis", body=GREY) -> np.ndarray:
-    """Colour of normalized strength ``t`` in [0, 1] (clipped): ``(1 - t) body + t cmap(t)``, shape t.shape + (3,)."""
+    """Colour of a normalized strength: ``(1 - t) body + t cmap(t)``.
+
+    **Arguments:**
+
+    - ``t``: strength in [0, 1] (clipped), any shape.
+    - ``cmap``: the colour map.
+    - ``body``: the body's RGB.
+
+    **Returns:**
+
+    Colours of shape ``t.shape + (3,)``.
+    """
     t = np.clip(np.asarray(t, dtype=np.float64), 0.0, 1.0)
     return (1.0 - t)[..., None] * np.asarray(body, dtype=np.float64) + t[..., None] * colormap(t, cmap)
 
@@ -83,10 +94,20 @@ def render_component(
     body=GREY,
     background=_WHITE,
 ) -> np.ndarray:
-    """One component mesh with its deformed region coloured: an ``(height, width, 3)`` uint8 image.
+    """One component mesh with its deformed region coloured.
 
-    ``strength`` (V,) non-negative per-vertex strength, mapped to t = strength / ``vmax`` (default: its maximum;
-    an all-zero strength leaves the body grey) and interpolated per pixel.
+    **Arguments:**
+
+    - ``vertices``, ``faces``: the component mesh.
+    - ``strength``: ``(V,)`` non-negative per-vertex strength, mapped to t = strength / ``vmax`` and interpolated per
+        pixel.
+    - ``camera``, ``width``, ``height``: the view and the image size.
+    - ``vmax``: the strength of full colour (default None: its maximum; an all-zero strength leaves the body grey).
+    - ``cmap``, ``body``, ``background``: the colour map and the body's and background's colours.
+
+    **Returns:**
+
+    An ``(height, width, 3)`` uint8 image.
     """
     s = np.asarray(strength, dtype=np.float64)
     top = float(s.max()) if vmax is None else float(vmax)
@@ -291,14 +312,25 @@ def components_figure(
     vmax: float | None = None,
     title: str | None = None,
 ) -> np.ndarray:
-    """A grid of component meshes (K, V, 3) coloured by per-vertex ``strength`` (K, V), written to ``path``.
+    """A grid of component meshes coloured by per-vertex strength, written to ``path``.
 
-    ``groups`` (K,) names each component's row (default: one row, "components"); ``rows`` orders the rows and
-    may list rows without components (drawn with "no component kept", e.g. a fully pruned AEk); a row holds
-    at most ``max_columns`` panels and wraps. ``titles`` (K,) caption the panels (default "#i"). ``panel``
-    is the side of one square panel in pixels. ``vmax`` None scales each panel to its own maximum strength,
-    a number shares one scale. One camera (``view`` around ``up_axis``, or ``camera``) serves every panel; it
-    frames the meshes of typical size (:func:`_framed_points`).
+    One camera (``view`` around ``up_axis``, or ``camera``) serves every panel; it frames the meshes of typical size
+    (:func:`_framed_points`).
+
+    **Arguments:**
+
+    - ``meshes``: ``(K, V, 3)``; ``faces``: ``(F, 3)``; ``strength``: ``(K, V)``; ``path``: the PNG to write.
+    - ``groups``: ``(K,)`` names each component's row (default: one row, "components").
+    - ``rows``: orders the rows and may list rows without components (drawn with "no component kept", e.g. a
+        fully pruned AEk).
+    - ``titles``: ``(K,)`` caption the panels (default "#i"). ``title``: the figure's title.
+    - ``panel``: the side of one square panel in pixels; ``max_columns``: panels per row before it wraps.
+    - ``view``, ``up_axis``, ``camera``: the shared camera. ``cmap``: the colour map.
+    - ``vmax``: None scales each panel to its own maximum strength, a number shares one scale.
+
+    **Returns:**
+
+    The image.
     """
     x, f, s = _check_meshes(meshes, faces, strength)
     k = x.shape[0]
@@ -334,10 +366,23 @@ def components_figure(
 def component_set_figure(
     cs: ComponentSet, meshes, faces, path, *, removal: Removal | None = None, **kwargs
 ) -> np.ndarray:
-    """:func:`components_figure` of a :class:`~jaxdeform.components.extract.ComponentSet` and its meshes
-    (from :func:`~jaxdeform.components.extract.component_meshes`): rows per block (``AE0``, ``AE1`` ...),
-    panels titled with the component index and its strength I (eq. (7)); with a ``removal`` only the kept
-    components are drawn and fully pruned blocks keep an empty row."""
+    """:func:`components_figure` of a :class:`~jaxdeform.components.extract.ComponentSet` and its meshes.
+
+    Rows per block (``AE0``, ``AE1`` ...), panels titled with the component index and its strength I (eq. (7)).
+
+    **Arguments:**
+
+    - ``cs``: the components.
+    - ``meshes``: their meshes ``(K, V, 3)`` (from :func:`~jaxdeform.components.extract.component_meshes`).
+    - ``faces``: triangles ``(F, 3)``.
+    - ``path``: the PNG to write.
+    - ``removal``: with it only the kept components are drawn and fully pruned blocks keep an empty row.
+    - ``kwargs``: passed to :func:`components_figure`.
+
+    **Returns:**
+
+    The image.
+    """
     x = np.asarray(meshes)
     if x.ndim != 3 or x.shape[0] != len(cs):
         raise ValueError(f"meshes must be ({len(cs)}, V, 3) (one per component), got shape {x.shape}.")
@@ -482,11 +527,27 @@ def similarity_figure(
     cmap: str | None = None,
     vmin: float | None = None,
 ) -> np.ndarray:
-    """A heat map of a K x K similarity ``matrix`` with a colour bar, written to ``path`` (Fig. 3).
+    """A heat map of a K x K similarity matrix with a colour bar, written to ``path`` (Fig. 3).
 
-    The colour range is [``vmin``, 1] with ``vmin`` 0 when every entry is non-negative (as in Fig. 3) and -1
-    otherwise; ``cmap`` defaults to viridis on [0, 1] and the diverging coolwarm on [-1, 1]. ``labels`` (K,)
-    name rows and columns (default 0 ... K-1); ``annotate`` writes each value in its cell (default: K <= 16).
+    **Arguments:**
+
+    - ``matrix``: ``(K, K)``.
+    - ``path``: the PNG to write.
+    - ``labels``: ``(K,)`` name rows and columns (default 0 ... K-1).
+    - ``title``: the figure's title.
+    - ``cell``: the side of one cell in pixels, at least 2 (default None: ``720 // K`` clamped to 8..48).
+    - ``annotate``: write each value in its cell (default: K <= 16).
+    - ``cmap``: defaults to viridis on [0, 1] and the diverging coolwarm on [-1, 1].
+    - ``vmin``: the colour range is [``vmin``, 1], ``vmin`` by default 0 when every entry is non-negative (as in
+        Fig. 3) and -1 otherwise.
+
+    **Returns:**
+
+    The image.
+
+    **Raises:**
+
+    ``ValueError`` for a bad ``vmin``, ``cmap`` or ``cell``.
     """
     m = _check_similarity(matrix)
     k = m.shape[0]

@@ -47,10 +47,26 @@ def regional_mixes(
     sigma: float = 0.15,
     alpha: float = 0.5,
 ) -> np.ndarray:
-    """(n, V, C) mixes of the S shapes ``x`` (S, V, C): a mix picks R ~ U{regions} random centre vertices, gives
-    each a Dirichlet(alpha) combination of the S shapes, and blends the centres' combinations over the mesh by the
-    normalized Gaussian weights exp(-(dist / sigma)^2) of the geodesic distances ``dist`` (V, V): every vertex is a
-    convex combination of the shapes, varying smoothly over the surface."""
+    """Regional mixes of shapes: every vertex a convex combination of the shapes, varying smoothly over the surface.
+
+    A mix picks R ~ U{regions} random centre vertices, gives each a Dirichlet(alpha) combination of the S shapes,
+    and blends the centres' combinations over the mesh by the normalized Gaussian weights exp(-(dist / sigma)^2)
+    of the geodesic distances.
+
+    **Arguments:**
+
+    - ``x``: the S shapes ``(S, V, C)`` (e.g. scaled features).
+    - ``dist``: geodesic distances ``(V, V)``.
+    - ``n``: the number of mixes.
+    - ``rng``: the random generator.
+    - ``regions``: the range of R.
+    - ``sigma``: the Gaussian's width, in the units of ``dist``.
+    - ``alpha``: the Dirichlet concentration.
+
+    **Returns:**
+
+    The mixes ``(n, V, C)``.
+    """
     s, v, _ = x.shape
     out = np.empty((n,) + x.shape[1:], x.dtype)
     for i in range(n):  # data preparation, once per run
@@ -105,12 +121,24 @@ def rigid_residual(p, g):
 
 
 def position_loss_fn(run: crun.Run, rings, dist, weight: float, rigid: bool = False):
-    """(loss, positions, term): loss(params, x (B, V, 9) scaled features, g (B, V, 3) their positions) ->
-    (total, (model loss, position term)), the module docstring's loss, one differentiable function;
-    positions(x) the plain ACAP reconstruction of scaled features that the position term compares (the targets g
-    come from it too); term(x_hat, g) the position term of the model's output x_hat. With ``rigid`` the term is
-    taken after rotating each reconstruction onto its target (:func:`rigid_residual`), so a global rotation,
-    which Erms does not count, costs nothing."""
+    """The fine-tuning loss and its parts, as functions.
+
+    **Arguments:**
+
+    - ``run``: the autoencoder run.
+    - ``rings``: the mesh's one-rings.
+    - ``dist``: normalized geodesic distances ``(V, V)``.
+    - ``weight``: the position term's weight w.
+    - ``rigid``: take the term after rotating each reconstruction onto its target (:func:`rigid_residual`), so a
+        global rotation, which Erms does not count, costs nothing.
+
+    **Returns:**
+
+    ``(loss, positions, term)``: ``loss(params, x (B, V, 9) scaled features, g (B, V, 3) their positions)`` ->
+    ``(total, (model loss, position term))``, the module docstring's loss, one differentiable function;
+    ``positions(x)`` the plain ACAP reconstruction of scaled features that the position term compares (the targets
+    g come from it too); ``term(x_hat, g)`` the position term of the model's output x_hat.
+    """
     machinery = acap.cached(run.rest, run.faces)
     machinery.reconstructor(None)  # factorized on the host now, not inside a trace
     inv_r2 = 1.0 / float(np.mean(np.sum((run.rest - run.rest.mean(axis=0)) ** 2, axis=-1)))
@@ -139,7 +167,7 @@ def make_step(run: crun.Run, rings, dist, weight: float, opt: optax.GradientTran
     :func:`position_loss_fn`'s loss, as three jitted stages: the model's forward with its VJP, the position term
     with its gradient in the model's output, then the model's pullback and the update. The same gradient as one
     jitted ``value_and_grad`` of the loss; the ACAP decode inside a larger XLA program loses the stage boundaries
-    that keep it fast on the CPU (horse, 8 shapes, 2-core CPU: 206 ms a step staged against 405 ms fused)."""
+    that keep it fast on the CPU (the staged step runs in about half the time of the fused one)."""
     _, _, term = position_loss_fn(run, rings, dist, weight, rigid)
 
     @jax.jit
@@ -168,7 +196,20 @@ def make_step(run: crun.Run, rings, dist, weight: float, opt: optax.GradientTran
 
 
 def check_run(run: crun.Run) -> None:
-    """One sentence (RunError) for a run without an autoencoder."""
+    """Check that ``run`` can be fine-tuned.
+
+    **Arguments:**
+
+    - ``run``: a components run.
+
+    **Returns:**
+
+    Nothing.
+
+    **Raises:**
+
+    ``RunError`` (one sentence) for a run without an autoencoder.
+    """
     if run.method not in crun.AUTOENCODERS:
         raise crun.RunError(f"{run.path} is a {run.method} run: only multiscale and tan runs can be fine-tuned.")
 
@@ -184,7 +225,20 @@ def check_options(
     generated: int = 0,
     code_noise: float = 1.0,
 ) -> None:
-    """One sentence (ValueError) for an option out of range."""
+    """Check the fine-tuning options.
+
+    **Arguments:**
+
+    As :func:`finetune`'s.
+
+    **Returns:**
+
+    Nothing.
+
+    **Raises:**
+
+    ``ValueError`` (one sentence) for an option out of range.
+    """
     if seed < 0:
         raise ValueError(f"--seed must be a non-negative integer, got {seed}.")
     if steps < 1 or batch < 1:
@@ -225,7 +279,31 @@ def finetune(
     generated: int = 0,
     code_noise: float = 1.0,
 ):
-    """(params, history (steps, 2): model loss and position term of each step's batch before its update)."""
+    """Fine-tune the run's model on its training shapes and their mixes (module docstring).
+
+    **Arguments:**
+
+    - ``run``: an autoencoder run.
+    - ``x_train``: the training shapes' scaled ACAP features ``(N, V, 9)``.
+    - ``mixes``: regional mixes of the training shapes added to the pool (:func:`regional_mixes`).
+    - ``steps``, ``batch``: Adam steps and shapes per step.
+    - ``position_weight``: the weight w of the position term.
+    - ``lr``, ``lr_final``: the learning rate, constant or falling to ``lr_final`` (:func:`schedule`).
+    - ``seed``: the seed of the mixes and the batches.
+    - ``progress``: show a progress bar.
+    - ``rigid``: the position term after rotating each reconstruction onto its target (:func:`rigid_residual`).
+    - ``generated``, ``code_noise``: shapes the model generates from noisy codes of regional mixes, added to the pool
+        (:func:`generated_meshes`).
+
+    **Returns:**
+
+    ``(params, history)``: the fine-tuned parameters and ``(steps, 2)``: the model loss and position term of each
+    step's batch before its update.
+
+    **Raises:**
+
+    ``ValueError`` for an option out of range (:func:`check_options`); ``RunError`` for a run without an autoencoder.
+    """
     check_options(steps, batch, mixes, position_weight, lr, seed, lr_final, generated, code_noise)
     check_run(run)
     faces, rest = run.faces, run.rest
@@ -281,11 +359,23 @@ def fit(
     generated: int = 0,
     code_noise: float = 1.0,
 ) -> dict:
-    """Fine-tune ``run`` on its training shapes (read from ``data``, default the run's data folder) and write the
-    result into the empty folder ``out``: a copy of the run with the new parameters and training codes, run.json
-    with ``finetune`` (options, seconds, first and last loss terms, source run). Returns that record. The options
-    and the run are checked by :func:`finetune`; a caller that wants them refused before the features are read calls
-    :func:`check_options` and :func:`check_run` first, as the CLI does."""
+    """Fine-tune ``run`` and write the result as a new run folder.
+
+    The options and the run are checked by :func:`finetune`; a caller that wants them refused before the features
+    are read calls :func:`check_options` and :func:`check_run` first, as the CLI does.
+
+    **Arguments:**
+
+    - ``run``: an autoencoder run.
+    - ``out``: the empty folder to write: a copy of the run with the new parameters and training codes, and
+        run.json with ``finetune``.
+    - ``data``: the data folder to read the training shapes from (default None: the run's data folder).
+    - the other options: as :func:`finetune`'s.
+
+    **Returns:**
+
+    The ``finetune`` record: options, seconds, first and last loss terms, source run.
+    """
     vertices, _ = crun.run_data(run, data)
     x_train = crun.scaled_features(run, vertices[run.train_idx])
     t0 = time.perf_counter()

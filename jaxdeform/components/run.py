@@ -96,8 +96,8 @@ CONFIGS: dict[str, dict[str, tuple[model.Config | None, train.TrainConfig]]] = {
         "levels1": (_multiscale(kz=(10,), d=(0.4,)), train.TrainConfig()),
         "levels3": (_multiscale(kz=(10, 5, 2), d=(0.4, 0.2, 0.1)), train.TrainConfig()),
         # tanh on the latent codes as well (the paper's "all the layers use tanh" read literally). On horse-gallop
-        # AE0's codes saturate and it outputs a near-constant shape; the second level carries the deformation:
-        # test Erms 22.7 / STED 0.0357 against the default's 20.2 / 0.042 (README, issue 3 notes).
+        # AE0's codes saturate and it outputs a near-constant shape; the second level carries the deformation,
+        # at a slightly higher test Erms and a lower STED than the default (README).
         "latent-tanh": (_multiscale(latent="tanh"), train.TrainConfig()),
         "test": (_multiscale(kz=(3, 2)), train.TrainConfig(epochs=30)),
         "test-no-attention": (_multiscale(kz=(3, 2), attention=False), train.TrainConfig(epochs=30)),
@@ -124,6 +124,22 @@ N_LINEAR = {"default": 50, "test": 8}
 
 
 def resolve_config(method: str, name: str, epochs: int | None = None, seed: int | None = None):
+    """The model and training configuration of a named configuration of ``method``.
+
+    **Arguments:**
+
+    - ``method``: one of the methods (module docstring).
+    - ``name``: one of ``method``'s named configurations.
+    - ``epochs``, ``seed``: override the configuration's epochs and seed (None: keep them).
+
+    **Returns:**
+
+    ``(config, train_config)``; ``config`` is None for the linear baselines.
+
+    **Raises:**
+
+    ``ValueError`` for an unknown method or configuration, or ``epochs < 1``.
+    """
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r}; expected one of {', '.join(METHODS)}.")
     if name not in CONFIGS[method]:
@@ -141,11 +157,24 @@ def resolve_config(method: str, name: str, epochs: int | None = None, seed: int 
 def stale_reason(
     record: dict, method: str, name: str, epochs: int | None = None, split: str | None = None
 ) -> str | None:
-    """Why a stored run (its run.json ``record``) is not what ``resolve_config(method, name, epochs)`` and this
-    code's feature preparation would train now, or None. The epoch count is compared only when ``epochs`` is
-    given (a run trained with ``--epochs N`` is reused by a later call without it), the split only when ``split``
-    is given. A run written before a field existed (of the model or the training configuration) is compared with
-    that field's default. Linear baselines have no training configuration to compare."""
+    """Why a stored run is not what ``resolve_config(method, name, epochs)`` and this code's feature preparation
+    would train now.
+
+    The epoch count is compared only when ``epochs`` is given (a run trained with ``--epochs N`` is reused by a
+    later call without it), the split only when ``split`` is given. A record that lacks a field (of the model or
+    the training configuration) is compared with that field's default. Linear baselines have no training
+    configuration to compare.
+
+    **Arguments:**
+
+    - ``record``: the stored run's run.json.
+    - ``method``, ``name``, ``epochs``: as :func:`resolve_config`'s.
+    - ``split``: the split mode to compare (default None: not compared).
+
+    **Returns:**
+
+    The reason as a short sentence fragment, or None when the run matches.
+    """
     if record.get("method") != method:
         return f"it is a {record.get('method')} run, not {method}"
     if split is not None and record.get("split", {}).get("mode") != split:
@@ -174,9 +203,24 @@ def stale_reason(
 
 
 def split_indices(n: int, mode: str = "every10", seed: int = 0) -> tuple[np.ndarray, np.ndarray]:
-    """(train, test) shape indices: every 10th shape (0, 10, ...), a seeded random half, or "all": every shape
-    trains and the "test" set is the whole data set again (the representation error of Table 5, eq. 8, read as
-    the maximum "in the whole dataset")."""
+    """Train and test shape indices.
+
+    **Arguments:**
+
+    - ``n``: the number of shapes (at least 2).
+    - ``mode``: ``"every10"``: every 10th shape (0, 10, ...) is a test shape; ``"half"``: a seeded random half;
+        ``"all"``: every shape trains and the "test" set is the whole data set again (the representation error of
+        Table 5, eq. 8, read as the maximum "in the whole dataset").
+    - ``seed``: the seed of ``"half"``.
+
+    **Returns:**
+
+    ``(train, test)`` int64 index arrays.
+
+    **Raises:**
+
+    ``ValueError`` for ``n < 2`` or an unknown mode.
+    """
     if n < 2:
         raise ValueError(f"a components run needs at least 2 shapes, got {n}.")
     if mode == "every10":
@@ -196,7 +240,20 @@ def split_indices(n: int, mode: str = "every10", seed: int = 0) -> tuple[np.ndar
 
 
 def load_data(data) -> tuple[np.ndarray, np.ndarray]:
-    """Shapes (N, V, 3) and faces of a folder or file list; at least 2 shapes of one connectivity."""
+    """Shapes and faces of a folder or file list.
+
+    **Arguments:**
+
+    - ``data``: a folder or a list of mesh files of one connectivity.
+
+    **Returns:**
+
+    ``(vertices (N, V, 3), faces (F, 3))``, N >= 2, checked by :func:`check_nondegenerate`.
+
+    **Raises:**
+
+    ``ValueError`` for fewer than 2 shapes; :func:`check_nondegenerate`'s errors; the mesh reader's errors.
+    """
     vertices, faces = load_sequence(data)
     if vertices.shape[0] < 2:
         raise ValueError(f"a components run needs at least 2 shapes; {data} holds {vertices.shape[0]}.")
@@ -205,8 +262,25 @@ def load_data(data) -> tuple[np.ndarray, np.ndarray]:
 
 
 def check_nondegenerate(vertices: np.ndarray, faces: np.ndarray, where: str) -> None:
-    """Refuse coincident edge ends in any shape (Erms and STED divide by edge lengths) and zero-area faces in the
-    rest shape, shape 0 (its geodesic distances and cotangent weights): one sentence naming the first."""
+    """Refuse coincident edge ends in any shape and zero-area faces in the rest shape.
+
+    Erms and STED divide by edge lengths; the rest shape (shape 0) gives the geodesic distances and cotangent
+    weights.
+
+    **Arguments:**
+
+    - ``vertices``: shapes ``(N, V, 3)``.
+    - ``faces``: triangles ``(F, 3)``.
+    - ``where``: the start of the error sentence.
+
+    **Returns:**
+
+    Nothing.
+
+    **Raises:**
+
+    ``DegenerateMeshError``, one sentence naming the first offending edge or face.
+    """
     edges = np.concatenate([faces[:, [0, 1]], faces[:, [1, 2]], faces[:, [2, 0]]])
     lengths = np.linalg.norm(vertices[:, edges[:, 0]] - vertices[:, edges[:, 1]], axis=-1)  # (N, 3F)
     if np.any(lengths <= 0):
@@ -226,9 +300,21 @@ def check_nondegenerate(vertices: np.ndarray, faces: np.ndarray, where: str) -> 
 def fit_feature_transform(
     train_features: np.ndarray, scale_quantile: float = SCALE_QUANTILE, align: bool = True
 ) -> tuple[np.ndarray | None, acap.Scaler]:
-    """What the ACAP methods fit on the training shapes' features (N, V, 9) before learning: the rotation
-    reference the 2 pi branches are aligned to (None with ``align=False``: per-shape branches) and the feature
-    scaler, fitted on the aligned features at ``scale_quantile``. Apply both with :func:`apply_feature_transform`."""
+    """What the ACAP methods fit on the training shapes' features before learning.
+
+    Apply both with :func:`apply_feature_transform`.
+
+    **Arguments:**
+
+    - ``train_features``: ACAP features ``(N, V, 9)``.
+    - ``scale_quantile``: the scaler's quantile.
+    - ``align``: align the 2 pi rotation branches to a common reference (False: per-shape branches).
+
+    **Returns:**
+
+    ``(turns, scaler)``: the rotation reference ``(V, 3)`` (None with ``align=False``) and the feature scaler, fitted
+    on the aligned features.
+    """
     dtype = np.asarray(train_features).dtype
     turns = np.asarray(acap.turn_reference(train_features), dtype) if align else None
     aligned = train_features if turns is None else np.asarray(acap.align_turns(train_features, turns), dtype)
@@ -238,7 +324,19 @@ def fit_feature_transform(
 def apply_feature_transform(
     features: np.ndarray, turns: np.ndarray | None, scaler: acap.Scaler, dtype=None
 ) -> np.ndarray:
-    """Features (N, V, 9) as the ACAP methods see them: branches aligned to ``turns`` (when given), then scaled."""
+    """Features as the ACAP methods see them: branches aligned to ``turns`` (when given), then scaled.
+
+    **Arguments:**
+
+    - ``features``: ACAP features ``(N, V, 9)``.
+    - ``turns``: the rotation reference, or None.
+    - ``scaler``: the feature scaler.
+    - ``dtype``: the result's dtype (default None: that of ``features``).
+
+    **Returns:**
+
+    Scaled features ``(N, V, 9)``.
+    """
     dtype = np.asarray(features).dtype if dtype is None else np.dtype(dtype)
     feats = np.asarray(features, dtype)
     if turns is not None:
@@ -247,7 +345,18 @@ def apply_feature_transform(
 
 
 def normalized_geodesics(rest: np.ndarray, faces: np.ndarray, dtype=np.float32) -> np.ndarray:
-    """Normalized geodesic distances (V, V) on the reference shape (exact up to 5000 vertices, heat above)."""
+    """Normalized geodesic distances on the reference shape (exact up to 5000 vertices, heat method above).
+
+    **Arguments:**
+
+    - ``rest``: the reference shape ``(V, 3)``.
+    - ``faces``: triangles ``(F, 3)``.
+    - ``dtype``: the result's dtype.
+
+    **Returns:**
+
+    ``(V, V)`` distances.
+    """
     return geodesic.geodesic_distances(rest, faces, np.arange(rest.shape[0])).astype(dtype)
 
 
@@ -356,8 +465,23 @@ def fit(
 ) -> dict:
     """Train ``method`` on the training split of ``data`` and write the run into ``out`` (an empty folder).
 
-    ``loaded``: ``load_data(data)``'s result where the caller has it already (the CLI checks the data first).
-    Returns the run record (also written as run.json).
+    **Arguments:**
+
+    - ``out``: the run folder to write.
+    - ``data``: the data folder (shapes and faces, as :func:`load_data` reads it).
+    - ``method``: one of the module docstring's methods (default ``"multiscale"``).
+    - ``config``: the named configuration of ``method`` (default ``"default"``).
+    - ``epochs``, ``seed``: override the configuration's number of epochs and seed (None: keep them).
+    - ``split``, ``split_seed``: the train/test split (:func:`split_indices`; default every 10th shape is a test shape).
+    - ``progress``: show a progress bar while training.
+    - ``scale_quantile``: the quantile of the feature scaling.
+    - ``dtype``: the dtype of the features and the model (default float32).
+    - ``log``: receives the progress lines (what is trained, on how many shapes and vertices).
+    - ``loaded``: ``load_data(data)``'s result where the caller has it already (the CLI checks the data first).
+
+    **Returns:**
+
+    The run record (a dict), also written as run.json.
     """
     out = Path(out)
     cfg, tc = resolve_config(method, config, epochs, seed)
@@ -379,7 +503,7 @@ def fit(
     t0 = time.perf_counter()
     record["timing"] = {}
     # The autoencoders' geodesics (libigl's C++) run on a thread beside the features (mostly
-    # XLA compiling the ACAP encoder): on horse-gallop, 2 cores, 25.5 s for both against 42 s one after the other.
+    # XLA compiling the ACAP encoder): overlapped, the two take about 60 % of their time one after the other.
     with ThreadPoolExecutor(max_workers=1) as pool:
         geo = pool.submit(_timed_geodesics, rest, faces, dtype) if method in AUTOENCODERS else None
         if method in ACAP_METHODS:
@@ -433,7 +557,9 @@ class Run:
     config: model.Config | None
     params: tuple | None
     linear: baselines.LinearModel | None
-    turns: np.ndarray | None = None  # (V, 3) rotation reference of the features' branches (None: older runs)
+    turns: np.ndarray | None = (
+        None  # (V, 3) rotation reference of the features' branches (None: a run written without one)
+    )
 
     @property
     def method(self) -> str:
@@ -455,7 +581,20 @@ RECORD_KEYS = ("method", "n_shapes", "n_vertices", "split", "data")
 
 
 def read_record(path: Path) -> dict:
-    """run.json of the run folder ``path``, checked to be a components run's record (one sentence otherwise)."""
+    """run.json of the run folder ``path``, checked to be a components run's record.
+
+    **Arguments:**
+
+    - ``path``: the run folder.
+
+    **Returns:**
+
+    The record (a dict holding every key of ``RECORD_KEYS``, with a known method).
+
+    **Raises:**
+
+    ``RunError`` (one sentence) if run.json is not JSON, lacks a key or names an unknown method.
+    """
     try:
         record = json.loads((path / "run.json").read_text())
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
@@ -472,6 +611,22 @@ def read_record(path: Path) -> dict:
 
 
 def load(path) -> Run:
+    """Load the components run in the folder ``path``.
+
+    **Arguments:**
+
+    - ``path``: a run folder written by :func:`fit`.
+
+    **Returns:**
+
+    The :class:`Run`: record, rest shape, faces, feature scaler, and the model (autoencoder parameters and
+    configuration, or the linear model).
+
+    **Raises:**
+
+    ``RunError`` if run.json, mesh.npz or (linear baselines) model.npz is missing or the record is not a components
+    run's.
+    """
     path = Path(path)
     if not (path / "run.json").is_file() or not (path / "mesh.npz").is_file():
         raise RunError(f"{path} is not a components run (run.json and mesh.npz are missing).")
@@ -507,7 +662,21 @@ def _check_data(run: Run, vertices: np.ndarray, faces: np.ndarray, where: str) -
 
 
 def run_data(run: Run, data=None) -> tuple[np.ndarray, np.ndarray]:
-    """Shapes and faces of ``data`` (default: the folder the run was trained on), checked against the run."""
+    """Shapes and faces of ``data``, checked against the run.
+
+    **Arguments:**
+
+    - ``run``: the run.
+    - ``data``: a data folder (default None: the folder the run was trained on).
+
+    **Returns:**
+
+    ``(vertices, faces)``: ``(N, V, 3)`` and ``(F, 3)``.
+
+    **Raises:**
+
+    ``RunError`` if the data's number of shapes or connectivity differs from the run's.
+    """
     data = run.record["data"] if data is None else data
     vertices, faces = load_data(data)
     _check_data(run, vertices, faces, str(data))
@@ -515,21 +684,54 @@ def run_data(run: Run, data=None) -> tuple[np.ndarray, np.ndarray]:
 
 
 def scaled_features(run: Run, vertices: np.ndarray, dtype=None) -> jnp.ndarray:
-    """The scaled ACAP features (N, V, 9) of ``vertices``, as the run's ACAP-based model sees them (in ``dtype``,
-    default the run's): rotation branches aligned to the run's reference, then scaled."""
+    """The scaled ACAP features of ``vertices``, as the run's ACAP-based model sees them.
+
+    Rotation branches are aligned to the run's reference, then the features are scaled.
+
+    **Arguments:**
+
+    - ``run``: an ACAP-based run.
+    - ``vertices``: shapes ``(N, V, 3)``.
+    - ``dtype``: the dtype of the result (default None: the run's).
+
+    **Returns:**
+
+    Scaled features ``(N, V, 9)``.
+    """
     dtype = np.dtype(run.record.get("dtype", "float32") if dtype is None else dtype)
     feats = np.asarray(acap.encode(run.rest, run.faces, vertices), dtype)
     return jnp.asarray(apply_feature_transform(feats, run.turns, run.scaler, dtype))
 
 
 def positions_from_scaled(run: Run, scaled) -> np.ndarray:
-    """Positions (N, V, 3) of scaled ACAP features (N, V, 9): unscaled, then the ACAP reconstruction (float64)."""
+    """Positions of scaled ACAP features: unscaled, then the ACAP reconstruction.
+
+    **Arguments:**
+
+    - ``run``: an ACAP-based run.
+    - ``scaled``: scaled features ``(N, V, 9)``.
+
+    **Returns:**
+
+    Positions ``(N, V, 3)`` (float64).
+    """
     feats = np.asarray(run.scaler.inverse(scaled))
     return np.asarray(acap.decode(jnp.asarray(feats, jnp.float64), run.rest, run.faces))
 
 
 def reconstruct(run: Run, vertices: np.ndarray) -> dict:
-    """Positions (N, V, 3) of ``vertices`` passed through the run's model; plus features when ACAP-based."""
+    """``vertices`` passed through the run's model.
+
+    **Arguments:**
+
+    - ``run``: the run.
+    - ``vertices``: shapes ``(N, V, 3)``.
+
+    **Returns:**
+
+    A dict: ``"positions"`` ``(N, V, 3)``; for ACAP-based methods also ``"scaled"`` and ``"scaled_hat"``
+    ``(N, V, 9)``, the scaled features and their reconstruction.
+    """
     if run.method in ACAP_METHODS:
         x = scaled_features(run, vertices)
         if run.method == "pca":
@@ -548,6 +750,19 @@ def _reconstruct_features(params, x, rings, config, chunk: int = 16):
 
 
 def set_metrics(ref: np.ndarray, rec: dict, faces: np.ndarray) -> dict:
+    """Error metrics of one set's reconstruction.
+
+    **Arguments:**
+
+    - ``ref``: the reference shapes ``(N, V, 3)``.
+    - ``rec``: :func:`reconstruct`'s result for ``ref``.
+    - ``faces``: ``(F, 3)``.
+
+    **Returns:**
+
+    A dict: ``shapes``, ``erms`` (the RMS of the per-shape Erms, so the set's Erms under one normalization),
+    ``erms_per_shape``, ``sted``; with features also ``max_relative_squared_error`` and ``mean_relative_squared_error``.
+    """
     per_shape = metrics.erms_per_shape(ref, rec["positions"])  # one normalization; their RMS is the set's Erms
     out = {
         "shapes": int(ref.shape[0]),
@@ -563,7 +778,21 @@ def set_metrics(ref: np.ndarray, rec: dict, faces: np.ndarray) -> dict:
 
 
 def evaluate(run: Run, data) -> dict:
-    """``{"train": {...}, "test": {...}}`` metrics of the run on its split of ``data``."""
+    """Metrics of the run on its train and test split of ``data``.
+
+    **Arguments:**
+
+    - ``run``: the run.
+    - ``data``: the data folder (checked against the run as in :func:`run_data`).
+
+    **Returns:**
+
+    ``{"method", "config", "train": {...}, "test": {...}}``, each set's :func:`set_metrics` plus its ``seconds``.
+
+    **Raises:**
+
+    ``RunError`` if ``data`` does not match the run.
+    """
     vertices, faces = run_data(run, data)
     result = {"method": run.method, "config": run.record["config_name"]}
     for name, idx in (("train", run.train_idx), ("test", run.test_idx)):
@@ -578,11 +807,23 @@ def evaluate(run: Run, data) -> dict:
 
 
 def components(run: Run):
-    """The run's components (:class:`~jaxdeform.components.extract.ComponentSet`) and their meshes (K, V, 3).
+    """The run's components and their meshes.
 
     Autoencoders: decoder outputs of one-hot codes at the training codes' extremes (Tan et al.'s rule), as
     ACAP feature differences applied to the reference. Linear baselines: each component at its largest
     training weight, added to the mean (features decoded by ACAP, or coordinates).
+
+    **Arguments:**
+
+    - ``run``: the run.
+
+    **Returns:**
+
+    ``(component_set, meshes)``: a :class:`~jaxdeform.components.extract.ComponentSet` and its meshes ``(K, V, 3)``.
+
+    **Raises:**
+
+    ``RunError`` if the run folder lacks codes.npz.
     """
     from jaxdeform.components import extract
 
@@ -610,7 +851,18 @@ def components(run: Run):
 
 
 def show(run: Run, out: Path) -> dict:
-    """Write components.png (kept components, one row per block), similarity.png and components.json."""
+    """Write the run's component figures and their summary into ``out``.
+
+    **Arguments:**
+
+    - ``run``: the run.
+    - ``out``: the folder to write components.png (kept components, one row per block), similarity.png and
+        components.json into.
+
+    **Returns:**
+
+    The summary written as components.json (method, number of components, number kept, the redundancy removal).
+    """
     from jaxdeform.components import extract, figures
 
     out = Path(out)
@@ -661,6 +913,26 @@ class Editor:
         return kw
 
     def edit(self, controls, targets, **kw):
+        """Edit the run's reference shape so that the ``controls`` vertices meet ``targets``.
+
+        :func:`jaxdeform.components.edit.edit` for feature-space runs,
+        :func:`~jaxdeform.components.edit.edit_positions` for coordinate runs (which ignore ``objective``), from
+        ``latent0`` and with the editor's ``stages`` unless given.
+
+        **Arguments:**
+
+        - ``controls``: the control vertices ``(M,)``.
+        - ``targets``: their targets ``(M, 3)``.
+        - ``kw``: the editor's options (steps, regularization, method, ...).
+
+        **Returns:**
+
+        An :class:`~jaxdeform.components.edit.EditResult`.
+
+        **Raises:**
+
+        :class:`~jaxdeform.components.edit.EditInputError` for inconsistent arguments.
+        """
         from jaxdeform.components import edit as ed
 
         kw = self._options(kw)
@@ -669,6 +941,22 @@ class Editor:
         return ed.edit_positions(self.decode, self.latent0, controls, targets, **kw)
 
     def edit_error(self, ground_truth, n_controls: int, **kw):
+        """:func:`jaxdeform.components.edit.edit_error` of the run on one unseen shape.
+
+        **Arguments:**
+
+        - ``ground_truth``: the unseen shape ``(V, 3)``.
+        - ``n_controls``: the number of control vertices (furthest point sampling on the rest shape).
+        - ``kw``: the editor's options, as :meth:`edit`.
+
+        **Returns:**
+
+        An :class:`~jaxdeform.components.edit.EditErrorReport`.
+
+        **Raises:**
+
+        :class:`~jaxdeform.components.edit.EditInputError` for inconsistent arguments.
+        """
         from jaxdeform.components import edit as ed
 
         rest_arg = self._acap() if self.space == "features" else self.run.rest
@@ -685,7 +973,17 @@ class Editor:
 
 
 def editor(run: Run) -> Editor:
-    """The run's :class:`Editor`; it computes in float64 (the ACAP reconstruction's dtype), whatever the run's."""
+    """The run's :class:`Editor`.
+
+    **Arguments:**
+
+    - ``run``: the run.
+
+    **Returns:**
+
+    An :class:`Editor` over the run's latent codes (autoencoders) or component weights (linear baselines); it
+    computes in float64 (the ACAP reconstruction's dtype), whatever the run's dtype.
+    """
     dtype = np.float64
     to64 = lambda a: jnp.asarray(a, dtype)  # noqa: E731
     if run.method in AUTOENCODERS:
@@ -718,8 +1016,20 @@ def editor(run: Run) -> Editor:
 
 
 def read_controls(path) -> tuple[np.ndarray, np.ndarray]:
-    """Control vertices and targets from a .json ``{"indices": [...], "targets": [[x, y, z], ...]}`` or a text
-    file of lines ``index x y z``."""
+    """Control vertices and targets of an edit from a file.
+
+    **Arguments:**
+
+    - ``path``: a .json ``{"indices": [...], "targets": [[x, y, z], ...]}`` or a text file of lines ``index x y z``.
+
+    **Returns:**
+
+    ``(indices (M,) int, targets (M, 3))``, M >= 1.
+
+    **Raises:**
+
+    ``RunError`` (one sentence) for an unreadable file, non-integer indices or targets that are not ``(M, 3)``.
+    """
     path = Path(path)
     try:
         if path.suffix.lower() == ".json":

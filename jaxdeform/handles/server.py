@@ -65,7 +65,16 @@ class BadRequest(ValueError):
 
 
 def encode_vertices(v: np.ndarray) -> dict:
-    """(V, 3) floats as ``{"dtype", "shape", "data"}`` with base64 little-endian bytes (non-floats as float64)."""
+    """Vertices as a JSON value with base64 little-endian bytes.
+
+    **Arguments:**
+
+    - ``v``: ``(V, 3)`` floats (non-floats are sent as float64).
+
+    **Returns:**
+
+    ``{"dtype", "shape", "data"}``.
+    """
     a = np.asarray(v)
     if a.dtype not in (np.float32, np.float64):
         a = a.astype(np.float64)
@@ -74,7 +83,16 @@ def encode_vertices(v: np.ndarray) -> dict:
 
 
 def decode_vertices(payload: dict) -> np.ndarray:
-    """Inverse of :func:`encode_vertices`: a read-only array of the encoded dtype and shape."""
+    """Inverse of :func:`encode_vertices`.
+
+    **Arguments:**
+
+    - ``payload``: ``{"dtype", "shape", "data"}``.
+
+    **Returns:**
+
+    A read-only array of the encoded dtype and shape.
+    """
     dtype = np.dtype(payload["dtype"]).newbyteorder("<")
     return np.frombuffer(base64.b64decode(payload["data"]), dtype=dtype).reshape(payload["shape"])
 
@@ -367,7 +385,20 @@ class _Server(ThreadingHTTPServer):
 
 
 def loopback_host(host: str) -> str:
-    """The IPv4 loopback address to bind for ``host`` (``localhost`` -> 127.0.0.1); anything else is refused."""
+    """The IPv4 loopback address to bind for ``host``.
+
+    **Arguments:**
+
+    - ``host``: ``localhost`` (-> 127.0.0.1) or an IPv4 loopback address.
+
+    **Returns:**
+
+    The address to bind.
+
+    **Raises:**
+
+    ``ValueError`` for anything else.
+    """
     name = "127.0.0.1" if host == "localhost" else host
     try:
         addr = ipaddress.ip_address(name)
@@ -438,11 +469,22 @@ def serve(
     up_axis: str = "y",
     announce: Callable[[str], None] | None = None,
 ) -> PageServer:
-    """Serve the interactive page for a mesh with per-vertex features ``Z`` (V, C), unit-norm rows.
+    """Serve the interactive page for a mesh with per-vertex features.
 
-    ``field_fn`` (points (P, 3) -> unit features (P, C)) enables symmetry detection (eq. 9). ``port=0`` takes
-    a free port. ``announce(url)`` is called once the socket is bound. With ``block`` the call serves until
-    Ctrl-C (then shuts down); otherwise it returns the running :class:`PageServer` at once.
+    **Arguments:**
+
+    - ``vertices``, ``faces``: the mesh, ``(V, 3)`` and ``(F, 3)``.
+    - ``Z``: per-vertex features ``(V, C)``, unit-norm rows.
+    - ``field_fn``: points ``(P, 3)`` -> unit features ``(P, C)``; enables symmetry detection (eq. 9).
+    - ``host``: the address to bind.
+    - ``port``: the port; 0 takes a free port.
+    - ``block``: serve until Ctrl-C (then shut down) before returning.
+    - ``width``, ``height``, ``up_axis``: the displayed image and the camera's up axis (:class:`EditSession`).
+    - ``announce``: ``announce(url)`` is called once the socket is bound.
+
+    **Returns:**
+
+    The :class:`PageServer`; without ``block`` it is returned at once, running.
     """
     session = EditSession(vertices, faces, Z, field_fn=field_fn, width=width, height=height, up_axis=up_axis)
     server = PageServer(session, host, port)

@@ -78,11 +78,14 @@ def _locked(method):
 class EditSession:
     """Handles, transforms, anchors, options and view of one mesh, with its deformed mesh and rendered frames.
 
-    Arguments:
-        vertices: (V, 3) finite rest positions. faces: (F, 3) vertex indices.
-        Z: (V, C) per-vertex features (unit rows after normalisation by :class:`Deformer`).
-        field_fn: points (P, 3) -> features (P, C); enables symmetry detection (``symmetry_available``).
-        width, height: the displayed image in pixels, at least 16 each. up_axis: the camera's up axis.
+    **Arguments:**
+
+    - ``vertices``: ``(V, 3)`` finite rest positions.
+    - ``faces``: ``(F, 3)`` vertex indices.
+    - ``Z``: ``(V, C)`` per-vertex features (unit rows after normalisation by :class:`Deformer`).
+    - ``field_fn``: points ``(P, 3)`` -> features ``(P, C)``; enables symmetry detection (``symmetry_available``).
+    - ``width``, ``height``: the displayed image in pixels, at least 16 each.
+    - ``up_axis``: the camera's up axis.
     """
 
     def __init__(self, vertices, faces, Z, *, field_fn=None, width: int = 512, height: int = 512, up_axis: str = "y"):
@@ -225,12 +228,26 @@ class EditSession:
 
     @_locked
     def deformed_vertices(self, dtype=None) -> np.ndarray:
-        """A copy (V, 3) of the displayed mesh, in ``dtype`` (None: as computed, float32 once deformed)."""
+        """A copy of the displayed mesh.
+
+        **Arguments:**
+
+        - ``dtype``: the copy's dtype (None: as computed, float32 once deformed).
+
+        **Returns:**
+
+        ``(V, 3)``.
+        """
         return np.array(self.deformed, dtype=dtype)
 
     @_locked
     def weights(self) -> np.ndarray:
-        """DFD weights (V, K) of the handles under the current anchors and locality ((V, 0) without handles)."""
+        """DFD weights of the handles under the current anchors and locality.
+
+        **Returns:**
+
+        ``(V, K)``; ``(V, 0)`` without handles.
+        """
         if not self.handles:
             return np.zeros((self.rest.shape[0], 0))
         return np.asarray(
@@ -241,37 +258,65 @@ class EditSession:
 
     @_locked
     def selected_weights(self) -> np.ndarray | None:
-        """The selected handle's weight column (V,) as float64, or None when no handle is selected."""
+        """The selected handle's weight column.
+
+        **Returns:**
+
+        ``(V,)`` float64, or None when no handle is selected.
+        """
         return None if self.selected is None else np.asarray(self.weights()[:, self.selected], dtype=np.float64)
 
     @_locked
     def image_bytes(self, scale: int = 1, fmt: str = "png") -> tuple[int, bytes]:
         """The current view, encoded; rendered once per version and scale.
 
-        Arguments:
-            scale: one of ``PREVIEW_SCALES``; > 1 renders (W / scale, H / scale) pixels with the same camera, so
-                preview pixel (i, j) covers display block [scale j, scale (j + 1)) x [scale i, scale (i + 1)).
-            fmt: "png" (lossless) or "jpeg" (quality ``JPEG_QUALITY``, cheaper to encode: drag frames).
+        **Arguments:**
 
-        Returns:
-            (version, image bytes). With ``show_weights`` and a selected handle the mesh is coloured by that
-            handle's weights through ``WEIGHT_COLORMAP`` over ``WEIGHT_RANGE``.
+        - ``scale``: one of ``PREVIEW_SCALES``; > 1 renders (W / scale, H / scale) pixels with the same camera, so
+            preview pixel (i, j) covers display block [scale j, scale (j + 1)) x [scale i, scale (i + 1)).
+        - ``fmt``: "png" (lossless) or "jpeg" (quality ``JPEG_QUALITY``, cheaper to encode: drag frames).
+
+        **Returns:**
+
+        (version, image bytes). With ``show_weights`` and a selected handle the mesh is coloured by that
+        handle's weights through ``WEIGHT_COLORMAP`` over ``WEIGHT_RANGE``.
         """
         scalar = lambda: self.selected_weights() if self.options.show_weights else None  # noqa: E731
         data = self.view.frame(self.version, self._deformed64(), self.faces, scalar, scale, fmt, self.timings)
         return self.version, data
 
     def image(self, scale: int = 1) -> np.ndarray:
-        """The current view as an (H, W, 3) uint8 array (decoded from the PNG of :meth:`image_bytes`)."""
+        """The current view as an array (decoded from the PNG of :meth:`image_bytes`).
+
+        **Arguments:**
+
+        - ``scale``: as :meth:`image_bytes`.
+
+        **Returns:**
+
+        ``(H, W, 3)`` uint8.
+        """
         return np.asarray(Image.open(io.BytesIO(self.image_bytes(scale, "png")[1])).convert("RGB"))
 
     # ------------------------------------------------------------------------------------------------- handles
 
     @_locked
     def add_handle(self, vertex: int) -> int:
-        """Make ``vertex`` a handle with the identity transform and select it; returns its handle index.
+        """Make ``vertex`` a handle with the identity transform and select it.
 
-        A vertex that already is a handle is only selected; an anchor is refused (``ValueError``).
+        A vertex that already is a handle is only selected.
+
+        **Arguments:**
+
+        - ``vertex``: a vertex index.
+
+        **Returns:**
+
+        Its handle index.
+
+        **Raises:**
+
+        ``ValueError`` for an anchor or an invalid vertex.
         """
         vertex = self._vertex(vertex)
         if vertex in self.anchors:
@@ -287,7 +332,20 @@ class EditSession:
 
     @_locked
     def select_handle(self, handle: int | None = None) -> int:
-        """Select handle ``handle`` (an index into ``handles``; None: keep the selected one); returns its index."""
+        """Select a handle.
+
+        **Arguments:**
+
+        - ``handle``: an index into ``handles`` (None: keep the selected one).
+
+        **Returns:**
+
+        Its index.
+
+        **Raises:**
+
+        ``ValueError`` for an invalid index, or None with no handle selected.
+        """
         self._select(self._handle(handle))
         return self.selected
 
@@ -298,7 +356,20 @@ class EditSession:
 
     @_locked
     def remove_handle(self, handle: int | None = None) -> None:
-        """Remove a handle (default: the selected one); the selection moves to the next remaining handle."""
+        """Remove a handle; the selection moves to the next remaining handle.
+
+        **Arguments:**
+
+        - ``handle``: an index into ``handles`` (default None: the selected one).
+
+        **Returns:**
+
+        Nothing.
+
+        **Raises:**
+
+        ``ValueError`` for an invalid index, or None with no handle selected.
+        """
         k = self._handle(handle)
         del self.handles[k], self.transforms[k]
         self.selected = None if not self.handles else min(k, len(self.handles) - 1)
@@ -306,7 +377,21 @@ class EditSession:
 
     @_locked
     def set_transform(self, handle: int | None, transform) -> None:
-        """Set a handle's (3, 4) affine map (``handle`` None: the selected one); the identity resets it."""
+        """Set a handle's affine map; the identity resets it.
+
+        **Arguments:**
+
+        - ``handle``: an index into ``handles`` (default None: the selected one).
+        - ``transform``: the ``(3, 4)`` affine map.
+
+        **Returns:**
+
+        Nothing.
+
+        **Raises:**
+
+        ``ValueError`` for an invalid handle or a transform that is not a finite ``(3, 4)`` array.
+        """
         k = self._handle(handle)
         self.transforms[k] = check_array(
             transform, (3, 4), "'transform' must be 3 rows of 4 finite numbers (an affine map)."
@@ -314,22 +399,56 @@ class EditSession:
         self._changed()
 
     def reset_handle(self, handle: int | None = None) -> None:
-        """Give a handle (default: the selected one) the identity transform."""
+        """Give a handle the identity transform.
+
+        **Arguments:**
+
+        - ``handle``: an index into ``handles`` (default None: the selected one).
+
+        **Returns:**
+
+        Nothing.
+        """
         self.set_transform(handle, np.eye(3, 4))
 
     @_locked
     def translate_handle(self, translation, handle: int | None = None) -> None:
-        """Translate a handle (default: the selected one) by the (3,) world vector ``translation``, composed on
-        the left of its transform. Without symmetry or partition of unity every vertex i moves by ``W_ik t``: the
-        handle vertex by ``t`` when its own weight is 1 (always, unless an anchor with similar features lowers it)."""
+        """Translate a handle by a world vector, composed on the left of its transform.
+
+        Without symmetry or partition of unity every vertex i moves by ``W_ik t``: the handle vertex by ``t`` when its
+        own weight is 1 (always, unless an anchor with similar features lowers it).
+
+        **Arguments:**
+
+        - ``translation``: the world vector t ``(3,)``.
+        - ``handle``: an index into ``handles`` (default None: the selected one).
+
+        **Returns:**
+
+        Nothing.
+        """
         k = self._handle(handle)
         t = check_array(translation, (3,), "'translation' must be 3 finite numbers.")
         self._apply(k, make_transform(self._deformed64()[self.handles[k]], translate=t))
 
     @_locked
     def rotate_handle(self, axis, degrees: float, handle: int | None = None) -> None:
-        """Rotate a handle (default: the selected one) by ``degrees`` about ``axis`` (3,) through the handle's
-        current position, composed on the left of its transform."""
+        """Rotate a handle about an axis through the handle's current position, composed on the left of its transform.
+
+        **Arguments:**
+
+        - ``axis``: the rotation axis ``(3,)``, non-zero.
+        - ``degrees``: the angle.
+        - ``handle``: an index into ``handles`` (default None: the selected one).
+
+        **Returns:**
+
+        Nothing.
+
+        **Raises:**
+
+        ``ValueError`` for a zero axis or an invalid handle.
+        """
         k = self._handle(handle)
         a = check_array(axis, (3,), "'axis' must be 3 finite numbers.")
         if not np.linalg.norm(a) > 0.0:
@@ -341,7 +460,20 @@ class EditSession:
 
     @_locked
     def toggle_anchor(self, vertex: int) -> bool:
-        """Pin ``vertex`` as an anchor or unpin it; returns whether it is an anchor now (a handle is refused)."""
+        """Pin ``vertex`` as an anchor or unpin it.
+
+        **Arguments:**
+
+        - ``vertex``: a vertex index.
+
+        **Returns:**
+
+        Whether it is an anchor now.
+
+        **Raises:**
+
+        ``ValueError`` for a handle or an invalid vertex.
+        """
         vertex = self._vertex(vertex)
         if vertex in self.handles:
             raise ValueError(f"vertex {vertex} is a handle; a handle cannot also be an anchor.")
@@ -364,15 +496,17 @@ class EditSession:
     def pick(self, x: float, y: float, action: str = "query") -> dict:
         """Pick the displayed mesh at display pixel (x, y).
 
-        Arguments:
-            x, y: display coordinates in [0, width] x [0, height].
-            action: ``query`` (report only), ``handle`` (select the handle whose marker is under the cursor, else
-                add a handle at the picked vertex), ``rotate`` (the marker's handle, else keep the selection, else
-                add a handle) or ``anchor`` (toggle an anchor at the picked vertex).
+        **Arguments:**
 
-        Returns:
-            ``{"hit", "triangle", "vertex", "point", "handle"}``: the hit triangle and its corner nearest the hit
-            point (None on the background), the world hit point, and the handle the action selected (or None).
+        - ``x``, ``y``: display coordinates in [0, width] x [0, height].
+        - ``action``: ``query`` (report only), ``handle`` (select the handle whose marker is under the cursor, else
+            add a handle at the picked vertex), ``rotate`` (the marker's handle, else keep the selection, else
+            add a handle) or ``anchor`` (toggle an anchor at the picked vertex).
+
+        **Returns:**
+
+        ``{"hit", "triangle", "vertex", "point", "handle"}``: the hit triangle and its corner nearest the hit
+        point (None on the background), the world hit point, and the handle the action selected (or None).
         """
         x = check_number(x, "x", 0.0, self.width)
         y = check_number(y, "y", 0.0, self.height)
@@ -401,15 +535,16 @@ class EditSession:
     def drag(self, mode: str, start, end, handle: int | None = None) -> None:
         """One step of a drag from display pixel ``start`` (x, y) to ``end``.
 
-        Arguments:
-            mode: ``translate``: the handle moves by ``s (dx r - dy u)`` (camera right / up vectors, ``s`` the world
-                size of a pixel at the handle's depth), so its projection follows the cursor exactly; ``rotate``:
-                about the view axis through the handle's current position p by the angle the cursor sweeps around
-                p's projection (counter-clockwise on screen is positive); ``orbit``: the camera turns about the
-                mesh's bounding-box centre, ``ORBIT_DEG_PER_PIXEL`` per pixel. Handle steps are composed on the
-                left of the handle's transform (``D <- M D``) and select the handle.
-            start, end: (x, y) display coordinates.
-            handle: the handle index, or None for the selected one (ignored by ``orbit``).
+        **Arguments:**
+
+        - ``mode``: ``translate``: the handle moves by ``s (dx r - dy u)`` (camera right / up vectors, ``s`` the world
+            size of a pixel at the handle's depth), so its projection follows the cursor exactly; ``rotate``:
+            about the view axis through the handle's current position p by the angle the cursor sweeps around
+            p's projection (counter-clockwise on screen is positive); ``orbit``: the camera turns about the
+            mesh's bounding-box centre, ``ORBIT_DEG_PER_PIXEL`` per pixel. Handle steps are composed on the
+            left of the handle's transform (``D <- M D``) and select the handle.
+        - ``start``, ``end``: (x, y) display coordinates.
+        - ``handle``: the handle index, or None for the selected one (ignored by ``orbit``).
         """
         mode = check_choice(mode, "mode", DRAG_MODES)
         start = check_array(start, (2,), "'from' must be a pair [x, y] of display pixel coordinates.")
@@ -439,10 +574,25 @@ class EditSession:
         pou: bool | None = None,
         show_weights: bool | None = None,
     ) -> dict:
-        """Change the given options (None keeps one); returns them as :meth:`Options.as_json`.
+        """Change the given options (None keeps one).
 
-        ``lam`` lies in [0, 100]; ``symmetric`` needs a detected plane (``ValueError`` otherwise). The mesh is
-        deformed again only when an option of the deformation changed.
+        The mesh is deformed again only when an option of the deformation changed.
+
+        **Arguments:**
+
+        - ``locality``: use the locality weighting (eq. 8).
+        - ``lam``: the locality exponent, in [0, 100].
+        - ``symmetric``: symmetry-preserving blending; needs a detected plane.
+        - ``pou``: the partition-of-unity extension (eq. 10).
+        - ``show_weights``: colour the mesh by the selected handle's weights.
+
+        **Returns:**
+
+        The options as :meth:`Options.as_json`.
+
+        **Raises:**
+
+        ``ValueError`` for ``lam`` outside [0, 100] or ``symmetric`` without a detected plane.
         """
         new = Options(**vars(self.options))
         if locality is not None:
@@ -473,14 +623,42 @@ class EditSession:
         elevation: float | None = None,
         reset: bool = False,
     ) -> None:
-        """Change the camera; see :meth:`Viewport.set` (zoom multiplies the distance; angles in degrees)."""
+        """Change the camera; see :meth:`Viewport.set`.
+
+        **Arguments:**
+
+        - ``zoom``: in [0.01, 100], multiplies the camera's distance (kept within 0.1 to 10 times the initial one).
+        - ``azimuth``, ``elevation``: the camera's angles, in [-180, 180] and [-89, 89] degrees.
+        - ``reset``: back to the initial camera first.
+
+        **Returns:**
+
+        Nothing.
+
+        **Raises:**
+
+        ``ValueError`` for an argument out of range (all are checked before anything changes).
+        """
         self.view.set(zoom=zoom, azimuth=azimuth, elevation=elevation, reset=reset)
         self._changed(geometry=False)
 
     @_locked
     def reset(self, what: str = "all") -> None:
-        """``transforms``: every handle back to the identity; ``all``: no handles, anchors, selection, default
-        options (the rest mesh is displayed); ``view``: the initial camera."""
+        """Reset part of the session.
+
+        **Arguments:**
+
+        - ``what``: ``transforms``: every handle back to the identity; ``all``: no handles, anchors, selection, default
+            options (the rest mesh is displayed); ``view``: the initial camera.
+
+        **Returns:**
+
+        Nothing.
+
+        **Raises:**
+
+        ``ValueError`` for another ``what``.
+        """
         what = check_choice(what, "what", RESET_TARGETS)
         if what == "view":
             self.view.reset()

@@ -41,16 +41,20 @@ def compose(a: Float[np.ndarray, "3 4"], b: Float[np.ndarray, "3 4"]) -> np.ndar
 def translation_step(camera: Camera, width: int, height: int, point, start, end) -> np.ndarray:
     """World translation (3,) in the view plane that moves ``point``'s projection from pixel ``start`` to ``end``.
 
-    Arguments:
-        camera, width, height: the view the pixels belong to.
-        point: (3,) world position of the dragged point.
-        start, end: (x, y) display pixels.
+    **Arguments:**
 
-    Returns:
-        ``s (dx r - dy u)`` with (r, u) the camera's right and up vectors and ``s`` the world size of a pixel at
-        the point's depth; it has no component along the view direction.
+    - ``camera``, ``width``, ``height``: the view the pixels belong to.
+    - ``point``: (3,) world position of the dragged point.
+    - ``start``, ``end``: (x, y) display pixels.
 
-    Raises ``ValueError`` when the point is not in front of the camera.
+    **Returns:**
+
+    ``s (dx r - dy u)`` with (r, u) the camera's right and up vectors and ``s`` the world size of a pixel at
+    the point's depth; it has no component along the view direction.
+
+    **Raises:**
+
+    ``ValueError`` when the point is not in front of the camera.
     """
     fwd, right, up = camera.basis()
     depth = float((np.asarray(point, dtype=np.float64) - np.asarray(camera.eye)) @ fwd)
@@ -78,13 +82,15 @@ def swept_angle(centre, start, end, min_radius: float = 2.0) -> float:
 def interior_pixel(hit: np.ndarray, margin: int = 3) -> tuple[float, float] | None:
     """A covered pixel away from the silhouette, for a first click.
 
-    Arguments:
-        hit: (H, W) bool coverage mask.
-        margin: half-size of the block that must be covered.
+    **Arguments:**
 
-    Returns:
-        Centre (x, y) of the covered pixel nearest the image centre whose (2 margin + 1)^2 block is all covered;
-        failing that, of any covered pixel nearest the centre; None when nothing is covered.
+    - ``hit``: (H, W) bool coverage mask.
+    - ``margin``: half-size of the block that must be covered.
+
+    **Returns:**
+
+    Centre (x, y) of the covered pixel nearest the image centre whose (2 margin + 1)^2 block is all covered;
+    failing that, of any covered pixel nearest the centre; None when nothing is covered.
     """
     h, w = hit.shape
     for m in (margin, 0):
@@ -159,9 +165,11 @@ class Viewport:
     Ray casts and frames are cached under a version number given by the caller, which must change whenever the
     mesh, the camera or the colouring changes.
 
-    Arguments:
-        rest: (V, 3) rest vertices (they fix the orbit centre and the framing).
-        width, height: the displayed image in pixels, at least 16 each. up_axis: "x", "y" or "z".
+    **Arguments:**
+
+    - ``rest``: (V, 3) rest vertices (they fix the orbit centre and the framing).
+    - ``width``, ``height``: the displayed image in pixels, at least 16 each.
+    - ``up_axis``: "x", "y" or "z".
     """
 
     def __init__(self, rest: np.ndarray, width: int, height: int, up_axis: str = "y"):
@@ -284,15 +292,16 @@ class Viewport:
     ) -> bytes:
         """The mesh rendered and encoded (cached per version, scale and format).
 
-        Arguments:
-            version: the caller's version of what the image shows.
-            vertices, faces: the mesh to render.
-            scalar: called on a cache miss; a per-vertex value coloured through ``WEIGHT_COLORMAP`` over
-                ``WEIGHT_RANGE``, or None for plain shading.
-            scale: one of ``PREVIEW_SCALES``; the image has (width / scale, height / scale) pixels with the same
-                camera, so preview pixel (i, j) covers display block [scale j, scale (j + 1)) x [scale i, ...).
-            fmt: "png" (lossless) or "jpeg" (quality ``JPEG_QUALITY``).
-            timings: receives ``render[_1/scale]_ms`` and ``{fmt}[_1/scale]_ms`` of the work done.
+        **Arguments:**
+
+        - ``version``: the caller's version of what the image shows.
+        - ``vertices``, ``faces``: the mesh to render.
+        - ``scalar``: called on a cache miss; a per-vertex value coloured through ``WEIGHT_COLORMAP`` over
+            ``WEIGHT_RANGE``, or None for plain shading.
+        - ``scale``: one of ``PREVIEW_SCALES``; the image has (width / scale, height / scale) pixels with the same
+            camera, so preview pixel (i, j) covers display block [scale j, scale (j + 1)) x [scale i, ...).
+        - ``fmt``: "png" (lossless) or "jpeg" (quality ``JPEG_QUALITY``).
+        - ``timings``: receives ``render[_1/scale]_ms`` and ``{fmt}[_1/scale]_ms`` of the work done.
         """
         if isinstance(scale, bool) or scale not in PREVIEW_SCALES:
             raise ValueError(f"'scale' must be one of {', '.join(map(str, PREVIEW_SCALES))}.")

@@ -88,10 +88,23 @@ def fibonacci_cameras(
 ) -> list[Camera]:
     """``n`` cameras on the Fibonacci sphere around the mesh, all looking at its bounding-box centre.
 
-    ``fov_deg`` sets the distance (the bounding sphere times ``margin`` fills it); with ``tight`` each
-    camera's field of view is narrowed to the mesh's projection times ``margin``. ``aspect`` is the image's
-    width / height (``Camera.fov_deg`` spans the shorter side). ``up`` is the world's vertical, which every
-    camera keeps upright.
+    **Arguments:**
+
+    - ``vertices``: the mesh's vertices ``(V, 3)``.
+    - ``n``: the number of cameras.
+    - ``fov_deg``: sets the distance (the bounding sphere times ``margin`` fills it); in (0, 180).
+    - ``margin``: at least 1.
+    - ``up``: the world's vertical, which every camera keeps upright.
+    - ``tight``: narrow each camera's field of view to the mesh's projection times ``margin``.
+    - ``aspect``: the image's width / height (``Camera.fov_deg`` spans the shorter side).
+
+    **Returns:**
+
+    The ``n`` cameras.
+
+    **Raises:**
+
+    ``ValueError`` for invalid vertices, ``fov_deg`` or ``margin``.
     """
     v = _check_vertices(vertices)
     if not 0.0 < float(fov_deg) < 180.0:
@@ -133,7 +146,18 @@ def fibonacci_cameras(
 def simplify(vertices, faces, target_faces: int = 50_000) -> tuple[Float[np.ndarray, "v 3"], Int[np.ndarray, "f 3"]]:
     """QEM-decimate a mesh to about ``target_faces`` faces when it has more; otherwise return it unchanged.
 
-    Returns float64 vertices and int64 faces (the decimated mesh's own, compact vertex list).
+    **Arguments:**
+
+    - ``vertices``, ``faces``: the mesh, ``(V, 3)`` and ``(F, 3)``.
+    - ``target_faces``: at least 4.
+
+    **Returns:**
+
+    Float64 vertices and int64 faces (the decimated mesh's own, compact vertex list).
+
+    **Raises:**
+
+    ``ValueError`` if ``target_faces < 4``, and the mesh checks' errors.
     """
     v, f = _check_mesh(vertices, faces)
     target = int(target_faces)
@@ -202,11 +226,27 @@ def render_views(
     base_color=BASE_COLOR,
     background=(1.0, 1.0, 1.0),
 ) -> RenderedViews:
-    """Ray-cast every camera at ``resolution`` (square side, or (height, width)); see the module docstring.
+    """Ray-cast every camera; see the module docstring.
 
-    ``colors``: optional per-vertex RGB ((V, 3), floats in [0, 1] or uint8), interpolated with the
-    barycentrics and shaded; otherwise ``base_color``. Memory: N H W (4 + 12 + 12 + 3) bytes (about 800 MB for
-    100 views at 512).
+    Memory: N H W (4 + 12 + 12 + 3) bytes (about 800 MB for 100 views at 512).
+
+    **Arguments:**
+
+    - ``vertices``, ``faces``: the mesh.
+    - ``cameras``: the N cameras.
+    - ``resolution``: square side, or (height, width).
+    - ``colors``: optional per-vertex RGB (``(V, 3)``, floats in [0, 1] or uint8), interpolated with the
+        barycentrics and shaded; otherwise ``base_color``.
+    - ``progress``: show a progress bar.
+    - ``base_color``, ``background``: the mesh's and the background's colour.
+
+    **Returns:**
+
+    The :class:`RenderedViews` (triangle id, barycentrics, surface point and shaded RGB per pixel).
+
+    **Raises:**
+
+    ``ValueError`` for a resolution below 1 x 1.
     """
     caster = RayCaster(vertices, faces)
     v, f = caster.vertices, caster.faces

@@ -32,10 +32,10 @@ so that zero motion returns the input exactly::
 (computed entrywise, so an identity transform gives exactly 0), followed by one fused elementwise pass over
 the (V, 3) vertices; float32 for speed (any float dtype works). Layout (V, 3) kept: the (3, V) layout was not
 reliably faster here. A translation-only edit is the special case ``A_k = I`` (no separate code path).
-Measured (benchmarks/handles.py, float32, this 2-core VM shared with other jobs, load ~3.7): 655k vertices
-(1.31M faces), 10 handles: 15 ms per frame (66 fps) for blend and symmetric_blend, 19 ms with pou, 11 ms through
-:class:`Deformer` (weights padded to 16 columns). The CPU matmul kernel was ~3x slower with 13+ output columns
-than with 12, so nothing (such as a column of ones for the row sums) is appended to M.
+benchmarks/handles.py measures the per-frame cost (655k vertices, 10 handles: interactive rates on a CPU for blend,
+symmetric_blend and pou, and through :class:`Deformer`, whose weights are padded to 16 columns). The CPU matmul
+kernel is several times slower with 13+ output columns than with 12, so nothing (such as a column of ones for the
+row sums) is appended to M.
 
 Partition of unity (App. I, eq. 10, ``pou=True``): a simulated control point with transform ``D0`` (identity
 unless given) and weight ``w0 = max(1 - sum_k W_ik, 0)``; the weights (w0, W_i1..W_iK) are divided by their sum
@@ -99,7 +99,16 @@ class NoSymmetryError(JaxDeformError):
 
 
 def bucket(k: int) -> int:
-    """The padded column count used for k handles: the next power of two (0 and 1 stay as they are)."""
+    """The padded column count used for k handles.
+
+    **Arguments:**
+
+    - ``k``: the number of handles.
+
+    **Returns:**
+
+    The next power of two (0 and 1 stay as they are).
+    """
     return k if k <= 1 else 1 << (k - 1).bit_length()
 
 
@@ -167,7 +176,20 @@ def dfd_weights(Z: Float[Array, "v c"], handles: Int[Array, " k"]) -> Float[Arra
     """DFD weights (eq. 6): W_ik = max(1 - ||z_i - z_{h_k}||_2, 0) for unit-norm features Z, W[h_k, k] = 1.
 
     One matmul, jitted; K is padded to :func:`bucket` (K) inside, so new handle counts rarely recompile.
-    Computed in the dtype of Z (float32 recommended: the rebind reads Z once, it is memory-bound).
+
+    **Arguments:**
+
+    - ``Z``: unit-norm features ``(V, C)``; the weights are computed in its dtype (float32 recommended: the rebind
+        reads Z once, it is memory-bound).
+    - ``handles``: the handle vertices ``(K,)``.
+
+    **Returns:**
+
+    The weights ``(V, K)`` in [0, 1], 1 at each handle's own vertex; ``(V, 0)`` without handles.
+
+    **Raises:**
+
+    ``ValueError`` if ``handles`` is not 1-D integer vertex indices in range, or ``Z`` is not ``(V, C)``.
     """
     Z = jnp.asarray(Z)
     if Z.ndim != 2:
@@ -183,7 +205,20 @@ def dfd_weights(Z: Float[Array, "v c"], handles: Int[Array, " k"]) -> Float[Arra
 def anchor_weights(W: Float[Array, "v k"], Z: Float[Array, "v c"], anchors: Int[Array, " a"]) -> Float[Array, "v k"]:
     """Feature-space point constraints (eq. 7): W_ik <- max(W_ik - max_a F(z_i, z_a), 0), F the DFD weight.
 
-    An anchor's own row becomes exactly 0; weights never increase. No anchors: W is returned unchanged.
+    **Arguments:**
+
+    - ``W``: weights ``(V, K)``.
+    - ``Z``: unit-norm features ``(V, C)``.
+    - ``anchors``: the anchor vertices ``(A,)``.
+
+    **Returns:**
+
+    The constrained weights ``(V, K)``: an anchor's own row becomes exactly 0; weights never increase. No
+    anchors: ``W`` is returned unchanged.
+
+    **Raises:**
+
+    ``ValueError`` if ``W`` and ``Z`` do not have the same number of rows or ``anchors`` are not valid vertex indices.
     """
     W = jnp.asarray(W)
     Z = jnp.asarray(Z)
@@ -199,10 +234,21 @@ def anchor_weights(W: Float[Array, "v k"], Z: Float[Array, "v c"], anchors: Int[
 
 
 def handle_geodesics(geo, handles) -> np.ndarray:
-    """Per-handle normalised geodesic distances (V, K): column k = heat-method distance from handle k / its max.
+    """Per-handle normalised geodesic distances: column k = heat-method distance from handle k / its max.
 
-    ``geo`` is a :class:`jaxdeform.mesh.geodesic.HeatGeodesics`. Values lie in [0, 1], 0 at the handle; vertices
-    unreachable from the handle (another connected component) are set to 1.
+    **Arguments:**
+
+    - ``geo``: a :class:`jaxdeform.mesh.geodesic.HeatGeodesics`.
+    - ``handles``: the handle vertices ``(K,)``.
+
+    **Returns:**
+
+    ``(V, K)`` float64 in [0, 1], 0 at the handle; vertices unreachable from the handle (another connected
+    component) are set to 1.
+
+    **Raises:**
+
+    ``ValueError`` if ``handles`` are not valid vertex indices.
     """
     h = _index_array(handles, geo.n_vertices, "handles")
     if h.size == 0:
@@ -217,8 +263,20 @@ def handle_geodesics(geo, handles) -> np.ndarray:
 def locality_weights(W: Float[Array, "v k"], G: Float[Array, "v k"], lam: float) -> Float[Array, "v k"]:
     """Locality weighting (eq. 8): W (1 - G)^lam, each column rescaled so its maximum (the handle's weight) is 1.
 
-    G: per-handle normalised geodesic distance in [0, 1] (:func:`handle_geodesics`). ``lam = 0`` returns W
-    unchanged (for DFD weights, whose handle weight is 1); larger ``lam`` suppresses far vertices more.
+    **Arguments:**
+
+    - ``W``: weights ``(V, K)``.
+    - ``G``: per-handle normalised geodesic distance in [0, 1] ``(V, K)`` (:func:`handle_geodesics`).
+    - ``lam``: the exponent, >= 0; ``lam = 0`` returns W unchanged (for DFD weights, whose handle weight is 1);
+        larger ``lam`` suppresses far vertices more.
+
+    **Returns:**
+
+    The weights ``(V, K)``.
+
+    **Raises:**
+
+    ``ValueError`` if ``lam`` is not a finite number >= 0 or ``W`` and ``G`` are not ``(V, K)`` arrays of one shape.
     """
     if not (np.isfinite(lam) and lam >= 0):
         raise ValueError(f"the locality exponent must be a finite number >= 0, got {lam}.")
@@ -250,7 +308,8 @@ def _displacement(u: Float[Array, "v 3"], B: Float[Array, "v 12"]) -> Float[Arra
 
 def _row_sums(W: Float[Array, "v k"]) -> Float[Array, "v 1"]:
     """sum_k W_ik as K elementwise adds: XLA fuses them into the consumer's pass over W, where jnp.sum would be
-    one more kernel (and on a busy 2-core machine every extra parallel kernel can wait a scheduler time slice)."""
+    one more kernel (and on a busy machine with few cores every extra parallel kernel can wait a scheduler time
+    slice)."""
     s = jnp.zeros((W.shape[0], 1), W.dtype)
     for k in range(W.shape[1]):
         s = s + W[:, k : k + 1]
@@ -275,7 +334,7 @@ def _pou_scales(W: Float[Array, "v k"]) -> tuple[Float[Array, "v 1"], Float[Arra
     """Per vertex 1 / (w0 + s) and w0 / (w0 + s) of eq. 10 (s = sum_k W_ik, w0 = max(1 - s, 0)).
 
     A separate jitted call on purpose: fused into the blend program (where it is independent of the matmul) the
-    blend ran ~2x slower on this 2-core CPU than as two programs (measured: ~36 vs ~19 ms at 655k vertices)."""
+    blend runs about twice as slow on a CPU as the two programs do."""
     w0, total = _pou_weights(W)
     r = 1.0 / total
     return r, w0 * r
@@ -325,9 +384,25 @@ def blend(
 
     Default: ``V'_i = V_i + sum_k W_ik (D_k [V_i; 1] - V_i)`` (zero motion returns the input exactly).
     ``pou=True`` (eq. 10): weights (w0 = max(1 - sum_k W_ik, 0), W_i1..W_iK) renormalised to sum to 1 per vertex,
-    ``V'_i = w0 D0 [V_i; 1] + sum_k W_ik D_k [V_i; 1]`` with ``D0`` the identity unless given.
-    Computed in the floating dtype of ``vertices`` (W and the transforms are cast to it); compiles once per
-    (V, K, dtype, pou). With ``pou`` the normalisation is a separate jitted call (faster here, see _pou_scales).
+    ``V'_i = w0 D0 [V_i; 1] + sum_k W_ik D_k [V_i; 1]``. Computed in the floating dtype of ``vertices`` (W and the
+    transforms are cast to it); compiles once per (V, K, dtype, pou). With ``pou`` the normalisation is a separate
+    jitted call (faster here, see _pou_scales).
+
+    **Arguments:**
+
+    - ``vertices``: rest positions ``(V, 3)``.
+    - ``W``: weights ``(V, K)``.
+    - ``transforms``: per-handle affine maps ``(K, 3, 4)``.
+    - ``pou``: the partition-of-unity extension (eq. 10).
+    - ``d0``: the ``(3, 4)`` transform of the rest weight w0 (default None: the identity); used only with ``pou``.
+
+    **Returns:**
+
+    The deformed positions ``(V, 3)``.
+
+    **Raises:**
+
+    ``ValueError`` for arrays of the wrong shapes.
     """
     v, W, T = _check_blend(vertices, W, transforms)
     if not pou:
@@ -361,14 +436,33 @@ def _plane_arrays(plane: Plane) -> tuple[np.ndarray, float]:
 
 
 def reflect_points(plane: Plane, points) -> np.ndarray:
-    """Mirror images R_P(p) = p - 2 (n . p - offset) n of points (..., 3) across the plane."""
+    """Mirror images R_P(p) = p - 2 (n . p - offset) n of points across the plane.
+
+    **Arguments:**
+
+    - ``plane``: the plane.
+    - ``points``: ``(..., 3)``.
+
+    **Returns:**
+
+    The mirror images, same shape (float64).
+    """
     n, d = _plane_arrays(plane)
     p = np.asarray(points, dtype=np.float64)
     return p - 2.0 * (p @ n - d)[..., None] * n
 
 
 def reflection_matrix(plane: Plane) -> np.ndarray:
-    """The affine reflection S (4 x 4, homogeneous) across the plane; S S = I."""
+    """The affine reflection S across the plane; S S = I.
+
+    **Arguments:**
+
+    - ``plane``: the plane.
+
+    **Returns:**
+
+    S, ``(4, 4)`` homogeneous.
+    """
     n, d = _plane_arrays(plane)
     S = np.eye(4)
     S[:3, :3] -= 2.0 * np.outer(n, n)
@@ -377,7 +471,17 @@ def reflection_matrix(plane: Plane) -> np.ndarray:
 
 
 def reflect_transform(plane: Plane, D) -> np.ndarray:
-    """R_P(D) = S D S (3 x 4): the transform D seen in the mirror (eq. 9)."""
+    """R_P(D) = S D S: the transform D seen in the mirror (eq. 9).
+
+    **Arguments:**
+
+    - ``plane``: the plane.
+    - ``D``: a ``(3, 4)`` affine map.
+
+    **Returns:**
+
+    The mirrored ``(3, 4)`` map.
+    """
     D = np.asarray(D, dtype=np.float64)
     if D.shape != (3, 4):
         raise ValueError(f"D must be a (3, 4) affine transform, got shape {D.shape}.")
@@ -391,7 +495,17 @@ def _canonical_sign(n: np.ndarray) -> np.ndarray:
 
 
 def candidate_planes(vertices, *, pca: bool = True) -> list[Plane]:
-    """Unscored candidate planes through the vertex centroid: normals x, y, z, then new principal axes."""
+    """Unscored candidate planes through the vertex centroid: normals x, y, z, then new principal axes.
+
+    **Arguments:**
+
+    - ``vertices``: ``(V, 3)``.
+    - ``pca``: add the principal axes not already among x, y, z (needs at least 3 vertices).
+
+    **Returns:**
+
+    The candidate planes (:class:`Plane`, unscored, each naming its ``source``).
+    """
     v = np.asarray(vertices, dtype=np.float64)
     centroid = v.mean(axis=0)
     normals = [(name, np.asarray(axis)) for name, axis in _COORD_AXES]
@@ -412,11 +526,26 @@ def detect_symmetry(
     pca: bool = True,
     max_points: int | None = SYMMETRY_MAX_POINTS,
 ) -> list[Plane]:
-    """Semantic symmetry planes (eq. 9), every candidate scored, best (lowest score) first.
+    """Semantic symmetry planes (eq. 9), every candidate scored.
 
-    ``field_fn(points (P, 3)) -> features (P, C)`` (unit-norm, e.g. the distilled field). Candidates: see
-    :func:`candidate_planes`. Score: mean over vertices of ||Phi(v) - Phi(R_P v)||_2; ``symmetric`` when < eps.
-    The mean is estimated on a random subset (seed 0) of at most ``max_points`` vertices (None: all).
+    Candidates: see :func:`candidate_planes`. Score: mean over vertices of ||Phi(v) - Phi(R_P v)||_2;
+    ``symmetric`` when < eps. The mean is estimated on a random subset (seed 0) of at most ``max_points`` vertices.
+
+    **Arguments:**
+
+    - ``field_fn``: ``field_fn(points (P, 3)) -> features (P, C)`` (unit-norm, e.g. the distilled field).
+    - ``vertices``: the mesh's vertices ``(V, 3)``.
+    - ``eps``: the score below which a plane is symmetric.
+    - ``pca``: also try the principal planes (:func:`candidate_planes`).
+    - ``max_points``: the most vertices scored (None: all).
+
+    **Returns:**
+
+    The candidate planes (:class:`Plane`, each with its score and ``symmetric`` flag), best (lowest score) first.
+
+    **Raises:**
+
+    ``ValueError`` if ``vertices`` is not a non-empty ``(V, 3)`` array.
     """
     v = np.asarray(vertices, dtype=np.float64)
     if v.ndim != 2 or v.shape[1] != 3 or v.shape[0] == 0:
@@ -508,6 +637,23 @@ def symmetric_blend(
     """Symmetry-preserving blending (eq. 9): handles on the vertex's side of the plane apply D_k, the others S D_k S.
 
     Same displacement form (exact for zero motion), dtype rules and ``pou`` option (D0 = identity) as :func:`blend`.
+
+    **Arguments:**
+
+    - ``vertices``: rest positions ``(V, 3)``.
+    - ``W``: weights ``(V, K)``.
+    - ``transforms``: per-handle affine maps ``(K, 3, 4)``.
+    - ``handle_positions``: the handles' positions ``(K, 3)`` (which side of the plane each lies on).
+    - ``plane``: the symmetry plane.
+    - ``pou``: the partition-of-unity extension (eq. 10).
+
+    **Returns:**
+
+    The deformed positions ``(V, 3)``.
+
+    **Raises:**
+
+    ``ValueError`` for arrays of the wrong shapes.
     """
     v, W, T = _check_blend(vertices, W, transforms)
     hp = jnp.asarray(handle_positions).astype(v.dtype)
@@ -524,9 +670,18 @@ def symmetric_blend(
 
 
 def make_transform(centre, translate=(0.0, 0.0, 0.0), axis=None, degrees: float = 0.0) -> np.ndarray:
-    """The (3, 4) affine map x -> R (x - centre) + centre + translate, R the rotation by ``degrees`` about ``axis``.
+    """The affine map x -> R (x - centre) + centre + translate, R the rotation by ``degrees`` about ``axis``.
 
-    ``axis=None`` or ``degrees=0`` gives R = I exactly (a pure translation).
+    **Arguments:**
+
+    - ``centre``: the rotation centre ``(3,)``.
+    - ``translate``: the translation ``(3,)``.
+    - ``axis``: the rotation axis ``(3,)`` (default None: no rotation).
+    - ``degrees``: the rotation angle.
+
+    **Returns:**
+
+    The ``(3, 4)`` float64 map; ``axis=None`` or ``degrees=0`` gives R = I exactly (a pure translation).
     """
     c = np.asarray(centre, dtype=np.float64).reshape(3)
     t = np.asarray(translate, dtype=np.float64).reshape(3)
@@ -628,17 +783,49 @@ class Deformer:
         return W, h.size
 
     def weights(self, handles, *, anchors=(), locality: float = 0.0) -> np.ndarray:
-        """DFD weights (V, K) of the handles, with optional anchors (eq. 7) and locality exponent (eq. 8)."""
+        """DFD weights of the handles, with optional anchors (eq. 7) and locality exponent (eq. 8).
+
+        **Arguments:**
+
+        - ``handles``: the handle vertices ``(K,)``.
+        - ``anchors``: the anchor vertices.
+        - ``locality``: the locality exponent lam (0: no locality weighting).
+
+        **Returns:**
+
+        The weights ``(V, K)``.
+
+        **Raises:**
+
+        ``ValueError`` for invalid vertex indices or a negative locality exponent.
+        """
         W, k = self._padded_weights(handles, anchors, locality)
         return np.array(W[:, :k])
 
     def deform(
         self, handles, transforms, *, anchors=(), locality: float = 0.0, symmetric: bool = False, pou: bool = False
     ) -> np.ndarray:
-        """Deformed vertices (V, 3) for one (3, 4) affine transform per handle (eq. 1, 9 or 10).
+        """Deformed vertices for one affine transform per handle (eq. 1, 9 or 10).
 
         The weights of the last request are reused (pou: their normalised eq.-10 form too), so a new frame of the
         same handles costs one blend: a (V, K) x (K, 12) matmul and one elementwise pass.
+
+        **Arguments:**
+
+        - ``handles``: the handle vertices ``(K,)``.
+        - ``transforms``: one ``(3, 4)`` affine map per handle, ``(K, 3, 4)``.
+        - ``anchors``, ``locality``: as :meth:`weights`.
+        - ``symmetric``: symmetry-preserving blending (eq. 9) about the detected plane.
+        - ``pou``: the partition-of-unity extension (eq. 10).
+
+        **Returns:**
+
+        The deformed vertices ``(V, 3)``.
+
+        **Raises:**
+
+        ``ValueError`` for transforms of another shape; ``NoSymmetryError`` for ``symmetric`` when no symmetry plane was
+        detected (or no feature field was given).
         """
         W, k = self._padded_weights(handles, anchors, locality)
         T = np.asarray(transforms, dtype=self.dtype)

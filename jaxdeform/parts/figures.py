@@ -39,7 +39,17 @@ def _vertices(vertices, name: str = "vertices") -> np.ndarray:
 
 
 def label_colors(labels, n_vertices: int) -> np.ndarray:
-    """Per-vertex RGB ``(V, 3)`` for integer part labels ``(V,)`` (negative = unassigned, grey)."""
+    """Per-vertex colours for integer part labels.
+
+    **Arguments:**
+
+    - ``labels``: ``(V,)`` part per vertex (negative = unassigned, grey).
+    - ``n_vertices``: V.
+
+    **Returns:**
+
+    RGB ``(V, 3)``.
+    """
     lab = np.asarray(labels)
     if lab.ndim != 1 or lab.shape[0] != n_vertices:
         raise ValueError(f"labels must have shape ({n_vertices},) (one per vertex), got {lab.shape}.")
@@ -71,9 +81,23 @@ def segmentation_figure(
 ) -> np.ndarray:
     """One PNG with the mesh seen from each of ``views`` side by side, parts in categorical colours.
 
-    ``labels`` (V,) integer part per vertex; each pixel takes the colour of the hit triangle's vertex of
-    largest barycentric weight (no blending across parts). ``width`` x ``height`` is the size of *one*
-    view; the image is ``len(views) * width`` (plus 4-pixel gaps) wide. Returns the image.
+    Each pixel takes the colour of the hit triangle's vertex of largest barycentric weight (no blending across
+    parts).
+
+    **Arguments:**
+
+    - ``vertices``, ``faces``: the mesh.
+    - ``labels``: ``(V,)`` integer part per vertex.
+    - ``path``: the PNG to write.
+    - ``views``: the named views.
+    - ``width``, ``height``: the size of *one* view.
+    - ``up_axis``: the world's up axis.
+    - ``captions``: caption each view with its name.
+    - ``shading``: shade the colours.
+
+    **Returns:**
+
+    The image, ``len(views) * width`` (plus 4-pixel gaps) wide.
     """
     v = _vertices(vertices)
     colours = label_colors(labels, v.shape[0])
@@ -115,10 +139,24 @@ def error_figure(
     vmax: float | None = None,
     up_axis: str = "y",
 ) -> np.ndarray:
-    """A heat map of a per-vertex ``error`` (V,) with a colour bar titled ``label``, written to ``path``.
+    """A heat map of a per-vertex error with a colour bar, written to ``path``.
 
-    The colour range is [``vmin``, ``vmax``]; by default [0, max error] for non-negative errors (the data's
-    own range otherwise); pass the same ``vmax`` to several figures to compare them. Returns the image.
+    **Arguments:**
+
+    - ``vertices``, ``faces``: the mesh.
+    - ``error``: ``(V,)`` per-vertex error.
+    - ``path``: the PNG to write.
+    - ``label``: the colour bar's title.
+    - ``view``: the named view.
+    - ``width``, ``height``: the image size.
+    - ``cmap``: the colour map.
+    - ``vmin``, ``vmax``: the colour range; by default [0, max error] for non-negative errors (the data's own range
+        otherwise); pass the same ``vmax`` to several figures to compare them.
+    - ``up_axis``: the world's up axis.
+
+    **Returns:**
+
+    The image.
     """
     v = _vertices(vertices)
     e = np.asarray(error, dtype=np.float64)
@@ -159,11 +197,24 @@ def strip_figure(
     up_axis: str = "y",
     captions: bool = True,
 ) -> np.ndarray:
-    """Frames ``(T, V, 3)`` side by side in one PNG, all seen by one camera fitted to every frame.
+    """Frames side by side in one PNG, all seen by one camera fitted to every frame.
 
-    With ``labels`` (V,) the vertices are coloured by part (the same colours in every frame), otherwise the
-    mesh is drawn plain. ``width`` x ``height`` is one frame's panel; ``step`` > 1 keeps every step-th frame
-    (captions give the frame index). Returns the image.
+    **Arguments:**
+
+    - ``frames``: ``(T, V, 3)``.
+    - ``faces``: triangles ``(F, 3)``.
+    - ``path``: the PNG to write.
+    - ``labels``: ``(V,)`` parts; the vertices are then coloured by part (the same colours in every frame),
+        otherwise the mesh is drawn plain.
+    - ``view``: the named view.
+    - ``width``, ``height``: one frame's panel.
+    - ``step``: > 1 keeps every step-th frame.
+    - ``up_axis``: the world's up axis.
+    - ``captions``: caption each panel with its frame index.
+
+    **Returns:**
+
+    The image.
     """
     x = np.asarray(frames, dtype=np.float64)
     if x.ndim == 2:

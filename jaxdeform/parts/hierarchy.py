@@ -40,7 +40,7 @@ from jaxdeform.parts.mfa import MFA
 THRESHOLD = 2.5e-5
 MAX_SPLIT = 6
 #: A candidate split whose AECM has not converged after this many iterations is rejected (its analyzers
-#: compete for one motion; horse-poses: one 5-way split ran to 100 iterations without settling).
+#: compete for one motion and can run for a hundred iterations without settling).
 REFINE_MAX_ITER = 20
 MIN_PART_VERTICES = 20
 INITIAL_PARTS = 8
@@ -67,6 +67,22 @@ class PartsFit:
 
 
 def check_shapes(vertices, faces) -> tuple[np.ndarray, np.ndarray]:
+    """Shapes and faces of a parts fit, checked.
+
+    **Arguments:**
+
+    - ``vertices``: shapes ``(M, V, 3)``, ``M >= 2``.
+    - ``faces``: triangles ``(F, 3)`` over the ``V`` vertices.
+
+    **Returns:**
+
+    ``(vertices, faces)``: the shapes as float64 and the validated faces.
+
+    **Raises:**
+
+    ``ValueError`` if ``vertices`` is not ``(M, V, 3)`` or ``M < 2``; ``DegenerateMeshError`` if a coordinate is NaN or
+    infinite; the errors of :func:`~jaxdeform.mesh.topology.validate_faces` for bad faces.
+    """
     vertices = np.asarray(vertices, dtype=np.float64)
     faces = np.asarray(faces)
     if vertices.ndim != 3 or vertices.shape[-1] != 3:
@@ -80,7 +96,20 @@ def check_shapes(vertices, faces) -> tuple[np.ndarray, np.ndarray]:
 
 
 def normalize(vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
-    """(y (V, M, 3) in the unit box, offset (3,), scale): data = y * scale + offset."""
+    """Shapes in the unit box, as the fit works on them.
+
+    **Arguments:**
+
+    - ``vertices``: shapes ``(M, V, 3)``.
+
+    **Returns:**
+
+    ``(y (V, M, 3) in the unit box, offset (3,), scale)``: data = y * scale + offset.
+
+    **Raises:**
+
+    ``DegenerateMeshError`` if all shapes collapse to a single point.
+    """
     lo = vertices.min(axis=(0, 1))
     scale = float((vertices.max(axis=(0, 1)) - lo).max())
     if scale <= 0:
@@ -89,14 +118,34 @@ def normalize(vertices: np.ndarray) -> tuple[np.ndarray, np.ndarray, float]:
 
 
 def to_data_units(p: MFA, offset: np.ndarray, scale: float) -> MFA:
-    """Parameters of the same mixture for data = y * scale + offset."""
+    """Parameters of the same mixture for data = y * scale + offset.
+
+    **Arguments:**
+
+    - ``p``: parameters fitted to normalised shapes.
+    - ``offset``, ``scale``: :func:`normalize`'s.
+
+    **Returns:**
+
+    The :class:`MFA` in data units.
+    """
     return MFA(
         log_pi=p.log_pi, mu=p.mu * scale + jnp.asarray(offset), rot=p.rot, d=p.d * scale, sigma2=p.sigma2 * scale**2
     )
 
 
 def components_of_labels(labels: np.ndarray, edges: np.ndarray) -> np.ndarray:
-    """Connected-component id (V,) of every vertex in the graph of edges whose ends share a label."""
+    """Connected-component id of every vertex in the graph of edges whose ends share a label.
+
+    **Arguments:**
+
+    - ``labels``: ``(V,)``.
+    - ``edges``: the mesh's edges ``(E, 2)``.
+
+    **Returns:**
+
+    ``(V,)`` component ids.
+    """
     n = labels.shape[0]
     same = labels[edges[:, 0]] == labels[edges[:, 1]]
     e = edges[same]
@@ -105,8 +154,20 @@ def components_of_labels(labels: np.ndarray, edges: np.ndarray) -> np.ndarray:
 
 
 def split_regions(labels: np.ndarray, edges: np.ndarray, min_size: int) -> np.ndarray:
-    """Relabel so that every part is one connected region; islands smaller than ``min_size`` join the
-    neighbouring region they share most edges with. Labels are renumbered 0..K-1."""
+    """Relabel so that every part is one connected region.
+
+    Islands smaller than ``min_size`` join the neighbouring region they share most edges with.
+
+    **Arguments:**
+
+    - ``labels``: ``(V,)``.
+    - ``edges``: the mesh's edges ``(E, 2)``.
+    - ``min_size``: the fewest vertices of a region that stays on its own.
+
+    **Returns:**
+
+    Labels ``(V,)`` renumbered 0..K-1.
+    """
     labels = labels.copy()
     for _ in range(10):  # merging can create new small regions only rarely; a few passes settle it
         comp = components_of_labels(labels, edges)
@@ -134,7 +195,19 @@ def split_regions(labels: np.ndarray, edges: np.ndarray, min_size: int) -> np.nd
 
 
 def average_variance(y, p: MFA, labels: np.ndarray, mask: np.ndarray | None = None) -> float:
-    """Mean over (masked) vertices and shapes of |y_im - (R_k^m z_i + t_k^m)|^2 with k = labels[i]."""
+    """Mean over (masked) vertices and shapes of |y_im - (R_k^m z_i + t_k^m)|^2 with k = labels[i].
+
+    **Arguments:**
+
+    - ``y``: normalised shapes ``(V, M, 3)``.
+    - ``p``: the mixture's parameters.
+    - ``labels``: ``(V,)`` parts.
+    - ``mask``: ``(V,)`` bool, the vertices to average over (default None: all).
+
+    **Returns:**
+
+    The mean as a float.
+    """
     lab = jnp.asarray(labels)
     rec = mfa.reconstruct(p, lab, mfa.latent_images(y, p, lab))  # (M, V, 3)
     err = np.sum((np.asarray(rec) - np.asarray(y).transpose(1, 0, 2)) ** 2, axis=-1)  # (M, V)
@@ -142,7 +215,21 @@ def average_variance(y, p: MFA, labels: np.ndarray, mask: np.ndarray | None = No
 
 
 def fit_from_labels(y, labels: np.ndarray, k: int, w=None, max_iter: int = mfa.MAX_ITER):
-    """AECM started from hard ``labels`` (V,) in [-1, k) (-1: outside the fit); returns (params, history, iters)."""
+    """AECM started from hard labels.
+
+    **Arguments:**
+
+    - ``y``: normalised shapes ``(V, M, 3)``.
+    - ``labels``: ``(V,)`` in [-1, k) (-1: outside the fit).
+    - ``k``: the number of parts.
+    - ``w``: per-vertex weights ``(V,)`` (default None: ones).
+    - ``max_iter``: the AECM's iteration cap.
+
+    **Returns:**
+
+    ``(params, history, iters)``: the fitted :class:`MFA`, the log-likelihood per iteration and the number of
+    iterations.
+    """
     w = jnp.ones(y.shape[0], y.dtype) if w is None else jnp.asarray(w, y.dtype)
     p0 = mfa.init_from_weights(y, jnp.asarray(mfa.one_hot(labels, k)))
     p, hist, it = mfa.aecm(y, w, p0, max_iter=max_iter)
@@ -205,7 +292,15 @@ def fit(
     seed: int = 0,
     log: Callable[[str], None] = lambda s: None,
 ) -> PartsFit:
-    """Fit the hierarchy of Algorithm 1 to shapes (M, V, 3) sharing ``faces``; see the module docstring."""
+    """Fit the hierarchy of Algorithm 1 to shapes sharing ``faces``; see the module docstring.
+
+    **Arguments:** ``vertices`` ``(M, V, 3)``, ``M >= 2``; ``faces`` ``(F, 3)``; ``initial_parts`` (>= 1),
+    ``threshold``, ``max_split``, ``min_part_vertices``, ``seed``: Algorithm 1's parameters; ``log``: one line a stage.
+
+    **Returns:** a :class:`PartsFit` in data units; parts that lost all their vertices are dropped (relabelled).
+
+    **Raises:** ``ValueError`` (``initial_parts < 1``, :func:`check_shapes`); ``DegenerateMeshError``.
+    """
     t0 = time.perf_counter()
     vertices, faces = check_shapes(vertices, faces)
     if initial_parts < 1:
@@ -268,11 +363,31 @@ def fit(
 
 
 def rmse(vertices: np.ndarray, reconstruction: np.ndarray) -> float:
-    """Root mean square per-vertex distance over all shapes and vertices (data units)."""
+    """Root mean square per-vertex distance over all shapes and vertices (data units).
+
+    **Arguments:**
+
+    - ``vertices``: shapes ``(M, V, 3)``.
+    - ``reconstruction``: their reconstruction ``(M, V, 3)``.
+
+    **Returns:**
+
+    The RMS distance as a float.
+    """
     return float(np.sqrt(np.mean(np.sum((np.asarray(vertices) - np.asarray(reconstruction)) ** 2, axis=-1))))
 
 
 def bbox_diagonal(vertices: np.ndarray) -> float:
+    """The bounding-box diagonal of the first shape.
+
+    **Arguments:**
+
+    - ``vertices``: shapes ``(M, V, 3)``.
+
+    **Returns:**
+
+    Its length as a float.
+    """
     v = np.asarray(vertices)[0]
     return float(np.linalg.norm(v.max(axis=0) - v.min(axis=0)))
 
@@ -281,6 +396,19 @@ def bbox_diagonal(vertices: np.ndarray) -> float:
 
 
 def summary(fit_: PartsFit, vertices: np.ndarray) -> dict:
+    """The summary record of a fit.
+
+    **Arguments:**
+
+    - ``fit_``: the fit.
+    - ``vertices``: the shapes it was fitted to ``(M, V, 3)``.
+
+    **Returns:**
+
+    A dict: parts, iterations and parts per stage, rmse (also over the first shape's bounding-box diagonal),
+    seconds, shapes, vertices, disconnected parts, the range of the rotations' determinants, and whether every
+    stage's log-likelihood is monotone.
+    """
     err = rmse(vertices, fit_.reconstruction)
     dets = np.linalg.det(np.asarray(fit_.params.rot))
     return {
@@ -301,9 +429,20 @@ def summary(fit_: PartsFit, vertices: np.ndarray) -> dict:
 
 
 def save_run(path, fit_: PartsFit, vertices: np.ndarray, faces: np.ndarray, extra: dict | None = None) -> dict:
-    """Write RUN/model.npz (parameters, labels, latent, shapes, faces) and RUN/summary.json; returns the summary.
+    """Write RUN/model.npz (parameters, labels, latent, shapes, faces) and RUN/summary.json.
 
     Files are written under temporary names and renamed, so an interrupted run leaves no half-written file.
+
+    **Arguments:**
+
+    - ``path``: the run folder (created if needed).
+    - ``fit_``: the fit.
+    - ``vertices``, ``faces``: the shapes ``(M, V, 3)`` and faces ``(F, 3)`` it was fitted to.
+    - ``extra``: more entries for the summary.
+
+    **Returns:**
+
+    The summary written (:func:`summary`, ``extra`` and the stages).
     """
     path = Path(path)
     path.mkdir(parents=True, exist_ok=True)
@@ -333,8 +472,20 @@ _RUN_ARRAYS = ("log_pi", "mu", "rot", "d", "sigma2", "labels", "latent", "vertic
 
 
 def load_run(path) -> tuple[PartsFit, np.ndarray, np.ndarray]:
-    """(fit, vertices (M, V, 3), faces) from a run folder written by :func:`save_run`; a damaged run gets one
-    :class:`MeshFormatError` sentence."""
+    """The fit, shapes and faces of a run folder written by :func:`save_run`.
+
+    **Arguments:**
+
+    - ``path``: the run folder.
+
+    **Returns:**
+
+    ``(fit, vertices (M, V, 3), faces)``.
+
+    **Raises:**
+
+    ``FileNotFoundError`` if model.npz is missing; a damaged run gets one :class:`MeshFormatError` sentence.
+    """
     path = Path(path)
     model = path / "model.npz"
     if not model.is_file():

@@ -48,10 +48,18 @@ SLERP_LINEAR_DOT = 1.0 - 1e-10
 
 
 def quat_from_matrix(r: np.ndarray) -> np.ndarray:
-    """Unit quaternions (w, x, y, z), w >= 0, of proper rotations ``r`` (..., 3, 3) (Shepperd's method).
+    """Unit quaternions of proper rotations (Shepperd's method).
 
     The largest of the four candidates 4w^2, 4x^2, 4y^2, 4z^2 (from the trace and the diagonal) is used as
     the pivot, so the division is always by a number >= 1 and the result is accurate for every angle.
+
+    **Arguments:**
+
+    - ``r``: proper rotations ``(..., 3, 3)``.
+
+    **Returns:**
+
+    Quaternions (w, x, y, z) ``(..., 4)``, unit, w >= 0.
     """
     r = np.asarray(r, np.float64)
     r00, r11, r22 = r[..., 0, 0], r[..., 1, 1], r[..., 2, 2]
@@ -77,7 +85,16 @@ def quat_from_matrix(r: np.ndarray) -> np.ndarray:
 
 
 def matrix_from_quat(q: np.ndarray) -> np.ndarray:
-    """Rotation matrices (..., 3, 3) of quaternions (w, x, y, z) (..., 4); ``q`` is normalised first."""
+    """Rotation matrices of quaternions.
+
+    **Arguments:**
+
+    - ``q``: quaternions (w, x, y, z) ``(..., 4)``; normalised first.
+
+    **Returns:**
+
+    ``(..., 3, 3)``.
+    """
     q = np.asarray(q, np.float64)
     q = q / np.linalg.norm(q, axis=-1, keepdims=True)
     w, x, y, z = (q[..., j] for j in range(4))
@@ -92,9 +109,17 @@ def matrix_from_quat(q: np.ndarray) -> np.ndarray:
 def slerp(q0: np.ndarray, q1: np.ndarray, t) -> np.ndarray:
     """Spherical linear interpolation of unit quaternions along the shortest arc (Lengyel 2001).
 
-    ``q0``, ``q1`` (..., 4); ``t`` scalar or array; the result has shape broadcast(t.shape + (1,), q.shape)
-    with ``t`` broadcast against the leading axes, e.g. t (T, 1) and q (K, 4) give (T, K, 4). q1 is negated
-    when q0 . q1 < 0 (q and -q are the same rotation); nearly identical quaternions use normalised lerp.
+    q1 is negated when q0 . q1 < 0 (q and -q are the same rotation); nearly identical quaternions use
+    normalised lerp.
+
+    **Arguments:**
+
+    - ``q0``, ``q1``: ``(..., 4)``.
+    - ``t``: scalar or array, broadcast against the leading axes.
+
+    **Returns:**
+
+    Shape broadcast(t.shape + (1,), q.shape), e.g. t ``(T, 1)`` and q ``(K, 4)`` give ``(T, K, 4)``.
     """
     q0 = np.asarray(q0, np.float64)
     q1 = np.asarray(q1, np.float64)
@@ -114,7 +139,16 @@ def slerp(q0: np.ndarray, q1: np.ndarray, t) -> np.ndarray:
 
 
 def rotation_angle(r: np.ndarray) -> np.ndarray:
-    """Rotation angle in [0, pi] of rotation matrices (..., 3, 3), via the quaternion (accurate near 0)."""
+    """Rotation angle of rotation matrices, via the quaternion (accurate near 0).
+
+    **Arguments:**
+
+    - ``r``: ``(..., 3, 3)``.
+
+    **Returns:**
+
+    Angles ``(...)`` in [0, pi].
+    """
     q = quat_from_matrix(r)
     return 2.0 * np.arctan2(np.linalg.norm(q[..., 1:], axis=-1), np.abs(q[..., 0]))
 
@@ -123,7 +157,17 @@ def rotation_angle(r: np.ndarray) -> np.ndarray:
 
 
 def between_faces(faces: np.ndarray, labels: np.ndarray) -> np.ndarray:
-    """Boolean mask (F,) of the "between" triangles: faces whose (assigned) vertices carry more than one label."""
+    """The "between" triangles: faces whose (assigned) vertices carry more than one label.
+
+    **Arguments:**
+
+    - ``faces``: ``(F, 3)``.
+    - ``labels``: ``(V,)`` parts (-1: unassigned).
+
+    **Returns:**
+
+    A boolean mask ``(F,)``.
+    """
     fl = np.asarray(labels)[np.asarray(faces)]  # (F, 3)
     ok = fl >= 0
     lo = np.where(ok, fl, np.iinfo(fl.dtype).max).min(axis=1)
@@ -142,7 +186,15 @@ def _face_label_pairs(faces: np.ndarray, labels: np.ndarray) -> np.ndarray:
 def part_adjacency(faces: np.ndarray, labels: np.ndarray, k: int) -> list[set[int]]:
     """Part adjacency: ``adj[a]`` is the set of parts b != a such that some triangle has vertices of a and b.
 
-    Labels -1 (unassigned vertices) are ignored. Returns a list of K sets.
+    **Arguments:**
+
+    - ``faces``: ``(F, 3)``.
+    - ``labels``: ``(V,)`` parts; -1 (unassigned vertices) is ignored.
+    - ``k``: K.
+
+    **Returns:**
+
+    A list of K sets.
     """
     adj: list[set[int]] = [set() for _ in range(k)]
     for a, b in np.unique(_face_label_pairs(faces, labels), axis=0):
@@ -155,8 +207,16 @@ def bfs_tree(adjacency: Sequence[set[int]], angles: np.ndarray) -> tuple[list[in
     """Breadth-first spanning forest of the part graph (Algorithm 2).
 
     Each connected component is rooted at its part with the smallest rotation angle ``angles[k]`` (ties: the
-    lowest index); neighbours are visited in increasing index order. Returns (visit order, parent (K,) with -1
-    for roots, roots).
+    lowest index); neighbours are visited in increasing index order.
+
+    **Arguments:**
+
+    - ``adjacency``: :func:`part_adjacency`'s K sets.
+    - ``angles``: ``(K,)`` rotation angles.
+
+    **Returns:**
+
+    ``(visit order, parent (K,) with -1 for roots, roots)``.
     """
     k = len(adjacency)
     parent = np.full(k, -1, np.int64)
@@ -195,12 +255,28 @@ def bfs_tree(adjacency: Sequence[set[int]], angles: np.ndarray) -> tuple[list[in
 def joint_points(
     vertices_m: np.ndarray, faces: np.ndarray, labels: np.ndarray, pairs: np.ndarray, *, weighting: str = "uniform"
 ) -> np.ndarray:
-    """Contact points (n, 3) of the part pairs ``pairs`` (n, 2) in one shape ``vertices_m`` (V, 3).
+    """Contact points of the part pairs ``pairs`` in one shape.
 
     The contact point of (a, b) is the mass centre of the triangles that have vertices in both a and b:
     ``weighting="uniform"`` (default) gives every triangle the same mass (plain mean of the triangle
     centroids); ``"area"`` weights each centroid by the triangle's area in this shape (falling back to the
-    plain mean where the total area is ~0). NaN for a pair that shares no triangle.
+    plain mean where the total area is ~0).
+
+    **Arguments:**
+
+    - ``vertices_m``: one shape ``(V, 3)``.
+    - ``faces``: triangles ``(F, 3)``.
+    - ``labels``: the part of every vertex ``(V,)``.
+    - ``pairs``: part pairs ``(n, 2)``.
+    - ``weighting``: ``"uniform"`` or ``"area"``.
+
+    **Returns:**
+
+    The contact points ``(n, 3)``; NaN for a pair that shares no triangle.
+
+    **Raises:**
+
+    ``ValueError`` if ``weighting`` is neither ``"uniform"`` nor ``"area"``.
     """
     if weighting not in ("uniform", "area"):
         raise ValueError(f"weighting must be 'uniform' or 'area', got {weighting!r}")
@@ -233,10 +309,22 @@ def joint_latents(
     *,
     weighting: str = "uniform",
 ) -> tuple[np.ndarray, np.ndarray]:
-    """Latent images of the joints of ``pairs`` (n, 2) = (a, b) in the given shapes.
+    """Latent images of the joints of ``pairs`` = (a, b) in the given shapes, used by eq. (23).
 
-    Returns (z_a, z_b), each (len(shapes), n, 3), with z_a^m = R_a^m^T (c^m - t_a^m), z_b^m = R_b^m^T (c^m - t_b^m)
-    and c^m the contact point of (a, b) in shape m (:func:`joint_points`), used by eq. (23).
+    **Arguments:**
+
+    - ``params``: the fitted mixture.
+    - ``labels``: the part of every vertex ``(V,)``.
+    - ``faces``: triangles ``(F, 3)``.
+    - ``vertices``: the training shapes ``(M, V, 3)``.
+    - ``pairs``: part pairs ``(n, 2)``.
+    - ``shapes``: the indices of the shapes.
+    - ``weighting``: the contact points' mass centre (:func:`joint_points`).
+
+    **Returns:**
+
+    ``(z_a, z_b)``, each ``(len(shapes), n, 3)``, with z_a^m = R_a^m^T (c^m - t_a^m), z_b^m = R_b^m^T (c^m - t_b^m)
+    and c^m the contact point of (a, b) in shape m (:func:`joint_points`).
     """
     rot, mu = np.asarray(params.rot, np.float64), np.asarray(params.mu, np.float64)
     pairs = np.asarray(pairs, np.int64).reshape(-1, 2)
@@ -283,7 +371,22 @@ def pose_path(
     *,
     weighting: str = "uniform",
 ) -> PosePath:
-    """Rotations (slerp) and translations (linear for roots, eq. (23) otherwise) of every part at every t."""
+    """Rotations (slerp) and translations (linear for roots, eq. (23) otherwise) of every part at every t.
+
+    **Arguments:**
+
+    - ``params``: the fitted mixture (:class:`~jaxdeform.parts.mfa.MFA`, data units).
+    - ``labels``: the part of every vertex ``(V,)``.
+    - ``faces``: triangles ``(F, 3)``.
+    - ``vertices``: the training shapes ``(M, V, 3)``.
+    - ``source``, ``target``: indices of the two end shapes among the training shapes.
+    - ``ts``: the interpolation parameters (0: ``source``, 1: ``target``).
+    - ``weighting``: the joint points' mass centre, ``"uniform"`` or ``"area"`` (:func:`joint_points`).
+
+    **Returns:**
+
+    A :class:`PosePath`; its rotations are exactly the end shapes' at t = 0 and t = 1.
+    """
     rot = np.asarray(params.rot, np.float64)
     mu = np.asarray(params.mu, np.float64)
     k = rot.shape[0]
@@ -332,14 +435,27 @@ def interpolate(
     *,
     weighting: str = "uniform",
 ) -> np.ndarray:
-    """Poses between training shapes ``source`` and ``target`` (Algorithm 2); returns (len(ts), V, 3).
+    """Poses between training shapes ``source`` and ``target`` (Algorithm 2).
 
-    ``labels`` (V,) parts, ``latent`` (V, 3) latent images z_i (``mfa.latent_images``), ``vertices`` (M, V, 3)
-    the training shapes, ``faces`` (F, 3). Part motions come from :func:`pose_path` (slerp, eq. (23)); vertex i
-    of part k is p_i(t) = R_k(t) (z_i + (1 - t) e_i^s + t e_i^g) + t_k(t) (eq. (24)) with the latent residuals
-    e_i^m = R_k^m^T (p_i^m - t_k^m) - z_i. At t = 0 / 1 the source / target shape is reproduced (exactly up to
-    round-off, since the joint latents are those of the end shapes). Vertices labelled -1 move linearly.
-    ``weighting`` chooses the joint points' mass centre (:func:`joint_points`).
+    Part motions come from :func:`pose_path` (slerp, eq. (23)); vertex i of part k is
+    p_i(t) = R_k(t) (z_i + (1 - t) e_i^s + t e_i^g) + t_k(t) (eq. (24)) with the latent residuals
+    e_i^m = R_k^m^T (p_i^m - t_k^m) - z_i. Vertices labelled -1 move linearly.
+
+    **Arguments:**
+
+    - ``params``: the fitted mixture (:class:`~jaxdeform.parts.mfa.MFA`, data units).
+    - ``labels``: the part of every vertex ``(V,)``.
+    - ``latent``: the latent images z_i ``(V, 3)`` (``mfa.latent_images``).
+    - ``faces``: triangles ``(F, 3)``.
+    - ``vertices``: the training shapes ``(M, V, 3)``.
+    - ``source``, ``target``: indices of the two end shapes among the training shapes.
+    - ``ts``: the interpolation parameters (0: ``source``, 1: ``target``).
+    - ``weighting``: the joint points' mass centre, ``"uniform"`` or ``"area"`` (:func:`joint_points`).
+
+    **Returns:**
+
+    The poses ``(len(ts), V, 3)``. At t = 0 / 1 the source / target shape is reproduced (exactly up to round-off,
+    since the joint latents are those of the end shapes).
     """
     rot = np.asarray(params.rot, np.float64)
     mu = np.asarray(params.mu, np.float64)
@@ -372,11 +488,26 @@ def contact_gaps(
     *,
     weighting: str = "uniform",
 ) -> np.ndarray:
-    """Contact gaps (len(ts), n_joints): |R_a(t) z_a(t) + t_a(t) - (R_b(t) z_b(t) + t_b(t))| per tree edge.
+    """Contact gaps |R_a(t) z_a(t) + t_a(t) - (R_b(t) z_b(t) + t_b(t))| per tree edge.
 
     The joints are the BFS tree edges (child a, parent b) in visit order (``pose_path(...).joints``). Eq. (23)
-    makes every gap zero up to round-off; the function reports it as a check. ``latent`` is accepted for a
-    signature parallel to :func:`interpolate` (the joints' latent images come from the end shapes).
+    makes every gap zero up to round-off; the function reports it as a check.
+
+    **Arguments:**
+
+    - ``params``: the fitted mixture (:class:`~jaxdeform.parts.mfa.MFA`, data units).
+    - ``labels``: the part of every vertex ``(V,)``.
+    - ``latent``: the latent images z_i ``(V, 3)`` (``mfa.latent_images``); accepted for a signature parallel to
+        :func:`interpolate` and unused (the joints' latent images come from the end shapes).
+    - ``faces``: triangles ``(F, 3)``.
+    - ``vertices``: the training shapes ``(M, V, 3)``.
+    - ``source``, ``target``: indices of the two end shapes among the training shapes.
+    - ``ts``: the interpolation parameters (0: ``source``, 1: ``target``).
+    - ``weighting``: the joint points' mass centre, ``"uniform"`` or ``"area"`` (:func:`joint_points`).
+
+    **Returns:**
+
+    The gaps ``(len(ts), n_joints)`` (zero columns when the parts form no joint).
     """
     del latent
     path = pose_path(params, labels, faces, vertices, source, target, ts, weighting=weighting)

@@ -65,7 +65,16 @@ class MFA:
 
 
 def proper_procrustes(a: Float[Array, "... 3 3"]) -> Float[Array, "... 3 3"]:
-    """argmax over proper rotations R of tr(R^T A) (Lemma 1: flip the last singular direction if needed)."""
+    """argmax over proper rotations R of tr(R^T A) (Lemma 1: flip the last singular direction if needed).
+
+    **Arguments:**
+
+    - ``a``: ``(..., 3, 3)``.
+
+    **Returns:**
+
+    Proper rotations ``(..., 3, 3)``.
+    """
     u, _, vt = jnp.linalg.svd(a)
     det = jnp.linalg.det(u @ vt)
     flip = jnp.where(det < 0, -1.0, 1.0).astype(a.dtype)
@@ -86,7 +95,17 @@ def _projections(y, p: MFA):
 
 
 def log_densities(y: Float[Array, "v m 3"], p: MFA) -> Float[Array, "v k"]:
-    """log N(y_i | mu_k, Sigma_k) for every vertex and part."""
+    """log N(y_i | mu_k, Sigma_k) for every vertex and part.
+
+    **Arguments:**
+
+    - ``y``: normalised shapes ``(V, M, 3)``.
+    - ``p``: the mixture's parameters.
+
+    **Returns:**
+
+    ``(V, K)``.
+    """
     m = y.shape[1]
     b, r2 = _projections(y, p)
     c = p.sigma2[:, None] + m * p.d**2  # (K, 3)
@@ -96,14 +115,35 @@ def log_densities(y: Float[Array, "v m 3"], p: MFA) -> Float[Array, "v k"]:
 
 
 def e_step(y, w, p: MFA):
-    """(responsibilities (V, K), weighted log-likelihood sum_i w_i log sum_k pi_k N_ik)."""
+    """The E-step.
+
+    **Arguments:**
+
+    - ``y``: normalised shapes ``(V, M, 3)``.
+    - ``w``: per-vertex weights ``(V,)``.
+    - ``p``: the mixture's parameters.
+
+    **Returns:**
+
+    ``(responsibilities (V, K), weighted log-likelihood sum_i w_i log sum_k pi_k N_ik)``.
+    """
     lj = p.log_pi[None] + log_densities(y, p)
     lse = jax.scipy.special.logsumexp(lj, axis=1)
     return jnp.exp(lj - lse[:, None]), jnp.sum(w * lse)
 
 
 def posterior(y, p: MFA):
-    """E[x | y_i, k] (V, K, 3) and the diagonal of Cov[x | y, k] (K, 3)."""
+    """The latent posterior of every vertex in every part.
+
+    **Arguments:**
+
+    - ``y``: normalised shapes ``(V, M, 3)``.
+    - ``p``: the mixture's parameters.
+
+    **Returns:**
+
+    ``(E[x | y_i, k] (V, K, 3), the diagonal of Cov[x | y, k] (K, 3))``.
+    """
     m = y.shape[1]
     b, _ = _projections(y, p)
     c = p.sigma2[:, None] + m * p.d**2
@@ -111,6 +151,18 @@ def posterior(y, p: MFA):
 
 
 def log_likelihood(y, w, p: MFA) -> Array:
+    """The weighted log-likelihood sum_i w_i log sum_k pi_k N_ik (:func:`e_step`'s second output).
+
+    **Arguments:**
+
+    - ``y``: normalised shapes ``(V, M, 3)``.
+    - ``w``: per-vertex weights ``(V,)``.
+    - ``p``: the mixture's parameters.
+
+    **Returns:**
+
+    A scalar array.
+    """
     return e_step(y, w, p)[1]
 
 
@@ -125,6 +177,18 @@ def _scale_floor(y, w):
 
 
 def cycle1(y, w, p: MFA) -> MFA:
+    """The AECM's first cycle: mixing weights pi and translations mu from the responsibilities.
+
+    **Arguments:**
+
+    - ``y``: normalised shapes ``(V, M, 3)``.
+    - ``w``: per-vertex weights ``(V,)``.
+    - ``p``: the mixture's parameters.
+
+    **Returns:**
+
+    ``p`` with new ``log_pi`` and ``mu``.
+    """
     tau, _ = e_step(y, w, p)
     tw = tau * w[:, None]
     n = jnp.sum(tw, axis=0) + 1e-12
@@ -134,6 +198,19 @@ def cycle1(y, w, p: MFA) -> MFA:
 
 
 def cycle2(y, w, p: MFA, floor) -> MFA:
+    """The AECM's second cycle: rotations R (Procrustes), scales d and noise sigma^2 from the latent posterior.
+
+    **Arguments:**
+
+    - ``y``: normalised shapes ``(V, M, 3)``.
+    - ``w``: per-vertex weights ``(V,)``.
+    - ``p``: the mixture's parameters.
+    - ``floor``: the data's scale floor; d and sigma^2 are kept above multiples of it.
+
+    **Returns:**
+
+    ``p`` with new ``rot``, ``d`` and ``sigma2``.
+    """
     m = y.shape[1]
     tau, _ = e_step(y, w, p)
     tw = tau * w[:, None]
@@ -169,8 +246,18 @@ MAX_ITER = 100
 def aecm(y: Float[Array, "v m 3"], w: Float[Array, " v"], p0: MFA, *, max_iter: int = MAX_ITER, tol: float = TOL):
     """Run AECM from ``p0`` until an iteration gains less than ``tol`` times |log-likelihood|.
 
-    Returns (parameters, log-likelihood history (max_iter + 1,) with NaN after the last iteration,
-    iterations run). history[0] is the log-likelihood of ``p0``.
+    **Arguments:**
+
+    - ``y``: normalised shapes ``(V, M, 3)``.
+    - ``w``: per-vertex weights ``(V,)``.
+    - ``p0``: the starting parameters.
+    - ``max_iter``: the most iterations.
+    - ``tol``: the relative gain below which the iteration stops.
+
+    **Returns:**
+
+    ``(parameters, history, iterations)``: the fitted :class:`MFA`, the log-likelihood history ``(max_iter + 1,)``
+    with NaN after the last iteration (history[0] is the log-likelihood of ``p0``), and the iterations run.
     """
     floor = _scale_floor(y, w)
     scale = jnp.sum(w) * y.shape[1]  # a floor for |L| near 0 (one nat per weighted vertex and shape)
@@ -195,11 +282,21 @@ def aecm(y: Float[Array, "v m 3"], w: Float[Array, " v"], p0: MFA, *, max_iter: 
 
 
 def init_from_weights(y: Float[Array, "v m 3"], resp: Float[Array, "v k"], procrustes_iters: int = 4) -> MFA:
-    """Parameters from (hard or soft) assignments ``resp``: per-part generalised Procrustes alignment.
+    """Parameters from (hard or soft) assignments: per-part generalised Procrustes alignment.
 
     mu_km = weighted centroid of part k in shape m; the latent cloud z starts as shape 0 and is re-estimated
     as the mean of the shapes rotated back; the latent frame is put on the principal axes of z, and D from
     the eigenvalues of z's covariance (paper eq. 18); sigma^2 from the residual.
+
+    **Arguments:**
+
+    - ``y``: normalised shapes ``(V, M, 3)``.
+    - ``resp``: assignments ``(V, K)``.
+    - ``procrustes_iters``: the alignment's iterations.
+
+    **Returns:**
+
+    The initial :class:`MFA`.
     """
     return _init_from_weights(jnp.asarray(y), jnp.asarray(resp, y.dtype), procrustes_iters)
 
@@ -242,7 +339,20 @@ def _init_from_weights(y, resp, procrustes_iters: int) -> MFA:
 
 
 def kmeans_labels(y: np.ndarray, k: int, w: np.ndarray | None = None, *, seed: int = 0, iters: int = 30) -> np.ndarray:
-    """k-means (k-means++ start, fixed seed) of the weighted vertices' trajectories; labels (V,), -1 where w = 0."""
+    """k-means (k-means++ start, fixed seed) of the weighted vertices' trajectories.
+
+    **Arguments:**
+
+    - ``y``: shapes ``(V, M, 3)`` (each vertex's trajectory is one point).
+    - ``k``: the number of clusters.
+    - ``w``: per-vertex weights ``(V,)`` (default None: all ones); vertices of weight 0 are left out.
+    - ``seed``: the seed of the k-means++ start.
+    - ``iters``: Lloyd iterations.
+
+    **Returns:**
+
+    The labels ``(V,)``, -1 where w = 0.
+    """
     x = np.asarray(y, np.float64).reshape(y.shape[0], -1)
     idx = np.flatnonzero(np.ones(len(x), bool) if w is None else np.asarray(w) > 0)
     xs = x[idx]
@@ -271,7 +381,18 @@ def kmeans_labels(y: np.ndarray, k: int, w: np.ndarray | None = None, *, seed: i
 
 
 def one_hot(labels: np.ndarray, k: int, dtype=np.float64) -> np.ndarray:
-    """(V, K) one-hot matrix of labels in [0, K) (rows of -1 are all zero)."""
+    """One-hot matrix of labels.
+
+    **Arguments:**
+
+    - ``labels``: ``(V,)`` in [0, K), or -1.
+    - ``k``: K.
+    - ``dtype``: the dtype of the result.
+
+    **Returns:**
+
+    ``(V, K)``; rows of -1 are all zero.
+    """
     labels = np.asarray(labels)
     oh = np.zeros((labels.shape[0], k), dtype)
     ok = labels >= 0
@@ -283,14 +404,35 @@ def one_hot(labels: np.ndarray, k: int, dtype=np.float64) -> np.ndarray:
 
 
 def labels_of(y, p: MFA) -> np.ndarray:
-    """Maximum-responsibility part of every vertex (eq. 20)."""
+    """Maximum-responsibility part of every vertex (eq. 20).
+
+    **Arguments:**
+
+    - ``y``: shapes ``(V, M, 3)``.
+    - ``p``: the mixture's parameters.
+
+    **Returns:**
+
+    The labels ``(V,)`` in [0, K).
+    """
     tau, _ = jax.jit(e_step)(y, jnp.ones(y.shape[0], y.dtype), p)
     return np.asarray(jnp.argmax(tau, axis=1))
 
 
 @jax.jit
 def latent_images(y, p: MFA, labels) -> Float[Array, "v 3"]:
-    """Latent image z_i = D_k E[x | y_i, k] of every vertex in its part k = labels[i] (eq. 21)."""
+    """Latent image z_i = D_k E[x | y_i, k] of every vertex in its part k = labels[i] (eq. 21).
+
+    **Arguments:**
+
+    - ``y``: shapes ``(V, M, 3)``.
+    - ``p``: the mixture's parameters.
+    - ``labels``: the part of every vertex ``(V,)``.
+
+    **Returns:**
+
+    The latent images ``(V, 3)``.
+    """
     ex, _ = posterior(y, p)
     z = p.d[None] * ex  # (V, K, 3)
     return jnp.take_along_axis(z, labels[:, None, None], axis=1)[:, 0]
@@ -298,6 +440,17 @@ def latent_images(y, p: MFA, labels) -> Float[Array, "v 3"]:
 
 @jax.jit
 def reconstruct(p: MFA, labels, z) -> Float[Array, "m v 3"]:
-    """Shape m, vertex i: R_k^m z_i + t_k^m with k = labels[i] (eq. 22); returns (M, V, 3)."""
+    """Shape m, vertex i: R_k^m z_i + t_k^m with k = labels[i] (eq. 22).
+
+    **Arguments:**
+
+    - ``p``: the mixture's parameters.
+    - ``labels``: the part of every vertex ``(V,)``.
+    - ``z``: the latent images ``(V, 3)``.
+
+    **Returns:**
+
+    The reconstructed shapes ``(M, V, 3)``.
+    """
     rot = p.rot[labels]  # (V, M, 3, 3)
     return jnp.einsum("vmxy,vy->mvx", rot, z) + jnp.swapaxes(p.mu[labels], 0, 1)
