@@ -27,7 +27,7 @@ def test_import_changes_no_jax_setting_and_float32_decodes_to_float32():
         feats = a.encode(v.astype(np.float32))
         assert feats.dtype == np.float32, feats.dtype
         for refine in (0, 1, 2):
-            p = a.decode(feats, refine=refine)
+            p = a.decode(feats, refine=refine).block_until_ready()  # no solve left running at exit
             assert p.dtype == np.float32, (refine, p.dtype)
         print("OK")
     """.replace("import jax\n", "import os, jax\n", 1),
