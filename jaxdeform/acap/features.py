@@ -195,13 +195,17 @@ def _finite_or_raise(x: Array, error: Exception) -> Array:
     return x
 
 
-def _host_float(host: np.ndarray, default):
-    """The JAX dtype of a NumPy input: its own float type (float64 only where x64 is enabled), else ``default``."""
-    return jax.dtypes.canonicalize_dtype(host.dtype if host.dtype in (np.float32, np.float64) else default)
-
-
-def _float_dtype(x, default):
-    return x.dtype if jnp.issubdtype(x.dtype, jnp.floating) else default
+def _float_array(x, default) -> Array:
+    """``x`` as a floating JAX array. JAX arrays and traced values keep their device and their float dtype
+    (others become ``default``); anything else goes through NumPy: float32/float64 kept (float64 only where x64
+    is enabled), other types ``default``."""
+    if isinstance(x, jax.Array) or is_traced(x):  # a JAX array, or e.g. a list of tracers
+        x = jnp.asarray(x)
+        return x.astype(x.dtype if jnp.issubdtype(x.dtype, jnp.floating) else default)
+    host = np.asarray(x)
+    return jnp.asarray(
+        host, dtype=jax.dtypes.canonicalize_dtype(host.dtype if host.dtype in (np.float32, np.float64) else default)
+    )
 
 
 class _HostCache:
@@ -251,18 +255,11 @@ class Acap(eqx.Module):
 
     def _vertices(self, vertices):
         """Vertices as a float array (..., V, 3), checked (host checks when concrete, error_if when traced)."""
-        if is_traced(vertices):
-            x = jnp.asarray(vertices)
-            if x.ndim < 2 or x.shape[-1] != 3 or x.shape[-2] != self.topo.n_vertices:
-                raise ConnectivityError(f"vertices must be (..., {self.topo.n_vertices}, 3), got {x.shape}.")
-            x = x.astype(_float_dtype(x, self.frame.dtype))
-            return eqx.error_if(x, ~jnp.all(jnp.isfinite(x)), "a vertex coordinate is NaN or infinite.")
-        if isinstance(vertices, jax.Array):  # stays on its device: only the check's result is read
-            x = vertices.astype(_float_dtype(vertices, self.frame.dtype))
-        else:
-            host = np.asarray(vertices)
-            x = jnp.asarray(host, dtype=_host_float(host, self.frame.dtype))
-        _check_shape(x.shape, self.topo.n_vertices)
+        x = _float_array(vertices, self.frame.dtype)
+        if not is_traced(vertices):
+            _check_shape(x.shape, self.topo.n_vertices)
+        elif x.ndim < 2 or x.shape[-1] != 3 or x.shape[-2] != self.topo.n_vertices:
+            raise ConnectivityError(f"vertices must be (..., {self.topo.n_vertices}, 3), got {x.shape}.")
         return _finite_or_raise(x, DegenerateMeshError("a vertex coordinate is NaN or infinite."))
 
     def local(self, vertices) -> tuple[Array, Array]:
@@ -403,15 +400,8 @@ class Acap(eqx.Module):
         return jnp.sum(diff**2, axis=(0, 1)).reshape(lead)
 
     def _features(self, features):
-        if is_traced(features):
-            f = jnp.asarray(features)
-            f = f.astype(_float_dtype(f, self.frame.dtype))
-        else:
-            if isinstance(features, jax.Array):  # stays on its device: only the check's result is read
-                f = features.astype(_float_dtype(features, self.frame.dtype))
-            else:
-                host = np.asarray(features)
-                f = jnp.asarray(host, dtype=_host_float(host, self.frame.dtype))
+        f = _float_array(features, self.frame.dtype)
+        if not is_traced(features):
             if f.ndim < 2 or f.shape[-1] != 9:
                 raise ValueError(f"features must be (..., V, 9), got {f.shape}.")
             f = _finite_or_raise(f, ValueError("a feature is NaN or infinite."))
