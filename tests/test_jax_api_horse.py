@@ -91,3 +91,21 @@ def test_solvers_agree_on_horse():
         assert not bool(info.converged) and int(info.steps) == 5
         print("OK")
     """)
+
+
+def test_exit_with_decodes_still_running():
+    """A script that ends right after dispatching decodes (results never read) exits cleanly: the host factors are
+    released only after the computations that solve with them have finished (this aborted at every exit before)."""
+    run_script(
+        f"""
+        import numpy as np
+        from jaxdeform import acap
+        from jaxdeform.mesh import load_sequence
+        verts, faces = load_sequence({str(data_dir("horse-gallop"))!r})
+        a = acap.prepare(verts[0], faces)
+        feats = a.encode(verts[:8].astype(np.float32))
+        for refine in (0, 1, 2):
+            p = a.decode(feats, refine=refine)
+        print("OK")
+        """
+    )

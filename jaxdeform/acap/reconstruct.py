@@ -71,8 +71,13 @@ _RELEASED = threading.Event()
 
 @atexit.register
 def _release_factors() -> None:
-    """Free the host factors before interpreter teardown (nanobind objects must die first). A solve still
-    in flight afterwards (an unread result of asynchronous dispatch) gets NaN instead of a crash."""
+    """Free the host factors before interpreter teardown (nanobind objects must die first), after the
+    computations still running (unread results of asynchronous dispatch, whose host solves need the factors)
+    have finished. A solve that still comes afterwards gets NaN instead of a crash."""
+    try:
+        jax.block_until_ready(jax.live_arrays())
+    except Exception:  # noqa: BLE001  (teardown: a failed computation has nobody left to report to)
+        pass
     _RELEASED.set()
     _FACTORS.clear()
 
