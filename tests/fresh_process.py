@@ -14,19 +14,21 @@ ROOT = Path(__file__).resolve().parents[1]
 
 
 def run_script(
-    code: str, *, x64: bool = True, timeout: int = 900, env_extra: dict | None = None, checked: bool = True
+    code: str, *, x64: bool = True, timeout: int = 900, env_extra: dict | None = None, devices: int = 1
 ) -> str:
-    """Run ``code`` in a fresh interpreter (x64 as asked, nothing else of the tests' settings changed but the
-    annotation checks of conftest.py's ``JAXTYPING_ENV`` when ``checked``); the script must exit 0 and print
-    ``OK`` last. Scripts on several forced host devices run unchecked: with the checks around the host solver's
-    callbacks, entered from several device threads at once, such scripts hung now and then (2 of 4 runs)."""
+    """Run ``code`` in a fresh interpreter (x64 as asked, ``devices`` forced host devices, nothing else of the
+    tests' settings changed but the annotation checks of conftest.py's ``JAXTYPING_ENV``); the script must exit 0
+    and print ``OK`` last; returns its stdout. Scripts on several devices run unchecked: with the checks around
+    the host solver's callbacks, entered from several device threads at once, such scripts hung now and then."""
     env = dict(os.environ)
     env.pop("JAX_ENABLE_X64", None)
     if x64:
         env["JAX_ENABLE_X64"] = "1"
+    if devices > 1:
+        env["XLA_FLAGS"] = f"--xla_force_host_platform_device_count={devices}"
     env.update(env_extra or {})
     code = textwrap.dedent(code)
-    hook = os.environ.get(JAXTYPING_ENV) if checked else None
+    hook = os.environ.get(JAXTYPING_ENV) if devices == 1 else None
     if hook:  # the script's imports are checked as the tests' own (jaxtyping's import hook, beartype)
         *packages, checker = hook.split(",")
         code = f"import jaxtyping\njaxtyping.install_import_hook({packages!r}, {checker!r})\n" + code

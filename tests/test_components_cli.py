@@ -210,26 +210,21 @@ def test_bad_names_and_mismatched_data(seq_dir, tmp_path, capsys):
     assert "same data" in line
 
 
-def test_edit_bad_controls(seq_dir, tmp_path, capsys):
-    out = tmp_path / "run"
+def _train_pca_xyz(seq_dir, out, capsys):
+    """A quick pca-xyz run (test config) in ``out``; its output is read off."""
     assert (
         main(
-            [
-                "components",
-                "train",
-                str(seq_dir),
-                "--out",
-                str(out),
-                "--method",
-                "pca-xyz",
-                "--config",
-                "test",
-                "--quiet",
-            ]
+            ["components", "train", str(seq_dir), "--out", str(out), "--method", "pca-xyz"]
+            + ["--config", "test", "--quiet"]
         )
         == 0
     )
     capsys.readouterr()
+    return out
+
+
+def test_edit_bad_controls(seq_dir, tmp_path, capsys):
+    out = _train_pca_xyz(seq_dir, tmp_path / "run", capsys)
     (tmp_path / "bad.json").write_text(json.dumps({"indices": [0, 9999], "targets": [[0, 0, 0], [1, 1, 1]]}))
     _one_line_error(
         capsys,
@@ -331,25 +326,7 @@ def test_train_refuses_degenerate_meshes(tmp_path, capsys):
 
 
 def test_unreadable_run_records(seq_dir, tmp_path, capsys):
-    out = tmp_path / "run"
-    assert (
-        main(
-            [
-                "components",
-                "train",
-                str(seq_dir),
-                "--out",
-                str(out),
-                "--method",
-                "pca-xyz",
-                "--config",
-                "test",
-                "--quiet",
-            ]
-        )
-        == 0
-    )
-    capsys.readouterr()
+    out = _train_pca_xyz(seq_dir, tmp_path / "run", capsys)
     for text, expected in (
         ("", "not a readable run record"),
         ('{"data": "x"}', "lacks method"),

@@ -42,8 +42,7 @@ SHARDED_ACAP = """
 def test_sharded_encode_decode_equal_one_device():
     run_script(
         SHARDED_ACAP.format(data=str(data_dir("horse-gallop"))),
-        env_extra={"XLA_FLAGS": "--xla_force_host_platform_device_count=4"},
-        checked=False,
+        devices=4,
     )
 
 
@@ -61,8 +60,7 @@ def test_readme_jax_example_runs_verbatim():
     run_script(
         _readme_example() + '\nprint("OK")\n',
         x64=False,
-        env_extra={"XLA_FLAGS": "--xla_force_host_platform_device_count=4"},
-        checked=False,
+        devices=4,
     )
 
 

@@ -6,34 +6,12 @@ Each test runs a script in a fresh interpreter with four forced host devices
 
 from __future__ import annotations
 
-import os
-import subprocess
-import sys
-import textwrap
-from pathlib import Path
-
-ROOT = Path(__file__).resolve().parents[1]
-DEVICES = {"XLA_FLAGS": "--xla_force_host_platform_device_count=4"}
+from fresh_process import run_script as run_fresh
 
 
-def run_script(code: str, *, x64: bool = True, timeout: int = 300) -> str:
+def run_script(code: str, *, x64: bool = True) -> str:
     """Run ``code`` in a fresh interpreter with four host devices and x64 as asked; its stdout."""
-    env = dict(os.environ)
-    env.pop("JAX_ENABLE_X64", None)
-    if x64:
-        env["JAX_ENABLE_X64"] = "1"
-    env.update(DEVICES)
-    proc = subprocess.run(
-        [sys.executable, "-c", textwrap.dedent(code)],
-        cwd=ROOT,
-        env=env,
-        capture_output=True,
-        text=True,
-        timeout=timeout,
-    )
-    assert proc.returncode == 0, proc.stdout[-3000:] + proc.stderr[-6000:]
-    assert proc.stdout.strip().endswith("OK"), proc.stdout[-3000:]
-    return proc.stdout
+    return run_fresh(code, x64=x64, timeout=300, devices=4)
 
 
 COMPONENTS = """
