@@ -13,9 +13,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import os
-import shutil
 import sys
-import tempfile
 from collections.abc import Callable, Sequence
 from pathlib import Path
 
@@ -170,34 +168,11 @@ def check_out_file(
 
 @contextlib.contextmanager
 def staged_folder(out: Path):
-    """Yield a temporary sibling folder to fill; on success it replaces ``out`` (an existing non-empty ``out``
-    only with --force, checked by the caller), on failure it is removed and ``out`` is left as it was."""
-    from jaxdeform.mesh.io import default_mode
+    """:func:`jaxdeform.mesh.io.staged_folder` with a system error while writing named by ``out`` (one sentence)."""
+    from jaxdeform.mesh.io import staged_folder as staged
 
-    with writing(out):
-        out.parent.mkdir(parents=True, exist_ok=True)
-        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent))
-        default_mode(tmp, directory=True)
-    trash = None
-    try:
-        with writing(out):
-            yield tmp
-            if out.exists():
-                if any(out.iterdir()):  # move aside, swap in, then delete
-                    trash = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".old", dir=out.parent))
-                    os.replace(out, trash / out.name)
-                else:
-                    out.rmdir()
-            os.replace(tmp, out)
-    except BaseException:
-        shutil.rmtree(tmp, ignore_errors=True)
-        if trash is not None:
-            if not out.exists() and (trash / out.name).exists():
-                os.replace(trash / out.name, out)  # put the old folder back
-            shutil.rmtree(trash, ignore_errors=True)
-        raise
-    if trash is not None:
-        shutil.rmtree(trash, ignore_errors=True)
+    with writing(out), staged(out) as tmp:
+        yield tmp
 
 
 @contextlib.contextmanager

@@ -159,6 +159,32 @@ class Run:
     def kind(self) -> str:
         return self.model.config.kind
 
+    @property
+    def path(self) -> Path | None:
+        """The run folder (None: not saved yet)."""
+        return self.root
+
+    @classmethod
+    def load(cls, path) -> Run:
+        """Read a cloth run folder (:func:`load_run`; its record must name kind "cloth" where it names one).
+
+        **Arguments:**
+
+        - ``path``: a folder written by :func:`fit` or :func:`save_run`.
+
+        **Returns:**
+
+        The :class:`Run`.
+
+        **Raises:**
+
+        ``JaxDeformError`` (one sentence) for a folder that is not a cloth run.
+        """
+        run = load_run(path)
+        if run.record.get("kind", KIND) != KIND:
+            raise JaxDeformError(f"{path} is a {run.record['kind']} run, not a cloth run.")
+        return run
+
     @functools.cached_property
     def refiner(self) -> Refiner:
         """Collision refinement on the fine connectivity (built once per run)."""
@@ -236,6 +262,7 @@ def train_run(
     )
     record = {
         "format": RUN_FORMAT,
+        "kind": KIND,
         "dataset": str(Path(ds.root).resolve()),
         "scenario": ds.scenario,
         "split": ds.split,
@@ -472,3 +499,168 @@ def evaluate_run(
         ours.append(ceval.sequence_errors(s.fine, fine, ds.fine_faces))
         coarse.append(ceval.sequence_errors(s.fine, ups(s.coarse), ds.fine_faces))
     return {part: ceval.pool(ours), "upsampled_coarse": {part: ceval.pool(coarse)}}
+
+
+# ------------------------------------------------------------------------------------ run-folder API
+
+KIND = "cloth"
+
+
+@dataclass(frozen=True)
+class Config:
+    """What :func:`fit` trains: the detail model, its training, the feature representation and the target."""
+
+    model: object = None  # a jaxdeform.cloth.model.ModelConfig; None: its defaults
+    train: object = None  # a jaxdeform.cloth.train.TrainConfig; None: its defaults
+    representation: str = "ts-acap"
+    residual: bool = True  # the target is the fine features' residual over the Loop-upsampled coarse cloth
+
+
+def _test_config() -> Config:
+    from jaxdeform.cloth.model import ModelConfig
+    from jaxdeform.cloth.train import TrainConfig
+
+    return Config(ModelConfig(d_model=16, heads=2, blocks=1, ffn=32), TrainConfig(steps=3, batch_size=4))
+
+
+#: named configurations: the paper's model and our training, and a CPU-sized one (a small model, 3 steps)
+CONFIGS = {"default": Config(), "test": _test_config()}
+
+
+def fit(data, config: str | Config = "default", out=None, *, progress: bool = True) -> Run:
+    """Train a detail model on the dataset's training split and write the run folder ``out``.
+
+    **Arguments:**
+
+    - ``data``: a dataset folder or a loaded :class:`~jaxdeform.cloth.data.ClothDataset`.
+    - ``config``: a name of :data:`CONFIGS` or a :class:`Config`.
+    - ``out``: the run folder (built beside it, renamed at the end); None: nothing is written.
+    - ``progress``: show progress bars.
+
+    **Returns:**
+
+    The :class:`Run` (:func:`train_run`).
+    """
+    from jaxdeform import runs
+    from jaxdeform.mesh.io import staged_folder
+
+    cfg = runs.config(KIND, config)
+    if not isinstance(cfg, Config):
+        raise TypeError(f"a cloth configuration must be a name or a cloth Config, got {type(cfg).__name__}.")
+    run = train_run(
+        data,
+        representation=cfg.representation,
+        model_cfg=cfg.model,
+        train_cfg=cfg.train,
+        progress=progress,
+        residual=cfg.residual,
+    )
+    if out is not None:
+        with staged_folder(Path(out)) as tmp:
+            save_run(run, tmp)
+        run.root = Path(out)
+    return run
+
+
+def _dataset(run: Run, data) -> tuple[cdata.ClothDataset, str]:
+    source = run.record.get("dataset") if data is None else data
+    if source is None:
+        raise JaxDeformError("the run records no dataset; pass the data to evaluate it on.")
+    ds = data if isinstance(data, cdata.ClothDataset) else cdata.load_dataset(source)
+    check_dataset(run, ds, ds.root, run.root or ".")
+    return ds, str(source if not isinstance(source, cdata.ClothDataset) else source.root)
+
+
+def evaluate(run: Run, data=None, *, part: str = "test", progress: bool = False) -> dict:
+    """Errors of the run's synthesis and of the upsampled coarse cloth on a split of the dataset.
+
+    **Arguments:**
+
+    - ``run``: the run.
+    - ``data``: a dataset folder or :class:`~jaxdeform.cloth.data.ClothDataset` with the run's meshes (None: the
+        dataset recorded in run.json).
+    - ``part``: the split (default ``"test"``).
+    - ``progress``: show a progress bar.
+
+    **Returns:**
+
+    :func:`evaluate_run`'s dict.
+    """
+    ds, _ = _dataset(run, data)
+    return evaluate_run(run, ds, part=part, progress=progress)
+
+
+def strip_figure(coarse_up, ours, fine, faces, path, size: int = 256) -> np.ndarray:
+    """One frame side by side: the upsampled coarse cloth, the synthesis, the fine simulation and its error.
+
+    **Arguments:**
+
+    - ``coarse_up``, ``ours``, ``fine``: the frame's fine-mesh positions ``(V, 3)`` each.
+    - ``faces``: the fine faces ``(F, 3)``.
+    - ``path``: the PNG to write (atomically).
+    - ``size``: the panels' height in pixels.
+
+    **Returns:**
+
+    The image ``(H, W, 3)`` uint8.
+    """
+    from jaxdeform.mesh.render import auto_camera, caption, hstack, render, save_png
+
+    cam = auto_camera(np.concatenate([fine, ours, coarse_up]), azimuth_deg=35, elevation_deg=25)
+    err = np.linalg.norm(ours - fine, axis=1)
+    vmax = float(max(np.linalg.norm(coarse_up - fine, axis=1).max(), err.max(), 1e-6))
+    plain = {"camera": cam, "width": size, "height": size, "colorbar": False}
+    panels = [
+        caption(render(coarse_up, faces, **plain), "coarse (upsampled)"),
+        caption(render(ours, faces, **plain), "ours"),
+        caption(render(fine, faces, **plain), "fine simulation"),
+        caption(
+            render(
+                ours,
+                faces,
+                scalar=err,
+                camera=cam,
+                width=size + 90,
+                height=size,
+                vmin=0.0,
+                vmax=vmax,
+                cmap="viridis",
+                label="m",
+            ),
+            "error of ours",
+        ),
+    ]
+    image = hstack(panels)
+    save_png(image, path)
+    return image
+
+
+def show(run: Run, out, data=None, *, frames: int = 3, size: int = 256) -> dict:
+    """Synthesise the first test sequence and write strips of a few frames (:func:`strip_figure`) into ``out``.
+
+    **Arguments:**
+
+    - ``run``: the run.
+    - ``out``: the folder (created if needed; each PNG replaces a file of its name, atomically).
+    - ``data``: the dataset (None: the one recorded in run.json).
+    - ``frames``: how many frames, spread over the sequence's last three quarters.
+    - ``size``: the panels' height in pixels.
+
+    **Returns:**
+
+    ``{"sequence", "frames", "files"}``.
+    """
+    ds, _ = _dataset(run, data)
+    seqs = ds.subset("test") or ds.sequences
+    x = seqs[0]
+    fine, _ = synthesize_timed(run, x.coarse, x.obstacles, pins=x.pins)
+    coarse_up = ceval.Upsampler(ds.coarse_faces, ds.coarse_rest.shape[0], ds.fine_faces)(x.coarse)
+    n = x.coarse.shape[0]
+    picked = sorted({int(t) for t in np.linspace(n // 4, n - 1, frames)})
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    files = []
+    for t in picked:
+        files.append(f"strip_{x.name.removesuffix('.npz')}_f{t:03d}.png")
+        strip_figure(coarse_up[t], fine[t], x.fine[t], ds.fine_faces, out / files[-1], size)
+    return {"sequence": x.name, "frames": picked, "files": files}

@@ -457,6 +457,50 @@ def atomic_path(path: Path):
     return _cm()
 
 
+def staged_folder(out: str | os.PathLike):
+    """Context manager yielding a temporary sibling folder of ``out`` to fill, which replaces ``out`` on success.
+
+    **Arguments:**
+
+    - `out`: the folder to write; an existing one (empty or not) is replaced only when the block succeeds.
+
+    **Returns:**
+
+    The context manager; on an exception the temporary folder is removed and ``out`` is left as it was.
+    """
+    import contextlib
+    import shutil
+
+    out = Path(out)
+
+    @contextlib.contextmanager
+    def _cm():
+        out.parent.mkdir(parents=True, exist_ok=True)
+        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent))
+        default_mode(tmp, directory=True)
+        trash = None
+        try:
+            yield tmp
+            if out.exists():
+                if any(out.iterdir()):  # move aside, swap in, then delete
+                    trash = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".old", dir=out.parent))
+                    os.replace(out, trash / out.name)
+                else:
+                    out.rmdir()
+            os.replace(tmp, out)
+        except BaseException:
+            shutil.rmtree(tmp, ignore_errors=True)
+            if trash is not None:
+                if not out.exists() and (trash / out.name).exists():
+                    os.replace(trash / out.name, out)  # put the old folder back
+                shutil.rmtree(trash, ignore_errors=True)
+            raise
+        if trash is not None:
+            shutil.rmtree(trash, ignore_errors=True)
+
+    return _cm()
+
+
 def save_mesh(path: str | os.PathLike, vertices: Real[ArrayLike, "v 3"], faces: Int[ArrayLike, "f 3"]) -> None:
     """Write one mesh as OBJ, OFF, PLY or .npz (chosen by suffix), atomically.
 

@@ -1,0 +1,240 @@
+"""Runs of seed 003 (rigid parts of a shape population) through the run-folder API of :mod:`jaxdeform.runs`.
+
+A run folder holds
+
+    run.json      kind "parts", the configuration, the data it was fitted to and the fit's summary
+                  (:func:`jaxdeform.parts.hierarchy.summary`: parts, iterations per stage, rmse, seconds)
+    summary.json  the same summary with the per-stage records (parts, iterations, log-likelihoods)
+    model         the fitted parameters, labels, latent images, shapes, faces and reconstruction
+                  (:func:`jaxdeform.parts.hierarchy.save_run`)
+
+The algorithm (:mod:`jaxdeform.parts.hierarchy`, :mod:`jaxdeform.parts.mfa`) holds no I/O of its own beyond
+``save_run``/``load_run``, which this module calls.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import os
+from collections.abc import Callable
+from pathlib import Path
+
+import numpy as np
+
+from jaxdeform import runs
+from jaxdeform.errors import JaxDeformError
+from jaxdeform.mesh.io import atomic_path, check_same_connectivity, load_sequence, staged_folder
+from jaxdeform.parts import hierarchy
+
+KIND = "parts"
+
+
+@dataclasses.dataclass(frozen=True)
+class Config:
+    """Algorithm 1's parameters (:func:`jaxdeform.parts.hierarchy.fit`); defaults: the paper's where it gives one."""
+
+    initial_parts: int = hierarchy.INITIAL_PARTS
+    threshold: float = hierarchy.THRESHOLD
+    max_split: int = hierarchy.MAX_SPLIT
+    min_part_vertices: int = hierarchy.MIN_PART_VERTICES
+    seed: int = 0
+
+    def __post_init__(self):
+        if self.initial_parts < 1:
+            raise ValueError(f"initial_parts must be at least 1, got {self.initial_parts}.")
+        if not self.threshold > 0:
+            raise ValueError(f"threshold must be positive, got {self.threshold}.")
+        if self.max_split < 2 or self.min_part_vertices < 1:
+            raise ValueError("max_split must be at least 2 and min_part_vertices at least 1.")
+
+
+#: named configurations: the library defaults and a CPU-sized one (fewer coarse parts, coarser threshold)
+CONFIGS = {"default": Config(), "test": Config(initial_parts=2, threshold=1e-3, max_split=2)}
+
+
+@dataclasses.dataclass
+class Run:
+    """A parts run: the fit, the shapes and faces it was fitted to, its record and folder."""
+
+    path: Path | None
+    record: dict
+    fit: hierarchy.PartsFit
+    vertices: np.ndarray  # (M, V, 3)
+    faces: np.ndarray  # (F, 3)
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> Run:
+        """Read a parts run folder.
+
+        **Arguments:**
+
+        - ``path``: a folder written by :func:`fit`.
+
+        **Returns:**
+
+        The :class:`Run`.
+
+        **Raises:**
+
+        :class:`~jaxdeform.runs.RunFolderError` if ``path`` is not a run folder or is another method's;
+        one-sentence errors of :func:`jaxdeform.parts.hierarchy.load_run` for a damaged model.
+        """
+        path = Path(path)
+        record = runs.read_record(path)
+        if record["kind"] != KIND:
+            raise runs.RunFolderError(f"{path} is a {record['kind']} run, not a parts run.")
+        fit_, vertices, faces = hierarchy.load_run(path)
+        return cls(path, record, fit_, vertices, faces)
+
+
+def _config(config: str | Config) -> Config:
+    value = runs.config(KIND, config)
+    if not isinstance(value, Config):
+        raise TypeError(f"a parts configuration must be a name or a parts Config, got {type(value).__name__}.")
+    return value
+
+
+def load_data(data) -> tuple[np.ndarray, np.ndarray]:
+    """Shapes and faces of a parts fit: a folder, a list of mesh files or one .npz sequence of at least two shapes.
+
+    **Arguments:**
+
+    - ``data``: the shapes (as :func:`jaxdeform.mesh.io.load_sequence` reads them) or ``(vertices, faces)``.
+
+    **Returns:**
+
+    ``(vertices (M, V, 3), faces (F, 3))``, checked by :func:`jaxdeform.parts.hierarchy.check_shapes`.
+    """
+    if isinstance(data, tuple) and len(data) == 2 and not isinstance(data[0], (str, os.PathLike)):
+        vertices, faces = data
+    else:
+        vertices, faces = load_sequence(data if isinstance(data, (str, os.PathLike)) or len(data) > 1 else data[0])
+    return hierarchy.check_shapes(vertices, faces)
+
+
+def _data_name(data) -> str | list[str] | None:
+    if isinstance(data, (str, os.PathLike)):
+        return str(data)
+    if isinstance(data, (list, tuple)) and all(isinstance(d, (str, os.PathLike)) for d in data):
+        return [str(d) for d in data]
+    return None
+
+
+def fit(
+    data,
+    config: str | Config = "default",
+    out: str | os.PathLike | None = None,
+    *,
+    progress: bool = True,
+    log: Callable[[str], None] | None = None,
+) -> Run:
+    """Fit Algorithm 1 to a shape population and write the run folder ``out``.
+
+    **Arguments:**
+
+    - ``data``: the shapes (:func:`load_data`).
+    - ``config``: a name of :data:`CONFIGS` or a :class:`Config`.
+    - ``out``: the run folder (built beside it, renamed at the end); None: nothing is written.
+    - ``progress``: print one line per stage (where ``log`` is None).
+    - ``log``: receives the per-stage lines (default: ``print`` when ``progress``).
+
+    **Returns:**
+
+    The :class:`Run`.
+
+    **Raises:**
+
+    ``ValueError`` for fewer than two shapes or more initial parts than vertices; the loaders' one-sentence errors
+    for bad meshes.
+    """
+    cfg = _config(config)
+    vertices, faces = load_data(data)
+    if cfg.initial_parts > vertices.shape[1]:
+        raise ValueError(f"initial_parts {cfg.initial_parts} exceeds the {vertices.shape[1]} vertices of the meshes.")
+    if log is None:
+        log = (lambda line: print(line, flush=True)) if progress else (lambda line: None)
+    fit_ = hierarchy.fit(vertices, faces, **dataclasses.asdict(cfg), log=log)
+    record = {"kind": KIND, "config": dataclasses.asdict(cfg), "data": _data_name(data)}
+    record["summary"] = hierarchy.summary(fit_, vertices)
+    run = Run(None, record, fit_, vertices, faces)
+    if out is not None:
+        out = Path(out)
+        with staged_folder(out) as tmp:
+            hierarchy.save_run(tmp, fit_, vertices, faces, extra={"data": record["data"]})
+            with atomic_path(tmp / runs.RECORD) as t:
+                t.write_text(json.dumps(record, indent=1) + "\n")
+        run.path = out
+    return run
+
+
+def evaluate(run: Run, data=None) -> dict:
+    """Reconstruction errors of the run's parts on its shapes.
+
+    **Arguments:**
+
+    - ``run``: the run.
+    - ``data``: the shapes to compare with (None: the shapes of the run); they must be the run's population (the
+        same number of shapes and the same connectivity), since a fit's parts and rotations are per shape.
+
+    **Returns:**
+
+    ``{"parts", "rmse", "rmse_over_diagonal", "max_vertex_rmse_over_diagonal", "per_shape_rmse"}``.
+
+    **Raises:**
+
+    ``JaxDeformError`` for data of another population.
+    """
+    vertices = run.vertices
+    if data is not None:
+        vertices, faces = load_data(data)
+        where = str(_data_name(data) or "the data")
+        check_same_connectivity(run.faces, faces, run.vertices.shape[1], vertices.shape[1], where)
+        if vertices.shape[0] != run.vertices.shape[0]:
+            raise JaxDeformError(
+                f"{where} holds {vertices.shape[0]} shapes but the run was fitted to {run.vertices.shape[0]}."
+            )
+    diff = np.sum((vertices - run.fit.reconstruction) ** 2, axis=-1)  # (M, V)
+    diag = hierarchy.bbox_diagonal(vertices)
+    rmse = hierarchy.rmse(vertices, run.fit.reconstruction)
+    return {
+        "parts": run.fit.n_parts,
+        "rmse": rmse,
+        "rmse_over_diagonal": rmse / diag,
+        "max_vertex_rmse_over_diagonal": float(np.sqrt(diff.mean(axis=0)).max() / diag),
+        "per_shape_rmse": np.sqrt(diff.mean(axis=1)).tolist(),
+    }
+
+
+def show(run: Run, out: str | os.PathLike, shape: int = 0) -> dict:
+    """Write segmentation.png, error.png and reconstruction.png of the run into the folder ``out``.
+
+    **Arguments:**
+
+    - ``run``: the run.
+    - ``out``: the folder (created if needed; each figure replaces a file of its name, atomically).
+    - ``shape``: the shape the parts and the error are drawn on.
+
+    **Returns:**
+
+    ``{"parts", "shape", "files"}``.
+
+    **Raises:**
+
+    ``ValueError`` for a shape index outside the run's shapes.
+    """
+    from jaxdeform.parts import figures
+
+    n = run.vertices.shape[0]
+    if not -n <= shape < n:
+        raise ValueError(f"shape {shape} is not a shape of the run (it has {n} shapes: 0..{n - 1}).")
+    shape %= n
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    error = np.sqrt(np.mean(np.sum((run.vertices - run.fit.reconstruction) ** 2, axis=-1), axis=0))
+    files = ["segmentation.png", "error.png", "reconstruction.png"]
+    figures.segmentation_figure(run.vertices[shape], run.faces, run.fit.labels, out / files[0])
+    label = "RMS reconstruction error over the shapes"
+    figures.error_figure(run.vertices[shape], run.faces, error, out / files[1], label=label)
+    figures.strip_figure(run.fit.reconstruction, run.faces, out / files[2], labels=run.fit.labels)
+    return {"parts": run.fit.n_parts, "shape": shape, "files": files}

@@ -1,0 +1,219 @@
+"""The run-folder API shared by the four methods.
+
+Every method package has a ``run`` module with the same entry points, and every run folder it writes holds a
+``run.json`` whose ``"kind"`` names the method:
+
+==============  ================================  =================================================================
+kind            module                            ``data``
+==============  ================================  =================================================================
+``components``  :mod:`jaxdeform.components.run`   a folder (or a list) of shapes sharing one mesh
+``cloth``       :mod:`jaxdeform.cloth.run`        a paired coarse/fine cloth dataset folder
+``parts``       :mod:`jaxdeform.parts.run`        a folder (or a list) of at least two shapes sharing one mesh
+``handles``     :mod:`jaxdeform.handles.run`      one mesh file
+==============  ================================  =================================================================
+
+Each module provides
+
+- ``KIND`` (the name above) and ``CONFIGS``: named frozen-dataclass configurations, at least ``"default"``
+  (the paper's settings) and ``"test"`` (runs in seconds on a CPU);
+- ``fit(data, config, out, *, progress=True, **options) -> Run``: fits the method to ``data`` with ``config``
+  (a name of ``CONFIGS`` or a configuration object) and writes the run folder ``out``; the folder is built
+  beside ``out`` and renamed at the end, so a failed fit leaves no half-written run;
+- ``Run.load(path) -> Run``: reads a run folder (one-sentence :class:`~jaxdeform.errors.JaxDeformError` for
+  a folder that is not one of the method's runs); every ``Run`` has ``path`` and ``record`` (run.json);
+- ``evaluate(run, data=None) -> dict``: the method's metrics of the run on ``data`` (None: the data it was
+  fitted to, as run.json records it);
+- ``show(run, out) -> dict``: figures of the run written into the folder ``out``, and their summary.
+
+The functions below read the kind of a folder and dispatch to its module; method modules are imported only when
+a run of theirs is met.
+"""
+
+from __future__ import annotations
+
+import importlib
+import json
+import os
+from pathlib import Path
+from types import ModuleType
+from typing import Any, Protocol
+
+from jaxdeform.errors import JaxDeformError
+
+#: the run module of every kind
+KINDS: dict[str, str] = {
+    "components": "jaxdeform.components.run",
+    "cloth": "jaxdeform.cloth.run",
+    "parts": "jaxdeform.parts.run",
+    "handles": "jaxdeform.handles.run",
+}
+#: the record every run folder holds
+RECORD = "run.json"
+
+
+class RunFolderError(JaxDeformError):
+    """A folder is not a run folder of any method, or names an unknown one."""
+
+
+class Run(Protocol):
+    """What every method's run offers (:mod:`jaxdeform.runs`)."""
+
+    path: Path | None
+    record: dict
+
+    @classmethod
+    def load(cls, path: str | os.PathLike) -> Run: ...
+
+
+def read_record(path: str | os.PathLike) -> dict:
+    """The run.json of a run folder, checked to name a known kind.
+
+    **Arguments:**
+
+    - ``path``: the run folder.
+
+    **Returns:**
+
+    The record (a dict with a ``"kind"`` of :data:`KINDS`).
+
+    **Raises:**
+
+    :class:`RunFolderError` (one sentence) if ``path`` is not a folder, has no run.json, or its run.json is not a
+    JSON object naming a known kind.
+    """
+    path = Path(path)
+    if not path.is_dir():
+        raise RunFolderError(f"{path}: no such run folder.")
+    file = path / RECORD
+    if not file.is_file():
+        raise RunFolderError(f"{path} is not a run folder ({RECORD} is missing).")
+    try:
+        record = json.loads(file.read_text())
+    except (UnicodeDecodeError, json.JSONDecodeError) as exc:
+        raise RunFolderError(f"{file} is not a readable run record ({type(exc).__name__}).") from None
+    if not isinstance(record, dict) or record.get("kind") not in KINDS:
+        kind = record.get("kind") if isinstance(record, dict) else None
+        raise RunFolderError(f"{file} names no known kind of run ({kind!r}; expected one of {', '.join(KINDS)}).")
+    return record
+
+
+def module(kind: str) -> ModuleType:
+    """The run module of a kind.
+
+    **Arguments:**
+
+    - ``kind``: one of :data:`KINDS`.
+
+    **Returns:**
+
+    The imported module (``fit``, ``Run``, ``evaluate``, ``show``, ``CONFIGS``).
+
+    **Raises:**
+
+    ``ValueError`` for an unknown kind.
+    """
+    if kind not in KINDS:
+        raise ValueError(f"unknown kind of run {kind!r}; expected one of {', '.join(KINDS)}.")
+    return importlib.import_module(KINDS[kind])
+
+
+def kind_of(path: str | os.PathLike) -> str:
+    """The kind of the run folder ``path`` (its run.json's ``"kind"``; errors as :func:`read_record`)."""
+    return read_record(path)["kind"]
+
+
+def load(path: str | os.PathLike) -> Run:
+    """Load any method's run folder.
+
+    **Arguments:**
+
+    - ``path``: a run folder written by one of the methods' ``fit``.
+
+    **Returns:**
+
+    The method's ``Run``.
+
+    **Raises:**
+
+    :class:`RunFolderError` if ``path`` is not a run folder; the method's own one-sentence error for a damaged one.
+    """
+    return module(kind_of(path)).Run.load(path)
+
+
+def fit(kind: str, data: Any, config: Any, out: str | os.PathLike, **options) -> Run:
+    """Fit a method and write its run folder.
+
+    **Arguments:**
+
+    - ``kind``: one of :data:`KINDS`.
+    - ``data``: the method's data (the module docstring's table).
+    - ``config``: a name of the method's ``CONFIGS`` or one of its configuration objects.
+    - ``out``: the run folder to write.
+    - ``options``: the method's own keyword options (e.g. ``progress``).
+
+    **Returns:**
+
+    The method's ``Run``, loaded from ``out``.
+    """
+    return module(kind).fit(data, config, out, **options)
+
+
+def _kind_of_run(run: Run) -> str:
+    kind = run.record.get("kind") if isinstance(getattr(run, "record", None), dict) else None
+    if kind not in KINDS:
+        raise ValueError(f"{type(run).__name__} is not a run of a known kind (its record names {kind!r}).")
+    return kind
+
+
+def evaluate(run: Run, data: Any = None) -> dict:
+    """The metrics of any method's run (the method's ``evaluate``).
+
+    **Arguments:**
+
+    - ``run``: a run of one of the methods.
+    - ``data``: the data to evaluate on (None: the data the run was fitted to).
+
+    **Returns:**
+
+    The method's metrics dict.
+    """
+    return module(_kind_of_run(run)).evaluate(run, data)
+
+
+def show(run: Run, out: str | os.PathLike) -> dict:
+    """The figures of any method's run (the method's ``show``).
+
+    **Arguments:**
+
+    - ``run``: a run of one of the methods.
+    - ``out``: the folder to write the figures into.
+
+    **Returns:**
+
+    The summary of what was written.
+    """
+    return module(_kind_of_run(run)).show(run, Path(out))
+
+
+def config(kind: str, value: Any):
+    """A method's configuration from a name of its ``CONFIGS`` or a configuration object.
+
+    **Arguments:**
+
+    - ``kind``: one of :data:`KINDS`.
+    - ``value``: a name (str) or a configuration object (returned as is).
+
+    **Returns:**
+
+    The configuration.
+
+    **Raises:**
+
+    ``ValueError`` for an unknown name.
+    """
+    if not isinstance(value, str):
+        return value
+    configs = module(kind).CONFIGS
+    if value not in configs:
+        raise ValueError(f"{kind} has no configuration {value!r}; expected one of {', '.join(configs)}.")
+    return configs[value]
