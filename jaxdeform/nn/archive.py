@@ -16,9 +16,10 @@ was there before. Reading needs no target structure: the raw arrays come back, a
 them against a module. Readers get one-sentence :class:`~jaxdeform.errors.JaxDeformError` (or the subclass the
 caller names) for a missing path, a path that is not an orbax checkpoint (a file, an empty or foreign folder, a
 damaged checkpoint), another format or version, or a parameter that is missing, misshapen or not finite; orbax's
-log lines are held back while it works. orbax is imported inside the functions, so importing this module does
-not load it. Used by the cloth models of seed 002, the parts models of seed 003, the feature field of seed 004
-and the linear baselines of seed 000.
+log lines are held back while it works, and after a damaged read the "Event loop is closed" reports of orbax's
+reads still pending are dropped (a filter put once in front of ``sys.unraisablehook``; everything else passes).
+orbax is imported inside the functions, so importing this module does not load it. Used by the cloth models of
+seed 002, the parts models of seed 003, the feature field of seed 004 and the linear baselines of seed 000.
 """
 
 from __future__ import annotations
