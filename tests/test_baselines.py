@@ -10,6 +10,7 @@ import pytest
 
 from jaxdeform.components import baselines as B
 from jaxdeform.errors import ConnectivityError, JaxDeformError, MeshFormatError
+from jaxdeform.nn.archive import save_tree
 
 BUMP_CENTRES = np.array([[0.25, 0.25], [0.75, 0.75]])
 
@@ -202,17 +203,17 @@ def test_decode_and_project_jit_and_grad(bumps):
 
 def test_save_load_round_trip(tmp_path, bumps):
     model = bumps[3]
-    path = tmp_path / "splocs.npz"
+    path = tmp_path / "splocs"
     B.save(model, path)
     B.save(model, path)  # overwrite in place
     back = B.load(path)
     assert (back.domain, back.method, back.scale) == (model.domain, model.method, pytest.approx(model.scale))
     np.testing.assert_array_equal(np.asarray(back.components), np.asarray(model.components))
     np.testing.assert_array_equal(np.asarray(back.mean), np.asarray(model.mean))
-    assert os.listdir(tmp_path) == ["splocs.npz"]
+    assert os.listdir(tmp_path) == ["splocs"] and path.is_dir()
     pca = B.fit_pca(_random(v=4, c=9).astype(np.float32))
-    B.save(pca, tmp_path / "pca")  # no suffix: written exactly there
-    back = B.load(tmp_path / "pca")
+    B.save(pca, tmp_path / "pca.ckpt")  # any name: written exactly there
+    back = B.load(tmp_path / "pca.ckpt")
     assert back.domain == "acap" and back.components.dtype == jnp.float32
 
 
@@ -264,8 +265,23 @@ def test_bad_model_inputs_raise(tmp_path):
         B.decode(m, jnp.zeros((2, 4)))
     bad = tmp_path / "bad.npz"
     bad.write_bytes(b"not an archive")
-    with pytest.raises(MeshFormatError, match="not a readable"):
+    with pytest.raises(MeshFormatError, match="not a linear model checkpoint"):
         B.load(bad)
-    np.savez(tmp_path / "partial.npz", mean=np.zeros((3, 3)))
+    with pytest.raises(FileNotFoundError):
+        B.load(tmp_path / "absent")
+    record = {"format": B.FORMAT, "version": B.FORMAT_VERSION, "scale": 1.0, "domain": "xyz", "method": "pca"}
+    save_tree(tmp_path / "partial", {"mean": np.zeros((3, 3))}, record)
     with pytest.raises(MeshFormatError, match="'components' is missing"):
-        B.load(tmp_path / "partial.npz")
+        B.load(tmp_path / "partial")
+    save_tree(tmp_path / "nan", {"mean": np.zeros((3, 3)), "components": np.full((2, 3, 3), np.nan)}, record)
+    with pytest.raises(MeshFormatError, match="NaN"):
+        B.load(tmp_path / "nan")
+    save_tree(
+        tmp_path / "domain", {"mean": np.zeros((3, 3)), "components": np.ones((2, 3, 3))}, record | {"domain": "uv"}
+    )
+    with pytest.raises(MeshFormatError, match="domain"):
+        B.load(tmp_path / "domain")
+    B.save(m, tmp_path / "damaged")
+    (tmp_path / "damaged" / "arrays" / "_METADATA").unlink()
+    with pytest.raises(MeshFormatError, match="damaged linear model checkpoint"):
+        B.load(tmp_path / "damaged")

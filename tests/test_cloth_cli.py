@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import json
+import shutil
 
 import numpy as np
 import pytest
@@ -58,7 +59,7 @@ def test_train_synthesize_evaluate_round_trip(tmp_path, capsys):
     run = tmp_path / "run"
     code, out, err = run_cli(["cloth", "train", str(data), "--out", str(run), "--steps", "3", "--quiet"], capsys)
     assert code == 0, err
-    assert {p.name for p in run.iterdir()} == {"model.npz", "representation.npz", "run.json"}
+    assert {p.name for p in run.iterdir()} == {"model", "representation.npz", "run.json"}
     rec = json.loads((run / "run.json").read_text())
     assert rec["representation"] == "ts-acap" and rec["split"]["test"] == ["seq_002.npz"]
     assert rec["residual"] is True  # default target: the residual over the Loop-upsampled coarse cloth
@@ -219,9 +220,7 @@ def test_damaged_runs_and_outputs_over_inputs(tmp_path, capsys):
 
     def damaged(name, edit):
         bad = tmp_path / name
-        bad.mkdir()
-        for f in run.iterdir():
-            (bad / f.name).write_bytes(f.read_bytes())
+        shutil.copytree(run, bad)
         edit(bad)
         return bad
 
@@ -242,6 +241,7 @@ def test_damaged_runs_and_outputs_over_inputs(tmp_path, capsys):
         "thickness": damaged("r2", record(lambda r: {**r, "thickness": "thick"})),
         "coarse_faces": damaged("r3", drop_array),
         "seq_007": damaged("r4", record(lambda r: {**r, "split": {"train": ["seq_000.npz"], "test": ["seq_007.npz"]}})),
+        "damaged cloth model checkpoint": damaged("r5", lambda bad: (bad / "model" / "arrays" / "_METADATA").unlink()),
     }
     for expected, bad in runs.items():
         code, _, err = run_cli(

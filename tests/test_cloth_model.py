@@ -1,6 +1,7 @@
 """DeformTransformer (seed 002): transformer pieces, model kinds, training windows, training, synthesis, files."""
 
 import dataclasses
+import shutil
 
 import igl
 import jax
@@ -195,7 +196,7 @@ def test_skip_model_synthesis_and_file_round_trip(meshes, kind, tmp_path):
     model = new_model(tc, tf, cfg, up)
     coarse = jax.random.uniform(jax.random.PRNGKey(5), (5, tc.n_vertices, 9), minval=-0.9, maxval=0.9)
     _check_teacher_forcing(model, coarse)
-    loaded, _ = load_model(save_model(tmp_path / "m.npz", model))
+    loaded, _ = load_model(save_model(tmp_path / "m", model))
     assert loaded.config.skip
     np.testing.assert_array_equal(np.asarray(synthesize(loaded, coarse)), np.asarray(synthesize(model, coarse)))
 
@@ -338,18 +339,25 @@ def test_synthesis_matches_teacher_forcing_trained(trained):
 def test_save_load_round_trip(tmp_path, trained):
     model = trained["model"]
     cs, _ = trained["data"]
-    path = save_model(tmp_path / "run" / "model.npz", model, {"dataset": "synthetic", "frames": 30})
+    path = save_model(tmp_path / "run" / "model", model, {"dataset": "synthetic", "frames": 30})
     loaded, meta = load_model(path)
     assert meta == {"dataset": "synthetic", "frames": 30}
     assert loaded.config == model.config
     np.testing.assert_array_equal(np.asarray(synthesize(loaded, cs[0])), np.asarray(synthesize(model, cs[0])))
     assert not list(path.parent.glob(".*"))  # no temporary left behind
+    assert path.is_dir() and [p.name for p in path.parent.iterdir()] == ["model"]
     bad = tmp_path / "bad.npz"
     np.savez(bad, x=np.zeros(3))
     with pytest.raises(JaxDeformError):
         load_model(bad)
     with pytest.raises(JaxDeformError, match="no such"):
-        load_model(tmp_path / "missing.npz")
+        load_model(tmp_path / "missing")
+    damaged = tmp_path / "damaged"
+    shutil.copytree(path, damaged)
+    for data in (damaged / "arrays" / "d").iterdir():
+        data.write_bytes(data.read_bytes()[:10])
+    with pytest.raises(JaxDeformError, match="damaged cloth model checkpoint"):
+        load_model(damaged)
 
 
 @pytest.mark.slow

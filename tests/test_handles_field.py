@@ -1,6 +1,6 @@
 """Seed 004 feature field: bilinear patch upsampling, the field, barycentric distillation (eq. 3), persistence."""
 
-import json
+import shutil
 
 import jax
 import jax.numpy as jnp
@@ -205,8 +205,8 @@ def test_save_load_round_trip(tmp_path, fourier):
     params = nnx.state(fld, nnx.Param)
     nnx.update(fld, jax.tree_util.tree_map(lambda p: p + 0.01 * jnp.arange(p.size).reshape(p.shape) / p.size, params))
     meta = {"n_vertices": 123, "n_faces": 242, "backbone": "test-backbone", "note": [1, 2]}
-    path = save_field(tmp_path / "sub" / "field.npz", fld, meta)
-    assert [p.name for p in path.parent.iterdir()] == ["field.npz"]  # no temporary file left
+    path = save_field(tmp_path / "sub" / "field", fld, meta)
+    assert path.is_dir() and [p.name for p in path.parent.iterdir()] == ["field"]  # no temporary left
     back, meta2 = load_field(path)
     x = np.random.default_rng(4).normal(size=(300, 3))
     np.testing.assert_array_equal(evaluate_field(back, x), evaluate_field(fld, x))
@@ -216,25 +216,27 @@ def test_save_load_round_trip(tmp_path, fourier):
     assert meta2["bbox"] == [[-1.0, -2.0, -3.0], [1.0, 2.0, 4.0]]
     assert FieldConfig(**meta2["config"]) == cfg
     with pytest.raises(ValueError, match="backbone"):
-        save_field(tmp_path / "x.npz", fld, {"n_vertices": 1, "n_faces": 1})
+        save_field(tmp_path / "x", fld, {"n_vertices": 1, "n_faces": 1})
 
 
 def test_load_rejects_other_and_damaged_files(tmp_path):
+    from jaxdeform.nn.archive import read_archive, save_tree
+
     fld = new_field(C, np.zeros(3), np.ones(3), FieldConfig(hidden=8, layers=1))
-    good = save_field(tmp_path / "good.npz", fld, {"n_vertices": 3, "n_faces": 1, "backbone": "b"})
-    data = good.read_bytes()
-    (tmp_path / "truncated.npz").write_bytes(data[: len(data) // 2])
-    (tmp_path / "text.npz").write_text("hello")
+    good = save_field(tmp_path / "good", fld, {"n_vertices": 3, "n_faces": 1, "backbone": "b"})
+    meta, arrays = read_archive(good, "feature-field", fieldmod.FORMAT, fieldmod.FORMAT_VERSION, key="meta")
+    shutil.copytree(good, tmp_path / "truncated")
+    manifest = tmp_path / "truncated" / "arrays" / "manifest.ocdbt"
+    manifest.write_bytes(manifest.read_bytes()[:20])
+    (tmp_path / "text").write_text("hello")
+    (tmp_path / "empty").mkdir()
     np.savez(tmp_path / "other.npz", a=np.zeros(3))
-    with np.load(good) as z:
-        arrays = {k: z[k] for k in z.files}
-    meta = json.loads(str(arrays["meta"]))
-    np.savez(tmp_path / "wrong_format.npz", **{**arrays, "meta": np.asarray(json.dumps({**meta, "format": "x"}))})
+    save_tree(tmp_path / "wrong_format", arrays, {**meta, "format": "x"}, key="meta")
     name = next(k for k in arrays if k.endswith("['out']['kernel'].value"))
-    np.savez(tmp_path / "misshapen.npz", **{**arrays, name: arrays[name][:, :-1]})
-    np.savez(tmp_path / "missing.npz", **{k: a for k, a in arrays.items() if k != name})
-    for bad in ["truncated", "text", "other", "wrong_format", "misshapen", "missing", "absent"]:
+    save_tree(tmp_path / "misshapen", {**arrays, name: arrays[name][:, :-1]}, meta, key="meta")
+    save_tree(tmp_path / "missing", {k: a for k, a in arrays.items() if k != name}, meta, key="meta")
+    for bad in ["truncated", "text", "empty", "other.npz", "wrong_format", "misshapen", "missing", "absent"]:
         with pytest.raises(JaxDeformError) as err:
-            load_field(tmp_path / f"{bad}.npz")
+            load_field(tmp_path / bad)
         msg = str(err.value)
         assert msg.count(". ") == 0 and msg.endswith(".") and "\n" not in msg, msg

@@ -104,6 +104,12 @@ def _write_field(path, n_vertices: int, n_faces: int, bbox, features: int = 8) -
     fieldmod.save_field(path, f, {"n_vertices": n_vertices, "n_faces": n_faces, "backbone": "test"})
 
 
+def _contents(*paths) -> dict:
+    """The bytes of every file of ``paths`` (a field checkpoint is a folder) by path."""
+    files = [f for p in paths for f in ([p] if p.is_file() else sorted(p.rglob("*")))]
+    return {f: f.read_bytes() for f in files if f.is_file()}
+
+
 @pytest.fixture()
 def bar_files(tmp_path):
     from jaxdeform.mesh.io import save_mesh
@@ -111,7 +117,7 @@ def bar_files(tmp_path):
     v, f = _colored_bar()
     mesh = tmp_path / "bar.obj"
     save_mesh(mesh, v, f)
-    field = tmp_path / "bar.npz"
+    field = tmp_path / "bar.field"
     _write_field(field, v.shape[0], f.shape[0], (v.min(0), v.max(0)))
     return v, f, mesh, field
 
@@ -214,13 +220,13 @@ def test_cli_bad_input_exits_2_with_one_sentence_and_writes_nothing(bar_files, t
     elif case in ("out-is-the-mesh", "out-is-the-field", "out-format"):
         target = {"out-is-the-mesh": mesh, "out-is-the-field": field, "out-format": tmp_path / "out.png"}[case]
         args[args.index(str(out))] = str(target)
-    before = {p: p.read_bytes() for p in (mesh, field)}
+    before = _contents(mesh, field)
     assert main(args) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and err[0].startswith("jaxdeform: error: ")
     assert not out.exists() and not (tmp_path / "out.png").exists()
     if case.startswith("out-"):
-        assert {p: p.read_bytes() for p in (mesh, field)} == before and "--out" in err[0]
+        assert _contents(mesh, field) == before and "--out" in err[0]
     if case in ("field-count-null", "repeated-vertex-face"):
         assert (field.name if case == "field-count-null" else mesh.name) in err[0]
     if case in ("field-size", "field-faces"):

@@ -1,6 +1,7 @@
 """Seed 003 parts: rotation-constrained MFA (AECM), the hierarchy of Algorithm 1, and the `parts` CLI."""
 
 import json
+import shutil
 
 import jax.numpy as jnp
 import numpy as np
@@ -10,6 +11,7 @@ from conftest import data_dir
 from jaxdeform.cli import main
 from jaxdeform.mesh.io import save_mesh
 from jaxdeform.mesh.topology import unique_edges
+from jaxdeform.nn.archive import read_tree, save_tree
 from jaxdeform.parts import hierarchy, mfa
 
 
@@ -176,7 +178,15 @@ def test_experiment_runs_on_a_small_config(tmp_path):
 
 @pytest.mark.parametrize(
     "damage",
-    ["truncated", "missing array", "float labels", "faces out of range", "nan vertices", "summary not an object"],
+    [
+        "truncated",
+        "not a checkpoint",
+        "missing array",
+        "float labels",
+        "faces out of range",
+        "nan vertices",
+        "summary not an object",
+    ],
 )
 def test_cli_parts_show_on_a_damaged_run(tmp_path, capsys, damage):
     shapes, faces, _ = _two_rigid_parts(m=3)
@@ -195,16 +205,19 @@ def test_cli_parts_show_on_a_damaged_run(tmp_path, capsys, damage):
         )
         == 0
     )
-    model = run / "model.npz"
+    model = run / "model"
     if damage == "truncated":
-        model.write_bytes(model.read_bytes()[:200])
+        for data in (model / "arrays" / "d").iterdir():
+            data.write_bytes(data.read_bytes()[:200])
     elif damage == "summary not an object":
         (run / "summary.json").write_text("[1, 2]")
+    elif damage == "not a checkpoint":
+        shutil.rmtree(model)
+        model.mkdir()
     else:
-        with np.load(model) as z:
-            arrays = {k: z[k] for k in z.files if k != "rot"}
-            if damage != "missing array":
-                arrays["rot"] = z["rot"]
+        record, arrays = read_tree(model, "parts model", hierarchy.MODEL_FORMAT, hierarchy.MODEL_VERSION)
+        if damage == "missing array":
+            del arrays["rot"]
         if damage == "float labels":
             arrays["labels"] = arrays["labels"].astype(float)
         elif damage == "faces out of range":
@@ -213,7 +226,7 @@ def test_cli_parts_show_on_a_damaged_run(tmp_path, capsys, damage):
         elif damage == "nan vertices":
             arrays["vertices"] = arrays["vertices"].copy()
             arrays["vertices"][1, 2, 0] = np.nan
-        np.savez(model, **arrays)
+        save_tree(model, arrays, record)
     capsys.readouterr()
     for argv in (
         ["show", str(run), "--out", str(tmp_path / "show")],
@@ -221,5 +234,5 @@ def test_cli_parts_show_on_a_damaged_run(tmp_path, capsys, damage):
     ):
         assert main(["parts", *argv]) == 2
         err = capsys.readouterr().err.strip().splitlines()
-        assert len(err) == 1 and ("summary.json" if damage.startswith("summary") else "model.npz") in err[0], err
+        assert len(err) == 1 and ("summary.json" if damage.startswith("summary") else "model") in err[0], err
         assert not (tmp_path / "show").exists()

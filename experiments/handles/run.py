@@ -117,8 +117,8 @@ def load_named(data: Path, name: str) -> tuple[np.ndarray, np.ndarray]:
 
 def distilled(out: Path, name: str, vertices, faces, s: Settings, force: bool):
     """(field, meta) of a mesh, from the cache in OUT/fields or distilled now."""
-    path = out / "fields" / f"{name}.npz"
-    if path.is_file() and not force:
+    path = out / "fields" / f"{name}.field"
+    if path.is_dir() and not force:
         field, meta = fieldmod.load_field(path)
         if (
             meta.get("n_vertices") == vertices.shape[0]
@@ -493,7 +493,7 @@ def main(argv=None) -> int:
     if "distill" in args.stages:
         t0 = time.perf_counter()
         result = distill_mesh(*armadillo, config=s.distill, progress=True)
-        fieldmod.save_field(out / "fields" / f"{name}.npz", result.field, result.meta)
+        fieldmod.save_field(out / "fields" / f"{name}.field", result.field, result.meta)
         summary["distill_seconds"] = {k: round(float(x), 3) for k, x in result.timings.items()}
         summary["distill_mesh"] = {
             "name": name,

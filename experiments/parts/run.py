@@ -3,7 +3,7 @@
     python -m experiments.parts.run [--data ../shared/data] [--out out/experiments/parts] [--datasets ...]
 
 For each data set: Algorithm 1 (``jaxdeform.parts.hierarchy.fit``) with the library defaults; parts per stage,
-AECM iterations per stage, reconstruction RMSE and seconds; the run folder (model.npz, summary.json), the
+AECM iterations per stage, reconstruction RMSE and seconds; the run folder (model, summary.json), the
 segmentation, error and reconstruction figures, and an interpolation strip between two shapes with the joint
 gaps. Then, in the same process, Dem Bones (py-dem-bones, optional: ``pip install py-dem-bones==0.13.1``) with
 one influence per vertex and as many bones as we found parts, on the same shapes. Everything lands in

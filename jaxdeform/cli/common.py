@@ -134,6 +134,23 @@ def check_out_folder(out: Path, force: bool, inputs: Sequence[str | os.PathLike]
         raise FileExistsError(f"--out {out} exists and is not empty; use --force to replace it.")
 
 
+def check_out_checkpoint(out: Path, inputs: Sequence[str | os.PathLike], what: str, key: str = "record") -> None:
+    """An output checkpoint (a folder, :mod:`jaxdeform.nn.archive`) must be new or a checkpoint of the same kind
+    (replaced whole), and neither one of ``inputs`` nor a folder holding one."""
+    from jaxdeform.nn.archive import is_checkpoint
+
+    target = out.resolve()
+    for p in inputs:
+        src = Path(p).resolve()
+        if src == target or target in src.parents:
+            raise ValueError(f"--out {out} would replace the input {p}; write the output elsewhere.")
+    blocking = next((p for p in out.parents if p.exists() and not p.is_dir()), None)
+    if blocking is not None:
+        raise NotADirectoryError(f"--out {out} cannot be created: {blocking} is a file, not a folder.")
+    if (out.exists() or out.is_symlink()) and not is_checkpoint(out, key):
+        raise FileExistsError(f"--out {out} exists and is not a {what} to replace; give a new path.")
+
+
 def check_out_file(
     out: Path,
     suffixes: Sequence[str],

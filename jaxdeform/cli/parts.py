@@ -1,8 +1,8 @@
 """``jaxdeform parts fit|interpolate|show``: rigid parts of a shape population (:mod:`jaxdeform.parts`).
 
-``fit DATA... --out RUN`` writes ``RUN/summary.json`` and ``RUN/model.npz``; ``interpolate RUN --source A
---target B --out DIR`` writes OBJ frames, ``strip.png`` and ``gaps.json``; ``show RUN --out DIR`` writes
-``segmentation.png``, ``error.png`` and ``reconstruction.png``. Output folders are built beside ``--out`` and
+``fit DATA... --out RUN`` writes ``RUN/summary.json`` and ``RUN/model`` (an orbax checkpoint folder);
+``interpolate RUN --source A --target B --out DIR`` writes OBJ frames, ``strip.png`` and ``gaps.json``; ``show RUN
+--out DIR`` writes ``segmentation.png``, ``error.png`` and ``reconstruction.png``. Output folders are built beside ``--out`` and
 renamed at the end.
 """
 
@@ -45,7 +45,7 @@ def cmd_parts_fit(args: argparse.Namespace) -> int:
     print(
         f"{info['parts']} parts from {vertices.shape[0]} shapes x {vertices.shape[1]} vertices in "
         f"{info['seconds']:.1f} s (AECM iterations {info['iterations']}); rmse {info['rmse']:.4g} "
-        f"({info['rmse_over_diagonal']:.2e} of the bbox diagonal); wrote {out}/summary.json, {out}/model.npz"
+        f"({info['rmse_over_diagonal']:.2e} of the bbox diagonal); wrote {out}/summary.json, {out}/model"
     )
     return 0
 
@@ -139,7 +139,7 @@ def register(sub) -> None:
     pfit = parts_sub.add_parser(
         "fit",
         help="Fit the hierarchy of part analyzers to shapes sharing one connectivity.",
-        description="Fit Algorithm 1 and write RUN/summary.json and RUN/model.npz.",
+        description="Fit Algorithm 1 and write RUN/summary.json and RUN/model (orbax).",
     )
     pfit.add_argument("data", nargs="+", metavar="DATA", help="mesh files or folders of them (at least 2 shapes)")
     common.add_out(pfit, "RUN", "run folder to create")

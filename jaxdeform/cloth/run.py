@@ -1,9 +1,9 @@
 """Seed 002 end to end: generate paired data, train a detail model, synthesise fine cloth, evaluate, time.
 
-A RUN folder holds ``model.npz`` (:func:`jaxdeform.cloth.train.save_model`), ``representation.npz`` (the
-representation kind, rest meshes and feature scalings fitted on the training sequences) and ``run.json``
-(the dataset it was trained on, its split, the configurations and the training record). Files are written
-atomically and ``run.json`` last.
+A RUN folder holds ``model/`` (an orbax checkpoint folder, :func:`jaxdeform.cloth.train.save_model`),
+``representation.npz`` (the representation kind, rest meshes and feature scalings fitted on the training
+sequences) and ``run.json`` (the dataset it was trained on, its split, the configurations and the training
+record). Each is written atomically, ``run.json`` last.
 
 Synthesis of a coarse sequence (Fig. 2): coarse frames -> representation (TS-ACAP by default, scaled) ->
 autoregressive model -> fine features -> positions (ACAP least squares, placed on the coarse centroid) ->
@@ -315,11 +315,12 @@ def _thickness(ds: cdata.ClothDataset) -> float:
 
 
 #: the files of a run folder (what :func:`load_run` reads)
-RUN_FILES = ("model.npz", "representation.npz", "run.json")
+RUN_FILES = ("model", "representation.npz", "run.json")
 
 
 def save_run(run: Run, root: str | Path) -> Path:
-    """Write the run into the folder ``root`` (created if needed): model.npz, representation.npz and run.json.
+    """Write the run into the folder ``root`` (created if needed): model (a checkpoint folder), representation.npz
+    and run.json.
 
     **Arguments:**
 
@@ -334,7 +335,7 @@ def save_run(run: Run, root: str | Path) -> Path:
 
     root = Path(root)
     root.mkdir(parents=True, exist_ok=True)
-    ctrain.save_model(root / "model.npz", run.model, {"representation": run.rep.kind})
+    ctrain.save_model(root / "model", run.model, {"representation": run.rep.kind})
     with atomic_path(root / "representation.npz") as tmp, open(tmp, "wb") as fh:
         np.savez(fh, **run.rep.to_arrays())
     with atomic_path(root / "run.json") as tmp:
@@ -357,7 +358,7 @@ def load_run(root: str | Path) -> Run:
     **Raises:**
 
     ``JaxDeformError`` if run.json is missing, not JSON or not a cloth run record, its split or thickness is
-    invalid, or representation.npz is not a cloth feature representation.
+    invalid, model is not a cloth model checkpoint, or representation.npz is not a cloth feature representation.
     """
     from jaxdeform.cloth import train as ctrain
 
@@ -375,7 +376,7 @@ def load_run(root: str | Path) -> Run:
     thickness = record.get("thickness", 0.005)
     if isinstance(thickness, bool) or not isinstance(thickness, (int, float)) or not 0 <= thickness < float("inf"):
         raise JaxDeformError(f"{path}: its 'thickness' must be a finite number >= 0, got {thickness!r}.")
-    model, _ = ctrain.load_model(root / "model.npz")
+    model, _ = ctrain.load_model(root / "model")
     rep_path = root / "representation.npz"
     arrays = read_npz_arrays(rep_path)
     try:

@@ -58,8 +58,9 @@ length reuse one compilation. Kind "none" has no recurrence: frames are decoded 
 
 :func:`predict_windows` is the jitted teacher-forced forward pass (evaluation of windows, tests).
 
-Persistence: :func:`save_model` writes one .npz (parameters, the padded one-rings of both meshes, the JSON
-configuration and caller metadata) atomically; :func:`load_model` rebuilds the model from it alone.
+Persistence: :func:`save_model` writes one orbax checkpoint folder (:mod:`jaxdeform.nn.archive`: parameters, the
+padded one-rings of both meshes, the JSON configuration and caller metadata) atomically; :func:`load_model`
+rebuilds the model from it alone.
 """
 
 from __future__ import annotations
@@ -690,7 +691,7 @@ def save_model(path: str | os.PathLike, model: DetailModel, meta: dict | None = 
 
     **Arguments:**
 
-    - ``path``: the file to write.
+    - ``path``: the checkpoint folder to write (replaced if it exists).
     - ``model``: the detail model.
     - ``meta``: JSON-serialisable metadata stored with it (default None: empty).
 
@@ -721,7 +722,7 @@ def load_model(path: str | os.PathLike) -> tuple[DetailModel, dict]:
 
     **Arguments:**
 
-    - ``path``: the model file.
+    - ``path``: the model's checkpoint folder.
 
     **Returns:**
 
@@ -729,7 +730,7 @@ def load_model(path: str | os.PathLike) -> tuple[DetailModel, dict]:
 
     **Raises:**
 
-    ``JaxDeformError`` for any other file.
+    ``JaxDeformError`` for a missing path or anything but a cloth model checkpoint (damaged included).
     """
     record, arrays = read_archive(path, "cloth model", FORMAT, FORMAT_VERSION)
     try:
@@ -737,7 +738,7 @@ def load_model(path: str | os.PathLike) -> tuple[DetailModel, dict]:
         rings = [Rings(*(arrays[f"rings:{name}:{f}"] for f in Rings._fields)) for name in ("coarse", "fine")]
         model = new_model(rings[0], rings[1], config, arrays.get("upsample"))
     except (KeyError, ValueError, TypeError) as exc:
-        raise JaxDeformError(f"{path}: not a jaxdeform cloth model file ({type(exc).__name__}: {exc}).") from None
+        raise JaxDeformError(f"{path}: not a jaxdeform cloth model checkpoint ({type(exc).__name__}: {exc}).") from None
     load_state(path, model, arrays, nnx.Param)
     model.eval()
     return model, dict(record.get("meta", {}))

@@ -58,14 +58,14 @@ use geodesic distances in those units; the multiscale paper (and :mod:`jaxdeform
 the largest distance instead: which normalization to use is the caller's choice.
 
 Fitting runs in NumPy/SciPy (float64) on the host; :func:`decode`, :func:`project` and :func:`reconstruct`
-are pure JAX. :func:`save` / :func:`load` use an .npz archive written atomically.
+are pure JAX. :func:`save` / :func:`load` use an orbax checkpoint folder (:mod:`jaxdeform.nn.archive`), written
+atomically.
 """
 
 from __future__ import annotations
 
 import dataclasses
 import os
-import zipfile
 from collections.abc import Callable
 from pathlib import Path
 from typing import NamedTuple
@@ -77,11 +77,11 @@ import scipy.linalg as sla
 from jaxtyping import Array, Float, Int
 
 from jaxdeform.errors import ConnectivityError, JaxDeformError, MeshFormatError
-from jaxdeform.mesh.io import atomic_path
 
 #: Channels per vertex of each domain.
 DOMAINS = {"acap": 9, "xyz": 3}
-#: Version written into saved models.
+#: Format and version written into saved models' records.
+FORMAT = "jaxdeform-linear-model"
 FORMAT_VERSION = 1
 #: Relative singular-value cut-off of the pseudo-inverse in :func:`project`, in units of the dtype's eps.
 PINV_RTOL_EPS = 1000.0
@@ -234,28 +234,28 @@ def reconstruct(model: LinearModel, data: Float[Array, "b v c"]) -> Float[Array,
 
 
 def save(model: LinearModel, path: str | os.PathLike) -> None:
-    """Write the model to an .npz archive atomically (temporary file, then rename).
+    """Write the model as an orbax checkpoint folder (:func:`jaxdeform.nn.archive.save_tree`), atomically.
 
     **Arguments:**
 
     - ``model``: the linear model.
-    - ``path``: the archive.
+    - ``path``: the checkpoint folder (replaced if it exists).
 
     **Returns:**
 
     Nothing.
     """
-    path = Path(path)
-    arrays = dict(
-        format_version=np.asarray(FORMAT_VERSION),
-        mean=np.asarray(model.mean),
-        components=np.asarray(model.components),
-        scale=np.asarray(float(model.scale)),
-        domain=np.asarray(model.domain),
-        method=np.asarray(model.method),
-    )
-    with atomic_path(path) as tmp, open(tmp, "wb") as fh:
-        np.savez(fh, **arrays)
+    from jaxdeform.nn.archive import save_tree
+
+    arrays = {"mean": np.asarray(model.mean), "components": np.asarray(model.components)}
+    record = {
+        "format": FORMAT,
+        "version": FORMAT_VERSION,
+        "scale": float(model.scale),
+        "domain": str(model.domain),
+        "method": str(model.method),
+    }
+    save_tree(path, arrays, record)
 
 
 def load(path: str | os.PathLike) -> LinearModel:
@@ -263,7 +263,7 @@ def load(path: str | os.PathLike) -> LinearModel:
 
     **Arguments:**
 
-    - ``path``: the archive.
+    - ``path``: the checkpoint folder.
 
     **Returns:**
 
@@ -271,30 +271,32 @@ def load(path: str | os.PathLike) -> LinearModel:
 
     **Raises:**
 
-    ``FileNotFoundError`` for a missing file; ``MeshFormatError`` for a file that is not a linear model archive (or
-    holds NaN, infinite or non-positive values where they are not allowed).
+    ``FileNotFoundError`` for a missing path; ``MeshFormatError`` for anything but a linear model checkpoint
+    (damaged included, or one holding NaN, infinite or non-positive values where they are not allowed).
     """
+    from jaxdeform.nn.archive import read_tree
+
     path = Path(path)
-    try:
-        with np.load(path, allow_pickle=False) as z:
-            arrays = {k: z[k] for k in z.files}
-    except FileNotFoundError:
-        raise
-    except (OSError, ValueError, zipfile.BadZipFile) as exc:
-        raise MeshFormatError(f"{path}: not a readable .npz model archive ({type(exc).__name__}).") from None
-    for key in ("mean", "components", "scale", "domain", "method"):
+    if not path.exists():
+        raise FileNotFoundError(f"{path}: no such linear model checkpoint.")
+    record, arrays = read_tree(path, "linear model", FORMAT, FORMAT_VERSION, error=MeshFormatError)
+    for key in ("mean", "components"):
         if key not in arrays:
-            raise MeshFormatError(f"{path}: the array '{key}' is missing; not a linear model archive.")
+            raise MeshFormatError(f"{path}: the array '{key}' is missing; not a linear model checkpoint.")
     mean, comps = arrays["mean"], arrays["components"]
-    domain, method = str(arrays["domain"]), str(arrays["method"])
+    domain, method, scale = record.get("domain"), record.get("method"), record.get("scale")
     if domain not in DOMAINS:
         raise MeshFormatError(f"{path}: domain is {domain!r}; expected one of {', '.join(DOMAINS)}.")
+    if not isinstance(method, str) or isinstance(scale, bool) or not isinstance(scale, (int, float)):
+        raise MeshFormatError(f"{path}: its record needs a text 'method' and a number 'scale'.")
     c = DOMAINS[domain]
     if mean.ndim != 2 or mean.shape[1] != c or comps.ndim != 3 or comps.shape[1:] != mean.shape:
         raise MeshFormatError(
             f"{path}: mean {mean.shape} and components {comps.shape} are not (V, {c}) and (K, V, {c})."
         )
-    scale = float(arrays["scale"])
+    if mean.dtype.kind != "f" or comps.dtype.kind != "f":
+        raise MeshFormatError(f"{path}: mean and components must be float arrays.")
+    scale = float(scale)
     if not (np.all(np.isfinite(mean)) and np.all(np.isfinite(comps)) and np.isfinite(scale) and scale > 0):
         raise MeshFormatError(f"{path}: the model holds NaN, infinite or non-positive values.")
     return LinearModel(jnp.asarray(mean), jnp.asarray(comps), scale, domain, method)

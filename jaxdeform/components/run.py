@@ -9,7 +9,7 @@ A run folder holds everything needed to evaluate, show or edit it later:
     params/      orbax checkpoints of the autoencoder methods (multiscale, tan); the newest is the result
     history.npy  loss per epoch (autoencoder methods)
     codes.npz    latent codes of the training shapes (per level; "weights" of the linear baselines)
-    model.npz    the LinearModel of the linear baselines (pca, pca-xyz, splocs)
+    model/       orbax checkpoint of the LinearModel of the linear baselines (pca, pca-xyz, splocs)
 
 Methods: ``multiscale`` (seed 000), ``tan`` (Tan et al. 2018: one level, 50 components, clipped-linear
 sparsity mask 0.2-0.4, loss weights 1 / 0.5 / 0.5 as in their public code, 2000 full-batch epochs), ``pca``
@@ -409,7 +409,7 @@ def _fit_autoencoder(out, record, method, config, x, rest, faces, dist, cfg, tc,
 
 def _fit_linear(out, record, method, config, x, vertices, train_idx, rest, faces) -> dict:
     """Fit the linear baseline ``method`` ("pca" on the ACAP features ``x``; "pca-xyz" or "splocs" on the
-    training positions) with ``N_LINEAR[config]`` components and save it as out/model.npz.
+    training positions) with ``N_LINEAR[config]`` components and save it as out/model (a checkpoint folder).
 
     Adds ``fit_s`` to ``record["timing"]``. Returns the training codes, ``{"weights": (n, k)}``.
     """
@@ -423,7 +423,7 @@ def _fit_linear(out, record, method, config, x, vertices, train_idx, rest, faces
         rows = lambda idx: geodesic.geodesic_distances(rest, faces, idx, normalize=False)  # noqa: E731
         diameter = _diameter(rest, faces)
         lin = baselines.fit_splocs(vertices[train_idx], lambda idx: rows(idx) / diameter, k)
-    baselines.save(lin, out / "model.npz")
+    baselines.save(lin, out / "model")
     train_data = x if method == "pca" else vertices[train_idx]
     codes = {"weights": np.asarray(baselines.project(lin, jnp.asarray(train_data)))}
     record["timing"]["fit_s"] = round(time.perf_counter() - t1, 3)
@@ -575,7 +575,7 @@ class Run:
 
 
 #: the files and folders of a run (the module docstring); outputs written into a run folder must not take these names
-RUN_FILES = ("run.json", "mesh.npz", "params", "history.npy", "codes.npz", "model.npz")
+RUN_FILES = ("run.json", "mesh.npz", "params", "history.npy", "codes.npz", "model")
 #: what every run.json holds (load and evaluate read these)
 RECORD_KEYS = ("method", "n_shapes", "n_vertices", "split", "data")
 
@@ -624,7 +624,7 @@ def load(path) -> Run:
 
     **Raises:**
 
-    ``RunError`` if run.json, mesh.npz or (linear baselines) model.npz is missing or the record is not a components
+    ``RunError`` if run.json, mesh.npz or (linear baselines) model is missing or the record is not a components
     run's.
     """
     path = Path(path)
@@ -640,9 +640,9 @@ def load(path) -> Run:
         like = model.init(jax.random.PRNGKey(0), record["n_vertices"], cfg, dtype)
         params = train.load_params(path / "params", like)
     else:
-        if not (path / "model.npz").is_file():
-            raise RunError(f"{path}: model.npz is missing.")
-        linear = baselines.load(path / "model.npz")
+        if not (path / "model").exists():
+            raise RunError(f"{path}: model is missing.")
+        linear = baselines.load(path / "model")
     turns = np.asarray(arrays["turn_reference"]) if "turn_reference" in arrays else None
     return Run(
         path, record, np.asarray(arrays["rest"]), np.asarray(arrays["faces"]), scaler, cfg, params, linear, turns

@@ -46,9 +46,10 @@ is the floor of eq. (3) for these features: the unit targets of one surface poin
 pixels of different views whose points lie within 0.1 units, 1e-3 of the mesh size, give E||z1 - z2||^2 / 2 = 1 -
 ||E z||^2 = 0.262), and the best any field can do there is 2 - 2 ||E z|| = 0.28.
 
-Persistence. :func:`save_field` writes an ``.npz`` (parameter arrays by their path in the module + a JSON
-``meta`` record: format, feature size, bounding box, configuration, and the caller's mesh size and backbone
-name) through an atomic rename; :func:`load_field` rebuilds the module and checks every array's shape.
+Persistence. :func:`save_field` writes an orbax checkpoint folder (:mod:`jaxdeform.nn.archive`: parameter arrays
+by their path in the module + a JSON ``meta`` record: format, feature size, bounding box, configuration, and the
+caller's mesh size and backbone name) through an atomic rename; :func:`load_field` rebuilds the module and checks
+every array's shape.
 """
 
 from __future__ import annotations
@@ -446,7 +447,7 @@ def save_field(path: str | os.PathLike, field: FeatureField, meta: dict) -> Path
 
     **Arguments:**
 
-    - ``path``: the file to write.
+    - ``path``: the checkpoint folder to write (replaced if it exists).
     - ``field``: the feature field.
     - ``meta``: JSON-serialisable; must hold n_vertices, n_faces and backbone.
 
@@ -477,7 +478,7 @@ def load_field(path: str | os.PathLike) -> tuple[FeatureField, dict]:
 
     **Arguments:**
 
-    - ``path``: the field file.
+    - ``path``: the field's checkpoint folder.
 
     **Returns:**
 
@@ -485,7 +486,7 @@ def load_field(path: str | os.PathLike) -> tuple[FeatureField, dict]:
 
     **Raises:**
 
-    ``JaxDeformError`` for any other file.
+    ``JaxDeformError`` for a missing path or anything but a feature-field checkpoint (damaged included).
     """
     meta, arrays = read_archive(path, "feature-field", FORMAT, FORMAT_VERSION, key="meta")
     try:
@@ -493,7 +494,9 @@ def load_field(path: str | os.PathLike) -> tuple[FeatureField, dict]:
         lo, hi = meta["bbox"]
         field = new_field(int(meta["features"]), lo, hi, config)
     except (KeyError, ValueError, TypeError) as exc:
-        raise JaxDeformError(f"{path}: not a jaxdeform feature-field file ({type(exc).__name__}: {exc}).") from None
+        raise JaxDeformError(
+            f"{path}: not a jaxdeform feature-field checkpoint ({type(exc).__name__}: {exc})."
+        ) from None
     for key in ("n_vertices", "n_faces"):
         if key in meta and not (isinstance(meta[key], int) and not isinstance(meta[key], bool) and meta[key] > 0):
             raise JaxDeformError(f"{path}: its record's '{key}' must be a positive whole number, got {meta[key]!r}.")

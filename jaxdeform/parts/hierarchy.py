@@ -30,7 +30,7 @@ import scipy.sparse as sp
 from scipy.sparse import csgraph
 
 from jaxdeform.errors import DegenerateMeshError, MeshFormatError
-from jaxdeform.mesh.io import atomic_path, read_npz_arrays
+from jaxdeform.mesh.io import atomic_path
 from jaxdeform.mesh.topology import unique_edges, validate_faces
 from jaxdeform.parts import mfa
 from jaxdeform.parts.mfa import MFA
@@ -429,9 +429,9 @@ def summary(fit_: PartsFit, vertices: np.ndarray) -> dict:
 
 
 def save_run(path, fit_: PartsFit, vertices: np.ndarray, faces: np.ndarray, extra: dict | None = None) -> dict:
-    """Write RUN/model.npz (parameters, labels, latent, shapes, faces) and RUN/summary.json.
+    """Write RUN/model (an orbax checkpoint folder: parameters, labels, latent, shapes, faces) and RUN/summary.json.
 
-    Files are written under temporary names and renamed, so an interrupted run leaves no half-written file.
+    Both are written under temporary names and renamed, so an interrupted run leaves nothing half-written.
 
     **Arguments:**
 
@@ -444,6 +444,8 @@ def save_run(path, fit_: PartsFit, vertices: np.ndarray, faces: np.ndarray, extr
 
     The summary written (:func:`summary`, ``extra`` and the stages).
     """
+    from jaxdeform.nn.archive import save_tree
+
     path = Path(path)
     path.mkdir(parents=True, exist_ok=True)
     p = fit_.params
@@ -459,8 +461,8 @@ def save_run(path, fit_: PartsFit, vertices: np.ndarray, faces: np.ndarray, extr
         "faces": faces,
         "reconstruction": fit_.reconstruction,
     }
-    with atomic_path(path / "model.npz") as tmp:
-        np.savez_compressed(tmp, **{k: np.asarray(v) for k, v in arrays.items()})
+    record = {"format": MODEL_FORMAT, "version": MODEL_VERSION}
+    save_tree(path / "model", {k: np.asarray(v) for k, v in arrays.items()}, record)
     info = summary(fit_, vertices) | (extra or {})
     info["stages"] = fit_.stages
     with atomic_path(path / "summary.json") as tmp:
@@ -468,7 +470,23 @@ def save_run(path, fit_: PartsFit, vertices: np.ndarray, faces: np.ndarray, extr
     return info
 
 
+#: the record of a parts model checkpoint (RUN/model)
+MODEL_FORMAT = "jaxdeform-parts-model"
+MODEL_VERSION = 1
 _RUN_ARRAYS = ("log_pi", "mu", "rot", "d", "sigma2", "labels", "latent", "vertices", "faces", "reconstruction")
+
+
+def _read_summary(path: Path) -> dict:
+    """The run's summary.json as a dict ({} where there is none), or one :class:`MeshFormatError` sentence."""
+    if not path.is_file():
+        return {}
+    try:
+        info = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError):
+        raise MeshFormatError(f"{path}: not valid JSON.") from None
+    if not isinstance(info, dict):
+        raise MeshFormatError(f"{path}: not a parts-run summary (a JSON object).")
+    return info
 
 
 def load_run(path) -> tuple[PartsFit, np.ndarray, np.ndarray]:
@@ -484,13 +502,16 @@ def load_run(path) -> tuple[PartsFit, np.ndarray, np.ndarray]:
 
     **Raises:**
 
-    ``FileNotFoundError`` if model.npz is missing; a damaged run gets one :class:`MeshFormatError` sentence.
+    ``FileNotFoundError`` if the model checkpoint is missing; a damaged run gets one :class:`MeshFormatError`
+    sentence.
     """
+    from jaxdeform.nn.archive import read_tree
+
     path = Path(path)
-    model = path / "model.npz"
-    if not model.is_file():
+    model = path / "model"
+    if not model.exists():
         raise FileNotFoundError(f"{path} is not a parts run: {model.name} is missing.")
-    a = read_npz_arrays(model)
+    a = read_tree(model, "parts model", MODEL_FORMAT, MODEL_VERSION, error=MeshFormatError)[1]
     missing = [k for k in _RUN_ARRAYS if k not in a]
     if missing:
         raise MeshFormatError(f"{model}: not a parts model (missing {', '.join(missing)}).")
@@ -524,21 +545,8 @@ def load_run(path) -> tuple[PartsFit, np.ndarray, np.ndarray]:
     ]
     if floats:
         raise MeshFormatError(f"{model}: {', '.join(floats)} must hold finite floats.")
-    info = {}
-    if (path / "summary.json").is_file():
-        try:
-            info = json.loads((path / "summary.json").read_text())
-        except (json.JSONDecodeError, UnicodeDecodeError):
-            raise MeshFormatError(f"{path / 'summary.json'}: not valid JSON.") from None
-        if not isinstance(info, dict):
-            raise MeshFormatError(f"{path / 'summary.json'}: not a parts-run summary (a JSON object).")
-    p = MFA(
-        log_pi=jnp.asarray(a["log_pi"]),
-        mu=jnp.asarray(a["mu"]),
-        rot=jnp.asarray(a["rot"]),
-        d=jnp.asarray(a["d"]),
-        sigma2=jnp.asarray(a["sigma2"]),
-    )
+    info = _read_summary(path / "summary.json")
+    p = MFA(**{n: jnp.asarray(a[n]) for n in ("log_pi", "mu", "rot", "d", "sigma2")})
     fit_ = PartsFit(
         params=p,
         labels=a["labels"],
