@@ -13,6 +13,7 @@ from jaxdeform.mesh.io import save_mesh
 from jaxdeform.mesh.topology import unique_edges
 from jaxdeform.nn.archive import read_tree, save_tree
 from jaxdeform.parts import hierarchy, mfa
+from jaxdeform.parts import run as prun
 
 
 def _rot(axis, angle):
@@ -215,7 +216,7 @@ def test_cli_parts_show_on_a_damaged_run(tmp_path, capsys, damage):
         shutil.rmtree(model)
         model.mkdir()
     else:
-        record, arrays = read_tree(model, "parts model", hierarchy.MODEL_FORMAT, hierarchy.MODEL_VERSION)
+        record, arrays = read_tree(model, "parts model", prun.MODEL_FORMAT, prun.MODEL_VERSION)
         if damage == "missing array":
             del arrays["rot"]
         if damage == "float labels":

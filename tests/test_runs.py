@@ -137,3 +137,24 @@ def test_parts_evaluate_refuses_another_population(tmp_path):
     with pytest.raises(Exception, match="holds 3 shapes but the run was fitted to 4"):
         runs.evaluate(run, other)
     assert np.isfinite(runs.evaluate(run)["rmse"])
+
+
+def test_handles_commands_read_a_run_folder_as_the_field(tmp_path):
+    from jaxdeform.cli import main
+
+    mesh, options = _handles_data(tmp_path)
+    out = tmp_path / "run"
+    runs.fit("handles", mesh, "test", out, **options)
+    png = tmp_path / "w.png"
+    assert main(["handles", "show", str(mesh), "--field", str(out), "--handle", "3", "--out", str(png)]) == 0
+    assert png.stat().st_size > 0
+
+
+def test_parts_cli_writes_a_run_the_api_loads(tmp_path):
+    from jaxdeform.cli import main
+
+    data, _ = _parts_data(tmp_path)
+    out = tmp_path / "run"
+    assert main(["parts", "fit", str(data), "--out", str(out), "--initial-parts", "2"]) == 0
+    run = runs.load(out)
+    assert run.fit.n_parts >= 2 and runs.evaluate(run)["rmse_over_diagonal"] < 1e-4

@@ -388,8 +388,6 @@ def stage_floor(ds, s: Settings) -> dict:
 
 
 def stage_figures(out: Path, ds, s: Settings) -> list[str]:
-    from jaxdeform.mesh.render import auto_camera, caption, hstack, render, save_png
-
     run = crun.load_run(out / "runs" / ds.scenario / "ours")
     ups = upsampler(ds)
     x = ds.subset("test")[0]
@@ -398,34 +396,9 @@ def stage_figures(out: Path, ds, s: Settings) -> list[str]:
     n = x.coarse.shape[0]
     frames = np.linspace(n // 4, n - 1, s.figure_frames).astype(int)
     paths = []
-    f = ds.fine_faces
     for t in frames:
-        cam = auto_camera(np.concatenate([x.fine[t], fine[t], coarse_up[t]]), azimuth_deg=35, elevation_deg=25)
-        err = np.linalg.norm(fine[t] - x.fine[t], axis=1)
-        vmax = float(max(np.linalg.norm(coarse_up[t] - x.fine[t], axis=1).max(), err.max(), 1e-6))
-        size = s.size
-        panels = [
-            caption(render(coarse_up[t], f, camera=cam, width=size, height=size, colorbar=False), "coarse (upsampled)"),
-            caption(render(fine[t], f, camera=cam, width=size, height=size, colorbar=False), "ours"),
-            caption(render(x.fine[t], f, camera=cam, width=size, height=size, colorbar=False), "fine simulation"),
-            caption(
-                render(
-                    fine[t],
-                    f,
-                    scalar=err,
-                    camera=cam,
-                    width=size + 90,
-                    height=size,
-                    vmin=0.0,
-                    vmax=vmax,
-                    cmap="viridis",
-                    label="m",
-                ),
-                "error of ours",
-            ),
-        ]
         path = out / f"strip_{ds.scenario}_{x.name.removesuffix('.npz')}_f{t:03d}.png"
-        save_png(hstack(panels), path)
+        crun.strip_figure(coarse_up[t], fine[t], x.fine[t], ds.fine_faces, path, s.size)
         paths.append(path.name)
     return paths
 

@@ -38,7 +38,6 @@ from pathlib import Path
 
 import numpy as np
 
-import jaxdeform  # noqa: F401  (x64)
 from jaxdeform.handles import field as fieldmod
 from jaxdeform.handles import views, weights
 from jaxdeform.handles.pipeline import DistillConfig, distill_mesh

@@ -21,10 +21,9 @@ from pathlib import Path
 
 import numpy as np
 
-import jaxdeform  # noqa: F401  (x64)
-from jaxdeform.mesh import load_sequence
 from jaxdeform.mesh.io import atomic_path
 from jaxdeform.parts import figures, hierarchy, interpolate
+from jaxdeform.parts import run as prun
 
 # (data set, source, target) of the interpolation strip
 DATASETS = {"horse-poses": (0, 5), "horse-gallop": (0, 24), "cactus": (0, 10)}
@@ -53,10 +52,9 @@ def dem_bones(frames, faces, bones: int) -> dict:
 
 
 def run_one(name: str, data: Path, out: Path) -> dict:
-    frames, faces = load_sequence(data / name)
-    fit = hierarchy.fit(frames, faces, log=lambda s: print(f"  {s}", flush=True))
-    run = out / name
-    info = hierarchy.save_run(run, fit, frames, faces, extra={"data": str(data / name)})
+    result = prun.fit(data / name, "default", out / name, log=lambda s: print(f"  {s}", flush=True))
+    run, fit, frames, faces = out / name, result.fit, result.vertices, result.faces
+    info = result.record["summary"]
     err = np.sqrt(np.mean(np.sum((frames - fit.reconstruction) ** 2, axis=-1), axis=0))
     figures.segmentation_figure(frames[0], faces, fit.labels, run / "segmentation.png")
     figures.error_figure(frames[0], faces, err, run / "error.png", label="RMS reconstruction error")

@@ -64,22 +64,15 @@ def _cloth_configs(args: argparse.Namespace):
 
 def cmd_cloth_train(args: argparse.Namespace) -> int:
     from jaxdeform.cloth import data as cdata
-    from jaxdeform.cloth.run import save_run, train_run
+    from jaxdeform.cloth import run as crun
 
     out = Path(args.out)
     common.check_out_folder(out, args.force, [args.data])
     ds = cdata.load_dataset(args.data)
     mcfg, tcfg = _cloth_configs(args)
-    run = train_run(
-        ds,
-        representation=args.representation,
-        model_cfg=mcfg,
-        train_cfg=tcfg,
-        progress=not args.quiet,
-        residual=args.target == "residual",
-    )
-    with common.staged_folder(out) as tmp:
-        save_run(run, tmp)
+    config = crun.Config(mcfg, tcfg, representation=args.representation, residual=args.target == "residual")
+    with common.writing(out):
+        run = crun.fit(ds, config, out, progress=not args.quiet)
     print(
         f"trained a {args.model} on {len(ds.subset('train'))} {ds.scenario} sequences ({args.representation}) in "
         f"{run.record['train_seconds']:.1f} s, final loss {run.record['final_loss']:.5f}; wrote {out}"
@@ -91,10 +84,10 @@ def cmd_cloth_synthesize(args: argparse.Namespace) -> int:
     import numpy as np
 
     from jaxdeform.cloth import data as cdata
-    from jaxdeform.cloth.run import load_run, synthesize_timed
+    from jaxdeform.cloth.run import Run, synthesize_timed
     from jaxdeform.mesh.io import save_sequence
 
-    run = load_run(args.run)
+    run = Run.load(args.run)
     out = Path(args.out)
     common.check_out_folder(out, args.force, [args.run, args.coarse])
     src = Path(args.coarse)
@@ -120,13 +113,13 @@ def cmd_cloth_evaluate(args: argparse.Namespace) -> int:
     import json
 
     from jaxdeform.cloth import data as cdata
-    from jaxdeform.cloth.run import RUN_FILES, check_dataset, evaluate_run, load_run
+    from jaxdeform.cloth.run import RUN_FILES, Run, check_dataset, evaluate_run
 
     out = Path(args.json)
     common.check_out_file(
         out, (".json",), [args.data], "metrics", "--json", protect=[args.run] + [Path(args.run) / f for f in RUN_FILES]
     )
-    run = load_run(args.run)
+    run = Run.load(args.run)
     ds = cdata.load_dataset(args.data)
     check_dataset(run, ds, args.data, args.run)
     part = args.split

@@ -159,7 +159,12 @@ def cmd_handles_show(args: argparse.Namespace) -> int:
 def add_mesh(p: argparse.ArgumentParser, with_field: bool = True) -> None:
     p.add_argument("mesh", metavar="MESH", help="mesh file (OBJ, PLY, OFF)")
     if with_field:
-        p.add_argument("--field", required=True, metavar="FIELD", help="field written by 'handles distill'")
+        p.add_argument(
+            "--field",
+            required=True,
+            metavar="FIELD",
+            help="field written by 'handles distill', or a handles run folder",
+        )
     p.add_argument(
         "--remap",
         action="store_true",

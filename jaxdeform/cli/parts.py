@@ -1,6 +1,6 @@
 """``jaxdeform parts fit|interpolate|show``: rigid parts of a shape population (:mod:`jaxdeform.parts`).
 
-``fit DATA... --out RUN`` writes ``RUN/summary.json`` and ``RUN/model`` (an orbax checkpoint folder);
+``fit DATA... --out RUN`` writes ``RUN/run.json``, ``RUN/summary.json`` and ``RUN/model`` (orbax);
 ``interpolate RUN --source A --target B --out DIR`` writes OBJ frames, ``strip.png`` and ``gaps.json``; ``show RUN
 --out DIR`` writes ``segmentation.png``, ``error.png`` and ``reconstruction.png``. Output folders are built beside ``--out`` and
 renamed at the end.
@@ -16,8 +16,7 @@ from jaxdeform.cli import common
 
 
 def cmd_parts_fit(args: argparse.Namespace) -> int:
-    from jaxdeform.mesh.io import load_sequence
-    from jaxdeform.parts import hierarchy
+    from jaxdeform.parts import run as prun
 
     common.check_exists(args.data)
     out = Path(args.out)
@@ -26,26 +25,14 @@ def cmd_parts_fit(args: argparse.Namespace) -> int:
         raise ValueError(f"--initial-parts must be at least 1, got {args.initial_parts}.")
     if not args.threshold > 0:
         raise ValueError(f"--threshold must be positive, got {args.threshold}.")
-    vertices, faces = load_sequence(args.data if len(args.data) > 1 else args.data[0])
-    if vertices.shape[0] < 2:
-        raise ValueError(f"a parts fit needs at least 2 shapes; {' '.join(args.data)} holds {vertices.shape[0]}.")
-    if args.initial_parts > vertices.shape[1]:
-        raise ValueError(
-            f"--initial-parts {args.initial_parts} exceeds the {vertices.shape[1]} vertices of the meshes."
-        )
-    fit = hierarchy.fit(
-        vertices,
-        faces,
-        initial_parts=args.initial_parts,
-        threshold=args.threshold,
-        log=lambda line: print(line, flush=True),
-    )
-    with common.staged_folder(out) as tmp:
-        info = hierarchy.save_run(tmp, fit, vertices, faces, extra={"data": [str(d) for d in args.data]})
+    config = prun.Config(initial_parts=args.initial_parts, threshold=args.threshold)
+    with common.writing(out):
+        run = prun.fit(args.data if len(args.data) > 1 else args.data[0], config, out)
+    info = run.record["summary"]
     print(
-        f"{info['parts']} parts from {vertices.shape[0]} shapes x {vertices.shape[1]} vertices in "
+        f"{info['parts']} parts from {info['shapes']} shapes x {info['vertices']} vertices in "
         f"{info['seconds']:.1f} s (AECM iterations {info['iterations']}); rmse {info['rmse']:.4g} "
-        f"({info['rmse_over_diagonal']:.2e} of the bbox diagonal); wrote {out}/summary.json, {out}/model"
+        f"({info['rmse_over_diagonal']:.2e} of the bbox diagonal); wrote {out}/run.json, summary.json, model"
     )
     return 0
 
@@ -63,13 +50,15 @@ def cmd_parts_interpolate(args: argparse.Namespace) -> int:
 
     from jaxdeform.mesh.io import save_mesh
     from jaxdeform.parts import figures, hierarchy, interpolate
+    from jaxdeform.parts import run as prun
 
     common.check_exists([args.run])
     out = Path(args.out)
     common.check_out_folder(out, args.force, [args.run])
     if args.steps < 2:
         raise ValueError(f"--steps must be at least 2 (the two end shapes), got {args.steps}.")
-    fit, vertices, faces = hierarchy.load_run(args.run)
+    run = prun.Run.load(args.run)
+    fit, vertices, faces = run.fit, run.vertices, run.faces
     n = vertices.shape[0]
     a, b = _shape_index(args.source, n, "source"), _shape_index(args.target, n, "target")
     ts = np.linspace(0.0, 1.0, args.steps)
@@ -107,23 +96,16 @@ def cmd_parts_interpolate(args: argparse.Namespace) -> int:
 
 
 def cmd_parts_show(args: argparse.Namespace) -> int:
-    import numpy as np
-
-    from jaxdeform.parts import figures, hierarchy
+    from jaxdeform.parts import run as prun
 
     common.check_exists([args.run])
     out = Path(args.out)
     common.check_out_folder(out, args.force, [args.run])
-    fit, vertices, faces = hierarchy.load_run(args.run)
-    shape = _shape_index(args.shape, vertices.shape[0], "shape")
-    error = np.sqrt(np.mean(np.sum((vertices - fit.reconstruction) ** 2, axis=-1), axis=0))  # (V,) RMS over shapes
+    run = prun.Run.load(args.run)
+    shape = _shape_index(args.shape, run.vertices.shape[0], "shape")
     with common.staged_folder(out) as tmp:
-        figures.segmentation_figure(vertices[shape], faces, fit.labels, tmp / "segmentation.png")
-        figures.error_figure(
-            vertices[shape], faces, error, tmp / "error.png", label="RMS reconstruction error over the shapes"
-        )
-        figures.strip_figure(fit.reconstruction, faces, tmp / "reconstruction.png", labels=fit.labels)
-    print(f"{fit.n_parts} parts; wrote {out}/segmentation.png, error.png, reconstruction.png")
+        prun.show(run, tmp, shape=shape)
+    print(f"{run.fit.n_parts} parts; wrote {out}/segmentation.png, error.png, reconstruction.png")
     return 0
 
 
@@ -139,7 +121,7 @@ def register(sub) -> None:
     pfit = parts_sub.add_parser(
         "fit",
         help="Fit the hierarchy of part analyzers to shapes sharing one connectivity.",
-        description="Fit Algorithm 1 and write RUN/summary.json and RUN/model (orbax).",
+        description="Fit Algorithm 1 and write RUN/run.json, RUN/summary.json and RUN/model (orbax).",
     )
     pfit.add_argument("data", nargs="+", metavar="DATA", help="mesh files or folders of them (at least 2 shapes)")
     common.add_out(pfit, "RUN", "run folder to create")

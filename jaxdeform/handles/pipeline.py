@@ -222,7 +222,7 @@ def field_features(field_path, mesh_path, vertices, faces, remap: bool = False):
 
     **Arguments:**
 
-    - ``field_path``: the saved field.
+    - ``field_path``: the saved field, or a handles run folder (:mod:`jaxdeform.handles.run`).
     - ``mesh_path``: the mesh file (named in the error message).
     - ``vertices``, ``faces``: the mesh, ``(V, 3)`` and ``(F, 3)``.
     - ``remap``: skip the check that the field was distilled on this mesh.
@@ -237,9 +237,12 @@ def field_features(field_path, mesh_path, vertices, faces, remap: bool = False):
     another mesh.
     """
     from jaxdeform.handles.field import evaluate_field, load_field
+    from jaxdeform.handles.run import FIELD
 
     if not Path(field_path).exists():
         raise FileNotFoundError(f"{field_path}: no such file or folder.")
+    if (Path(field_path) / "run.json").is_file():  # a handles run folder: its field
+        field_path = Path(field_path) / FIELD
     fitted, meta = load_field(field_path)
     n, nf = int(meta.get("n_vertices", -1)), int(meta.get("n_faces", -1))
     if (n, nf) != (vertices.shape[0], faces.shape[0]) and not remap:

@@ -31,7 +31,7 @@ from jaxdeform.mesh.io import atomic_path, read_npz_arrays, staged_folder
 
 KIND = "handles"
 #: the field's name in a run folder
-FIELD = "field.npz"
+FIELD = "field"
 #: named configurations: the paper's distillation and a CPU-sized one (4 views at 96 px, 30 field steps)
 CONFIGS = {
     "default": DistillConfig(),

@@ -6,10 +6,10 @@ A run folder holds
                   (:func:`jaxdeform.parts.hierarchy.summary`: parts, iterations per stage, rmse, seconds)
     summary.json  the same summary with the per-stage records (parts, iterations, log-likelihoods)
     model         the fitted parameters, labels, latent images, shapes, faces and reconstruction
-                  (:func:`jaxdeform.parts.hierarchy.save_run`)
+                  (an orbax checkpoint, :func:`save_run`)
 
-The algorithm (:mod:`jaxdeform.parts.hierarchy`, :mod:`jaxdeform.parts.mfa`) holds no I/O of its own beyond
-``save_run``/``load_run``, which this module calls.
+The algorithm (:mod:`jaxdeform.parts.hierarchy`, :mod:`jaxdeform.parts.mfa`) holds no I/O; :func:`save_run` and
+:func:`load_run` read and write the fit.
 """
 
 from __future__ import annotations
@@ -20,12 +20,15 @@ import os
 from collections.abc import Callable
 from pathlib import Path
 
+import jax.numpy as jnp
 import numpy as np
 
 from jaxdeform import runs
-from jaxdeform.errors import JaxDeformError
+from jaxdeform.errors import JaxDeformError, MeshFormatError
 from jaxdeform.mesh.io import atomic_path, check_same_connectivity, load_sequence, staged_folder
+from jaxdeform.nn.archive import read_tree, save_tree
 from jaxdeform.parts import hierarchy
+from jaxdeform.parts.mfa import MFA
 
 KIND = "parts"
 
@@ -78,14 +81,143 @@ class Run:
         **Raises:**
 
         :class:`~jaxdeform.runs.RunFolderError` if ``path`` is not a run folder or is another method's;
-        one-sentence errors of :func:`jaxdeform.parts.hierarchy.load_run` for a damaged model.
+        one-sentence errors of :func:`load_run` for a damaged model.
         """
         path = Path(path)
         record = runs.read_record(path)
         if record["kind"] != KIND:
             raise runs.RunFolderError(f"{path} is a {record['kind']} run, not a parts run.")
-        fit_, vertices, faces = hierarchy.load_run(path)
+        fit_, vertices, faces = load_run(path)
         return cls(path, record, fit_, vertices, faces)
+
+
+def save_run(
+    path, fit_: hierarchy.PartsFit, vertices: np.ndarray, faces: np.ndarray, extra: dict | None = None
+) -> dict:
+    """Write RUN/model (an orbax checkpoint folder: parameters, labels, latent, shapes, faces) and RUN/summary.json.
+
+    Both are written under temporary names and renamed, so an interrupted run leaves nothing half-written.
+
+    **Arguments:**
+
+    - ``path``: the run folder (created if needed).
+    - ``fit_``: the fit.
+    - ``vertices``, ``faces``: the shapes ``(M, V, 3)`` and faces ``(F, 3)`` it was fitted to.
+    - ``extra``: more entries for the summary.
+
+    **Returns:**
+
+    The summary written (:func:`jaxdeform.parts.hierarchy.summary`, ``extra`` and the stages).
+    """
+    path = Path(path)
+    path.mkdir(parents=True, exist_ok=True)
+    p = fit_.params
+    arrays = {
+        "log_pi": p.log_pi,
+        "mu": p.mu,
+        "rot": p.rot,
+        "d": p.d,
+        "sigma2": p.sigma2,
+        "labels": fit_.labels,
+        "latent": fit_.latent,
+        "vertices": vertices,
+        "faces": faces,
+        "reconstruction": fit_.reconstruction,
+    }
+    record = {"format": MODEL_FORMAT, "version": MODEL_VERSION}
+    save_tree(path / "model", {k: np.asarray(v) for k, v in arrays.items()}, record)
+    info = hierarchy.summary(fit_, vertices) | (extra or {})
+    info["stages"] = fit_.stages
+    with atomic_path(path / "summary.json") as tmp:
+        tmp.write_text(json.dumps(info, indent=2))
+    return info
+
+
+#: the record of a parts model checkpoint (RUN/model)
+MODEL_FORMAT = "jaxdeform-parts-model"
+MODEL_VERSION = 1
+_RUN_ARRAYS = ("log_pi", "mu", "rot", "d", "sigma2", "labels", "latent", "vertices", "faces", "reconstruction")
+
+
+def _read_summary(path: Path) -> dict:
+    """The run's summary.json as a dict ({} where there is none), or one :class:`MeshFormatError` sentence."""
+    if not path.is_file():
+        return {}
+    try:
+        info = json.loads(path.read_text())
+    except (json.JSONDecodeError, UnicodeDecodeError):
+        raise MeshFormatError(f"{path}: not valid JSON.") from None
+    if not isinstance(info, dict):
+        raise MeshFormatError(f"{path}: not a parts-run summary (a JSON object).")
+    return info
+
+
+def load_run(path) -> tuple[hierarchy.PartsFit, np.ndarray, np.ndarray]:
+    """The fit, shapes and faces of a run folder written by :func:`save_run`.
+
+    **Arguments:**
+
+    - ``path``: the run folder.
+
+    **Returns:**
+
+    ``(fit, vertices (M, V, 3), faces)``.
+
+    **Raises:**
+
+    ``FileNotFoundError`` if the model checkpoint is missing; a damaged run gets one :class:`MeshFormatError`
+    sentence.
+    """
+    path = Path(path)
+    model = path / "model"
+    if not model.exists():
+        raise FileNotFoundError(f"{path} is not a parts run: {model.name} is missing.")
+    a = read_tree(model, "parts model", MODEL_FORMAT, MODEL_VERSION, error=MeshFormatError)[1]
+    missing = [k for k in _RUN_ARRAYS if k not in a]
+    if missing:
+        raise MeshFormatError(f"{model}: not a parts model (missing {', '.join(missing)}).")
+    k = a["log_pi"].shape[0] if a["log_pi"].ndim == 1 else -1
+    m, v = a["vertices"].shape[:2] if a["vertices"].ndim == 3 else (-1, -1)
+    shapes = {
+        "mu": (k, m, 3),
+        "rot": (k, m, 3, 3),
+        "d": (k, 3),
+        "sigma2": (k,),
+        "labels": (v,),
+        "latent": (v, 3),
+        "vertices": (m, v, 3),
+        "reconstruction": (m, v, 3),
+    }
+    bad = [n for n, s in shapes.items() if a[n].shape != s or -1 in s]
+    if bad or a["faces"].ndim != 2 or a["faces"].shape[1] != 3:
+        raise MeshFormatError(f"{model}: inconsistent array shapes ({', '.join(bad) or 'faces'}).")
+    if a["labels"].dtype.kind not in "iu" or a["faces"].dtype.kind not in "iu":
+        raise MeshFormatError(
+            f"{model}: labels and faces must be integer arrays, got {a['labels'].dtype} and {a['faces'].dtype}."
+        )
+    if a["labels"].min() < 0 or a["labels"].max() >= k:
+        raise MeshFormatError(f"{model}: labels outside the model's {k} parts.")
+    if a["faces"].size == 0 or a["faces"].min() < 0 or a["faces"].max() >= v:
+        raise MeshFormatError(f"{model}: faces index vertices outside the model's {v}.")
+    floats = [
+        n
+        for n in ("log_pi", "mu", "rot", "d", "sigma2", "latent", "vertices", "reconstruction")
+        if a[n].dtype.kind != "f" or not np.all(np.isfinite(a[n]))
+    ]
+    if floats:
+        raise MeshFormatError(f"{model}: {', '.join(floats)} must hold finite floats.")
+    info = _read_summary(path / "summary.json")
+    p = MFA(**{n: jnp.asarray(a[n]) for n in ("log_pi", "mu", "rot", "d", "sigma2")})
+    fit_ = hierarchy.PartsFit(
+        params=p,
+        labels=a["labels"],
+        latent=a["latent"],
+        reconstruction=a["reconstruction"],
+        stages=info.get("stages", []),
+        seconds=float(info.get("seconds", 0.0)),
+        disconnected_parts=list(info.get("disconnected_parts", [])),
+    )
+    return fit_, a["vertices"], a["faces"]
 
 
 def _config(config: str | Config) -> Config:
@@ -161,7 +293,7 @@ def fit(
     if out is not None:
         out = Path(out)
         with staged_folder(out) as tmp:
-            hierarchy.save_run(tmp, fit_, vertices, faces, extra={"data": record["data"]})
+            save_run(tmp, fit_, vertices, faces, extra={"data": record["data"]})
             with atomic_path(tmp / runs.RECORD) as t:
                 t.write_text(json.dumps(record, indent=1) + "\n")
         run.path = out
