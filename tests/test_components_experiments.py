@@ -411,14 +411,14 @@ def test_projection_fits_codes_back_to_a_decoder_output():
     verts, faces = bending_tube_sequence(n_frames=2, n_around=8, n_along=12)
     rings = rings_from_topology(build_topology(faces, verts.shape[1]))
     config = model.Config(kz=(3, 2), d=(0.5, 0.3))
-    params = model.init(jax.random.PRNGKey(0), verts.shape[1], config, jnp.float32)
+    params = model.Model(verts.shape[1], config, key=jax.random.PRNGKey(0), dtype=jnp.float32)
     keys = jax.random.split(jax.random.PRNGKey(1), 4)
     # codes per level: (blocks, shapes, kz)
     target = (jax.random.normal(keys[0], (1, 2, 3), jnp.float32), jax.random.normal(keys[1], (3, 2, 2), jnp.float32))
-    x = model.decode_latents(params, target, rings)
+    x = params.decode_latents(target, rings)
     start = tuple(t + 0.5 * jax.random.normal(k, t.shape, jnp.float32) for t, k in zip(target, keys[2:]))
     codes, losses = fit_codes(params, rings, x, start, steps=400, lr=0.02)
-    final = float(jnp.sum((model.decode_latents(params, codes, rings) - x) ** 2))
+    final = float(jnp.sum((params.decode_latents(codes, rings) - x) ** 2))
     assert losses.shape == (400,) and losses[0] > 0
     assert final < 1e-3 * losses[0]
 
@@ -454,12 +454,12 @@ def test_projection_in_positions_finds_a_decodable_shape_again(tmp_path):
     run = crun.load(tmp_path / "run")
     vertices, faces = crun.run_data(run, data)
     rings = rings_from_topology(build_topology(faces, run.rest.shape[0]))
-    codes = model.encode(run.params, crun.scaled_features(run, vertices[run.test_idx][:2]), rings, run.config)
-    features = run.scaler.inverse(model.decode_latents(run.params, codes, rings)).astype(jnp.float64)
+    codes = model.encode(run.model, crun.scaled_features(run, vertices[run.test_idx][:2]), rings, run.config)
+    features = run.scaler.inverse(run.model.decode_latents(codes, rings)).astype(jnp.float64)
     target = np.asarray(acap.cached(run.rest, run.faces).decode(features, refine=0)) + np.array([0.3, -0.2, 0.1])
     keys = jax.random.split(jax.random.PRNGKey(2), len(codes))
     start = tuple(c + 0.3 * jax.random.normal(k, c.shape, c.dtype) for c, k in zip(codes, keys))
-    _, losses = projection.fit_positions(run.params, rings, run, target, start, iterations=200)
+    _, losses = projection.fit_positions(run.model, rings, run, target, start, iterations=200)
     assert losses[-1] < 1e-3 * losses[0], (losses[0], losses[-1])
     result = projection.main([str(tmp_path / "run"), "--space", "positions", "--steps", "2"])
     assert result["space"] == "positions" and result["fitted"]["erms"] <= result["encoder"]["erms"] * 1.0001
@@ -586,7 +586,7 @@ def test_reference_variants_are_model_options():
         model.Config(init="uniform")
     with pytest.raises(ValueError, match="init_std"):
         model.Config(init="normal", init_std=0.0)
-    plain = model.init(key, n, base)
+    plain = model.Model(n, base, key=key)
 
     # init: the Glorot draw's weights redrawn from N(0, 0.02^2), one key of split(key) per array in pytree order
     # (the draw of the earlier runs in results/reference_variants.jsonl); the biases stay zero
@@ -599,7 +599,7 @@ def test_reference_variants_are_model_options():
 
     # tie: no decoder weights of its own; the decoders read their encoders' (the bias their own)
     tie = rv.variant_config(base, "tie")
-    tied = model.init(key, n, tie)
+    tied = model.Model(n, tie, key=key)
     assert all(set(p["conv_dec"]) == {"b"} for p in tied)
     for p, q in zip(tied, plain):  # the other arrays are the untied model's
         np.testing.assert_array_equal(p["C"], q["C"])
@@ -616,9 +616,9 @@ def test_reference_variants_are_model_options():
         for p in tied
     )
     np.testing.assert_allclose(
-        train.reconstruct(tied, x, rings, tie), train.reconstruct(untied, x, rings, base), rtol=1e-6, atol=1e-7
+        train.reconstruct(tied, x, rings), train.reconstruct(untied, x, rings), rtol=1e-6, atol=1e-7
     )
-    loss = lambda q, cfg: model.forward(q, x, rings, dist, cfg).loss  # noqa: E731  (the training path)
+    loss = lambda q, cfg: model.forward_levels(tuple(q.levels), x, rings, dist, cfg).loss  # noqa: E731  (the training path)
     assert loss(tied, tie) == pytest.approx(float(loss(untied, base)), rel=1e-6)
     g_tied, g_untied = jax.grad(lambda q: loss(q, tie))(tied), jax.grad(lambda q: loss(q, base))(untied)
     for level in (0, 1):  # the encoder's weights get the gradient of both uses
@@ -629,12 +629,10 @@ def test_reference_variants_are_model_options():
                 rtol=1e-4,
                 atol=1e-6,
             )
-    out = model.forward(tied, x, rings, dist, tie)
+    out = model.forward_levels(tuple(tied.levels), x, rings, dist, tie)
     with pytest.raises(ValueError, match="tie_conv"):
-        model.decode_latents(tied, out.latents, rings)  # no configuration: no decoder weights to read
-    np.testing.assert_allclose(
-        model.decode_latents(tied, out.latents, rings, tie), out.reconstruction, rtol=1e-5, atol=1e-6
-    )
+        tied.decode_latents(out.latents, rings)  # no configuration: no decoder weights to read
+    np.testing.assert_allclose(tied.decode_latents(out.latents, rings), out.reconstruction, rtol=1e-5, atol=1e-6)
     trained, history = train.train(x[:1], rings, dist, tie, train.TrainConfig(epochs=2))
     assert all(set(p["conv_dec"]) == {"b"} for p in trained) and np.all(np.isfinite(history))
 
@@ -647,9 +645,9 @@ def test_reference_variants_are_model_options():
     )
     np.testing.assert_allclose(model.decode_block(p0, z, rings, linear), np.tanh(conv), rtol=1e-5, atol=1e-6)
     np.testing.assert_array_equal(model.decode_block(p0, z, rings), graph_conv.ae_decode(p0, z, rings))
-    out = model.forward(plain, x, rings, dist, linear)  # the last level on its masked inputs
+    out = model.forward_levels(tuple(plain.levels), x, rings, dist, linear)  # the last level on its masked inputs
     np.testing.assert_allclose(out.reconstruction, model.reconstruction(plain, x, rings, linear), rtol=1e-5, atol=1e-6)
-    np.testing.assert_allclose(
-        model.decode_latents(plain, out.latents, rings, linear), out.reconstruction, rtol=1e-5, atol=1e-6
+    np.testing.assert_allclose(plain.decode_latents(out.latents, rings), out.reconstruction, rtol=1e-5, atol=1e-6)
+    assert not np.allclose(
+        out.reconstruction, model.forward_levels(tuple(plain.levels), x, rings, dist, base).reconstruction
     )
-    assert not np.allclose(out.reconstruction, model.forward(plain, x, rings, dist, base).reconstruction)

@@ -44,7 +44,7 @@ COMPONENTS = """
         step = train.make_step(config, tc, rings, dist, stage, mesh=mesh_)
         return step(copy(sub), copy(opt_state), jax.random.PRNGKey(7), data)
 
-    params = model.init(jax.random.PRNGKey(0), data.shape[1], config, dtype)
+    params = model.Model(data.shape[1], config, key=jax.random.PRNGKey(0), dtype=dtype)
     worst = 0.0
     # batch 8 = the whole set every step; batch 4 = 4 of the 8 drawn by the key; stage 1 = separate training
     for batch, stage in ((8, None), (4, None), (8, 1)):
