@@ -266,7 +266,7 @@ def _normal_weights(levels: list[AEBlock], key: Array, std: float) -> None:
             owner = block if len(path) == 1 else getattr(block, path[0])
             var = getattr(owner, path[-1])
             k = keys[i * len(DRAW_ORDER) + j]
-            var.value = (std * jax.random.normal(k, var.shape)).astype(var.dtype)
+            var.set_value((std * jax.random.normal(k, var.shape)).astype(var.dtype))
 
 
 def decoder_blocks(levels: tuple[AEBlock, ...], config: Config) -> tuple[AEBlock, ...]:
