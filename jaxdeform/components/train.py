@@ -145,7 +145,8 @@ def with_level_states(m: model.Model, states) -> model.Model:
 
     The new :class:`~jaxdeform.components.model.Model`.
     """
-    out = nnx.merge(*nnx.split(m))
+    graphdef, state = nnx.split(m)
+    out = nnx.merge(graphdef, jax.tree_util.tree_map(lambda a: a, state))  # Variables of its own: m stays as it is
     for level, state in zip(out.levels, states):
         nnx.update(level, state)
     return out
