@@ -57,10 +57,11 @@ def _timed(call, args, repeats: int) -> tuple[float, list[float], tuple]:
 
 
 def time_step(x, rings, dist, cfg: model.Config, tc: train.TrainConfig, repeats: int, loop: int = 0) -> dict:
-    params = model.init(jax.random.PRNGKey(0), x.shape[1], cfg, x.dtype)
-    opt_state = train.optimizer(tc).init(params)
-    step = train.make_step(cfg, tc, rings, dist)
-    state = [params, opt_state, jax.random.PRNGKey(1)]
+    m = model.Model(x.shape[1], cfg, key=jax.random.PRNGKey(0), dtype=x.dtype)
+    states = train.level_states(m)
+    opt_state = train.optimizer(tc).init(states)
+    step = train.make_step(m, tc, rings, dist)
+    state = [states, opt_state, jax.random.PRNGKey(1)]
 
     def threaded(*_):  # every call continues the training from the previous call's parameters
         out = step(*state, x)
@@ -95,11 +96,12 @@ def _median_ms(fn, args, repeats: int) -> float:
 def breakdown(x, rings, dist, cfg: model.Config, tc: train.TrainConfig, repeats: int) -> dict:
     """Median ms of the parts of the step, each compiled alone with the step's compiler options: the loss
     (forward), loss and gradient, Adam's update, the group-sparsity terms with their gradient, and level 0 alone."""
-    params = model.init(jax.random.PRNGKey(0), x.shape[1], cfg, x.dtype)
+    m = model.Model(x.shape[1], cfg, key=jax.random.PRNGKey(0), dtype=x.dtype)
+    params = tuple(m.levels)  # nnx Modules are pytrees: jax.grad and optax take the levels as they are
     opt = train.optimizer(tc)
     opt_state = opt.init(params)
     jit = lambda f: jax.jit(f, compiler_options=xla.compiler_options())  # noqa: E731
-    loss = lambda p, c=cfg: model.forward(p, x, rings, dist, c).loss  # noqa: E731
+    loss = lambda p, c=cfg: model.forward_levels(p, x, rings, dist, c).loss  # noqa: E731
     grads = jit(jax.grad(loss))(params)
 
     def adam(g, state, p):

@@ -149,9 +149,10 @@ class _Case:
         self.name, self.x = name, x
         cfg, tc = model.Config(), train.TrainConfig()
         with self._installed():
-            self.step = train.make_step(cfg, tc, rings, dist)
-            params = model.init(jax.random.PRNGKey(0), x.shape[1], cfg, x.dtype)
-            self.state = [params, train.optimizer(tc).init(params), jax.random.PRNGKey(1)]
+            m = model.Model(x.shape[1], cfg, key=jax.random.PRNGKey(0), dtype=x.dtype)
+            self.step = train.make_step(m, tc, rings, dist)
+            states = train.level_states(m)
+            self.state = [states, train.optimizer(tc).init(states), jax.random.PRNGKey(1)]
             t0 = time.perf_counter()
             self.loss = self()
             self.compile_s = time.perf_counter() - t0

@@ -10,7 +10,7 @@ from conftest import grid_mesh
 
 from jaxdeform.components import model, train
 from jaxdeform.mesh.topology import build_topology
-from jaxdeform.nn.graph_conv import ae_decode, ae_encode, rings_from_topology
+from jaxdeform.nn.graph_conv import AEBlock, ae_decode, ae_encode, rings_from_topology
 
 
 def _grid(n=6):
@@ -68,12 +68,12 @@ def _block(p, x, rings, latent):
 def test_levels_structure_and_residual_split(setup, kz, attention, latent):
     pts, rings, dist, x = setup
     config = model.Config(kz=kz, d=tuple(0.4 / 2**i for i in range(len(kz))), attention=attention, latent=latent)
-    params = model.init(jax.random.PRNGKey(0), len(pts), config, x.dtype)
+    params = model.Model(len(pts), config, key=jax.random.PRNGKey(0), dtype=x.dtype)
     batch = x[:5]
-    out = jax.jit(lambda p, b: model.forward(p, b, rings, dist, config))(params, batch)
+    out = jax.jit(lambda p, b: model.forward_levels(tuple(p.levels), b, rings, dist, config))(params, batch)
     assert [z.shape for z in out.latents] == [(config.blocks(l), 5, k) for l, k in enumerate(kz)]
     # by hand: level 0, then the children's inputs (attention-weighted residuals) and outputs
-    p0 = jax.tree_util.tree_map(lambda a: a[0], params[0])
+    p0 = jax.tree_util.tree_map(lambda a: a[0], params.levels[0])
     z0, xh0 = _block(p0, batch, rings, latent)
     np.testing.assert_allclose(np.asarray(out.latents[0][0]), np.asarray(z0), atol=1e-12)
     if latent == "tanh":
@@ -81,13 +81,13 @@ def test_levels_structure_and_residual_split(setup, kz, attention, latent):
     expected = xh0
     if len(kz) > 1:
         res = batch - xh0
-        am = model.attention_masks(p0["C"]) if attention else jnp.ones((kz[0], len(pts)))
+        am = model.attention_masks(p0.C[...]) if attention else jnp.ones((kz[0], len(pts)))
         inputs = am[:, None, :, None] * res[None]
         if attention:
             np.testing.assert_allclose(np.asarray(inputs.sum(axis=0)), np.asarray(res), atol=1e-12)
         if len(kz) == 2:
             for k in range(kz[0]):
-                pk = jax.tree_util.tree_map(lambda a: a[k], params[1])
+                pk = jax.tree_util.tree_map(lambda a: a[k], params.levels[1])
                 expected = expected + _block(pk, inputs[k], rings, latent)[1]
             np.testing.assert_allclose(np.asarray(out.reconstruction), np.asarray(expected), atol=1e-10)
     else:
@@ -108,7 +108,7 @@ def test_training_reduces_the_loss_and_is_deterministic(setup):
     _, h2 = train.train(x, rings, dist, config, tc)
     np.testing.assert_array_equal(h1, h2)
     assert h1[-20:].mean() < 0.5 * h1[:5].mean()
-    rec = np.asarray(train.reconstruct(p1, x, rings, config))
+    rec = np.asarray(train.reconstruct(p1, x, rings))
     before = np.sum(np.asarray(x) ** 2)
     assert np.sum((rec - np.asarray(x)) ** 2) < 0.3 * before
 
@@ -117,9 +117,9 @@ def test_training_reduces_the_loss_and_is_deterministic(setup):
 def test_decode_latents_reproduces_the_forward_reconstruction(setup, kz):
     pts, rings, dist, x = setup
     config = model.Config(kz=kz, d=tuple(0.4 / 2**i for i in range(len(kz))))
-    params = model.init(jax.random.PRNGKey(1), len(pts), config, x.dtype)
-    out = model.forward(params, x[:4], rings, dist, config)
-    again = model.decode_latents(params, out.latents, rings)
+    params = model.Model(len(pts), config, key=jax.random.PRNGKey(1), dtype=x.dtype)
+    out = model.forward_levels(tuple(params.levels), x[:4], rings, dist, config)
+    again = params.decode_latents(out.latents, rings)
     np.testing.assert_allclose(np.asarray(again), np.asarray(out.reconstruction), atol=1e-12)
 
 
@@ -197,7 +197,7 @@ def test_separate_training_freezes_earlier_levels(setup):
     assert hist.shape == (60,) and np.all(np.isfinite(hist))
     # level 0 after both stages equals level 0 trained alone (stage 1 does not touch it)
     alone, _ = train.train(x, rings, dist, model.Config(kz=(3,), d=(0.5,)), dataclasses.replace(tc, joint=True))
-    for a, b in zip(jax.tree_util.tree_leaves(params[0]), jax.tree_util.tree_leaves(alone[0])):
+    for a, b in zip(jax.tree_util.tree_leaves(params.levels[0]), jax.tree_util.tree_leaves(alone.levels[0])):
         np.testing.assert_array_equal(np.asarray(a), np.asarray(b))
 
 
@@ -208,13 +208,14 @@ def test_attention_gradient_switch(setup):
     grads = []
     for attention_gradient in (False, True):
         cfg = model.Config(kz=(3, 2), d=(0.4, 0.2), attention_gradient=attention_gradient)
-        params = model.init(jax.random.PRNGKey(7), x.shape[1], cfg, x.dtype)
+        params = model.Model(x.shape[1], cfg, key=jax.random.PRNGKey(7), dtype=x.dtype)
 
         def level1_loss(c0, params=params, cfg=cfg):
-            p = (dict(params[0], C=c0),) + tuple(params[1:])
-            return sum(model.forward(p, x, rings, dist, cfg).terms[1].values())
+            level0 = AEBlock(params.levels[0].conv_enc, params.levels[0].conv_dec, c0)
+            p = (level0,) + tuple(params.levels[1:])
+            return sum(model.forward_levels(p, x, rings, dist, cfg).terms[1].values())
 
-        grads.append(np.asarray(jax.grad(level1_loss)(params[0]["C"])))
+        grads.append(np.asarray(jax.grad(level1_loss)(params.levels[0].C[...])))
     assert all(np.all(np.isfinite(g)) for g in grads)
     assert not np.allclose(grads[0], grads[1])
 
@@ -223,12 +224,12 @@ def test_loss_weights_scale_their_terms(setup):
     """The total loss is sum over blocks of lambda_recon L_recon + lambda_sparse Omega + lambda_latent V(Z)."""
     _, rings, dist, x = setup
     base = model.Config(kz=(3, 2), d=(0.4, 0.2), theta=0.01)  # tiny theta: V(Z) is non-zero
-    params = model.init(jax.random.PRNGKey(3), x.shape[1], base, x.dtype)
-    out = model.forward(params, x, rings, dist, base)
+    params = model.Model(x.shape[1], base, key=jax.random.PRNGKey(3), dtype=x.dtype)
+    out = model.forward_levels(tuple(params.levels), x, rings, dist, base)
     sums = {k: float(sum(t[k] for t in out.terms)) for k in ("recon", "sparsity", "latent")}
     assert sums["latent"] > 0
     weights = dict(lambda_recon=1.0, lambda_sparse=0.5, lambda_latent=0.25)
-    got = float(model.forward(params, x, rings, dist, dataclasses.replace(base, **weights)).loss)
+    got = float(model.forward_levels(tuple(params.levels), x, rings, dist, dataclasses.replace(base, **weights)).loss)
     want = sums["recon"] + 0.5 * sums["sparsity"] + 0.25 * sums["latent"]
     assert got == pytest.approx(want, rel=1e-5)
 
@@ -274,7 +275,7 @@ def test_model_forward_mode_and_second_order(setup):
     their gradient here (``attention_gradient``), so that the derivatives are those of the function itself."""
     _, rings, dist, x = setup
     config = model.Config(kz=(3, 2), d=(0.5, 0.3), attention_gradient=True)
-    params = model.init(jax.random.PRNGKey(5), x.shape[1], config, jnp.float64)
+    params = model.Model(x.shape[1], config, key=jax.random.PRNGKey(5), dtype=jnp.float64)
     x = x.astype(jnp.float64)
 
     def random_like(tree, seed):
@@ -295,14 +296,14 @@ def test_model_forward_mode_and_second_order(setup):
 
     def outputs(a):  # smooth in the parameters and the input (the sparsity centres are piecewise constant)
         p, xx = a
-        out = model.forward(p, xx, rings, dist, config)
+        out = model.forward_levels(tuple(p.levels), xx, rings, dist, config)
         return sum(out.terms[level]["recon"] for level in range(config.levels)), out.reconstruction
 
     v = random_like((params, x), 6)
     _, tangent = jax.jit(lambda a, t: jax.jvp(outputs, (a,), (t,)))((params, x), v)
     close(tangent, central(jax.jit(outputs), (params, x), v), 1e-6)
 
-    codes = lambda xx: model.encode(params, xx, rings, config)  # noqa: E731
+    codes = lambda xx: params.encode(xx, rings)  # noqa: E731
     close(jax.jit(jax.jacfwd(codes))(x[:2]), jax.jit(jax.jacrev(codes))(x[:2]), 1e-10)
 
     loss = lambda a: outputs(a)[0]  # noqa: E731

@@ -163,12 +163,11 @@ def test_latent_tanh_config_round_trips(seq_dir, tmp_path):
     rec = run.reconstruct(loaded, run.load_data(seq_dir)[0][loaded.test_idx])
     assert np.all(np.isfinite(rec["positions"]))
     # the codes the run's model gives are tanh outputs
-    from jaxdeform.components import model
     from jaxdeform.mesh.topology import build_topology
     from jaxdeform.nn.graph_conv import rings_from_topology
 
     rings = rings_from_topology(build_topology(loaded.faces, loaded.rest.shape[0]))
-    codes = model.encode(loaded.params, rec["scaled"].astype(np.float32), rings, loaded.config)
+    codes = loaded.model.encode(rec["scaled"].astype(np.float32), rings)
     assert all(float(np.abs(np.asarray(z)).max()) < 1.0 for z in codes)
 
 

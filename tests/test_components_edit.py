@@ -285,14 +285,14 @@ def test_edit_multiscale_model_latents(case64):
 
     v, f, ac, _ = case64
     cfg = model.Config(kz=(3, 2), d=(0.4, 0.2))
-    params = model.init(jax.random.PRNGKey(0), v.shape[0], cfg, jnp.float64)
+    params = model.Model(v.shape[0], cfg, key=jax.random.PRNGKey(0), dtype=jnp.float64)
     rings = rings_from_topology(ac.topo)
     sizes = [cfg.blocks(level) * kz for level, kz in enumerate(cfg.kz)]
 
     def decode(w):
         parts = jnp.split(w, np.cumsum(sizes)[:-1])
         latents = tuple(p.reshape(cfg.blocks(level), 1, cfg.kz[level]) for level, p in enumerate(parts))
-        return model.decode_latents(params, latents, rings)[0]
+        return params.decode_latents(latents, rings)[0]
 
     scaler = Scaler(-1.0, 1.0, 0.0, 2.0)
     w_true = 0.3 * jax.random.normal(jax.random.PRNGKey(1), (sum(sizes),))

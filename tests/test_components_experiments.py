@@ -411,14 +411,14 @@ def test_projection_fits_codes_back_to_a_decoder_output():
     verts, faces = bending_tube_sequence(n_frames=2, n_around=8, n_along=12)
     rings = rings_from_topology(build_topology(faces, verts.shape[1]))
     config = model.Config(kz=(3, 2), d=(0.5, 0.3))
-    params = model.init(jax.random.PRNGKey(0), verts.shape[1], config, jnp.float32)
+    params = model.Model(verts.shape[1], config, key=jax.random.PRNGKey(0), dtype=jnp.float32)
     keys = jax.random.split(jax.random.PRNGKey(1), 4)
     # codes per level: (blocks, shapes, kz)
     target = (jax.random.normal(keys[0], (1, 2, 3), jnp.float32), jax.random.normal(keys[1], (3, 2, 2), jnp.float32))
-    x = model.decode_latents(params, target, rings)
+    x = params.decode_latents(target, rings)
     start = tuple(t + 0.5 * jax.random.normal(k, t.shape, jnp.float32) for t, k in zip(target, keys[2:]))
     codes, losses = fit_codes(params, rings, x, start, steps=400, lr=0.02)
-    final = float(jnp.sum((model.decode_latents(params, codes, rings) - x) ** 2))
+    final = float(jnp.sum((params.decode_latents(codes, rings) - x) ** 2))
     assert losses.shape == (400,) and losses[0] > 0
     assert final < 1e-3 * losses[0]
 
@@ -443,7 +443,6 @@ def test_projection_in_positions_finds_a_decodable_shape_again(tmp_path):
     translation, which the fit leaves free) from perturbed codes; the experiment records the space it fitted in."""
     from experiments.components import projection
     from jaxdeform import acap
-    from jaxdeform.components import model
     from jaxdeform.components import run as crun
     from jaxdeform.mesh.topology import build_topology
     from jaxdeform.nn.graph_conv import rings_from_topology
@@ -454,12 +453,12 @@ def test_projection_in_positions_finds_a_decodable_shape_again(tmp_path):
     run = crun.load(tmp_path / "run")
     vertices, faces = crun.run_data(run, data)
     rings = rings_from_topology(build_topology(faces, run.rest.shape[0]))
-    codes = model.encode(run.params, crun.scaled_features(run, vertices[run.test_idx][:2]), rings, run.config)
-    features = run.scaler.inverse(model.decode_latents(run.params, codes, rings)).astype(jnp.float64)
+    codes = run.model.encode(crun.scaled_features(run, vertices[run.test_idx][:2]), rings)
+    features = run.scaler.inverse(run.model.decode_latents(codes, rings)).astype(jnp.float64)
     target = np.asarray(acap.cached(run.rest, run.faces).decode(features, refine=0)) + np.array([0.3, -0.2, 0.1])
     keys = jax.random.split(jax.random.PRNGKey(2), len(codes))
     start = tuple(c + 0.3 * jax.random.normal(k, c.shape, c.dtype) for c, k in zip(codes, keys))
-    _, losses = projection.fit_positions(run.params, rings, run, target, start, iterations=200)
+    _, losses = projection.fit_positions(run.model, rings, run, target, start, iterations=200)
     assert losses[-1] < 1e-3 * losses[0], (losses[0], losses[-1])
     result = projection.main([str(tmp_path / "run"), "--space", "positions", "--steps", "2"])
     assert result["space"] == "positions" and result["fitted"]["erms"] <= result["encoder"]["erms"] * 1.0001
@@ -586,70 +585,75 @@ def test_reference_variants_are_model_options():
         model.Config(init="uniform")
     with pytest.raises(ValueError, match="init_std"):
         model.Config(init="normal", init_std=0.0)
-    plain = model.init(key, n, base)
+    plain = model.Model(n, base, key=key)
 
-    # init: the Glorot draw's weights redrawn from N(0, 0.02^2), one key of split(key) per array in pytree order
-    # (the draw of the earlier runs in results/reference_variants.jsonl); the biases stay zero
-    drawn = model.init(key, n, rv.variant_config(base, "init"))
-    paths = jax.tree_util.tree_flatten_with_path(plain)[0]
-    for (path, ref), got, k in zip(paths, jax.tree_util.tree_leaves(drawn), jax.random.split(key, len(paths))):
-        want = ref if path[-1].key == "b" else (rv.TAN_STD * jax.random.normal(k, ref.shape)).astype(ref.dtype)
-        np.testing.assert_array_equal(got, want)
-    assert abs(np.asarray(drawn[0]["C"]).std() - rv.TAN_STD) < 0.15 * rv.TAN_STD
+    # init: the Glorot draw's weights redrawn from N(0, 0.02^2), one key of split(key) per array, level by level in
+    # the order of the arrays' sorted names (the draw of the earlier runs in results/reference_variants.jsonl); the
+    # biases stay zero
+    drawn = model.Model(n, rv.variant_config(base, "init"), key=key)
+    names = ("C", "conv_dec/W_neighbor", "conv_dec/W_point", "conv_dec/b", "conv_enc/W_neighbor", "conv_enc/W_point")
+    names = names + ("conv_enc/b",)
+    keys = jax.random.split(key, len(names) * len(plain.levels))
+
+    def array(m, level, name):
+        obj = m.levels[level]
+        for part in name.split("/"):
+            obj = getattr(obj, part)
+        return obj[...]
+
+    for level in range(len(plain.levels)):
+        for j, name in enumerate(names):
+            ref = array(plain, level, name)
+            k = keys[level * len(names) + j]
+            want = ref if name.endswith("/b") else (rv.TAN_STD * jax.random.normal(k, ref.shape)).astype(ref.dtype)
+            np.testing.assert_array_equal(array(drawn, level, name), want)
+    assert abs(np.asarray(drawn.levels[0].C[...]).std() - rv.TAN_STD) < 0.15 * rv.TAN_STD
 
     # tie: no decoder weights of its own; the decoders read their encoders' (the bias their own)
     tie = rv.variant_config(base, "tie")
-    tied = model.init(key, n, tie)
-    assert all(set(p["conv_dec"]) == {"b"} for p in tied)
-    for p, q in zip(tied, plain):  # the other arrays are the untied model's
-        np.testing.assert_array_equal(p["C"], q["C"])
-        np.testing.assert_array_equal(p["conv_enc"]["W_point"], q["conv_enc"]["W_point"])
-    untied = tuple(
-        {
-            **p,
-            "conv_dec": {
-                **p["conv_dec"],
-                "W_point": p["conv_enc"]["W_point"],
-                "W_neighbor": p["conv_enc"]["W_neighbor"],
-            },
-        }
-        for p in tied
-    )
+    tied = model.Model(n, tie, key=key)
+    assert all(p.conv_dec.W_point is None and p.conv_dec.W_neighbor is None for p in tied.levels)
+    for p, q in zip(tied.levels, plain.levels):  # the other arrays are the untied model's
+        np.testing.assert_array_equal(p.C[...], q.C[...])
+        np.testing.assert_array_equal(p.conv_enc.W_point[...], q.conv_enc.W_point[...])
+    untied = model.Model(n, base, key=key)
+    for p, q in zip(untied.levels, tied.levels):
+        p.conv_dec.W_point.set_value(q.conv_enc.W_point[...])
+        p.conv_dec.W_neighbor.set_value(q.conv_enc.W_neighbor[...])
     np.testing.assert_allclose(
-        train.reconstruct(tied, x, rings, tie), train.reconstruct(untied, x, rings, base), rtol=1e-6, atol=1e-7
+        train.reconstruct(tied, x, rings), train.reconstruct(untied, x, rings), rtol=1e-6, atol=1e-7
     )
-    loss = lambda q, cfg: model.forward(q, x, rings, dist, cfg).loss  # noqa: E731  (the training path)
-    assert loss(tied, tie) == pytest.approx(float(loss(untied, base)), rel=1e-6)
-    g_tied, g_untied = jax.grad(lambda q: loss(q, tie))(tied), jax.grad(lambda q: loss(q, base))(untied)
+    loss = lambda q: q(x, rings, dist).loss  # noqa: E731  (the training path)
+    assert loss(tied) == pytest.approx(float(loss(untied)), rel=1e-6)
+    g_tied, g_untied = jax.grad(loss)(tied), jax.grad(loss)(untied)
     for level in (0, 1):  # the encoder's weights get the gradient of both uses
         for w in ("W_point", "W_neighbor"):
             np.testing.assert_allclose(
-                g_tied[level]["conv_enc"][w],
-                g_untied[level]["conv_enc"][w] + g_untied[level]["conv_dec"][w],
+                getattr(g_tied.levels[level].conv_enc, w)[...],
+                getattr(g_untied.levels[level].conv_enc, w)[...] + getattr(g_untied.levels[level].conv_dec, w)[...],
                 rtol=1e-4,
                 atol=1e-6,
             )
-    out = model.forward(tied, x, rings, dist, tie)
-    with pytest.raises(ValueError, match="tie_conv"):
-        model.decode_latents(tied, out.latents, rings)  # no configuration: no decoder weights to read
-    np.testing.assert_allclose(
-        model.decode_latents(tied, out.latents, rings, tie), out.reconstruction, rtol=1e-5, atol=1e-6
-    )
+    out = tied(x, rings, dist)
+    with pytest.raises(ValueError, match="no weights of its own"):
+        tied.levels[0].conv_dec.weights()  # a tied decoder alone has no weights to read
+    np.testing.assert_allclose(tied.decode_latents(out.latents, rings), out.reconstruction, rtol=1e-5, atol=1e-6)
     trained, history = train.train(x[:1], rings, dist, tie, train.TrainConfig(epochs=2))
-    assert all(set(p["conv_dec"]) == {"b"} for p in trained) and np.all(np.isfinite(history))
+    assert all(p.conv_dec.W_point is None for p in trained.levels) and np.all(np.isfinite(history))
 
     # linear-fc: no tanh on z C before the decoder's convolution
     linear = rv.variant_config(base, "linear-fc")
-    p0 = jax.tree_util.tree_map(lambda a: a[0], plain[0])
+    plain_linear = model.Model(n, linear, key=key)  # the same arrays as plain's
+    p0 = jax.tree_util.tree_map(lambda a: a[0], plain.levels[0])
     z = graph_conv.ae_encode(p0, x, rings)
     conv = graph_conv.mesh_conv(
-        p0["conv_dec"], graph_conv.ae_decode_pre(p0, z), rings.neighbors, rings.mask, rings.degree
+        p0.conv_dec.weights(), graph_conv.ae_decode_pre(p0, z), rings.neighbors, rings.mask, rings.degree
     )
     np.testing.assert_allclose(model.decode_block(p0, z, rings, linear), np.tanh(conv), rtol=1e-5, atol=1e-6)
     np.testing.assert_array_equal(model.decode_block(p0, z, rings), graph_conv.ae_decode(p0, z, rings))
-    out = model.forward(plain, x, rings, dist, linear)  # the last level on its masked inputs
-    np.testing.assert_allclose(out.reconstruction, model.reconstruction(plain, x, rings, linear), rtol=1e-5, atol=1e-6)
+    out = plain_linear(x, rings, dist)  # the last level on its masked inputs
+    np.testing.assert_allclose(out.reconstruction, plain_linear.reconstruction(x, rings), rtol=1e-5, atol=1e-6)
     np.testing.assert_allclose(
-        model.decode_latents(plain, out.latents, rings, linear), out.reconstruction, rtol=1e-5, atol=1e-6
+        plain_linear.decode_latents(out.latents, rings), out.reconstruction, rtol=1e-5, atol=1e-6
     )
-    assert not np.allclose(out.reconstruction, model.forward(plain, x, rings, dist, base).reconstruction)
+    assert not np.allclose(out.reconstruction, plain(x, rings, dist).reconstruction)

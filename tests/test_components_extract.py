@@ -28,30 +28,30 @@ def setup():
 
 
 def _random_params(config, n_vertices, seed=0):
-    """Parameters shaped like ``model.init``'s (drawn in numpy: no compilation in the fixture)."""
+    """A :class:`model.Model` whose arrays are redrawn in numpy (larger than the initial draws), float64."""
     rng = np.random.default_rng(seed)
+    m = model.Model(n_vertices, config, key=jax.random.PRNGKey(0), dtype=jnp.float64)
 
-    def conv(n):
-        return {
-            "W_point": rng.normal(scale=0.3, size=(n, 9, 9)),
-            "W_neighbor": rng.normal(scale=0.3, size=(n, 9, 9)),
-            "b": rng.normal(scale=0.1, size=(n, 9)),
-        }
+    def conv(c, n):
+        c.W_point.set_value(jnp.asarray(rng.normal(scale=0.3, size=(n, 9, 9))))
+        c.W_neighbor.set_value(jnp.asarray(rng.normal(scale=0.3, size=(n, 9, 9))))
+        c.b.set_value(jnp.asarray(rng.normal(scale=0.1, size=(n, 9))))
 
-    params = []
     for level, kz in enumerate(config.kz):
         n = config.blocks(level)
-        p = {"conv_enc": conv(n), "conv_dec": conv(n), "C": rng.normal(scale=0.2, size=(n, kz, 9 * n_vertices))}
-        params.append(jax.tree_util.tree_map(jnp.asarray, p))
-    return tuple(params)
+        block = m.levels[level]
+        conv(block.conv_enc, n)
+        conv(block.conv_dec, n)
+        block.C.set_value(jnp.asarray(rng.normal(scale=0.2, size=(n, kz, 9 * n_vertices))))
+    return m
 
 
 def _one_hot_latents(params, level, block, scale):
     """decode_latents codes: zero everywhere except block ``block`` of ``level``, row k = scale * e_k."""
     out = []
-    kz_target = params[level]["C"].shape[1]
-    for lv, p in enumerate(params):
-        n, kz = p["C"].shape[:2]
+    kz_target = params.levels[level].C[...].shape[1]
+    for lv, p in enumerate(params.levels):
+        n, kz = p.C[...].shape[:2]
         z = np.zeros((n, kz_target, kz))
         if lv == level:
             z[block] = scale * np.eye(kz)
@@ -68,26 +68,26 @@ def test_block_components_are_one_hot_decodes_minus_zero_code(setup, level, bloc
     got = np.asarray(extract.block_components(params, rings, level, block, scale))
     one_hot = _one_hot_latents(params, level, block, scale)
     zeros = tuple(jnp.zeros_like(z) for z in one_hot)
-    decode = jax.jit(model.decode_latents)
+    decode = jax.jit(lambda m, z, r: m.decode_latents(z, r))
     want = np.asarray(decode(params, one_hot, rings) - decode(params, zeros, rings))
-    assert got.shape == (params[level]["C"].shape[1], len(pts), 9)
+    assert got.shape == (params.levels[level].C[...].shape[1], len(pts), 9)
     np.testing.assert_allclose(got, want, atol=1e-12)
     assert np.abs(got).max() > 1e-6  # a random block does deform
 
 
 def test_all_components_order_and_scaler(setup):
     pts, faces, rings, config, params = setup
-    cs = extract.all_components(params, rings, config, scale=2.0)
+    cs = extract.all_components(params, rings, scale=2.0)
     assert len(cs) == 3 + 3 * 2 and cs.domain == "scaled"
     assert list(cs.level) == [0, 0, 0, 1, 1, 1, 1, 1, 1]
     assert list(cs.block) == [0, 0, 0, 0, 0, 1, 1, 2, 2] and list(cs.index) == [0, 1, 2, 0, 1, 0, 1, 0, 1]
     np.testing.assert_allclose(cs.values[7:9], extract.block_components(params, rings, 1, 2, 2.0), atol=1e-12)
     assert cs.groups()[:4] == ["AE0", "AE0", "AE0", "AE1"] and cs.names()[-1] == "AE3 #1"
     # default magnitude: theta (5), the latent bound of V(Z)
-    np.testing.assert_allclose(extract.all_components(params, rings, config).magnitude, config.theta)
+    np.testing.assert_allclose(extract.all_components(params, rings).magnitude, config.theta)
     # unscaled: the affine Scaler's offset cancels, per-channel factors (hi - lo) / (2 * 0.95) remain
     scaler = Scaler(-1.0, 3.0, 0.5, 1.5)
-    un = extract.all_components(params, rings, config, scale=2.0, scaler=scaler)
+    un = extract.all_components(params, rings, scale=2.0, scaler=scaler)
     factor = np.array([4.0] * 3 + [1.0] * 6) / 1.9
     assert un.domain == "acap"
     np.testing.assert_allclose(un.values, cs.values * factor, atol=1e-12)
@@ -96,8 +96,10 @@ def test_all_components_order_and_scaler(setup):
 def test_latent_extremes_follow_tan_et_al(setup):
     pts, faces, rings, config, params = setup
     rng = np.random.default_rng(3)
-    latents = tuple(jnp.asarray(rng.normal(scale=2.0, size=(p["C"].shape[0], 7, p["C"].shape[1]))) for p in params)
-    cs = extract.all_components(params, rings, config, latents=latents)
+    latents = tuple(
+        jnp.asarray(rng.normal(scale=2.0, size=(p.C[...].shape[0], 7, p.C[...].shape[1]))) for p in params.levels
+    )
+    cs = extract.all_components(params, rings, latents=latents)
     for lv, z in enumerate(latents):
         sel = cs.level == lv
         lo, hi = np.asarray(z).min(axis=1).ravel(), np.asarray(z).max(axis=1).ravel()
@@ -108,14 +110,14 @@ def test_latent_extremes_follow_tan_et_al(setup):
             alt = np.asarray(extract.block_components(params, rings, lv, int(b), other))[k]
             assert np.sum(cs.values[sel][i] ** 2) >= np.sum(alt**2) - 1e-12
     # with a reference shape: its code is the base, one entry replaced
-    ref = extract.all_components(params, rings, config, latents=latents, reference=4)
+    ref = extract.all_components(params, rings, latents=latents, reference=4)
     base = np.asarray(latents[1][2, 4])
     k = 1
     s = ref.magnitude[(ref.level == 1) & (ref.block == 2)][k]
     want = np.asarray(extract.block_components(params, rings, 1, 2, s, base=base))[k]
     np.testing.assert_allclose(ref.values[(ref.level == 1) & (ref.block == 2)][k], want, atol=1e-12)
     with pytest.raises(ValueError, match="needs the training codes"):
-        extract.all_components(params, rings, config, reference=0)
+        extract.all_components(params, rings, reference=0)
 
 
 def test_bad_locations_raise(setup):
@@ -180,9 +182,9 @@ def test_remove_redundant_drops_duplicates_and_slight_components():
 
 def test_removal_reports_every_block(setup):
     pts, faces, rings, config, params = setup
-    p1 = dict(params[1])
-    p1["C"] = params[1]["C"].at[1].set(0.0)  # AE2 has no components at all
-    cs = extract.all_components(params[:1] + (p1,), rings, config, scaler=Scaler(-1.0, 1.0, 0.0, 2.0))
+    params = jax.tree_util.tree_map(jnp.asarray, params)  # a copy (nnx Modules are pytrees)
+    params.levels[1].C.set_value(params.levels[1].C[...].at[1].set(0.0))  # AE2 has no components at all
+    cs = extract.all_components(params, rings, scaler=Scaler(-1.0, 1.0, 0.0, 2.0))
     r = extract.remove_redundant(cs)
     assert set(r.kept) == {(0, 0), (1, 0), (1, 1), (1, 2)}
     assert r.kept[(1, 1)] == () and "slight deformation" in r.removed[(1, 1, 0)]
@@ -230,7 +232,7 @@ def test_component_meshes(setup):
     want = pts + disp * np.array([1.0, 2.0, 0.0])[:, None, None]
     np.testing.assert_allclose(extract.component_meshes(xyz, pts, faces), want)
     # network components decode to finite meshes once unscaled; the zero ACAP difference is the reference
-    cs = extract.all_components(params, rings, config, scale=0.5)
+    cs = extract.all_components(params, rings, scale=0.5)
     scaler = Scaler(-0.5, 0.5, 0.8, 1.2)
     diffs = np.concatenate([np.zeros((1, len(pts), 9)), np.asarray(extract.unscale_values(cs.values, scaler))])
     meshes = extract.component_meshes(extract.from_arrays(diffs, "acap"), pts, faces)
@@ -401,6 +403,6 @@ def test_all_components_refuses_a_variant_decoder(setup, option):
     """Components are one-hot decodes of the default block: a variant decoder is refused, not silently replaced."""
     import dataclasses
 
-    config = dataclasses.replace(model.Config(), **option)
+    config = dataclasses.replace(model.Config(kz=(2,), d=(0.4,)), **option)
     with pytest.raises(ValueError, match="default decoder"):
-        extract.all_components((), None, config)
+        extract.all_components(model.Model(3, config, key=jax.random.PRNGKey(0)), None)

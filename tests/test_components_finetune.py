@@ -93,6 +93,7 @@ def test_staged_step_has_the_gradient_of_the_loss(tube_run, rigid):
     the rotation-free term (rigid) is no larger than the translation-free one."""
     import jax.numpy as jnp
     import optax
+    from flax import nnx
 
     from jaxdeform.components import finetune as ft
     from jaxdeform.components import run as crun
@@ -106,7 +107,7 @@ def test_staged_step_has_the_gradient_of_the_loss(tube_run, rigid):
     rings = rings_from_topology(build_topology(run.faces, run.rest.shape[0]))
     loss, positions, _ = ft.position_loss_fn(run, rings, dist, 50.0, rigid)
     g = positions(x[::-1])  # other shapes' positions: a position term far from zero
-    params = tuple(run.params)
+    params = nnx.state(run.model)
     (total, terms), grad = jax.value_and_grad(loss, has_aux=True)(params, x, g)
     opt = optax.sgd(1.0)
     new, _, staged_terms = ft.make_step(run, rings, dist, 50.0, opt, rigid)(params, opt.init(params), x, g)
@@ -125,7 +126,6 @@ def test_generated_meshes_are_the_decoded_codes_own_features(tube_run):
     import jax.numpy as jnp
 
     from jaxdeform.components import finetune as ft
-    from jaxdeform.components import model
     from jaxdeform.components import run as crun
     from jaxdeform.mesh.topology import build_topology
     from jaxdeform.nn.graph_conv import rings_from_topology
@@ -138,7 +138,7 @@ def test_generated_meshes_are_the_decoded_codes_own_features(tube_run):
     still = ft.generated_meshes(run, x, dist, 5, 0.0, np.random.default_rng(4), rings, chunk=2)
     assert still.shape == (5,) + x.shape[1:] and still.dtype == x.dtype
     mixes = ft.regional_mixes(x, dist, 5, np.random.default_rng(4))
-    decoded = crun.positions_from_scaled(run, model.reconstruction(run.params, jnp.asarray(mixes), rings, run.config))
+    decoded = crun.positions_from_scaled(run, run.model.reconstruction(jnp.asarray(mixes), rings))
     own = np.asarray(crun.scaled_features(run, decoded))
     assert np.abs(own - mixes).max() > 0.05  # the decoded meshes are not the mixes
     np.testing.assert_allclose(still, own, atol=2e-4)
@@ -186,7 +186,7 @@ def test_finetune_lowers_the_position_term_and_writes_a_run(tube_run, tmp_path, 
     original = crun.load(src)
     assert any(
         not np.array_equal(np.asarray(a), np.asarray(b))
-        for a, b in zip(jax.tree_util.tree_leaves(tuned.params), jax.tree_util.tree_leaves(original.params))
+        for a, b in zip(jax.tree_util.tree_leaves(tuned.model), jax.tree_util.tree_leaves(original.model))
     )
     result = crun.evaluate(tuned, data)
     assert np.isfinite(result["test"]["erms"]) and np.isfinite(result["train"]["erms"])

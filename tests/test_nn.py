@@ -4,9 +4,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import pytest
+from flax import nnx
 
 from jaxdeform.mesh.topology import build_topology
 from jaxdeform.nn.graph_conv import (
+    AEBlock,
+    MeshConv,
     Rings,
     ae_decode,
     ae_decode_pre,
@@ -89,7 +92,7 @@ def test_mesh_conv_matches_dense_reference(grid):
 
 def test_mesh_conv_pointwise_and_constant(grid):
     _, _, rings = grid
-    p = init_mesh_conv(jax.random.PRNGKey(0), 4, 3, jnp.float64)
+    p = init_mesh_conv(jax.random.PRNGKey(0), 4, 3, jnp.float64).weights()
     p = dict(p, b=jnp.array([0.5, -1.0, 2.0]))
     x = jnp.asarray(np.random.default_rng(1).normal(size=(2, 16, 4)))
     y = mesh_conv(dict(p, W_neighbor=jnp.zeros_like(p["W_neighbor"])), x, *rings)
@@ -101,7 +104,9 @@ def test_mesh_conv_pointwise_and_constant(grid):
 
 
 def test_init_shapes_and_dtype():
-    p = init_mesh_conv(jax.random.PRNGKey(0), 9, 9, jnp.float32)
+    conv = init_mesh_conv(jax.random.PRNGKey(0), 9, 9, jnp.float32)
+    assert isinstance(conv, MeshConv) and isinstance(conv.W_point, nnx.Param)
+    p = conv.weights()
     assert p["W_point"].shape == (9, 9) and p["W_neighbor"].shape == (9, 9) and p["b"].shape == (9,)
     assert p["W_point"].dtype == jnp.float32
     assert float(jnp.max(jnp.abs(p["W_point"]))) <= np.sqrt(6 / 18) + 1e-6
@@ -110,7 +115,7 @@ def test_init_shapes_and_dtype():
 def test_ae_block_shapes_and_tied_weights(grid):
     _, _, rings = grid
     params = init_ae_block(jax.random.PRNGKey(0), 16, 5, jnp.float32)
-    assert params["C"].shape == (5, 9 * 16)
+    assert params.C[...].shape == (5, 9 * 16)
     x = jnp.asarray(0.5 * np.random.default_rng(1).normal(size=(4, 16, 9)), jnp.float32)
     z, xh = ae_forward(params, x, rings)
     assert z.shape == (4, 5) and xh.shape == (4, 16, 9) and xh.dtype == jnp.float32
@@ -118,13 +123,13 @@ def test_ae_block_shapes_and_tied_weights(grid):
     # the decoder uses C (row k for z = e_k), the encoder C^T
     eye = jnp.eye(5, dtype=jnp.float32)
     pre = ae_decode_pre(params, eye)
-    np.testing.assert_allclose(pre, params["C"].reshape(5, 16, 9), rtol=0, atol=0)
-    h = jnp.tanh(mesh_conv(params["conv_enc"], x, *rings)).reshape(4, -1)
-    np.testing.assert_allclose(z, h @ params["C"].T, rtol=1e-5, atol=1e-6)
+    np.testing.assert_allclose(pre, params.C[...].reshape(5, 16, 9), rtol=0, atol=0)
+    h = jnp.tanh(mesh_conv(params.conv_enc.weights(), x, *rings)).reshape(4, -1)
+    np.testing.assert_allclose(z, h @ params.C[...].T, rtol=1e-5, atol=1e-6)
     # decoder conv has its own weights and is applied after tanh(z @ C)
-    ref = jnp.tanh(mesh_conv(params["conv_dec"], jnp.tanh(pre), *rings))
+    ref = jnp.tanh(mesh_conv(params.conv_dec.weights(), jnp.tanh(pre), *rings))
     np.testing.assert_allclose(ae_decode(params, eye, rings), ref, rtol=1e-6, atol=1e-6)
-    assert not np.allclose(params["conv_enc"]["W_point"], params["conv_dec"]["W_point"])
+    assert not np.allclose(params.conv_enc.weights()["W_point"], params.conv_dec.weights()["W_point"])
 
 
 def test_reconstruction_loss():
@@ -216,7 +221,7 @@ def test_jit_matches_eager(grid):
 
     def loss(p, x, rings, dist):
         z, xh = eager_forward(p, x, rings)
-        return (10 * reconstruction_loss(x, xh) + group_sparsity(p["C"], dist, 0.4) + latent_bound(z, 0.01), z, xh)
+        return (10 * reconstruction_loss(x, xh) + group_sparsity(p.C[...], dist, 0.4) + latent_bound(z, 0.01), z, xh)
 
     eager = loss(params, x, rings, dist)
     jitted = jax.jit(loss)(params, x, rings, dist)
@@ -285,10 +290,10 @@ def test_decoder_error_matches_the_squared_difference(dtype):
     x = jax.random.uniform(jax.random.PRNGKey(1), (3, 7, n * n, 9), dtype, -0.9, 0.9)
 
     def reference(q, xx):
-        h = jnp.tanh(mesh_conv(q["conv_enc"], xx, *rings))
-        z = h.reshape(h.shape[0], -1) @ q["C"].T
-        g = jnp.tanh((z @ q["C"]).reshape(xx.shape))
-        xh = jnp.tanh(mesh_conv(q["conv_dec"], g, *rings))
+        h = jnp.tanh(mesh_conv(q.conv_enc.weights(), xx, *rings))
+        z = h.reshape(h.shape[0], -1) @ q.C[...].T
+        g = jnp.tanh((z @ q.C[...]).reshape(xx.shape))
+        xh = jnp.tanh(mesh_conv(q.conv_dec.weights(), g, *rings))
         return z, xh, jnp.sum(jnp.square(xh - xx), axis=(-2, -1))
 
     def make(block):
@@ -351,16 +356,18 @@ def test_masked_blocks_jacobian_under_vmap():
     am = jax.random.uniform(jax.random.PRNGKey(5), (1, 4, n * n), jnp.float64)
 
     def masked(x, c):
-        z, xh, err = masked_blocks_error(dict(p, C=c), x, am, rings)
+        z, xh, err = masked_blocks_error(AEBlock(p.conv_enc, p.conv_dec, c), x, am, rings)
         return jnp.concatenate([err.ravel(), xh[..., :3, :].ravel()])
 
     def formed(x, c):
         inputs = am[..., None, :, None] * x[:, None]
-        z, xh, err = jax.vmap(jax.vmap(lambda q, xin: ae_forward_error(q, xin, rings)))(dict(p, C=c), inputs)
+        z, xh, err = jax.vmap(jax.vmap(lambda q, xin: ae_forward_error(q, xin, rings)))(
+            AEBlock(p.conv_enc, p.conv_dec, c), inputs
+        )
         return jnp.concatenate([err.ravel(), xh[..., :3, :].ravel()])
 
-    got = jax.jit(jax.jacrev(masked, argnums=(0, 1)))(x, p["C"])
-    want = jax.jit(jax.jacrev(formed, argnums=(0, 1)))(x, p["C"])
+    got = jax.jit(jax.jacrev(masked, argnums=(0, 1)))(x, p.C[...])
+    want = jax.jit(jax.jacrev(formed, argnums=(0, 1)))(x, p.C[...])
     for a, b in zip(got, want):
         assert float(jnp.max(jnp.abs(a - b))) <= 1e-12 * float(jnp.max(jnp.abs(b)))
 
@@ -400,7 +407,7 @@ def test_mesh_conv_forward_mode_matches_central_differences(grid):
 
     def f(args):
         p, xx = args
-        return jnp.sin(jax.vmap(lambda q, a: mesh_conv(q, a, *rings))(p, xx))
+        return jnp.sin(jax.vmap(lambda q, a: mesh_conv(q.weights(), a, *rings))(p, xx))
 
     v = _random_like((params, x), 2)
     _, tangent = jax.jit(lambda a, t: jax.jvp(f, (a,), (t,)))((params, x), v)
@@ -437,7 +444,7 @@ def test_second_order_through_the_mesh_convolution(grid):
     _, _, rings = grid
     params = init_mesh_conv(jax.random.PRNGKey(3), 9, 5, jnp.float64)
     x = jax.random.uniform(jax.random.PRNGKey(4), (2, 16, 9), jnp.float64, -1, 1)
-    loss = lambda a: jnp.sum(jnp.tanh(mesh_conv(a[0], a[1], *rings)) ** 3)  # noqa: E731
+    loss = lambda a: jnp.sum(jnp.tanh(mesh_conv(a[0].weights(), a[1], *rings)) ** 3)  # noqa: E731
     _hessian_vector_check(loss, (params, x), _random_like((params, x), 5), 1e-7)
 
 

@@ -37,14 +37,15 @@ COMPONENTS = """
     mesh = parallel.batch_mesh()
     rel = lambda a, b: float(jnp.max(jnp.abs(a - b)) / jnp.maximum(jnp.max(jnp.abs(b)), 1e-300))
 
-    def one_step(tc, stage, params, mesh_):
-        sub = params if stage is None else params[: stage + 1]
+    def one_step(tc, stage, m, mesh_):
+        states = train.level_states(m)
+        sub = states if stage is None else states[: stage + 1]
         opt_state = train._opt_init(tc, sub, stage)
         copy = lambda t: jax.tree_util.tree_map(jnp.copy, t)  # the step donates params and optimizer state
-        step = train.make_step(config, tc, rings, dist, stage, mesh=mesh_)
+        step = train.make_step(m, tc, rings, dist, stage, mesh=mesh_)
         return step(copy(sub), copy(opt_state), jax.random.PRNGKey(7), data)
 
-    params = model.init(jax.random.PRNGKey(0), data.shape[1], config, dtype)
+    params = model.Model(data.shape[1], config, key=jax.random.PRNGKey(0), dtype=dtype)
     worst = 0.0
     # batch 8 = the whole set every step; batch 4 = 4 of the 8 drawn by the key; stage 1 = separate training
     for batch, stage in ((8, None), (4, None), (8, 1)):
@@ -64,8 +65,8 @@ COMPONENTS = """
 
     # train() with a mesh: same history and parameters as on one device
     tc = train.TrainConfig(epochs=3, batch=4, seed=1)
-    pa, ha = train.train(data, rings, dist, config, tc, params=params)
-    pb, hb = train.train(data, rings, dist, config, tc, params=params, mesh=mesh)
+    pa, ha = train.train(data, rings, dist, config, tc, model=params)
+    pb, hb = train.train(data, rings, dist, config, tc, model=params, mesh=mesh)
     np.testing.assert_allclose(hb, ha, rtol=max(rtol, 1e-6))  # the history is float32
     d_train = max(rel(a, b) for a, b in zip(jax.tree_util.tree_leaves(pb), jax.tree_util.tree_leaves(pa)))
     assert d_train < 10 * rtol, d_train
@@ -74,7 +75,7 @@ COMPONENTS = """
     # a batch that does not split over the 4 devices is refused
     for bad in (dataclasses.replace(tc, batch=6), dataclasses.replace(tc, batch=10, epochs=1)):
         try:
-            train.train(data[:6] if bad.batch == 10 else data, rings, dist, config, bad, params=params, mesh=mesh)
+            train.train(data[:6] if bad.batch == 10 else data, rings, dist, config, bad, model=params, mesh=mesh)
         except ValueError as e:
             assert "split evenly" in str(e), e
         else:

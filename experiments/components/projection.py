@@ -36,21 +36,19 @@ from jax.flatten_util import ravel_pytree
 
 import jaxdeform  # noqa: F401  (x64)
 from experiments.components.common import write_text
-from jaxdeform.components import model
 from jaxdeform.components import run as crun
 from jaxdeform.mesh.topology import build_topology
 from jaxdeform.nn.graph_conv import Rings, rings_from_topology
 from jaxdeform.nn.host import host_scalars
 
 
-def fit_codes(
-    params, rings: Rings, x, codes0, *, steps: int = 300, lr: float = 0.02, log=None
-) -> tuple[tuple, np.ndarray]:
-    """Codes (one array per level) fitted by Adam from ``codes0`` so that the decoders reproduce ``x`` (N, V, 9);
+def fit_codes(m, rings: Rings, x, codes0, *, steps: int = 300, lr: float = 0.02, log=None) -> tuple[tuple, np.ndarray]:
+    """Codes (one array per level) fitted by Adam from ``codes0`` so that the decoders of model ``m`` reproduce ``x``
+    (N, V, 9);
     returns them and the loss (sum of squared feature errors) before each step."""
 
     def loss(codes):
-        return jnp.sum((model.decode_latents(params, codes, rings) - x) ** 2)
+        return jnp.sum((m.decode_latents(codes, rings) - x) ** 2)
 
     opt = optax.adam(lr)
 
@@ -71,10 +69,8 @@ def fit_codes(
     return codes, host_scalars(losses)
 
 
-def fit_positions(
-    params, rings: Rings, run, ref, codes0, *, iterations: int = 150, log=None
-) -> tuple[tuple, np.ndarray]:
-    """Codes fitted by L-BFGS from ``codes0`` so that the ACAP reconstruction of the decoders' output matches the
+def fit_positions(m, rings: Rings, run, ref, codes0, *, iterations: int = 150, log=None) -> tuple[tuple, np.ndarray]:
+    """Codes fitted by L-BFGS from ``codes0`` so that the ACAP reconstruction of model ``m``'s decoders matches the
     vertices ``ref`` (N, V, 3) up to a translation per shape; returns them and the loss (mean squared vertex
     distance) at the start and after each iteration."""
     import scipy.optimize
@@ -88,7 +84,7 @@ def fit_positions(
     scale = 1.0 / float(np.mean(np.sum((ref - ref.mean(axis=1, keepdims=True)) ** 2, -1)))  # loss ~ 1 at the start
 
     def loss(w):
-        features = run.scaler.inverse(model.decode_latents(params, unflatten(w), rings)).astype(jnp.float64)
+        features = run.scaler.inverse(m.decode_latents(unflatten(w), rings)).astype(jnp.float64)
         d = machinery.decode(features, refine=0) - target
         d = d - jnp.mean(d, axis=1, keepdims=True)
         return jnp.mean(jnp.sum(d * d, -1)) * scale
@@ -137,11 +133,11 @@ def main(argv=None) -> dict:
     ref = vertices[run.test_idx]
     x = crun.scaled_features(run, ref)
     rings = rings_from_topology(build_topology(faces, run.rest.shape[0]))
-    codes0 = tuple(model.encode(run.params, x, rings, run.config))
+    codes0 = tuple(run.model.encode(x, rings))
     t0 = time.perf_counter()
     if args.space == "features":
         codes, losses = fit_codes(
-            run.params,
+            run.model,
             rings,
             x,
             codes0,
@@ -151,7 +147,7 @@ def main(argv=None) -> dict:
         )
     else:
         codes, losses = fit_positions(
-            run.params,
+            run.model,
             rings,
             run,
             ref,
@@ -169,14 +165,14 @@ def main(argv=None) -> dict:
         "fit_s": round(fit_s, 1),
     }
     for name, c in (("encoder", codes0), ("fitted", codes)):
-        xh = model.decode_latents(run.params, c, rings)
+        xh = run.model.decode_latents(c, rings)
         rec = {"positions": crun.positions_from_scaled(run, xh), "scaled": np.asarray(x), "scaled_hat": np.asarray(xh)}
-        m = crun.set_metrics(ref, rec, faces)
-        m["feature_loss"] = float(jnp.sum((xh - x) ** 2))
-        result[name] = m
+        met = crun.set_metrics(ref, rec, faces)
+        met["feature_loss"] = float(jnp.sum((xh - x) ** 2))
+        result[name] = met
         print(
-            f"{name} codes: test Erms {m['erms']:.3f}, STED {m['sted']:.4f}, max relative squared error "
-            f"{m['max_relative_squared_error']:.5f}, feature loss {m['feature_loss']:.6g}",
+            f"{name} codes: test Erms {met['erms']:.3f}, STED {met['sted']:.4f}, max relative squared error "
+            f"{met['max_relative_squared_error']:.5f}, feature loss {met['feature_loss']:.6g}",
             flush=True,
         )
     result["loss_history"] = losses[:: max(1, len(losses) // 100)].tolist()

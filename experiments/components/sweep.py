@@ -170,9 +170,9 @@ def main(argv=None, extra_config: dict | None = None, model_options: dict | None
     x = crun.apply_feature_transform(feats, turns, scaler, np.float32)
     rings = rings_from_topology(build_topology(faces, rest.shape[0]))
 
-    def features_hat(idx, p, c):
+    def features_hat(idx, m):
         xs = jnp.asarray(x[idx])
-        return jnp.concatenate([train.reconstruct(p, xs[i : i + 16], rings, c) for i in range(0, len(idx), 16)])
+        return jnp.concatenate([train.reconstruct(m, xs[i : i + 16], rings) for i in range(0, len(idx), 16)])
 
     def feature_metrics(idx, xh) -> dict:
         rse = metrics.relative_squared_error(x[idx], xh)
@@ -182,20 +182,20 @@ def main(argv=None, extra_config: dict | None = None, model_options: dict | None
             "mean_rse": float(rse.mean()),
         }
 
-    def evaluate(idx, p, c):
-        xh = features_hat(idx, p, c)
+    def evaluate(idx, m):
+        xh = features_hat(idx, m)
         pos = np.asarray(acap.decode(jnp.asarray(np.asarray(scaler.inverse(xh)), jnp.float64), rest, faces))
         return metrics.erms(vertices[idx], pos), feature_metrics(idx, xh)
 
     curve = []
 
-    def snapshot(epoch, p):
+    def snapshot(epoch, m):
         point = {"epoch": epoch, "seconds": round(time.perf_counter() - t0, 1)}
         for name, idx in sets:
             if a.curve == "erms":
-                point[f"{name}_erms"], fm = evaluate(idx, p, cfg)
+                point[f"{name}_erms"], fm = evaluate(idx, m)
             else:
-                fm = feature_metrics(idx, features_hat(idx, p, cfg))
+                fm = feature_metrics(idx, features_hat(idx, m))
             point.update({f"{name}_{k}": v for k, v in fm.items()})
         curve.append(point)
         print(json.dumps(curve[-1]), flush=True)
@@ -212,7 +212,7 @@ def main(argv=None, extra_config: dict | None = None, model_options: dict | None
             ]
         )
     t0 = time.perf_counter()
-    params, history = train.train(
+    trained, history = train.train(
         data,
         rings,
         dist,
@@ -246,12 +246,11 @@ def main(argv=None, extra_config: dict | None = None, model_options: dict | None
     }
     result["split"] = a.split
     for name, idx in sets:
-        result[f"{name}_erms"], fm = evaluate(idx, params, cfg)
+        result[f"{name}_erms"], fm = evaluate(idx, trained)
         result.update({f"{name}_{k}": v for k, v in fm.items()})
     if cfg.levels > 1:
-        c0 = dataclasses.replace(cfg, kz=cfg.kz[:1], d=cfg.d[:1])
         for name, idx in sets:
-            result[f"level0_{name}_erms"] = evaluate(idx, params[:1], c0)[0]
+            result[f"level0_{name}_erms"] = evaluate(idx, trained.first_levels(1))[0]
     if same:
         result.update(
             {
@@ -262,7 +261,9 @@ def main(argv=None, extra_config: dict | None = None, model_options: dict | None
         )
     if curve:
         result["curve"] = curve
-    result["inside_fraction"] = [inside_fraction(np.asarray(p["C"]), dist, cfg.d[lvl]) for lvl, p in enumerate(params)]
+    result["inside_fraction"] = [
+        inside_fraction(np.asarray(level.C[...]), dist, cfg.d[lvl]) for lvl, level in enumerate(trained.levels)
+    ]
     line = json.dumps(result, default=float)
     print(line)
     if a.jsonl:

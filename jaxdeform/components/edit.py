@@ -9,7 +9,7 @@ control points by furthest point sampling, targets taken from an unseen shape, e
 This module is method-agnostic. A model is any pure differentiable JAX function of one latent vector:
 
 - ``decode_features(w) -> (V, 9)`` ACAP features (multiscale model: a wrapper around
-  ``model.decode_latents`` with the latent tuple flattened; PCA on features: ``mean + w @ components``),
+  ``Model.decode_latents`` with the latent tuple flattened; PCA on features: ``mean + w @ components``),
   optionally scaled (a :class:`~jaxdeform.acap.Scaler` maps them back). Positions come from the
   differentiable ACAP reconstruction :meth:`jaxdeform.acap.Acap.decode` (implicit adjoint of a prefactored
   least-squares solve, so gradients cost one more sparse solve);

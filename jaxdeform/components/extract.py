@@ -6,7 +6,7 @@ vector to a one-hot vector"), measured against the same decoder at the base code
     delta_k = ae_decode(z_base + (s_k - z_base,k) e_k) - ae_decode(z_base)        (Kz, V, 9), scaled features
 
 so a component is the change of the scaled ACAP features that latent ``k`` adds. ``z_base`` is zero by
-default (the "rest" output); since :func:`jaxdeform.components.model.decode_latents` sums independent block
+default (the "rest" output); since :meth:`jaxdeform.components.model.Model.decode_latents` sums independent block
 outputs, ``delta_k`` is exactly ``decode_latents(one-hot) - decode_latents(0)``. The magnitude ``s_k``: for
 visualization the paper extracts components "using the same method as [10]" (Tan et al. 2018), whose public
 code sweeps each latent dimension between its minimum and maximum over the training codes (other dimensions
@@ -53,9 +53,9 @@ import numpy as np
 from jaxtyping import Array, Bool, Float
 
 from jaxdeform.acap.features import Scaler, decode
-from jaxdeform.components.model import Config
+from jaxdeform.components.model import Model
 from jaxdeform.errors import ConnectivityError, DegenerateMeshError
-from jaxdeform.nn.graph_conv import MU, Rings, ae_decode
+from jaxdeform.nn.graph_conv import MU, AEBlock, Rings, ae_decode
 
 EPS1 = 1e-6
 EPS2 = 0.01
@@ -166,7 +166,7 @@ def _one_hot_codes(scale: Float[Array, " kz"], base: Float[Array, " kz"]) -> Flo
 
 
 def _block_deltas(
-    p: dict, rings: Rings, scale: Float[Array, " kz"], base: Float[Array, " kz"]
+    p: AEBlock, rings: Rings, scale: Float[Array, " kz"], base: Float[Array, " kz"]
 ) -> Float[Array, "kz v 9"]:
     out = ae_decode(p, _one_hot_codes(scale, base), rings)
     return out - ae_decode(p, base[None, :], rings)
@@ -177,56 +177,53 @@ _block_deltas_jit = jax.jit(_block_deltas)
 
 @jax.jit
 def _level_deltas(
-    p: dict, rings: Rings, scale: Float[Array, "n kz"], base: Float[Array, "n kz"]
+    p: AEBlock, rings: Rings, scale: Float[Array, "n kz"], base: Float[Array, "n kz"]
 ) -> Float[Array, "n kz v 9"]:
     return jax.vmap(lambda q, s, b: _block_deltas(q, rings, s, b))(p, scale, base)
 
 
-def _level_kz(params: tuple, level: int) -> tuple[int, int]:
-    if not 0 <= level < len(params):
-        raise ValueError(f"level {level} does not exist; the model has {len(params)} levels.")
-    n, kz = params[level]["C"].shape[:2]
+def _level_kz(m: Model, level: int) -> tuple[int, int]:
+    if not 0 <= level < len(m.levels):
+        raise ValueError(f"level {level} does not exist; the model has {len(m.levels)} levels.")
+    n, kz = m.levels[level].C.shape[:2]
     return int(n), int(kz)
 
 
-def block_components(
-    params: tuple, rings: Rings, level: int, block: int, scale=1.0, base=None
-) -> Float[Array, "kz v 9"]:
-    """Components (Kz, V, 9) of block ``block`` of ``level``, as scaled-feature differences.
+def block_components(m: Model, rings: Rings, level: int, block: int, scale=1.0, base=None) -> Float[Array, "kz v 9"]:
+    """Components (Kz, V, 9) of block ``block`` of ``level`` of model ``m``, as scaled-feature differences.
 
     Row k is ``ae_decode(base with z_k = scale_k) - ae_decode(base)``; ``scale`` is a number or one per
     component (Kz,), ``base`` the block's base code (Kz,) (default zeros: the one-hot codes of eq. (4)).
     """
-    n, kz = _level_kz(params, level)
+    n, kz = _level_kz(m, level)
     if not 0 <= block < n:
         raise ValueError(f"block {block} does not exist; level {level} has {n} blocks.")
-    p = jax.tree_util.tree_map(lambda a: a[block], params[level])
-    dtype = p["C"].dtype
+    p = jax.tree_util.tree_map(lambda a: a[block], m.levels[level])
+    dtype = p.C.dtype
     s = jnp.broadcast_to(jnp.asarray(scale, dtype), (kz,))
     b = jnp.zeros((kz,), dtype) if base is None else jnp.asarray(base, dtype).reshape(kz)
     return _block_deltas_jit(p, rings, s, b)
 
 
 def latent_extremes(
-    params: tuple, rings: Rings, level: int, codes: Float[Array, "n b kz"], base: Float[Array, "n kz"] | None = None
+    m: Model, rings: Rings, level: int, codes: Float[Array, "n b kz"], base: Float[Array, "n kz"] | None = None
 ) -> Float[Array, "n kz"]:
     """Per block and latent dimension, the end of the codes' range [min_m z, max_m z] whose component changes
-    the features most (largest squared norm), as in the public code of Tan et al. [10]."""
-    n, kz = _level_kz(params, level)
-    codes = jnp.asarray(codes, params[level]["C"].dtype)
+    the features most (largest squared norm), as in the public code of Tan et al. [10] (model ``m``)."""
+    n, kz = _level_kz(m, level)
+    codes = jnp.asarray(codes, m.levels[level].C.dtype)
     if codes.ndim != 3 or codes.shape[0] != n or codes.shape[2] != kz or codes.shape[1] == 0:
         raise ValueError(f"codes of level {level} must have shape ({n}, B, {kz}) with B >= 1, got {codes.shape}.")
     base = jnp.zeros((n, kz), codes.dtype) if base is None else jnp.asarray(base, codes.dtype)
     lo, hi = jnp.min(codes, axis=1), jnp.max(codes, axis=1)
-    d_lo = jnp.sum(jnp.square(_level_deltas(params[level], rings, lo, base)), axis=(2, 3))
-    d_hi = jnp.sum(jnp.square(_level_deltas(params[level], rings, hi, base)), axis=(2, 3))
+    d_lo = jnp.sum(jnp.square(_level_deltas(m.levels[level], rings, lo, base)), axis=(2, 3))
+    d_hi = jnp.sum(jnp.square(_level_deltas(m.levels[level], rings, hi, base)), axis=(2, 3))
     return jnp.where(d_hi >= d_lo, hi, lo)
 
 
 def all_components(
-    params: tuple,
+    m: Model,
     rings: Rings,
-    config: Config,
     *,
     scale: float | None = None,
     latents: tuple | None = None,
@@ -237,10 +234,9 @@ def all_components(
 
     **Arguments:**
 
-    - ``params``: the model's parameters; may hold a prefix of the config's levels.
-    - ``rings``: the mesh's one-rings.
-    - ``config``: the model's configuration; it must use the default decoder (``tie_conv=False``,
+    - ``m``: the model; its configuration must use the default decoder (``tie_conv=False``,
         ``decoder_tanh=True``).
+    - ``rings``: the mesh's one-rings.
     - ``scale``: the code magnitude without ``latents`` (default None: ``config.theta``).
     - ``latents``: the training codes, per level ``(n_l, B, Kz_l)`` as in ``Output.latents``; the magnitudes are then
         the data extreme of [10] (:func:`latent_extremes`).
@@ -254,21 +250,21 @@ def all_components(
 
     **Raises:**
 
-    ``ValueError`` for a variant decoder, more levels of ``params`` than ``config`` describes, ``reference`` without
-    ``latents`` or out of range, or ``latents`` with another number of levels.
+    ``ValueError`` for a variant decoder, ``reference`` without ``latents`` or out of range, or ``latents`` with
+    another number of levels.
     """
+    config = m.config
     if config.tie_conv or not config.decoder_tanh:
         raise ValueError("component extraction needs the default decoder (tie_conv=False, decoder_tanh=True).")
-    if not 1 <= len(params) <= config.levels:  # a prefix of the levels is fine (level-by-level training)
-        raise ValueError(f"params have {len(params)} levels but the config describes {config.levels}.")
+    levels = tuple(m.levels)
     if reference is not None and latents is None:
         raise ValueError("a reference shape needs the training codes (latents) to take its code from.")
-    if latents is not None and len(latents) != len(params):
-        raise ValueError(f"latents must give one array per level ({len(params)}), got {len(latents)}.")
+    if latents is not None and len(latents) != len(levels):
+        raise ValueError(f"latents must give one array per level ({len(levels)}), got {len(latents)}.")
     values, level, block, index, magnitude = [], [], [], [], []
-    for lv, p in enumerate(params):
-        n, kz = _level_kz(params, lv)
-        dtype = p["C"].dtype
+    for lv, p in enumerate(levels):
+        n, kz = _level_kz(m, lv)
+        dtype = p.C.dtype
         base = jnp.zeros((n, kz), dtype)
         if latents is not None:
             codes = jnp.asarray(latents[lv], dtype)
@@ -276,7 +272,7 @@ def all_components(
                 if not 0 <= reference < codes.shape[1]:
                     raise ValueError(f"reference {reference} is not one of the {codes.shape[1]} coded shapes.")
                 base = codes[:, reference]
-            s = latent_extremes(params, rings, lv, codes, base)
+            s = latent_extremes(m, rings, lv, codes, base)
         else:
             s = jnp.full((n, kz), config.theta if scale is None else scale, dtype)
         values.append(np.asarray(_level_deltas(p, rings, s, base)).reshape(n * kz, -1, MU))

@@ -30,10 +30,11 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
+from flax import nnx
 
 from jaxdeform import acap
-from jaxdeform.components import model, train
 from jaxdeform.components import run as crun
+from jaxdeform.components import train
 from jaxdeform.mesh.topology import build_topology
 from jaxdeform.nn.graph_conv import rings_from_topology
 
@@ -93,14 +94,15 @@ def generated_meshes(
     standard deviation over those codes (Gaussian), decoded, reconstructed to vertices, and those meshes' own
     features extracted again (rotation branches aligned, scaled: what an unseen shape gives the encoder)."""
     base = regional_mixes(x, dist, n, rng)
-    enc = jax.jit(lambda xb: model.encode(run.params, xb, rings, run.config))
-    dec = jax.jit(lambda zb: model.decode_latents(run.params, zb, rings))
+    enc = jax.jit(lambda m, xb: m.encode(xb, rings))
+    dec = jax.jit(lambda m, zb: m.decode_latents(zb, rings))
     codes = [
-        np.concatenate(z, axis=1) for z in zip(*[enc(jnp.asarray(base[i : i + chunk])) for i in range(0, n, chunk)])
+        np.concatenate(z, axis=1)
+        for z in zip(*[enc(run.model, jnp.asarray(base[i : i + chunk])) for i in range(0, n, chunk)])
     ]  # per level (n_l, n, Kz)
     moved = [c + noise * c.std(axis=1, keepdims=True) * rng.standard_normal(c.shape).astype(c.dtype) for c in codes]
     feats = np.concatenate(
-        [np.asarray(dec(tuple(jnp.asarray(c[:, i : i + chunk]) for c in moved))) for i in range(0, n, chunk)]
+        [np.asarray(dec(run.model, tuple(jnp.asarray(c[:, i : i + chunk]) for c in moved))) for i in range(0, n, chunk)]
     )
     return np.asarray(crun.scaled_features(run, crun.positions_from_scaled(run, feats)), x.dtype)
 
@@ -134,7 +136,8 @@ def position_loss_fn(run: crun.Run, rings, dist, weight: float, rigid: bool = Fa
 
     **Returns:**
 
-    ``(loss, positions, term)``: ``loss(params, x (B, V, 9) scaled features, g (B, V, 3) their positions)`` ->
+    ``(loss, positions, term)``: ``loss(params (nnx.state(run.model)), x (B, V, 9) scaled features, g (B, V, 3)
+    their positions)`` ->
     ``(total, (model loss, position term))``, the module docstring's loss, one differentiable function;
     ``positions(x)`` the plain ACAP reconstruction of scaled features that the position term compares (the targets
     g come from it too); ``term(x_hat, g)`` the position term of the model's output x_hat.
@@ -154,8 +157,10 @@ def position_loss_fn(run: crun.Run, rings, dist, weight: float, rigid: bool = Fa
             d = d - jnp.mean(d, axis=1, keepdims=True)
         return (jnp.mean(jnp.sum(d * d, axis=-1)) * inv_r2).astype(x_hat.dtype)
 
+    graphdef = nnx.graphdef(run.model)
+
     def loss(params, x, g):
-        out = model.forward(params, x, rings, dist, run.config)
+        out = nnx.merge(graphdef, params)(x, rings, dist)
         pos = term(out.reconstruction, g)
         return out.loss + weight * pos, (out.loss, pos)
 
@@ -163,17 +168,19 @@ def position_loss_fn(run: crun.Run, rings, dist, weight: float, rigid: bool = Fa
 
 
 def make_step(run: crun.Run, rings, dist, weight: float, opt: optax.GradientTransformation, rigid: bool = False):
-    """step(params, state, x, g) -> (params, state, (model loss, position term)): one Adam step on
+    """step(params, state, x, g) -> (params, state, (model loss, position term)), ``params`` the ``nnx.State`` of a
+    model of ``run.model``'s structure (``nnx.state(run.model)``): one Adam step on
     :func:`position_loss_fn`'s loss, as three jitted stages: the model's forward with its VJP, the position term
     with its gradient in the model's output, then the model's pullback and the update. The same gradient as one
     jitted ``value_and_grad`` of the loss; the ACAP decode inside a larger XLA program loses the stage boundaries
     that keep it fast on the CPU (the staged step runs in about half the time of the fused one)."""
     _, _, term = position_loss_fn(run, rings, dist, weight, rigid)
+    graphdef = nnx.graphdef(run.model)
 
     @jax.jit
     def forward(params, x):
         def f(p):
-            out = model.forward(p, x, rings, dist, run.config)
+            out = nnx.merge(graphdef, p)(x, rings, dist)
             return out.loss, out.reconstruction
 
         (model_loss, x_hat), pullback = jax.vjp(f, params)
@@ -297,7 +304,7 @@ def finetune(
 
     **Returns:**
 
-    ``(params, history)``: the fine-tuned parameters and ``(steps, 2)``: the model loss and position term of each
+    ``(model, history)``: the fine-tuned Module (a new one) and ``(steps, 2)``: the model loss and position term of each
     step's batch before its update.
 
     **Raises:**
@@ -321,7 +328,8 @@ def finetune(
     opt = optax.adam(schedule(lr, steps, lr_final))
     step = make_step(run, rings, jnp.asarray(dist), position_weight, opt, rigid)
 
-    params = tuple(run.params)
+    graphdef, params = nnx.split(run.model)
+    params = jax.tree_util.tree_map(jnp.copy, params)  # a state of its own: run.model stays as it is
     state = opt.init(params)
     history = []
     bar = None
@@ -339,7 +347,8 @@ def finetune(
             bar.update(i + 1 - bar.n)
     if bar is not None:
         bar.close()
-    return params, np.asarray(jax.device_get(history), np.float64).reshape(steps, 2)  # one transfer, no XLA op
+    history = np.asarray(jax.device_get(history), np.float64).reshape(steps, 2)  # one transfer, no XLA op
+    return nnx.merge(graphdef, params), history
 
 
 def fit(
@@ -379,7 +388,7 @@ def fit(
     vertices, _ = crun.run_data(run, data)
     x_train = crun.scaled_features(run, vertices[run.train_idx])
     t0 = time.perf_counter()
-    params, history = finetune(
+    tuned, history = finetune(
         run,
         x_train,
         mixes=mixes,
@@ -414,9 +423,9 @@ def fit(
     for name in ("mesh.npz", "history.npy"):
         if (run.path / name).is_file():
             shutil.copy2(run.path / name, out / name)
-    train.save_params(out / "params", params, steps)
+    train.save_params(out / "params", tuned, steps)
     rings = rings_from_topology(build_topology(run.faces, run.rest.shape[0]))
-    codes = model.encode(params, jnp.asarray(x_train), rings, run.config)
+    codes = tuned.encode(jnp.asarray(x_train), rings)
     np.savez(out / "codes.npz", **{f"level{i}": np.asarray(z) for i, z in enumerate(codes)})
     (out / "run.json").write_text(json.dumps(dict(run.record, finetune=record), indent=2))
     return record

@@ -10,8 +10,10 @@ so the children's inputs add up to the parent's residual. Without attention (the
 child receives the whole residual. The model's reconstruction is the sum of every block's output; the loss is
 the sum over blocks of lambda1 L_recon + lambda2 Omega(C) + V(Z) (eq. 2), each block against its own input.
 
-Parameters of level l are stacked along a leading axis of size n_l = Kz_0 ... Kz_(l-1) (one pytree per level)
-and the blocks of a level run under ``jax.vmap``: no Python loop over blocks.
+The model is a flax nnx Module, :class:`Model`: its :class:`Config` and one
+:class:`~jaxdeform.nn.graph_conv.AEBlock` per level, whose arrays are stacked along a leading axis of size
+n_l = Kz_0 ... Kz_(l-1); the blocks of a level run under ``jax.vmap`` (nnx Modules are pytrees): no Python loop
+over blocks. :func:`forward_levels` runs a sequence of levels (training merges its split state into them).
 
 Three options of :class:`Config` give the block of Tan et al.'s public TF1 code (convMesh, which seed 000 builds
 on) where it differs from this one (:mod:`experiments.components.reference_variants` trains them); their
@@ -21,13 +23,11 @@ defaults are this project's block:
   N(0, ``init_std``^2), as convMesh's ``tf.random_normal_initializer(stddev=0.02)``; default Glorot-uniform.
 - ``tie_conv=True``: the decoder's convolution uses the encoder's W_point and W_neighbor (its bias its own), as
   convMesh does and as the paper's Fig. 1 caption reads ("the encoder and decoder share the same trainable
-  parameters"); the parameters then hold no decoder weights of their own (``conv_dec`` has only ``b``).
+  parameters"); the blocks then hold no decoder weights of their own (``conv_dec`` has only ``b``).
 - ``decoder_tanh=False``: no tanh on z C, x_hat = tanh(conv_dec(reshape(z C))), as convMesh has it; default
   tanh(conv_dec(tanh(reshape(z C)))), the paper's "all the layers use the tanh".
 
-Code that decodes parameters without the configuration (:func:`decode_latents` without ``config``,
-:mod:`jaxdeform.components.extract`) decodes with the default block: ``tie_conv`` parameters are refused there
-(they have no decoder weights), ``decoder_tanh=False`` ones are not detected.
+Every decoding reads the model's own configuration (:meth:`Model.decode_latents`, :func:`decoder_blocks`).
 """
 
 from __future__ import annotations
@@ -38,11 +38,14 @@ from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+from flax import nnx
 from jaxtyping import Array, Float
 
 from jaxdeform.nn import graph_conv
 from jaxdeform.nn.graph_conv import (
     MU,
+    AEBlock,
+    MeshConv,
     Rings,
     ae_decode_pre,
     ae_encode,
@@ -50,7 +53,6 @@ from jaxdeform.nn.graph_conv import (
     ae_forward_error,
     init_ae_block,
     masked_blocks_error,
-    mesh_conv,
 )
 from jaxdeform.nn.losses import group_sparsity, latent_bound
 
@@ -119,78 +121,173 @@ class Output(NamedTuple):
     latents: tuple  # per level: (n_l, B, Kz_l)
 
 
-_WEIGHTS = ("W_point", "W_neighbor", "C")
+class Model(nnx.Module):
+    """The multiscale model: its :class:`Config` and one :class:`~jaxdeform.nn.graph_conv.AEBlock` per level
+    (``levels[l]``, arrays stacked along a leading axis of the level's ``config.blocks(l)`` blocks).
 
-
-def init(key: Array, n_vertices: int, config: Config, dtype=jnp.float32) -> tuple[dict, ...]:
-    """Fresh parameters: one stacked pytree per level (leading axis = blocks of that level).
-
-    ``config.init="normal"``: the Glorot draw's weights redrawn from N(0, init_std^2), one key of
-    ``jax.random.split(key, n)`` per parameter array in pytree order (biases kept at zero). ``config.tie_conv``:
-    the decoders' W_point and W_neighbor left out (drawn, then dropped: the other arrays are those of the untied
-    model).
+    Drawn from ``key``: level l's blocks from ``jax.random.split(sub_l, n_l)`` (:func:`init_ae_block` under
+    ``jax.vmap``), ``key, sub_l = jax.random.split(key)`` level by level. ``config.init="normal"``: every weight
+    (W_point, W_neighbor, C) then redrawn from N(0, init_std^2) with one key of ``jax.random.split(key, 7 L)``
+    per array, level by level in the order of :data:`DRAW_ORDER` (biases keep theirs, zero).
+    ``config.tie_conv``: the decoders' W_point and W_neighbor dropped (drawn, then dropped: every other array is
+    that of the untied model); the decoders read their encoders'.
 
     **Arguments:**
 
-    - ``key``: the PRNG key.
     - ``n_vertices``: V.
-    - ``config``: the model's hyper-parameters.
+    - ``config``: the model's hyper-parameters (kept as ``self.config``).
+    - ``key``: the PRNG key.
     - ``dtype``: the parameters' dtype.
+    """
+
+    def __init__(self, n_vertices: int, config: Config, *, key: Array, dtype=jnp.float32):
+        self.config = config
+        self.n_vertices = int(n_vertices)
+        first = key
+        levels = []
+        for level, kz in enumerate(config.kz):
+            key, sub = jax.random.split(key)
+            keys = jax.random.split(sub, config.blocks(level))
+            levels.append(jax.vmap(lambda k, kz=kz: init_ae_block(k, n_vertices, kz, dtype))(keys))
+        if config.init == "normal":
+            _normal_weights(levels, first, config.init_std)
+        if config.tie_conv:
+            for block in levels:
+                block.conv_dec = MeshConv(None, None, block.conv_dec.b[...])
+        self.levels = nnx.List(levels)
+
+    def __call__(self, x: Float[Array, "b v 9"], rings: Rings, dist: Float[Array, "v v"]) -> Output:
+        """:func:`forward_levels` over every level.
+
+        **Arguments:**
+
+        - ``x``: scaled features ``(B, V, 9)``.
+        - ``rings``: the mesh's one-rings.
+        - ``dist``: normalized geodesic distances ``(V, V)``.
+
+        **Returns:**
+
+        An :class:`Output`.
+        """
+        return forward_levels(tuple(self.levels), x, rings, dist, self.config)
+
+    def encode(self, x: Float[Array, "b v 9"], rings: Rings) -> tuple:
+        """Latent codes of a batch of scaled features.
+
+        **Arguments:**
+
+        - ``x``: scaled features ``(B, V, 9)``.
+        - ``rings``: the mesh's one-rings.
+
+        **Returns:**
+
+        Per level ``(n_l, B, Kz_l)``, as in :attr:`Output.latents`.
+        """
+        return tuple(z for _, z, _, _ in _levels(tuple(self.levels), x, rings, self.config))
+
+    def reconstruction(self, x: Float[Array, "b v 9"], rings: Rings) -> Float[Array, "b v 9"]:
+        """The model's reconstruction of a batch of scaled features (the sum of every block's output).
+
+        **Arguments:**
+
+        - ``x``: scaled features ``(B, V, 9)``.
+        - ``rings``: the mesh's one-rings.
+
+        **Returns:**
+
+        The reconstruction ``(B, V, 9)``.
+        """
+        return sum(jnp.sum(x_hat, axis=0) for _, _, x_hat, _ in _levels(tuple(self.levels), x, rings, self.config))
+
+    def first_levels(self, n: int) -> Model:
+        """The model of levels 0..n-1 alone (e.g. to measure what level 0 reconstructs by itself).
+
+        **Arguments:**
+
+        - ``n``: the number of levels kept, 1 to ``config.levels``.
+
+        **Returns:**
+
+        A new :class:`Model` on the same arrays whose configuration keeps the first ``n`` entries of ``kz`` and
+        ``d``.
+
+        **Raises:**
+
+        ``ValueError`` if ``n`` is out of range.
+        """
+        if not 1 <= n <= self.config.levels:
+            raise ValueError(f"n must lie in 1..{self.config.levels}, got {n}.")
+        out = nnx.merge(*nnx.split(self))
+        out.config = dataclasses.replace(self.config, kz=self.config.kz[:n], d=self.config.d[:n])
+        out.levels = nnx.List(list(out.levels)[:n])
+        return out
+
+    def decode_latents(self, latents: tuple, rings: Rings) -> Float[Array, "b v 9"]:
+        """Scaled features from latent codes: the sum over every block of its decoder output.
+
+        A block's output depends on its own code only, so components are decoder outputs of one-hot codes and
+        editing optimizes these codes.
+
+        **Arguments:**
+
+        - ``latents``: ``latents[l]`` has shape ``(n_l, B, Kz_l)``, as in :attr:`Output.latents`.
+        - ``rings``: the mesh's one-rings.
+
+        **Returns:**
+
+        Scaled features ``(B, V, 9)``.
+        """
+        out = None
+        for block, z in zip(decoder_blocks(tuple(self.levels), self.config), latents):
+            x_hat = jnp.sum(jax.vmap(lambda q, zz: decode_block(q, zz, rings, self.config))(block, z), axis=0)
+            out = x_hat if out is None else out + x_hat
+        return out
+
+
+#: The arrays of one level in the order of ``config.init="normal"``'s keys (:class:`Model`).
+DRAW_ORDER = (
+    ("C",),
+    ("conv_dec", "W_neighbor"),
+    ("conv_dec", "W_point"),
+    ("conv_dec", "b"),
+    ("conv_enc", "W_neighbor"),
+    ("conv_enc", "W_point"),
+    ("conv_enc", "b"),
+)
+
+
+def _normal_weights(levels: list[AEBlock], key: Array, std: float) -> None:
+    """Redraw every weight (W_point, W_neighbor, C) of ``levels`` in place from N(0, std^2); biases kept."""
+    keys = jax.random.split(key, len(DRAW_ORDER) * len(levels))
+    for i, block in enumerate(levels):
+        for j, path in enumerate(DRAW_ORDER):
+            if path[-1] == "b":
+                continue
+            owner = block if len(path) == 1 else getattr(block, path[0])
+            var = getattr(owner, path[-1])
+            k = keys[i * len(DRAW_ORDER) + j]
+            var.set_value((std * jax.random.normal(k, var.shape)).astype(var.dtype))
+
+
+def decoder_blocks(levels: tuple[AEBlock, ...], config: Config) -> tuple[AEBlock, ...]:
+    """The blocks as the decoders read them: with ``config.tie_conv`` every block's ``conv_dec`` takes its
+    encoder's W_point and W_neighbor (its bias its own); otherwise ``levels`` itself.
+
+    **Arguments:**
+
+    - ``levels``: one :class:`AEBlock` per level (or a prefix).
+    - ``config``: the model's hyper-parameters.
 
     **Returns:**
 
-    A tuple of one parameter dict per level.
+    One :class:`AEBlock` per level whose decoders hold weights (new Modules on the same arrays when tied).
     """
-    first = key
-    params = []
-    for level, kz in enumerate(config.kz):
-        key, sub = jax.random.split(key)
-        keys = jax.random.split(sub, config.blocks(level))
-        params.append(jax.vmap(lambda k, kz=kz: init_ae_block(k, n_vertices, kz, dtype))(keys))
-    params = tuple(params)
-    if config.init == "normal":
-        params = _normal_weights(params, first, config.init_std)
-    if config.tie_conv:
-        params = tuple({**p, "conv_dec": {"b": p["conv_dec"]["b"]}} for p in params)
-    return params
-
-
-def _normal_weights(params: tuple, key: Array, std: float) -> tuple:
-    """``params`` with every weight array (W_point, W_neighbor, C) redrawn from N(0, std^2); biases kept."""
-    leaves, tree = jax.tree_util.tree_flatten_with_path(params)
-    keys = jax.random.split(key, len(leaves))
-    out = []
-    for (path, leaf), k in zip(leaves, keys):
-        name = getattr(path[-1], "key", None)
-        if name not in _WEIGHTS + ("b",):
-            raise ValueError(
-                f"unexpected parameter {jax.tree_util.keystr(path)}: only {_WEIGHTS} and biases are known."
-            )
-        out.append((std * jax.random.normal(k, leaf.shape)).astype(leaf.dtype) if name != "b" else leaf)
-    return jax.tree_util.tree_unflatten(tree, out)
-
-
-def _decoder_weights(params: tuple[dict, ...], config: Config | None) -> tuple[dict, ...]:
-    """``params`` as the decoders read them: with ``config.tie_conv`` every block's ``conv_dec`` takes its
-    encoder's W_point and W_neighbor (its bias its own); otherwise ``params`` itself."""
-    if config is not None and config.tie_conv:
-        return tuple(
-            {
-                **p,
-                "conv_dec": {
-                    **p["conv_dec"],
-                    "W_point": p["conv_enc"]["W_point"],
-                    "W_neighbor": p["conv_enc"]["W_neighbor"],
-                },
-            }
-            for p in params
-        )
-    for p in params:
-        if "W_point" not in p["conv_dec"]:
-            raise ValueError(
-                "the parameters hold no decoder convolution weights (a tie_conv model): pass the model's Config."
-            )
-    return params
+    if not config.tie_conv:
+        return tuple(levels)
+    return tuple(
+        AEBlock(b.conv_enc, MeshConv(b.conv_enc.W_point[...], b.conv_enc.W_neighbor[...], b.conv_dec.b[...]), b.C[...])
+        for b in levels
+    )
 
 
 def _flat_tanh(x: Array) -> Array:
@@ -198,7 +295,9 @@ def _flat_tanh(x: Array) -> Array:
     return jnp.tanh(x.reshape(x.shape[:-2] + (-1,))).reshape(x.shape)
 
 
-def decode_block(p: dict, z: Float[Array, "b kz"], rings: Rings, config: Config | None = None) -> Float[Array, "b v 9"]:
+def decode_block(
+    block: AEBlock, z: Float[Array, "b kz"], rings: Rings, config: Config | None = None
+) -> Float[Array, "b v 9"]:
     """One block's decoder output from its codes.
 
     :func:`jaxdeform.nn.graph_conv.ae_decode`, or, with ``config.decoder_tanh`` False, the same without the tanh
@@ -206,7 +305,7 @@ def decode_block(p: dict, z: Float[Array, "b kz"], rings: Rings, config: Config 
 
     **Arguments:**
 
-    - ``p``: the decoder's own weights (see :func:`decode_latents` for tied parameters).
+    - ``block``: one :class:`AEBlock` whose decoder holds weights (:func:`decoder_blocks` for tied models).
     - ``z``: codes ``(B, Kz)``.
     - ``rings``: the mesh's one-rings.
     - ``config``: the model's hyper-parameters (default None: the default decoder).
@@ -216,11 +315,11 @@ def decode_block(p: dict, z: Float[Array, "b kz"], rings: Rings, config: Config 
     Scaled features ``(B, V, 9)``.
     """
     if config is None or config.decoder_tanh:
-        return graph_conv.ae_decode(p, z, rings)
-    return _flat_tanh(mesh_conv(p["conv_dec"], ae_decode_pre(p, z), rings.neighbors, rings.mask, rings.degree))
+        return graph_conv.ae_decode(block, z, rings)
+    return _flat_tanh(block.conv_dec(ae_decode_pre(block, z), rings))
 
 
-def _masked_blocks(p: dict, x, am, rings: Rings, config: Config) -> tuple:
+def _masked_blocks(p: AEBlock, x, am, rings: Rings, config: Config) -> tuple:
     """(z, x_hat, err) of blocks (n, k) on their masked inputs, as :func:`masked_blocks_error` (which it is for
     the default decoder), the block's decoder that of ``config``; the masks take no gradient."""
     if config.decoder_tanh:
@@ -230,7 +329,7 @@ def _masked_blocks(p: dict, x, am, rings: Rings, config: Config) -> tuple:
     return jax.vmap(jax.vmap(lambda q, xin: _block(q, xin, rings, config, True)))(p, inputs)
 
 
-def _block(p: dict, x: Float[Array, "b v 9"], rings: Rings, config: Config, with_error: bool) -> tuple:
+def _block(p: AEBlock, x: Float[Array, "b v 9"], rings: Rings, config: Config, with_error: bool) -> tuple:
     """(z, x_hat, err or None) of one block on its input ``x``; err: the summed squared error per shape."""
     if config.decoder_tanh:  # graph_conv's block
         if with_error:
@@ -263,7 +362,7 @@ def attention_masks(c: Float[Array, "kz nine_v"]) -> Float[Array, "kz v"]:
 
 
 def _levels(
-    params: tuple[dict, ...], x: Float[Array, "b v 9"], rings: Rings, config: Config, with_error: bool = False
+    levels: tuple[AEBlock, ...], x: Float[Array, "b v 9"], rings: Rings, config: Config, with_error: bool = False
 ) -> list:
     """Per level: (inputs (n_l, B, V, 9), latents (n_l, B, Kz_l), outputs (n_l, B, V, 9), errors (n_l, B) or
     None): ``with_error`` gives each block's summed squared error against its input, per shape.
@@ -272,15 +371,15 @@ def _levels(
     parents' residuals and attention masks, the inputs not formed) where the masks take no gradient and the
     latent is linear; that level's inputs are then None. ``config.tie_conv``: the
     decoders read their encoders' convolution weights."""
-    params = _decoder_weights(params, config)
+    blocks = decoder_blocks(levels, config)
     inputs = x[None]  # (n_0 = 1, B, V, 9)
     parent = None  # (residuals (n_l, B, V, 9), masks (n_l, Kz_l, V)) of the level before, where attention applies
     levels = []
-    for level, p in enumerate(params):
+    for level, p in enumerate(blocks):
         if (
             with_error
             and parent is not None
-            and level + 1 == len(params)
+            and level + 1 == len(blocks)
             and not config.attention_gradient
             and config.latent == "linear"
         ):
@@ -292,11 +391,11 @@ def _levels(
             break
         z, x_hat, err = jax.vmap(lambda q, xin: _block(q, xin, rings, config, with_error))(p, inputs)
         levels.append((inputs, z, x_hat, err))
-        if level + 1 < len(params):
+        if level + 1 < len(blocks):
             res = inputs - x_hat  # (n_l, B, V, 9)
             kz = config.kz[level]
             if config.attention:
-                am = jax.vmap(attention_masks)(p["C"])  # (n_l, Kz_l, V)
+                am = jax.vmap(attention_masks)(p.C[...])  # (n_l, Kz_l, V)
                 if not config.attention_gradient:
                     am = jax.lax.stop_gradient(am)
                 parent = (res, am)
@@ -311,48 +410,12 @@ def _levels(
     return levels
 
 
-def encode(params: tuple[dict, ...], x: Float[Array, "b v 9"], rings: Rings, config: Config) -> tuple:
-    """Latent codes of a batch of scaled features.
-
-    **Arguments:**
-
-    - ``params``: the model's parameters (one dict per level).
-    - ``x``: scaled features ``(B, V, 9)``.
-    - ``rings``: the mesh's one-rings.
-    - ``config``: the model's hyper-parameters.
-
-    **Returns:**
-
-    Per level ``(n_l, B, Kz_l)``, as in :attr:`Output.latents`.
-    """
-    return tuple(z for _, z, _, _ in _levels(params, x, rings, config))
-
-
-def reconstruction(
-    params: tuple[dict, ...], x: Float[Array, "b v 9"], rings: Rings, config: Config
-) -> Float[Array, "b v 9"]:
-    """The model's reconstruction of a batch of scaled features (the sum of every block's output).
-
-    **Arguments:**
-
-    - ``params``: the model's parameters (one dict per level).
-    - ``x``: scaled features ``(B, V, 9)``.
-    - ``rings``: the mesh's one-rings.
-    - ``config``: the model's hyper-parameters.
-
-    **Returns:**
-
-    The reconstruction ``(B, V, 9)``.
-    """
-    return sum(jnp.sum(x_hat, axis=0) for _, _, x_hat, _ in _levels(params, x, rings, config))
-
-
-def level_sparsity(p: dict, dist: Float[Array, "v v"], config: Config, level: int) -> Float[Array, " k"]:
+def level_sparsity(block: AEBlock, dist: Float[Array, "v v"], config: Config, level: int) -> Float[Array, " k"]:
     """Omega(C) (eq. 3) of every block of one level.
 
     **Arguments:**
 
-    - ``p``: that level's parameters (C stacked over its blocks).
+    - ``block``: that level's :class:`AEBlock` (C stacked over its blocks).
     - ``dist``: normalized geodesic distances ``(V, V)``.
     - ``config``: the model's hyper-parameters.
     - ``level``: the level's index (its sparsity cut-off).
@@ -361,18 +424,20 @@ def level_sparsity(p: dict, dist: Float[Array, "v v"], config: Config, level: in
 
     One value per block ``(n_l,)``.
     """
-    return jax.vmap(lambda c: group_sparsity(c, dist, config.sparsity_cutoff(level), config.mask))(p["C"])
+    return jax.vmap(lambda c: group_sparsity(c, dist, config.sparsity_cutoff(level), config.mask))(block.C[...])
 
 
-def forward(
-    params: tuple[dict, ...], x: Float[Array, "b v 9"], rings: Rings, dist: Float[Array, "v v"], config: Config
+def forward_levels(
+    levels: tuple[AEBlock, ...], x: Float[Array, "b v 9"], rings: Rings, dist: Float[Array, "v v"], config: Config
 ) -> Output:
     """Run every level on a batch of scaled features and return the reconstruction and the total loss.
 
+    :meth:`Model.__call__` on all of a model's levels; training runs it on (the merged state of) a prefix.
+
     **Arguments:**
 
-    - ``params``: the model's parameters; may hold fewer levels than ``config`` (a prefix: used by separate,
-        level-by-level training).
+    - ``levels``: one :class:`AEBlock` per level; may hold fewer levels than ``config`` (a prefix: used by
+        separate, level-by-level training).
     - ``x``: scaled features ``(B, V, 9)``.
     - ``rings``: the mesh's one-rings.
     - ``dist``: normalized geodesic distances ``(V, V)``.
@@ -385,8 +450,8 @@ def forward(
     total = jnp.zeros((), x.dtype)
     recon = jnp.zeros_like(x)
     terms, latents = [], []
-    levels = _levels(params, x, rings, config, True)
-    for level, (p, (_, z, x_hat, err)) in enumerate(zip(params, levels)):
+    outs = _levels(tuple(levels), x, rings, config, True)
+    for level, (p, (_, z, x_hat, err)) in enumerate(zip(levels, outs)):
         rec_l = jnp.mean(err, axis=-1)  # L_recon of each block: the paper's mean over shapes of the summed squares
         sparse_l = level_sparsity(p, dist, config, level)
         latent_l = jax.vmap(lambda zz: latent_bound(zz, config.theta))(z)
@@ -397,33 +462,3 @@ def forward(
         terms.append({"recon": jnp.sum(rec_l), "sparsity": jnp.sum(sparse_l), "latent": jnp.sum(latent_l)})
         latents.append(z)
     return Output(recon, total, terms, tuple(latents))
-
-
-def decode_latents(
-    params: tuple[dict, ...], latents: tuple, rings: Rings, config: Config | None = None
-) -> Float[Array, "b v 9"]:
-    """Scaled features from latent codes: the sum over every block of its decoder output.
-
-    A block's output depends on its own code only, so components are decoder outputs of one-hot codes and
-    editing optimizes these codes.
-
-    **Arguments:**
-
-    - ``params``: the model's parameters (one dict per level).
-    - ``latents``: ``latents[l]`` has shape ``(n_l, B, Kz_l)``, as in :attr:`Output.latents`.
-    - ``rings``: the mesh's one-rings.
-    - ``config``: the decoder of that configuration (``tie_conv``, ``decoder_tanh``); None: the default block.
-
-    **Returns:**
-
-    Scaled features ``(B, V, 9)``.
-
-    **Raises:**
-
-    ``ValueError`` for parameters without decoder weights when ``config`` is None.
-    """
-    out = None
-    for p, z in zip(_decoder_weights(tuple(params), config), latents):
-        x_hat = jnp.sum(jax.vmap(lambda q, zz: decode_block(q, zz, rings, config))(p, z), axis=0)
-        out = x_hat if out is None else out + x_hat
-    return out

@@ -387,7 +387,7 @@ def _fit_autoencoder(out, record, method, config, x, rest, faces, dist, cfg, tc,
         f"training {method} ({config}) on {len(train_idx)} shapes x {rest.shape[0]} vertices, "
         f"{tc.epochs} epochs{'' if tc.joint else ' per level'}"
     )
-    params, history = train.train(
+    trained, history = train.train(
         x,
         rings,
         dist,
@@ -400,7 +400,7 @@ def _fit_autoencoder(out, record, method, config, x, rest, faces, dist, cfg, tc,
     )
     record["timing"].update(timing)
     np.save(out / "history.npy", history)
-    final = model.forward(params, jnp.asarray(x), rings, jnp.asarray(dist), cfg)
+    final = trained(jnp.asarray(x), rings, jnp.asarray(dist))
     record["final_terms"] = jax.tree_util.tree_map(float, final.terms)
     codes = {f"level{i}": np.asarray(z) for i, z in enumerate(final.latents)}
     record["final_loss"] = float(history[-1])
@@ -547,7 +547,8 @@ def _diameter(rest: np.ndarray, faces: np.ndarray) -> float:
 
 @dataclasses.dataclass
 class Run:
-    """A loaded run: its record, reference mesh, scaler and trained model (params or LinearModel)."""
+    """A loaded run: its record, reference mesh, scaler and trained model (a :class:`model.Model` for the
+    autoencoders, a LinearModel for the linear baselines; the other None)."""
 
     path: Path
     record: dict
@@ -555,7 +556,7 @@ class Run:
     faces: np.ndarray
     scaler: acap.Scaler | None
     config: model.Config | None
-    params: tuple | None
+    model: model.Model | None
     linear: baselines.LinearModel | None
     turns: np.ndarray | None = (
         None  # (V, 3) rotation reference of the features' branches (None: a run written without one)
@@ -634,18 +635,18 @@ def load(path) -> Run:
     arrays = read_npz_arrays(path / "mesh.npz")
     scaler = acap.Scaler.from_array(arrays["scaler"]) if "scaler" in arrays else None
     dtype = np.dtype(record.get("dtype", "float32"))
-    cfg = params = linear = None
+    cfg = trained = linear = None
     if record["method"] in AUTOENCODERS:
         cfg = _model_config(record["config"])
-        like = model.init(jax.random.PRNGKey(0), record["n_vertices"], cfg, dtype)
-        params = train.load_params(path / "params", like)
+        like = model.Model(record["n_vertices"], cfg, key=jax.random.PRNGKey(0), dtype=dtype)
+        trained = train.load_params(path / "params", like)
     else:
         if not (path / "model").exists():
             raise RunError(f"{path}: model is missing.")
         linear = baselines.load(path / "model")
     turns = np.asarray(arrays["turn_reference"]) if "turn_reference" in arrays else None
     return Run(
-        path, record, np.asarray(arrays["rest"]), np.asarray(arrays["faces"]), scaler, cfg, params, linear, turns
+        path, record, np.asarray(arrays["rest"]), np.asarray(arrays["faces"]), scaler, cfg, trained, linear, turns
     )
 
 
@@ -738,15 +739,13 @@ def reconstruct(run: Run, vertices: np.ndarray) -> dict:
             xh = baselines.reconstruct(run.linear, x)
         else:
             rings = rings_from_topology(build_topology(run.faces, run.rest.shape[0]))
-            xh = _reconstruct_features(run.params, x, rings, run.config)
+            xh = _reconstruct_features(run.model, x, rings)
         return {"positions": positions_from_scaled(run, xh), "scaled": np.asarray(x), "scaled_hat": np.asarray(xh)}
     return {"positions": np.asarray(baselines.reconstruct(run.linear, jnp.asarray(vertices)))}
 
 
-def _reconstruct_features(params, x, rings, config, chunk: int = 16):
-    return jnp.concatenate(
-        [train.reconstruct(params, x[i : i + chunk], rings, config) for i in range(0, x.shape[0], chunk)]
-    )
+def _reconstruct_features(m, x, rings, chunk: int = 16):
+    return jnp.concatenate([train.reconstruct(m, x[i : i + chunk], rings) for i in range(0, x.shape[0], chunk)])
 
 
 def set_metrics(ref: np.ndarray, rec: dict, faces: np.ndarray) -> dict:
@@ -832,8 +831,8 @@ def components(run: Run):
         raise RunError(f"{run.path}: codes.npz is missing.")
     if run.method in AUTOENCODERS:
         rings = rings_from_topology(build_topology(run.faces, run.rest.shape[0]))
-        latents = tuple(codes[f"level{i}"] for i in range(len(run.params)))
-        cs = extract.all_components(run.params, rings, run.config, latents=latents, scaler=run.scaler)
+        latents = tuple(codes[f"level{i}"] for i in range(len(run.model.levels)))
+        cs = extract.all_components(run.model, rings, latents=latents, scaler=run.scaler)
         return cs, extract.component_meshes(cs, run.rest, run.faces)
     lin = run.linear
     w = np.asarray(codes["weights"])
@@ -988,9 +987,9 @@ def editor(run: Run) -> Editor:
     to64 = lambda a: jnp.asarray(a, dtype)  # noqa: E731
     if run.method in AUTOENCODERS:
         rings = rings_from_topology(build_topology(run.faces, run.rest.shape[0]))
-        params, config = jax.tree_util.tree_map(to64, run.params), run.config
+        m = jax.tree_util.tree_map(to64, run.model)  # a float64 copy of the Module (nnx Modules are pytrees)
         x0 = scaled_features(run, run.rest[None], dtype)
-        codes = model.encode(params, x0, rings, config)  # per level (n_l, 1, Kz_l)
+        codes = m.encode(x0, rings)  # per level (n_l, 1, Kz_l)
         shapes = [z.shape for z in codes]
         sizes = [int(np.prod(s)) for s in shapes]
 
@@ -999,7 +998,7 @@ def editor(run: Run) -> Editor:
             for s, n in zip(shapes, sizes):
                 parts.append(w[start : start + n].reshape(s))
                 start += n
-            return model.decode_latents(params, tuple(parts), rings)[0]
+            return m.decode_latents(tuple(parts), rings)[0]
 
         latent0 = np.concatenate([np.asarray(z).ravel() for z in codes])
         stages = tuple(int(x) for x in np.cumsum(sizes)) if len(sizes) > 1 else None

@@ -2,15 +2,19 @@
 
 Adam (optax's, :func:`optimizer`) with learning rate 1e-3 and exponential decay; batches of up to ``batch``
 shapes sampled with an explicit PRNG key (when the training set is not larger than the batch, every step sees the whole set, as the
-paper's horse split of 5 shapes does). Everything of a step runs in one jitted call (parameters, optimizer
-state and key in, the same out).
+paper's horse split of 5 shapes does). Everything of a step runs in one jitted call (the model's state,
+optimizer state and key in, the same out).
+
+The model is a :class:`jaxdeform.components.model.Model` (a flax nnx Module). The jitted step works on its
+split state, one ``nnx.State`` per level (:func:`level_states`), and merges it with the levels' graph
+definitions inside the step; :func:`train` takes and returns the Module.
 
 Joint training (default, the paper's) minimizes the sum of every block's loss at once. Separate training
 (Table 4) trains level 0 alone, then level 1 on the residuals of the frozen level 0, and so on, each stage
 for ``epochs`` epochs with a fresh optimizer.
 
-Checkpoints: with ``checkpoint_dir`` the state (parameters, optimizer state, key, loss history, stage) is
-saved by orbax every ``checkpoint_every`` epochs and at the end; ``resume=True`` continues from the newest
+Checkpoints: with ``checkpoint_dir`` the state (the model's level states, optimizer state, key, loss history,
+stage) is saved by orbax every ``checkpoint_every`` epochs and at the end; ``resume=True`` continues from the newest
 one. The step is deterministic, so a resumed run ends bit-identical to an uninterrupted one (tested on CPU).
 
 Data parallel: with ``mesh`` (a :class:`jax.sharding.Mesh`, e.g. :func:`jaxdeform.parallel.batch_mesh`) the
@@ -32,6 +36,7 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 import optax
+from flax import nnx
 
 from jaxdeform import parallel
 from jaxdeform.components import model
@@ -114,8 +119,41 @@ def step_batch(n_data: int, tc: TrainConfig) -> int:
     return min(int(n_data), tc.batch)
 
 
+def level_states(m: model.Model) -> tuple[nnx.State, ...]:
+    """The model's state split by level, as the step takes it.
+
+    **Arguments:**
+
+    - ``m``: the model.
+
+    **Returns:**
+
+    One ``nnx.State`` per level (``nnx.state(m.levels[l])``; its arrays are the model's, not copies).
+    """
+    return tuple(nnx.state(level) for level in m.levels)
+
+
+def with_level_states(m: model.Model, states) -> model.Model:
+    """A new model of ``m``'s structure and configuration holding ``states``.
+
+    **Arguments:**
+
+    - ``m``: the model whose structure is used (left unchanged).
+    - ``states``: one ``nnx.State`` per level, as :func:`level_states` gives.
+
+    **Returns:**
+
+    The new :class:`~jaxdeform.components.model.Model`.
+    """
+    graphdef, state = nnx.split(m)
+    out = nnx.merge(graphdef, jax.tree_util.tree_map(lambda a: a, state))  # Variables of its own: m stays as it is
+    for level, state in zip(out.levels, states):
+        nnx.update(level, state)
+    return out
+
+
 def make_step(
-    config: model.Config,
+    m: model.Model,
     tc: TrainConfig,
     rings: Rings,
     dist,
@@ -124,18 +162,20 @@ def make_step(
     mesh: jax.sharding.Mesh | None = None,
     axis: str = parallel.BATCH,
 ) -> Callable:
-    """The jitted step (params, opt_state, key, data) -> (params, opt_state, key, loss, terms): the loss's
-    gradient (every term of eq. (2), the group sparsity's included) through :func:`optimizer` and
+    """The jitted step (states, opt_state, key, data) -> (states, opt_state, key, loss, terms) of model ``m``:
+    the loss's gradient (every term of eq. (2), the group sparsity's included) through :func:`optimizer` and
     ``optax.apply_updates``.
 
-    The step donates ``params`` and ``opt_state``: their buffers may hold the outputs, so the arrays passed in
-    are invalid after the call; pass each step the previous step's outputs.
+    ``states`` is :func:`level_states` of a model of ``m``'s structure (``m`` gives the levels' graph definitions
+    and the configuration; its arrays are not used). The step donates ``states`` and ``opt_state``: their buffers
+    may hold the outputs, so the arrays passed in are invalid after the call; pass each step the previous step's
+    outputs.
 
-    ``stage`` = None: joint training of every level. ``stage`` = l: separate training of level l; ``params``
+    ``stage`` = None: joint training of every level. ``stage`` = l: separate training of level l; ``states``
     is then the prefix of levels 0..l, the levels before l are frozen (no gradient, not updated).
 
     ``mesh``: data parallel over ``mesh``'s ``axis`` (see the module's docstring). The step then takes and
-    returns ``params``, ``opt_state``, ``key`` and ``data`` replicated over ``mesh`` (arrays elsewhere are copied
+    returns ``states``, ``opt_state``, ``key`` and ``data`` replicated over ``mesh`` (arrays elsewhere are copied
     onto it when called; place them with :func:`jaxdeform.parallel.replicate` to avoid the copy) and splits the
     batch along ``axis``; it raises ValueError when tracing if the step's batch (:func:`step_batch`) is not a
     multiple of ``mesh.shape[axis]``. Loss and terms come back replicated.
@@ -144,11 +184,15 @@ def make_step(
     if mesh is not None:
         parallel.axis_size(mesh, axis)  # KeyError now for a mesh without the axis
 
-    def model_params(trainable, frozen):
-        return tuple(frozen) + (trainable,) if stage is not None else trainable
+    config = m.config
+    defs = tuple(nnx.graphdef(level) for level in m.levels)
+
+    def levels(trainable, frozen):
+        states = tuple(frozen) + (trainable,) if stage is not None else trainable
+        return tuple(nnx.merge(d, s) for d, s in zip(defs, states))
 
     def loss_fn(trainable, frozen, x):
-        out = model.forward(model_params(trainable, frozen), x, rings, dist, config)
+        out = model.forward_levels(levels(trainable, frozen), x, rings, dist, config)
         return out.loss, out.terms
 
     def step(params, opt_state, key, data):
@@ -232,8 +276,8 @@ def seed_keys(seed: int) -> tuple:
 
     **Returns:**
 
-    ``(batch key, initialisation key)``, the second for :func:`jaxdeform.components.model.init` where no
-    parameters are given.
+    ``(batch key, initialisation key)``, the second for :class:`jaxdeform.components.model.Model` where no
+    model is given.
     """
     key, init_key = jax.random.split(jax.random.PRNGKey(seed))
     return key, init_key
@@ -242,7 +286,7 @@ def seed_keys(seed: int) -> tuple:
 def _resume(ckpt: _Checkpoints, tc: TrainConfig, stages: list[int | None], params: tuple, key, history: np.ndarray):
     """The training state of ``ckpt``'s newest checkpoint, restored in the structure of the fresh state given.
 
-    ``params``, ``key`` and ``history`` are the fresh run's (they give the checkpoint's tree structure and
+    ``params`` (the level states, :func:`level_states`), ``key`` and ``history`` are the fresh run's (they give the checkpoint's tree structure and
     dtypes). Returns ``(params, opt_state, key, history, start_stage, start_epoch)`` as device arrays (a host
     copy for ``history``): training continues with epoch ``start_epoch`` of stage ``start_stage``.
     """
@@ -252,7 +296,7 @@ def _resume(ckpt: _Checkpoints, tc: TrainConfig, stages: list[int | None], param
     prefix = params if stage0 is None else params[: stage0 + 1]
     like = _state(params, _opt_init(tc, prefix, stage0), key, history, stage_index, 0)
     state = ckpt.restore(latest, jax.tree_util.tree_map(np.asarray, like))
-    params = jax.tree_util.tree_map(jnp.asarray, tuple(state["params"]))
+    params = jax.tree_util.tree_map(jnp.asarray, tuple(state["params"]))  # nnx.State per level
     opt_state = jax.tree_util.tree_map(jnp.asarray, state["opt_state"])
     key = jnp.asarray(state["key"])
     history = np.asarray(state["history"]).copy()
@@ -293,7 +337,7 @@ class _Run:
     data: object
     rings: Rings
     dist: object
-    config: model.Config
+    template: model.Model  # the model's structure and configuration
     tc: TrainConfig
     stages: list
     history: np.ndarray
@@ -311,14 +355,14 @@ class _Run:
     def stage(self, stage_index: int, first: int, params: tuple, opt_state, key) -> tuple:
         """Train stage ``stage_index`` from epoch ``first`` to ``tc.epochs``; returns ``(params, key)`` after it.
 
-        ``params`` holds every level; ``opt_state`` is the optimizer state to continue (used only when ``first``
+        ``params`` holds every level's state (:func:`level_states`); ``opt_state`` is the optimizer state to continue (used only when ``first``
         > 0; None or a fresh start initializes one). Every epoch's loss lands in ``history``; the compile and
         run times (when ``timing``) accumulate into ``timing``.
         """
         tc, timing, data = self.tc, self.timing, self.data
         stage = self.stages[stage_index]
         sub = params if stage is None else params[: stage + 1]
-        step = make_step(self.config, tc, self.rings, self.dist, stage, mesh=self.mesh, axis=self.axis)
+        step = make_step(self.template, tc, self.rings, self.dist, stage, mesh=self.mesh, axis=self.axis)
         if opt_state is None or first == 0:
             opt_state = _opt_init(tc, sub, stage)
         if self.mesh is not None:  # the compiled step takes its state on the mesh
@@ -367,7 +411,9 @@ class _Run:
         if bar is not None and (done % self.log_every == 0 or done == tc.epochs):
             bar.update(done - bar.n + stage_index * tc.epochs)
         if self.snapshot is not None and done % self.snapshot_every == 0:
-            self.snapshot(stage_index * tc.epochs + done, _full_params(sub, params, stage))
+            self.snapshot(
+                stage_index * tc.epochs + done, with_level_states(self.template, _full_params(sub, params, stage))
+            )
         if self.ckpt is not None and (done % self.checkpoint_every == 0 or done == tc.epochs):
             losses.flush(done)
             self._save(stage_index, done, _full_params(sub, params, stage), opt_state, key)
@@ -390,15 +436,15 @@ class _Run:
         self.ckpt.save(base + done, saved)
 
 
-def _initial_params(params, init_key, n_vertices: int, config: model.Config, dtype) -> tuple:
-    """The parameters :func:`train` starts from: a fresh ``model.init`` from ``init_key`` when ``params`` is
-    None, else copies of the caller's arrays (the step donates its parameters: the caller's stay valid).
-    Returns a tuple of every level's parameters."""
-    if params is None:
-        params = model.init(init_key, n_vertices, config, dtype)
-    else:
-        params = jax.tree_util.tree_map(jnp.copy, params)
-    return tuple(params)
+def _initial_model(m, init_key, n_vertices: int, config: model.Config, dtype) -> tuple:
+    """The model :func:`train` starts from and its level states: a fresh ``model.Model`` from ``init_key`` when
+    ``m`` is None, else ``m`` with copies of its arrays (the step donates its state: the caller's model stays
+    valid). Returns ``(model, level states)``; ValueError if ``m`` was built with another configuration."""
+    if m is None:
+        m = model.Model(n_vertices, config, key=init_key, dtype=dtype)
+    elif m.config != config:
+        raise ValueError("the model to continue was built with another configuration than config.")
+    return m, jax.tree_util.tree_map(jnp.copy, level_states(m))
 
 
 def _progress_bar(total: int, initial: int):
@@ -422,7 +468,7 @@ def train(
     config: model.Config,
     tc: TrainConfig,
     *,
-    params=None,
+    model: model.Model | None = None,
     checkpoint_dir=None,
     checkpoint_every: int = 1000,
     resume: bool = False,
@@ -430,7 +476,7 @@ def train(
     log: Callable[[int, float, dict], None] | None = None,
     log_every: int = 100,
     timing: dict | None = None,
-    snapshot: Callable[[int, tuple], None] | None = None,
+    snapshot: Callable[[int, model.Model], None] | None = None,
     snapshot_every: int = 1000,
     mesh: jax.sharding.Mesh | None = None,
     axis: str = parallel.BATCH,
@@ -438,17 +484,17 @@ def train(
     """Train for ``tc.epochs`` epochs (per level when ``tc.joint`` is False).
 
     **Arguments:** ``data``: scaled ACAP features ``(N, V, 9)``; ``rings``, ``dist`` ``(V, V)``: one-rings and
-    normalized geodesics; ``config``, ``tc``: model and training hyper-parameters; ``params``: start from these instead
-    of a fresh initialization; ``checkpoint_dir``, ``checkpoint_every``, ``resume``: checkpoints; ``progress``: a tqdm
+    normalized geodesics; ``config``, ``tc``: model and training hyper-parameters; ``model``: start from this model
+    (built with ``config``) instead of a fresh one; ``checkpoint_dir``, ``checkpoint_every``, ``resume``: checkpoints; ``progress``: a tqdm
     bar with the loss terms and ``log(epoch, loss, terms)``, both every ``log_every`` epochs; ``timing``: receives the
-    compile and training times; ``snapshot(epochs_done, params)`` (learning curves): every ``snapshot_every`` epochs of
+    compile and training times; ``snapshot(epochs_done, model)`` (learning curves): every ``snapshot_every`` epochs of
     a stage; ``mesh``: data parallel over ``mesh``'s ``axis`` (module docstring).
 
-    **Returns:** ``(params, history)``: the parameters (one dict per level; replicated over ``mesh`` when given) and the
-    loss history ``(stages * epochs,)``.
+    **Returns:** ``(model, history)``: the trained :class:`~jaxdeform.components.model.Model` (a new Module; its
+    arrays replicated over ``mesh`` when given) and the loss history ``(stages * epochs,)``.
 
     **Raises:** ``ValueError`` before any step if ``min(len(data), tc.batch)`` is not a multiple of
-    ``mesh.shape[axis]``.
+    ``mesh.shape[axis]``, or if ``model`` was built with another configuration than ``config``.
     """
     data = jnp.asarray(data)
     if mesh is not None:
@@ -456,7 +502,7 @@ def train(
         data = parallel.replicate(data, mesh)
     dtype = data.dtype
     key, init_key = seed_keys(tc.seed)
-    params = _initial_params(params, init_key, data.shape[1], config, dtype)
+    template, params = _initial_model(model, init_key, data.shape[1], config, dtype)
     stages = _stages(config, tc)
     history = np.zeros(len(stages) * tc.epochs, np.float32)
     dist = jnp.asarray(dist, dtype)
@@ -473,7 +519,7 @@ def train(
         data,
         rings,
         dist,
-        config,
+        template,
         tc,
         stages,
         history,
@@ -494,7 +540,7 @@ def train(
         opt_state = None
     if bar is not None:
         bar.close()
-    return params, history
+    return with_level_states(template, params), history
 
 
 def _terms_text(loss: float, terms: list) -> str:
@@ -506,73 +552,85 @@ def _terms_text(loss: float, terms: list) -> str:
 
 @functools.cache
 def _reconstruct_jit():
-    # built on first use: the compiler options depend on the backend, which importing must not initialize
-    return jax.jit(model.reconstruction, static_argnames=("config",), compiler_options=xla.compiler_options())
+    # built on first use: the compiler options depend on the backend, which importing must not initialize. The
+    # model enters as a pytree (nnx Modules are): its configuration is part of the tree's static structure.
+    return jax.jit(lambda m, x, rings: m.reconstruction(x, rings), compiler_options=xla.compiler_options())
 
 
-def reconstruct(params, data, rings: Rings, config: model.Config):
-    """The model's reconstruction of scaled features (jitted).
+def reconstruct(m: model.Model, data, rings: Rings):
+    """The model's reconstruction of scaled features (jitted; one compilation per configuration and shape).
 
     **Arguments:**
 
-    - ``params``: the model's parameters (one dict per level).
+    - ``m``: the model.
     - ``data``: scaled ACAP features ``(N, V, 9)``.
     - ``rings``: the mesh's one-ring neighbourhoods.
-    - ``config``: the model's hyper-parameters.
 
     **Returns:**
 
     The reconstructed scaled features ``(N, V, 9)``.
     """
-    return _reconstruct_jit()(params, data, rings, config=config)
+    return _reconstruct_jit()(m, data, rings)
 
 
-def save_params(checkpoint_dir, params: tuple, step: int) -> None:
-    """Write ``params`` as the checkpoint of ``step`` in ``checkpoint_dir``.
+def save_params(checkpoint_dir, m: model.Model, step: int) -> None:
+    """Write the state of model ``m`` as the checkpoint of ``step`` in ``checkpoint_dir``.
 
-    Parameters only: :func:`load_params` reads them; a training cannot resume from it.
+    The model's state only (as training checkpoints hold it, :func:`level_states`): :func:`load_params` reads
+    it; a training cannot resume from it.
 
     **Arguments:**
 
     - ``checkpoint_dir``: the checkpoint folder.
-    - ``params``: the model's parameters (one dict per level).
+    - ``m``: the model.
     - ``step``: the step number the checkpoint is saved under.
 
     **Returns:**
 
     Nothing.
     """
-    _Checkpoints(checkpoint_dir, 1).save(int(step), {"params": tuple(params)})
+    _Checkpoints(checkpoint_dir, 1).save(int(step), {"params": level_states(m)})
 
 
-def load_params(checkpoint_dir, like: tuple):
-    """The parameters of the newest checkpoint in ``checkpoint_dir``.
+def load_params(checkpoint_dir, like: model.Model) -> model.Model:
+    """The model of the newest checkpoint in ``checkpoint_dir``.
 
     **Arguments:**
 
     - ``checkpoint_dir``: the checkpoint folder.
-    - ``like``: parameters of the same configuration; they give the structure and the dtypes.
+    - ``like``: a model of the checkpoint's configuration (e.g. freshly built); it gives the structure and the
+        dtypes and is left unchanged.
 
     **Returns:**
 
-    The parameters, with the structure and dtypes of ``like``.
+    A new :class:`~jaxdeform.components.model.Model` of ``like``'s structure holding the checkpoint's state.
 
     **Raises:**
 
-    ``FileNotFoundError`` if the folder holds no checkpoint; ``ValueError`` if the checkpoint does not hold parameters
-    of ``like``'s configuration (other structure or shapes).
+    ``FileNotFoundError`` if the folder holds no checkpoint; ``ValueError`` if the checkpoint does not hold the
+    state of a model of ``like``'s configuration (other structure or shapes).
     """
     ckpt = _Checkpoints(checkpoint_dir, 1)
     latest = ckpt.latest()
     if latest is None:
         raise FileNotFoundError(f"{checkpoint_dir}: no checkpoint in it.")
     restored = ckpt.manager.restore(latest, args=ckpt._ocp.args.StandardRestore())  # nested dicts and lists
-    leaves = jax.tree_util.tree_leaves(restored["params"])
-    treedef = jax.tree_util.tree_structure(tuple(like))
-    if len(leaves) != treedef.num_leaves:
+    saved = _arrays_by_path(restored["params"])
+    like_states = level_states(like)
+    paths, treedef = jax.tree_util.tree_flatten_with_path(like_states)
+    wanted = {_path_name(path): leaf for path, leaf in paths}
+    if saved.keys() != wanted.keys() or any(saved[k].shape != wanted[k].shape for k in wanted):
         raise ValueError(f"{checkpoint_dir}: the checkpoint does not hold parameters of this configuration.")
-    params = jax.tree_util.tree_unflatten(treedef, [jnp.asarray(a) for a in leaves])
-    for a, b in zip(jax.tree_util.tree_leaves(params), jax.tree_util.tree_leaves(like)):
-        if a.shape != b.shape:
-            raise ValueError(f"{checkpoint_dir}: the checkpoint does not hold parameters of this configuration.")
-    return params
+    states = jax.tree_util.tree_unflatten(treedef, [jnp.asarray(saved[_path_name(path)]) for path, _ in paths])
+    return with_level_states(like, states)
+
+
+def _path_name(path) -> str:
+    """A pytree path as "0/conv_enc/W_point": sequence indices and dict keys, a Variable's "value" left out."""
+    parts = [str(getattr(k, "key", getattr(k, "idx", getattr(k, "name", k)))) for k in path]
+    return "/".join(p for p in parts if p != "value")
+
+
+def _arrays_by_path(tree) -> dict:
+    """The leaves of a restored checkpoint tree by :func:`_path_name`."""
+    return {_path_name(path): np.asarray(leaf) for path, leaf in jax.tree_util.tree_flatten_with_path(tree)[0]}

@@ -1,4 +1,4 @@
-"""Mesh convolution (seed 000, eq. (1)) and the autoencoder block of Sec. 4.1, in plain JAX.
+"""Mesh convolution (seed 000, eq. (1)) and the autoencoder block of Sec. 4.1, as flax nnx Modules.
 
 Convolution, per vertex i (weights shared by all vertices)::
 
@@ -27,15 +27,23 @@ reading::
     decode: g = tanh(reshape(z @ C)); x_hat = tanh(conv_dec(g))              (B, V, 9)
 
 The final tanh matches the features scaled to [-0.95, 0.95].
+
+Modules: :class:`MeshConv` holds one conv layer's weights (``W_point``, ``W_neighbor``, ``b`` as ``nnx.Param``),
+:class:`AEBlock` one block's ``conv_enc``, ``conv_dec`` and ``C``. Their arrays may carry leading axes (blocks
+stacked for ``jax.vmap``; flax nnx Modules are pytrees, so ``jax.vmap``, ``jax.jit`` and ``jax.grad`` take them
+as arguments). :func:`init_mesh_conv` and :func:`init_ae_block` draw them; the functions below run them.
+:func:`mesh_conv` itself takes the weights by name (a mapping of arrays), for layers that keep them elsewhere.
 """
 
 from __future__ import annotations
 
+from collections.abc import Mapping
 from functools import partial
 from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
+from flax import nnx
 from jaxtyping import Array, ArrayLike, Bool, Float
 
 from jaxdeform.typing import Int
@@ -71,9 +79,79 @@ def _glorot(key: Array, shape: tuple[int, int], dtype) -> Array:
     return jax.random.uniform(key, shape, dtype, -limit, limit)
 
 
+class MeshConv(nnx.Module):
+    """One mesh conv layer of eq. (1), no activation: ``x W_point + ring_mean(x) W_neighbor + b``.
+
+    **Arguments:**
+
+    - ``W_point``, ``W_neighbor``: weights ``(..., cin, cout)``, or None for a layer that takes them from another
+        (a tied decoder, :meth:`__call__`'s ``shared``).
+    - ``b``: the bias ``(..., cout)``.
+
+    Leading axes (stacked layers) are for ``jax.vmap``; a call takes one layer.
+    """
+
+    def __init__(self, W_point: Array | None, W_neighbor: Array | None, b: Array):
+        self.W_point = None if W_point is None else nnx.Param(W_point)
+        self.W_neighbor = None if W_neighbor is None else nnx.Param(W_neighbor)
+        self.b = nnx.Param(b)
+
+    def weights(self, shared: MeshConv | None = None) -> dict[str, Array]:
+        """The layer's arrays by name, as :func:`mesh_conv` takes them.
+
+        **Arguments:**
+
+        - ``shared``: take ``W_point`` and ``W_neighbor`` from this layer (None: the layer's own).
+
+        **Returns:**
+
+        ``{"W_point", "W_neighbor", "b"}``.
+
+        **Raises:**
+
+        ``ValueError`` if the layer has no weights of its own and ``shared`` is None.
+        """
+        src = self if shared is None else shared
+        if src.W_point is None or src.W_neighbor is None:
+            raise ValueError("the convolution holds no weights of its own (a tied decoder): pass the shared layer.")
+        return {"W_point": src.W_point[...], "W_neighbor": src.W_neighbor[...], "b": self.b[...]}
+
+    def __call__(self, x: Float[ArrayLike, "b v cin"], rings: Rings, shared: MeshConv | None = None) -> Array:
+        """:func:`mesh_conv` with this layer's weights.
+
+        **Arguments:**
+
+        - ``x``: inputs ``(B, V, cin)``.
+        - ``rings``: the :class:`Rings` of the connectivity.
+        - ``shared``: as :meth:`weights`.
+
+        **Returns:**
+
+        Outputs ``(B, V, cout)``.
+        """
+        return mesh_conv(self.weights(shared), x, rings.neighbors, rings.mask, rings.degree)
+
+
+class AEBlock(nnx.Module):
+    """One autoencoder block (Sec. 4.1): ``conv_enc``, ``conv_dec`` (:class:`MeshConv`, 9 -> 9) and ``C``
+    ``(Kz, 9V)`` (an ``nnx.Param``; its row k reshaped to ``(V, 9)`` is component k). Arrays may carry leading
+    (block) axes, as :class:`MeshConv`'s.
+
+    **Arguments:**
+
+    - ``conv_enc``, ``conv_dec``: the two convolutions.
+    - ``C``: the shared fully connected parameter.
+    """
+
+    def __init__(self, conv_enc: MeshConv, conv_dec: MeshConv, C: Array):
+        self.conv_enc = conv_enc
+        self.conv_dec = conv_dec
+        self.C = nnx.Param(C)
+
+
 @partial(jax.jit, static_argnames=("cin", "cout", "dtype"))
-def init_mesh_conv(key: Array, cin: int, cout: int, dtype=jnp.float32) -> dict[str, Array]:
-    """Parameters of one mesh conv layer.
+def init_mesh_conv(key: Array, cin: int, cout: int, dtype=jnp.float32) -> MeshConv:
+    """A fresh mesh conv layer.
 
     Jitted (an entry point); sizes and dtype are static.
 
@@ -85,15 +163,11 @@ def init_mesh_conv(key: Array, cin: int, cout: int, dtype=jnp.float32) -> dict[s
 
     **Returns:**
 
-    `W_point` `(cin, cout)`, `W_neighbor` `(cin, cout)` and `b` `(cout,)` by name: weights Glorot-uniform, bias
-    zero.
+    The :class:`MeshConv`: `W_point` `(cin, cout)` and `W_neighbor` `(cin, cout)` Glorot-uniform (from the two
+    halves of ``jax.random.split(key)``), `b` `(cout,)` zero.
     """
     kp, kn = jax.random.split(key)
-    return {
-        "W_point": _glorot(kp, (cin, cout), dtype),
-        "W_neighbor": _glorot(kn, (cin, cout), dtype),
-        "b": jnp.zeros((cout,), dtype),
-    }
+    return MeshConv(_glorot(kp, (cin, cout), dtype), _glorot(kn, (cin, cout), dtype), jnp.zeros((cout,), dtype))
 
 
 def _slot_gathers(
@@ -160,7 +234,7 @@ def ring_mean(
 
 
 def mesh_conv(
-    params: dict[str, ArrayLike],
+    params: Mapping[str, ArrayLike],
     x: Float[ArrayLike, "b v cin"],
     neighbors: Int[ArrayLike, "v k"],
     mask: Bool[ArrayLike, "v k"],
@@ -170,7 +244,8 @@ def mesh_conv(
 
     **Arguments:**
 
-    - `params`: from :func:`init_mesh_conv`.
+    - `params`: the weights by name, `W_point`, `W_neighbor` `(cin, cout)` and `b` `(cout,)` (e.g.
+        :meth:`MeshConv.weights`).
     - `x`: inputs `(B, V, cin)`.
     - `neighbors`, `mask`, `degree`: as :func:`ring_mean`.
 
@@ -189,8 +264,8 @@ def _tanh(x: Array) -> Array:
 
 
 @partial(jax.jit, static_argnames=("n_vertices", "kz", "dtype"))
-def init_ae_block(key: Array, n_vertices: int, kz: int, dtype=jnp.float32) -> dict:
-    """Parameters of one autoencoder block.
+def init_ae_block(key: Array, n_vertices: int, kz: int, dtype=jnp.float32) -> AEBlock:
+    """A fresh autoencoder block.
 
     **Arguments:**
 
@@ -201,23 +276,21 @@ def init_ae_block(key: Array, n_vertices: int, kz: int, dtype=jnp.float32) -> di
 
     **Returns:**
 
-    `conv_enc`, `conv_dec` (9 -> 9 each, :func:`init_mesh_conv`) and `C` `(Kz, 9V)` by name; `C` is
-    Glorot-uniform over its shape and its row k reshaped to `(V, 9)` is component k.
+    The :class:`AEBlock`: `conv_enc`, `conv_dec` (9 -> 9 each, :func:`init_mesh_conv`) and `C` `(Kz, 9V)`
+    Glorot-uniform over its shape, from the three keys of ``jax.random.split(key, 3)`` in that order.
     """
     ke, kd, kc = jax.random.split(key, 3)
-    return {
-        "conv_enc": init_mesh_conv(ke, MU, MU, dtype),
-        "conv_dec": init_mesh_conv(kd, MU, MU, dtype),
-        "C": _glorot(kc, (kz, MU * n_vertices), dtype),
-    }
+    return AEBlock(
+        init_mesh_conv(ke, MU, MU, dtype), init_mesh_conv(kd, MU, MU, dtype), _glorot(kc, (kz, MU * n_vertices), dtype)
+    )
 
 
-def ae_encode(params: dict, x: Float[ArrayLike, "b v 9"], rings: Rings) -> Float[Array, "b kz"]:
+def ae_encode(block: AEBlock, x: Float[ArrayLike, "b v 9"], rings: Rings) -> Float[Array, "b kz"]:
     """The block's encoder z = flatten(tanh(conv_enc(x))) @ C^T; linear, no tanh on z (module docstring).
 
     **Arguments:**
 
-    - `params`: from :func:`init_ae_block`.
+    - `block`: one :class:`AEBlock`.
     - `x`: features `(B, V, 9)`.
     - `rings`: the :class:`Rings` of the connectivity.
 
@@ -225,32 +298,32 @@ def ae_encode(params: dict, x: Float[ArrayLike, "b v 9"], rings: Rings) -> Float
 
     Codes z `(B, Kz)`.
     """
-    h = _tanh(mesh_conv(params["conv_enc"], x, rings.neighbors, rings.mask, rings.degree))
-    return h.reshape(h.shape[0], -1) @ params["C"].T
+    h = _tanh(block.conv_enc(x, rings))
+    return h.reshape(h.shape[0], -1) @ block.C[...].T
 
 
-def ae_decode_pre(params: dict, z: Float[ArrayLike, "b kz"]) -> Float[Array, "b v 9"]:
+def ae_decode_pre(block: AEBlock, z: Float[ArrayLike, "b kz"]) -> Float[Array, "b v 9"]:
     """Decoder fully connected pre-activation.
 
     **Arguments:**
 
-    - `params`: from :func:`init_ae_block`.
+    - `block`: one :class:`AEBlock`.
     - `z`: codes `(B, Kz)`.
 
     **Returns:**
 
     (z @ C) reshaped to `(B, V, 9)`.
     """
-    out = z @ params["C"]
+    out = z @ block.C[...]
     return out.reshape(z.shape[0], -1, MU)
 
 
-def ae_decode(params: dict, z: Float[ArrayLike, "b kz"], rings: Rings) -> Float[Array, "b v 9"]:
+def ae_decode(block: AEBlock, z: Float[ArrayLike, "b kz"], rings: Rings) -> Float[Array, "b v 9"]:
     """The block's decoder x_hat = tanh(conv_dec(tanh(reshape(z @ C)))).
 
     **Arguments:**
 
-    - `params`: from :func:`init_ae_block`.
+    - `block`: one :class:`AEBlock` (its `conv_dec` with weights of its own).
     - `z`: codes `(B, Kz)`.
     - `rings`: the :class:`Rings` of the connectivity.
 
@@ -258,18 +331,18 @@ def ae_decode(params: dict, z: Float[ArrayLike, "b kz"], rings: Rings) -> Float[
 
     x_hat `(B, V, 9)`, in [-1, 1].
     """
-    g = _tanh(ae_decode_pre(params, z))
-    return _tanh(mesh_conv(params["conv_dec"], g, rings.neighbors, rings.mask, rings.degree))
+    g = _tanh(ae_decode_pre(block, z))
+    return _tanh(block.conv_dec(g, rings))
 
 
 def ae_decode_error(
-    params: dict, z: Float[ArrayLike, "b kz"], target: Float[ArrayLike, "b v 9"], rings: Rings
+    block: AEBlock, z: Float[ArrayLike, "b kz"], target: Float[ArrayLike, "b v 9"], rings: Rings
 ) -> tuple[Float[Array, "b v 9"], Float[Array, " b"]]:
     """Decode and measure the block's reconstruction error per shape.
 
     **Arguments:**
 
-    - `params`: from :func:`init_ae_block`.
+    - `block`: one :class:`AEBlock`.
     - `z`: codes `(B, Kz)`.
     - `target`: features `(B, V, 9)`.
     - `rings`: the :class:`Rings` of the connectivity.
@@ -278,24 +351,24 @@ def ae_decode_error(
 
     `(x_hat, err)`: :func:`ae_decode` `(B, V, 9)` and err_m = sum over (V, 9) of (x_hat_m - target_m)^2, `(B,)`.
     """
-    x_hat = ae_decode(params, z, rings)
+    x_hat = ae_decode(block, z, rings)
     flat = x_hat.shape[:-2] + (-1,)  # over rows of 9V: see _tanh
     return x_hat, jnp.sum(jnp.square(x_hat.reshape(flat) - target.reshape(flat)), axis=-1)
 
 
-def _latent_code(params: dict, x: Float[ArrayLike, "b v 9"], rings: Rings, latent: str) -> Float[Array, "b kz"]:
-    z = ae_encode(params, x, rings)
+def _latent_code(block: AEBlock, x: Float[ArrayLike, "b v 9"], rings: Rings, latent: str) -> Float[Array, "b kz"]:
+    z = ae_encode(block, x, rings)
     return jnp.tanh(z) if latent == "tanh" else z
 
 
 def ae_forward(
-    params: dict, x: Float[ArrayLike, "b v 9"], rings: Rings, latent: str = "linear"
+    block: AEBlock, x: Float[ArrayLike, "b v 9"], rings: Rings, latent: str = "linear"
 ) -> tuple[Float[Array, "b kz"], Float[Array, "b v 9"]]:
     """One autoencoder block's forward pass.
 
     **Arguments:**
 
-    - `params`: from :func:`init_ae_block`.
+    - `block`: one :class:`AEBlock`.
     - `x`: features `(B, V, 9)`.
     - `rings`: the :class:`Rings` of the connectivity.
     - `latent`: "linear" (default) or "tanh" (a tanh on z; module docstring).
@@ -304,29 +377,29 @@ def ae_forward(
 
     `(z, x_hat)`: codes `(B, Kz)` and reconstructions `(B, V, 9)`.
     """
-    z = _latent_code(params, x, rings, latent)
-    return z, ae_decode(params, z, rings)
+    z = _latent_code(block, x, rings, latent)
+    return z, ae_decode(block, z, rings)
 
 
-def ae_forward_error(params: dict, x: Float[ArrayLike, "b v 9"], rings: Rings, latent: str = "linear") -> tuple:
+def ae_forward_error(block: AEBlock, x: Float[ArrayLike, "b v 9"], rings: Rings, latent: str = "linear") -> tuple:
     """One block's forward pass with its reconstruction error.
 
     **Arguments:**
 
-    - `params`, `x`, `rings`, `latent`: as :func:`ae_forward`.
+    - `block`, `x`, `rings`, `latent`: as :func:`ae_forward`.
 
     **Returns:**
 
     `(z, x_hat, err)`: :func:`ae_forward` and the squared error of x_hat against the block's own input x per
     shape `(B,)` (:func:`ae_decode_error`).
     """
-    z = _latent_code(params, x, rings, latent)
-    x_hat, err = ae_decode_error(params, z, x, rings)
+    z = _latent_code(block, x, rings, latent)
+    x_hat, err = ae_decode_error(block, z, x, rings)
     return z, x_hat, err
 
 
 def masked_blocks_error(
-    params: dict, x: Float[ArrayLike, "n b v 9"], am: Float[ArrayLike, "n k v"], rings: Rings
+    blocks: AEBlock, x: Float[ArrayLike, "n b v 9"], am: Float[ArrayLike, "n k v"], rings: Rings
 ) -> tuple:
     """A grid of blocks (n, k) on their masked inputs.
 
@@ -334,7 +407,7 @@ def masked_blocks_error(
 
     **Arguments:**
 
-    - `params`: block parameters stacked `(n, k, ...)`.
+    - `blocks`: :class:`AEBlock` arrays stacked `(n, k, ...)`.
     - `x`: features `(n, B, V, 9)`.
     - `am`: attention masks `(n, k, V)`; they get no gradient.
     - `rings`: the :class:`Rings` of the connectivity.
@@ -346,5 +419,5 @@ def masked_blocks_error(
     """
     am = jax.lax.stop_gradient(am)
     inputs = am[..., None, :, None] * x[:, None]
-    blocks = lambda q, xin: ae_forward_error(q, xin, rings, "linear")  # noqa: E731
-    return jax.vmap(jax.vmap(blocks))(params, inputs)
+    run = lambda q, xin: ae_forward_error(q, xin, rings, "linear")  # noqa: E731
+    return jax.vmap(jax.vmap(run))(blocks, inputs)
