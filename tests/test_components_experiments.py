@@ -430,7 +430,7 @@ def test_projection_encoder_row_is_the_protocol(tmp_path):
 
     data = exp.synthetic_tube(tmp_path)
     (tmp_path / "run").mkdir()
-    crun.fit(tmp_path / "run", data, "multiscale", "test", epochs=3, progress=False, log=lambda s: None)
+    crun.fit(data, "test", tmp_path / "run", method="multiscale", epochs=3, progress=False, log=lambda s: None)
     result = projection.main([str(tmp_path / "run"), "--steps", "3", "--json", str(tmp_path / "p.json")])
     expected = crun.evaluate(crun.load(tmp_path / "run"), data)["test"]
     for key in ("erms", "sted", "max_relative_squared_error"):
@@ -449,7 +449,7 @@ def test_projection_in_positions_finds_a_decodable_shape_again(tmp_path):
 
     data = exp.synthetic_tube(tmp_path)
     (tmp_path / "run").mkdir()
-    crun.fit(tmp_path / "run", data, "multiscale", "test", epochs=3, progress=False, log=lambda s: None)
+    crun.fit(data, "test", tmp_path / "run", method="multiscale", epochs=3, progress=False, log=lambda s: None)
     run = crun.load(tmp_path / "run")
     vertices, faces = crun.run_data(run, data)
     rings = rings_from_topology(build_topology(faces, run.rest.shape[0]))

@@ -25,7 +25,7 @@ def tube_run(tmp_path_factory):
 
     root = tmp_path_factory.mktemp("tube")
     data = exp.synthetic_tube(root)
-    crun.fit(root / "run", data, "multiscale", "test", epochs=30, progress=False, log=lambda s: None)
+    crun.fit(data, "test", root / "run", method="multiscale", epochs=30, progress=False, log=lambda s: None)
     return data, root / "run"
 
 
@@ -257,7 +257,7 @@ def test_finetune_refuses_a_linear_run_and_a_busy_out(tmp_path, capsys):
 
     data = exp.synthetic_tube(tmp_path)
     (tmp_path / "pca").mkdir()
-    crun.fit(tmp_path / "pca", data, "pca", "test", progress=False, log=lambda s: None)
+    crun.fit(data, "test", tmp_path / "pca", method="pca", progress=False, log=lambda s: None)
     code, _, err = run_cli(["components", "finetune", str(tmp_path / "pca"), "--out", str(tmp_path / "p2")], capsys)
     assert code == 2 and err.count("\n") == 1 and "only multiscale and tan runs" in err
     assert not (tmp_path / "p2").exists()

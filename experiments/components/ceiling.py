@@ -29,7 +29,6 @@ from pathlib import Path
 import jax.numpy as jnp
 import numpy as np
 
-import jaxdeform  # noqa: F401  (x64)
 from experiments.components.common import SPLITS
 from jaxdeform import acap
 from jaxdeform.components import baselines

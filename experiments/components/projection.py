@@ -34,7 +34,6 @@ import numpy as np
 import optax
 from jax.flatten_util import ravel_pytree
 
-import jaxdeform  # noqa: F401  (x64)
 from experiments.components.common import write_text
 from jaxdeform.components import run as crun
 from jaxdeform.mesh.topology import build_topology

@@ -32,7 +32,6 @@ import shutil
 import time
 from pathlib import Path
 
-import jaxdeform  # noqa: F401  (x64)
 from experiments.components import editing
 from experiments.components.common import SPLITS, hardware, write_text
 from jaxdeform.components import run as crun
@@ -92,10 +91,7 @@ def train_and_evaluate(
         if not train:
             print(f"   not trained yet: {folder} (left out)", flush=True)
             return None
-        if folder.exists():
-            shutil.rmtree(folder)  # an interrupted run
-        folder.mkdir(parents=True)
-        crun.fit(folder, data, method, config, epochs=epochs, split=split, progress=True)
+        crun.fit(data, config, folder, method=method, epochs=epochs, split=split, progress=True)  # replaces folder
     loaded = crun.load(folder)
     result = crun.evaluate(loaded, data)
     result["timing"] = loaded.record.get("timing", {})

@@ -42,7 +42,6 @@ from pathlib import Path
 import jax.numpy as jnp
 import numpy as np
 
-import jaxdeform  # noqa: F401  (x64)
 from jaxdeform import acap, metrics
 from jaxdeform.components import model, train
 from jaxdeform.components import run as crun

@@ -39,10 +39,11 @@ def cmd_components_train(args: argparse.Namespace) -> int:
     check_quantile(q, "--scale-quantile")  # before any work (Scaler.fit checks it too, after encoding)
     loaded = run.load_data(data)  # fewer than 2 shapes or mixed connectivity: one sentence, nothing written
     kw = {k: getattr(args, k) for k in ("epochs", "seed", "split", "split_seed")}
-    with common.staged_folder(out) as tmp:
-        record = run.fit(
-            tmp, data, args.method, args.config, progress=not args.quiet, scale_quantile=q, loaded=loaded, **kw
+    with common.writing(out):
+        fitted = run.fit(
+            data, args.config, out, method=args.method, progress=not args.quiet, scale_quantile=q, loaded=loaded, **kw
         )
+    record = fitted.record
     t = record["timing"]
     extra = ""
     if "run_s" in t:

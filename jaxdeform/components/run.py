@@ -53,7 +53,7 @@ from jaxdeform.components import baselines, model, train
 from jaxdeform.errors import DegenerateMeshError, JaxDeformError
 from jaxdeform.mesh import geodesic
 from jaxdeform.mesh.geometry import zero_area_faces
-from jaxdeform.mesh.io import atomic_path, check_same_connectivity, load_sequence, read_npz_arrays
+from jaxdeform.mesh.io import atomic_path, check_same_connectivity, load_sequence, read_npz_arrays, staged_folder
 from jaxdeform.mesh.topology import build_topology
 from jaxdeform.nn.graph_conv import rings_from_topology
 
@@ -67,6 +67,10 @@ SCALE_QUANTILE = 1e-3
 AUTOENCODERS = ("multiscale", "tan")
 ACAP_METHODS = ("multiscale", "tan", "pca")  # the methods that learn from ACAP features
 SPLITS = ("every10", "half", "all")
+
+
+#: the run-folder API's name of this method (:mod:`jaxdeform.runs`)
+KIND = "components"
 
 
 class RunError(JaxDeformError):
@@ -87,7 +91,7 @@ def _tan(**kw) -> model.Config:
 
 
 #: Named configurations per method: (model config, training config). "test" configs run in seconds.
-CONFIGS: dict[str, dict[str, tuple[model.Config | None, train.TrainConfig]]] = {
+METHOD_CONFIGS: dict[str, dict[str, tuple[model.Config | None, train.TrainConfig]]] = {
     "multiscale": {
         "default": (_multiscale(), train.TrainConfig()),
         "no-attention": (_multiscale(attention=False), train.TrainConfig()),
@@ -121,6 +125,8 @@ CONFIGS: dict[str, dict[str, tuple[model.Config | None, train.TrainConfig]]] = {
 }
 
 N_LINEAR = {"default": 50, "test": 8}
+#: the run-folder API's named configurations: those of the default method, multiscale (other methods: ``method=``)
+CONFIGS = METHOD_CONFIGS["multiscale"]
 
 
 def resolve_config(method: str, name: str, epochs: int | None = None, seed: int | None = None):
@@ -142,9 +148,11 @@ def resolve_config(method: str, name: str, epochs: int | None = None, seed: int 
     """
     if method not in METHODS:
         raise ValueError(f"unknown method {method!r}; expected one of {', '.join(METHODS)}.")
-    if name not in CONFIGS[method]:
-        raise ValueError(f"method {method} has no config {name!r}; expected one of {', '.join(CONFIGS[method])}.")
-    cfg, tc = CONFIGS[method][name]
+    if name not in METHOD_CONFIGS[method]:
+        raise ValueError(
+            f"method {method} has no config {name!r}; expected one of {', '.join(METHOD_CONFIGS[method])}."
+        )
+    cfg, tc = METHOD_CONFIGS[method][name]
     if epochs is not None:
         if epochs < 1:
             raise ValueError(f"--epochs must be at least 1, got {epochs}.")
@@ -448,11 +456,11 @@ def _write_run(out, record, rest, faces, scaler, turns, codes) -> None:
 
 
 def fit(
-    out: Path,
     data,
-    method: str = "multiscale",
     config: str = "default",
+    out: str | Path | None = None,
     *,
+    method: str = "multiscale",
     epochs: int | None = None,
     seed: int | None = None,
     split: str = "every10",
@@ -462,15 +470,18 @@ def fit(
     dtype=np.float32,
     log: Callable[[str], None] = print,
     loaded: tuple[np.ndarray, np.ndarray] | None = None,
-) -> dict:
-    """Train ``method`` on the training split of ``data`` and write the run into ``out`` (an empty folder).
+) -> Run:
+    """Train ``method`` on the training split of ``data`` and write the run folder ``out``.
+
+    The folder is built beside ``out`` and renamed at the end (replacing ``out``), so a failed fit leaves no
+    half-written run.
 
     **Arguments:**
 
-    - ``out``: the run folder to write.
     - ``data``: the data folder (shapes and faces, as :func:`load_data` reads it).
+    - ``config``: the named configuration of ``method`` (default ``"default"``; :data:`METHOD_CONFIGS`).
+    - ``out``: the run folder to write (required: the run's checkpoints and codes live there).
     - ``method``: one of the module docstring's methods (default ``"multiscale"``).
-    - ``config``: the named configuration of ``method`` (default ``"default"``).
     - ``epochs``, ``seed``: override the configuration's number of epochs and seed (None: keep them).
     - ``split``, ``split_seed``: the train/test split (:func:`split_indices`; default every 10th shape is a test shape).
     - ``progress``: show a progress bar while training.
@@ -481,14 +492,34 @@ def fit(
 
     **Returns:**
 
-    The run record (a dict), also written as run.json.
+    The :class:`Run`, read back from ``out``.
+
+    **Raises:**
+
+    ``ValueError`` for an unknown method or configuration, or no ``out``; :class:`RunError` and the loaders'
+    one-sentence errors for bad data.
     """
+    if out is None:
+        raise ValueError("a components run needs a folder to write (out).")
+    out = Path(out)
+    with staged_folder(out) as tmp:
+        _fit_into(
+            tmp, data, method, config, epochs, seed, split, split_seed, progress, scale_quantile, dtype, log, loaded
+        )
+    return Run.load(out)
+
+
+def _fit_into(
+    out: Path, data, method, config, epochs, seed, split, split_seed, progress, scale_quantile, dtype, log, loaded
+) -> dict:
+    """:func:`fit`'s work, written into the folder ``out``; returns the record."""
     out = Path(out)
     cfg, tc = resolve_config(method, config, epochs, seed)
     vertices, faces = load_data(data) if loaded is None else loaded
     train_idx, test_idx = split_indices(vertices.shape[0], split, split_seed)
     rest = vertices[0]
     record = {
+        "kind": KIND,
         "method": method,
         "config_name": config,
         "config": _json_config(cfg),
@@ -562,6 +593,24 @@ class Run:
         None  # (V, 3) rotation reference of the features' branches (None: a run written without one)
     )
 
+    @classmethod
+    def load(cls, path) -> Run:
+        """Read a components run folder (:func:`load`).
+
+        **Arguments:**
+
+        - ``path``: a folder written by :func:`fit`.
+
+        **Returns:**
+
+        The :class:`Run`.
+
+        **Raises:**
+
+        :class:`RunError` (one sentence) for a folder that is not a components run.
+        """
+        return load(path)
+
     @property
     def method(self) -> str:
         return self.record["method"]
@@ -606,7 +655,9 @@ def read_record(path: Path) -> dict:
     if not isinstance(record, dict) or any(k not in record for k in RECORD_KEYS):
         missing = [k for k in RECORD_KEYS if not isinstance(record, dict) or k not in record]
         raise RunError(f"{path / 'run.json'} is not a components run record (it lacks {', '.join(missing)}).")
-    if record["method"] not in CONFIGS:
+    if record.get("kind", KIND) != KIND:
+        raise RunError(f"{path} is a {record['kind']} run, not a components run.")
+    if record["method"] not in METHOD_CONFIGS:
         raise RunError(f"{path / 'run.json'} names an unknown method {record['method']!r}.")
     return record
 
@@ -776,13 +827,13 @@ def set_metrics(ref: np.ndarray, rec: dict, faces: np.ndarray) -> dict:
     return out
 
 
-def evaluate(run: Run, data) -> dict:
+def evaluate(run: Run, data=None) -> dict:
     """Metrics of the run on its train and test split of ``data``.
 
     **Arguments:**
 
     - ``run``: the run.
-    - ``data``: the data folder (checked against the run as in :func:`run_data`).
+    - ``data``: the data folder (checked against the run as in :func:`run_data`; None: the run's own).
 
     **Returns:**
 
@@ -860,7 +911,8 @@ def show(run: Run, out: Path) -> dict:
 
     **Returns:**
 
-    The summary written as components.json (method, number of components, number kept, the redundancy removal).
+    The summary written as components.json (method, number of components, number kept, the redundancy removal,
+    the files written).
     """
     from jaxdeform.components import extract, figures
 
@@ -873,6 +925,7 @@ def show(run: Run, out: Path) -> dict:
     sim = np.asarray(extract.similarity_matrix(cs.values[keep]))
     figures.similarity_figure(sim, out / "similarity.png", labels=names)
     info = {"method": run.method, "components": len(cs), "n_kept": int(keep.sum()), **removal.as_dict()}
+    info["files"] = ["components.png", "similarity.png", "components.json"]
     with atomic_path(out / "components.json") as tmp:
         Path(tmp).write_text(json.dumps(info, indent=2))
     return info
