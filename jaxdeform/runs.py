@@ -65,12 +65,13 @@ class Run(Protocol):
     def load(cls, path: str | os.PathLike) -> Run: ...
 
 
-def read_record(path: str | os.PathLike) -> dict:
-    """The run.json of a run folder, checked to name a known kind.
+def read_record(path: str | os.PathLike, kind: str | None = None) -> dict:
+    """The run.json of a run folder, checked to name a known kind (``kind`` where given).
 
     **Arguments:**
 
     - ``path``: the run folder.
+    - ``kind``: the kind the run must be (None: any known kind).
 
     **Returns:**
 
@@ -79,7 +80,7 @@ def read_record(path: str | os.PathLike) -> dict:
     **Raises:**
 
     :class:`RunFolderError` (one sentence) if ``path`` is not a folder, has no run.json, or its run.json is not a
-    JSON object naming a known kind.
+    JSON object naming a known kind, or names another kind than ``kind``.
     """
     path = Path(path)
     if not path.is_dir():
@@ -92,8 +93,10 @@ def read_record(path: str | os.PathLike) -> dict:
     except (UnicodeDecodeError, json.JSONDecodeError) as exc:
         raise RunFolderError(f"{file} is not a readable run record ({type(exc).__name__}).") from None
     if not isinstance(record, dict) or record.get("kind") not in KINDS:
-        kind = record.get("kind") if isinstance(record, dict) else None
-        raise RunFolderError(f"{file} names no known kind of run ({kind!r}; expected one of {', '.join(KINDS)}).")
+        named = record.get("kind") if isinstance(record, dict) else None
+        raise RunFolderError(f"{file} names no known kind of run ({named!r}; expected one of {', '.join(KINDS)}).")
+    if kind is not None and record["kind"] != kind:
+        raise RunFolderError(f"{path} is a {record['kind']} run, not a {kind} run.")
     return record
 
 

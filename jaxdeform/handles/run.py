@@ -72,9 +72,7 @@ class Run:
         from jaxdeform.handles.pipeline import check_mesh
 
         path = Path(path)
-        record = runs.read_record(path)
-        if record["kind"] != KIND:
-            raise runs.RunFolderError(f"{path} is a {record['kind']} run, not a handles run.")
+        record = runs.read_record(path, KIND)
         arrays = read_npz_arrays(path / "mesh.npz")
         if "vertices" not in arrays or "faces" not in arrays:
             raise MeshFormatError(f"{path / 'mesh.npz'}: not a mesh archive (vertices and faces are missing).")

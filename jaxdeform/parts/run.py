@@ -84,9 +84,7 @@ class Run:
         one-sentence errors of :func:`load_run` for a damaged model.
         """
         path = Path(path)
-        record = runs.read_record(path)
-        if record["kind"] != KIND:
-            raise runs.RunFolderError(f"{path} is a {record['kind']} run, not a parts run.")
+        record = runs.read_record(path, KIND)
         fit_, vertices, faces = load_run(path)
         return cls(path, record, fit_, vertices, faces)
 
