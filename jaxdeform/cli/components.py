@@ -38,12 +38,9 @@ def cmd_components_train(args: argparse.Namespace) -> int:
     q = run.SCALE_QUANTILE if args.scale_quantile is None else args.scale_quantile
     check_quantile(q, "--scale-quantile")  # before any work (Scaler.fit checks it too, after encoding)
     loaded = run.load_data(data)  # fewer than 2 shapes or mixed connectivity: one sentence, nothing written
-    kw = {k: getattr(args, k) for k in ("epochs", "seed", "split", "split_seed")}
+    kw = {k: getattr(args, k) for k in ("epochs", "seed", "split", "split_seed", "method")}
     with common.writing(out):
-        fitted = run.fit(
-            data, args.config, out, method=args.method, progress=not args.quiet, scale_quantile=q, loaded=loaded, **kw
-        )
-    record = fitted.record
+        record = run.fit(data, args.config, out, progress=not args.quiet, scale_quantile=q, loaded=loaded, **kw).record
     t = record["timing"]
     extra = ""
     if "run_s" in t:
