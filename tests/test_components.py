@@ -234,6 +234,24 @@ def test_loss_weights_scale_their_terms(setup):
     assert got == pytest.approx(want, rel=1e-5)
 
 
+def test_mean_reconstruction_divides_the_recon_term_by_the_feature_entries(setup):
+    """recon="mean": L_recon averaged over the 9 V entries too; the other terms and the outputs unchanged."""
+    _, rings, dist, x = setup
+    base = model.Config(kz=(3, 2), d=(0.4, 0.2), theta=0.01)
+    m = model.Model(x.shape[1], base, key=jax.random.PRNGKey(4), dtype=x.dtype)
+    summed = model.forward_levels(tuple(m.levels), x, rings, dist, base)
+    mean = model.forward_levels(tuple(m.levels), x, rings, dist, dataclasses.replace(base, recon="mean"))
+    entries = x.shape[1] * x.shape[2]
+    for a, b in zip(summed.terms, mean.terms):
+        assert float(b["recon"]) == pytest.approx(float(a["recon"]) / entries, rel=1e-6)
+        assert float(b["sparsity"]) == float(a["sparsity"]) and float(b["latent"]) == float(a["latent"])
+    drop = base.lambda_recon * sum(float(t["recon"]) for t in summed.terms) * (1 - 1 / entries)
+    assert float(summed.loss) - float(mean.loss) == pytest.approx(drop, rel=1e-5)
+    assert np.array_equal(np.asarray(summed.reconstruction), np.asarray(mean.reconstruction))
+    with pytest.raises(ValueError, match="recon must be"):
+        model.Config(recon="max")
+
+
 def test_learning_rate_schedule_and_gradient_clipping():
     """The default rate decays exponentially from 1e-3 to 1e-4 over the 10,000 epochs; with ``clip_norm`` every
     step's gradient is scaled to that global norm before Adam sees it (a spike moves Adam's moments no more

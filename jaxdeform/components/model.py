@@ -86,6 +86,10 @@ class Config:
     init_std: float = 0.02  # standard deviation of init="normal" (convMesh's)
     tie_conv: bool = False  # the decoder's convolution uses the encoder's W_point and W_neighbor
     decoder_tanh: bool = True  # tanh on the decoder's z C before its convolution
+    # L_recon of a block: "sum": the mean over shapes of the squared errors summed over the 9 V entries (this
+    # project's reading of Sec. 4.1's 1/N sum_i ||X_i - X^_i||^2); "mean": also averaged over the 9 V entries
+    # (the section's "MSE" read literally), which weighs the sparsity and latent terms 9 V times more.
+    recon: str = "sum"
 
     def __post_init__(self):
         if len(self.kz) != len(self.d) or not self.kz:
@@ -100,6 +104,8 @@ class Config:
             raise ValueError(f"init must be 'glorot' or 'normal', got {self.init!r}.")
         if not self.init_std > 0:
             raise ValueError(f"init_std must be positive, got {self.init_std}.")
+        if self.recon not in ("sum", "mean"):
+            raise ValueError(f"recon must be 'sum' or 'mean', got {self.recon!r}.")
 
     def sparsity_cutoff(self, level: int):
         """The ``d`` argument of :func:`group_sparsity` for ``level``."""
@@ -452,7 +458,9 @@ def forward_levels(
     terms, latents = [], []
     outs = _levels(tuple(levels), x, rings, config, True)
     for level, (p, (_, z, x_hat, err)) in enumerate(zip(levels, outs)):
-        rec_l = jnp.mean(err, axis=-1)  # L_recon of each block: the paper's mean over shapes of the summed squares
+        rec_l = jnp.mean(err, axis=-1)  # L_recon of each block: the mean over shapes of the summed squares
+        if config.recon == "mean":
+            rec_l = rec_l / (x.shape[-2] * x.shape[-1])
         sparse_l = level_sparsity(p, dist, config, level)
         latent_l = jax.vmap(lambda zz: latent_bound(zz, config.theta))(z)
         total = total + jnp.sum(
