@@ -198,13 +198,14 @@ def show(run: Run, out: str | os.PathLike) -> dict:
     return module(_kind_of_run(run)).show(run, Path(out))
 
 
-def config(kind: str, value: Any):
+def config(kind: str, value: Any, cls: type | None = None):
     """A method's configuration from a name of its ``CONFIGS`` or a configuration object.
 
     **Arguments:**
 
     - ``kind``: one of :data:`KINDS`.
     - ``value``: a name (str) or a configuration object (returned as is).
+    - ``cls``: the method's configuration class (None: not checked).
 
     **Returns:**
 
@@ -212,11 +213,13 @@ def config(kind: str, value: Any):
 
     **Raises:**
 
-    ``ValueError`` for an unknown name.
+    ``ValueError`` for an unknown name; ``TypeError`` for an object that is not a ``cls``.
     """
-    if not isinstance(value, str):
-        return value
-    configs = module(kind).CONFIGS
-    if value not in configs:
-        raise ValueError(f"{kind} has no configuration {value!r}; expected one of {', '.join(configs)}.")
-    return configs[value]
+    if isinstance(value, str):
+        configs = module(kind).CONFIGS
+        if value not in configs:
+            raise ValueError(f"{kind} has no configuration {value!r}; expected one of {', '.join(configs)}.")
+        value = configs[value]
+    if cls is not None and not isinstance(value, cls):
+        raise TypeError(f"a {kind} configuration must be a name or a {cls.__name__}, got {type(value).__name__}.")
+    return value

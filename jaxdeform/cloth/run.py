@@ -23,12 +23,13 @@ import jax
 import numpy as np
 from tqdm.auto import tqdm
 
+from jaxdeform import runs
 from jaxdeform.cloth import data as cdata
 from jaxdeform.cloth import evaluate as ceval
 from jaxdeform.cloth import features as cfeat
 from jaxdeform.cloth.refine import Refiner
 from jaxdeform.errors import ConnectivityError, JaxDeformError
-from jaxdeform.mesh.io import atomic_path, read_npz_arrays
+from jaxdeform.mesh.io import atomic_path, read_npz_arrays, staged_folder
 from jaxdeform.mesh.topology import build_topology
 
 RUN_FORMAT = "jaxdeform-cloth-run"
@@ -542,12 +543,7 @@ def fit(data, config: str | Config = "default", out=None, *, progress: bool = Tr
 
     The :class:`Run` (:func:`train_run`).
     """
-    from jaxdeform import runs
-    from jaxdeform.mesh.io import staged_folder
-
-    cfg = runs.config(KIND, config)
-    if not isinstance(cfg, Config):
-        raise TypeError(f"a cloth configuration must be a name or a cloth Config, got {type(cfg).__name__}.")
+    cfg = runs.config(KIND, config, Config)
     run = train_run(
         data,
         representation=cfg.representation,
@@ -563,13 +559,14 @@ def fit(data, config: str | Config = "default", out=None, *, progress: bool = Tr
     return run
 
 
-def _dataset(run: Run, data) -> tuple[cdata.ClothDataset, str]:
+def _dataset(run: Run, data) -> cdata.ClothDataset:
+    """``data`` (None: the dataset of the run's record) loaded and checked against the run."""
     source = run.record.get("dataset") if data is None else data
     if source is None:
         raise JaxDeformError("the run records no dataset; pass the data to evaluate it on.")
     ds = data if isinstance(data, cdata.ClothDataset) else cdata.load_dataset(source)
     check_dataset(run, ds, ds.root, run.root or ".")
-    return ds, str(source if not isinstance(source, cdata.ClothDataset) else source.root)
+    return ds
 
 
 def evaluate(run: Run, data=None, *, part: str = "test", progress: bool = False) -> dict:
@@ -587,7 +584,7 @@ def evaluate(run: Run, data=None, *, part: str = "test", progress: bool = False)
 
     :func:`evaluate_run`'s dict.
     """
-    ds, _ = _dataset(run, data)
+    ds = _dataset(run, data)
     return evaluate_run(run, ds, part=part, progress=progress)
 
 
@@ -651,7 +648,7 @@ def show(run: Run, out, data=None, *, frames: int = 3, size: int = 256) -> dict:
 
     ``{"sequence", "frames", "files"}``.
     """
-    ds, _ = _dataset(run, data)
+    ds = _dataset(run, data)
     seqs = ds.subset("test") or ds.sequences
     x = seqs[0]
     fine, _ = synthesize_timed(run, x.coarse, x.obstacles, pins=x.pins)

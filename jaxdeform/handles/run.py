@@ -95,13 +95,6 @@ class Run:
         return Deformer(self.vertices, self.faces, self.features, field_fn=lambda p: evaluate_field(self.field, p))
 
 
-def _config(config: str | DistillConfig) -> DistillConfig:
-    value = runs.config(KIND, config)
-    if not isinstance(value, DistillConfig):
-        raise TypeError(f"a handles configuration must be a name or a DistillConfig, got {type(value).__name__}.")
-    return value
-
-
 def load_data(data) -> tuple[np.ndarray, np.ndarray]:
     """The mesh of a handles run: a mesh file (OBJ, PLY, OFF) or ``(vertices, faces)``, checked."""
     from jaxdeform.handles.pipeline import check_mesh, load_mesh_file
@@ -136,11 +129,10 @@ def fit(
     The :class:`Run`.
     """
     from jaxdeform.handles.field import save_field
-    from jaxdeform.handles.pipeline import distill_mesh, load_backbone
+    from jaxdeform.handles.pipeline import distill_mesh
 
-    cfg = _config(config)
+    cfg = runs.config(KIND, config, DistillConfig)
     vertices, faces = load_data(data)
-    backbone = load_backbone(None) if backbone is None else backbone
     result = distill_mesh(vertices, faces, config=cfg, backbone=backbone, progress=progress)
     record = {
         "kind": KIND,

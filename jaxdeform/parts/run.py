@@ -218,13 +218,6 @@ def load_run(path) -> tuple[hierarchy.PartsFit, np.ndarray, np.ndarray]:
     return fit_, a["vertices"], a["faces"]
 
 
-def _config(config: str | Config) -> Config:
-    value = runs.config(KIND, config)
-    if not isinstance(value, Config):
-        raise TypeError(f"a parts configuration must be a name or a parts Config, got {type(value).__name__}.")
-    return value
-
-
 def load_data(data) -> tuple[np.ndarray, np.ndarray]:
     """Shapes and faces of a parts fit: a folder, a list of mesh files or one .npz sequence of at least two shapes.
 
@@ -278,7 +271,7 @@ def fit(
     ``ValueError`` for fewer than two shapes or more initial parts than vertices; the loaders' one-sentence errors
     for bad meshes.
     """
-    cfg = _config(config)
+    cfg = runs.config(KIND, config, Config)
     vertices, faces = load_data(data)
     if cfg.initial_parts > vertices.shape[1]:
         raise ValueError(f"initial_parts {cfg.initial_parts} exceeds the {vertices.shape[1]} vertices of the meshes.")
@@ -326,7 +319,7 @@ def evaluate(run: Run, data=None) -> dict:
             )
     diff = np.sum((vertices - run.fit.reconstruction) ** 2, axis=-1)  # (M, V)
     diag = hierarchy.bbox_diagonal(vertices)
-    rmse = hierarchy.rmse(vertices, run.fit.reconstruction)
+    rmse = float(np.sqrt(diff.mean()))  # hierarchy.rmse, from the squared distances already at hand
     return {
         "parts": run.fit.n_parts,
         "rmse": rmse,
