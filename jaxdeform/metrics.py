@@ -2,8 +2,11 @@
 
 - :func:`normalize_pair`: the seed-000 protocol "align all the models and scale them to fit within a unit
   ball": every shape is centred on its centroid, each reconstructed shape is rotated onto its reference by a
-  proper Procrustes fit (optional), and both sequences are scaled by one factor that puts the reference
-  sequence inside the unit ball.
+  proper Procrustes fit (optional), and both sequences are scaled by one factor. Three readings of that factor
+  (:data:`NORMALIZATIONS`): ``"radius"`` puts the reference sequence inside the ball of radius 1 (the default);
+  ``"diameter-first-shape"`` divides by twice the radius of the data set's first shape about its centroid (the
+  group's ``scalemodel.m`` maps every mesh with the first mesh's centre and radius into a ball of diameter 1);
+  ``"raw"`` keeps the data's units.
 - :func:`erms`: 1000 * sqrt(sum over shapes and vertices |v - v'|^2) / sqrt(3 N V) (the group's ERMS.m);
   :func:`erms_per_shape` splits it by shape.
 - :func:`relative_squared_error`: eq. (8) of seed 000, |X_i - X^_i|_F^2 / |X_i|_F^2 per shape (features).
@@ -48,32 +51,69 @@ def _proper_rotation(a: np.ndarray) -> np.ndarray:
     return u @ vt
 
 
-def normalize_pair(ref, rec, *, rotate: bool = True) -> tuple[np.ndarray, np.ndarray]:
-    """(reference, reconstruction) centred, the reconstruction rigidly aligned to the reference shape by shape
-    (``rotate``), and both scaled by one factor that fits the reference sequence in the unit ball."""
+NORMALIZATIONS = ("radius", "diameter-first-shape", "raw")
+
+
+def normalize_pair(
+    ref, rec, *, rotate: bool = True, scale: str = "radius", first=None
+) -> tuple[np.ndarray, np.ndarray]:
+    """(reference, reconstruction) centred shape by shape, the reconstruction rigidly aligned to the reference
+    shape by shape (``rotate``), and both divided by one factor.
+
+    **Arguments:**
+
+    - ``ref``, ``rec``: shapes ``(N, V, 3)`` (or one ``(V, 3)``).
+    - ``rotate``: align each reconstructed shape to its reference by a proper rotation.
+    - ``scale``: one of :data:`NORMALIZATIONS`: ``"radius"``: the factor is the largest distance of a centred
+      reference vertex from the origin (the sequence fits the unit ball); ``"diameter-first-shape"``: twice the
+      largest distance of ``first``'s vertices from its centroid; ``"raw"``: 1.
+    - ``first``: the data set's first shape ``(V, 3)`` for ``"diameter-first-shape"``; None: ``ref[0]``.
+
+    **Returns:**
+
+    The normalized pair, float64 ``(N, V, 3)`` each.
+
+    **Raises:**
+
+    ``ValueError`` for shapes that differ, an unknown ``scale`` or a reference (or first shape) that collapses
+    to a point.
+    """
+    if scale not in NORMALIZATIONS:
+        raise ValueError(f"unknown Erms normalization {scale!r}; choose one of {', '.join(NORMALIZATIONS)}.")
     ref, rec = _check_pair(ref, rec)
     ref = ref - ref.mean(axis=1, keepdims=True)
     rec = rec - rec.mean(axis=1, keepdims=True)
     if rotate:
         r = _proper_rotation(np.einsum("nvx,nvy->nxy", ref, rec))  # maps rec onto ref
         rec = np.einsum("nxy,nvy->nvx", r, rec)
-    radius = float(np.sqrt((ref**2).sum(axis=-1)).max())
-    if radius <= 0:
+    if scale == "raw":
+        return ref, rec
+    if scale == "radius":
+        factor = float(np.sqrt((ref**2).sum(axis=-1)).max())
+    else:
+        base = _as_sequence(ref[0] if first is None else first)[0]
+        if base.shape != ref.shape[1:]:
+            raise ValueError(f"the first shape {base.shape} does not match the shapes' {ref.shape[1:]}.")
+        factor = 2.0 * float(np.sqrt(((base - base.mean(axis=0)) ** 2).sum(axis=-1)).max())
+    if factor <= 0:
         raise ValueError("the reference shapes collapse to points.")
-    return ref / radius, rec / radius
+    return ref / factor, rec / factor
 
 
-def erms(ref, rec, *, normalize: bool = True, rotate: bool = True) -> float:
-    """1000 sqrt(sum |v - v'|^2) / sqrt(3 N V), after :func:`normalize_pair` unless ``normalize=False``."""
-    ref, rec = normalize_pair(ref, rec, rotate=rotate) if normalize else _check_pair(ref, rec)
+def erms(ref, rec, *, normalize: bool = True, rotate: bool = True, scale: str = "radius", first=None) -> float:
+    """1000 sqrt(sum |v - v'|^2) / sqrt(3 N V), after :func:`normalize_pair` (``rotate``, ``scale``, ``first``
+    as there) unless ``normalize=False``."""
+    ref, rec = normalize_pair(ref, rec, rotate=rotate, scale=scale, first=first) if normalize else _check_pair(ref, rec)
     n, v = ref.shape[:2]
     return float(1000.0 * np.sqrt(np.sum((ref - rec) ** 2)) / np.sqrt(3.0 * n * v))
 
 
-def erms_per_shape(ref, rec, *, normalize: bool = True, rotate: bool = True) -> np.ndarray:
+def erms_per_shape(
+    ref, rec, *, normalize: bool = True, rotate: bool = True, scale: str = "radius", first=None
+) -> np.ndarray:
     """(N,) Erms of each shape under the sequence's normalization (:func:`normalize_pair` of the whole pair):
     their root mean square is :func:`erms` of the sequence."""
-    ref, rec = normalize_pair(ref, rec, rotate=rotate) if normalize else _check_pair(ref, rec)
+    ref, rec = normalize_pair(ref, rec, rotate=rotate, scale=scale, first=first) if normalize else _check_pair(ref, rec)
     v = ref.shape[1]
     return 1000.0 * np.sqrt(np.sum((ref - rec) ** 2, axis=(1, 2))) / np.sqrt(3.0 * v)
 

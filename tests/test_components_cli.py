@@ -57,8 +57,13 @@ def test_train_evaluate_show(seq_dir, tmp_path, capsys, method):
     assert rec["split"]["train"] == [0, 10] and len(rec["split"]["test"]) == N_FRAMES - 2
     assert main(["components", "evaluate", str(out), "--data", str(seq_dir), "--json", str(tmp_path / "m.json")]) == 0
     m = json.loads((tmp_path / "m.json").read_text())
+    first = bending_tube_sequence(n_frames=N_FRAMES, n_around=8, n_along=16)[0][0]  # the data set's shape 0
+    r0 = np.linalg.norm(first - first.mean(axis=0), axis=-1).max()
     for part in ("train", "test"):
         assert np.isfinite(m[part]["erms"]) and np.isfinite(m[part]["sted"]) and m[part]["erms"] >= 0
+        by = m[part]["erms_by_normalization"]  # the three readings side by side, the headline one among them
+        assert by["radius"] == pytest.approx(m[part]["erms"], rel=1e-12)
+        assert by["diameter-first-shape"] == pytest.approx(by["raw"] / (2 * r0), rel=1e-6)
     if method != "splocs":
         assert 0 <= m["test"]["max_relative_squared_error"] < 10
     if method == "pca":  # PCA spans its training features exactly; positions then differ only by the ACAP solve

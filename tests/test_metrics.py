@@ -54,6 +54,40 @@ def test_erms_scales_into_the_unit_ball():
     assert a == pytest.approx(b, rel=1e-12)
 
 
+def _sphere_points(radius, n=40, seed=0):
+    """n points on a sphere of the given radius about a random centre (their centroid is not the centre)."""
+    rng = np.random.default_rng(seed)
+    d = rng.normal(size=(n, 3))
+    return radius * d / np.linalg.norm(d, axis=1, keepdims=True) + rng.normal(size=3)
+
+
+def test_erms_normalizations_divide_by_their_analytic_factors():
+    # a zero-mean displacement of length e on every vertex: raw Erms = 1000 e / sqrt(3) (no rotation fit)
+    first = _sphere_points(2.0)
+    ref = np.stack([first, 1.5 * _sphere_points(2.0, seed=1)])  # the second shape reaches further out
+    e = 0.01
+    d = np.zeros_like(ref)
+    d[:, 0::2, 0], d[:, 1::2, 0] = e, -e
+    rec = ref + d
+    raw = metrics.erms(ref, rec, rotate=False, scale="raw")
+    assert raw == pytest.approx(1000 * e / np.sqrt(3), rel=1e-12)
+    centred = ref - ref.mean(axis=1, keepdims=True)
+    reach = np.linalg.norm(centred, axis=-1).max()  # "radius": the whole reference inside the unit ball
+    assert metrics.erms(ref, rec, rotate=False) == pytest.approx(raw / reach, rel=1e-12)
+    r0 = np.linalg.norm(first - first.mean(axis=0), axis=-1).max()  # "diameter-first-shape": 2 r0 of shape 0
+    assert metrics.erms(ref, rec, rotate=False, scale="diameter-first-shape") == pytest.approx(
+        raw / (2 * r0), rel=1e-12
+    )
+    other = _sphere_points(5.0, seed=2)  # a given first shape (the data set's, not the evaluated set's)
+    r1 = np.linalg.norm(other - other.mean(axis=0), axis=-1).max()
+    per = metrics.erms_per_shape(ref, rec, rotate=False, scale="diameter-first-shape", first=other)
+    assert np.sqrt(np.mean(per**2)) == pytest.approx(raw / (2 * r1), rel=1e-12)
+    with pytest.raises(ValueError, match="unknown Erms normalization"):
+        metrics.erms(ref, rec, scale="unit")
+    with pytest.raises(ValueError, match="does not match"):
+        metrics.erms(ref, rec, scale="diameter-first-shape", first=other[:10])
+
+
 def test_relative_squared_error_of_a_scaled_copy():
     x = np.random.default_rng(2).normal(size=(3, 10, 9))
     np.testing.assert_allclose(metrics.relative_squared_error(x, 0.9 * x), 0.01, rtol=1e-12)

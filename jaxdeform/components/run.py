@@ -23,7 +23,8 @@ refused by :func:`load`.
 
 The generalization protocol (:func:`evaluate`): autoencoders encode the ACAP features of a shape, decode
 them and reconstruct positions by the ACAP least squares; linear baselines project and decode. Reported per
-set: Erms (unit-ball normalization, :func:`jaxdeform.metrics.erms`), STED (spatial part, the shapes of a
+set: Erms (unit-ball normalization, :func:`jaxdeform.metrics.erms`; also under the other two readings of
+:data:`jaxdeform.metrics.NORMALIZATIONS`, the data set's shape 0 as the first shape), STED (spatial part, the shapes of a
 set are not one continuous sequence; :func:`jaxdeform.metrics.sted`) and the largest relative squared
 error of the features (eq. 8; ACAP-feature methods only).
 
@@ -802,7 +803,7 @@ def _reconstruct_features(m, x, rings, chunk: int = 16):
     return jnp.concatenate([train.reconstruct(m, x[i : i + chunk], rings) for i in range(0, x.shape[0], chunk)])
 
 
-def set_metrics(ref: np.ndarray, rec: dict, faces: np.ndarray) -> dict:
+def set_metrics(ref: np.ndarray, rec: dict, faces: np.ndarray, *, first: np.ndarray | None = None) -> dict:
     """Error metrics of one set's reconstruction.
 
     **Arguments:**
@@ -810,17 +811,25 @@ def set_metrics(ref: np.ndarray, rec: dict, faces: np.ndarray) -> dict:
     - ``ref``: the reference shapes ``(N, V, 3)``.
     - ``rec``: :func:`reconstruct`'s result for ``ref``.
     - ``faces``: ``(F, 3)``.
+    - ``first``: the data set's first shape ``(V, 3)`` for the ``"diameter-first-shape"`` Erms; None: ``ref[0]``.
 
     **Returns:**
 
-    A dict: ``shapes``, ``erms`` (the RMS of the per-shape Erms, so the set's Erms under one normalization),
-    ``erms_per_shape``, ``sted``; with features also ``max_relative_squared_error`` and ``mean_relative_squared_error``.
+    A dict: ``shapes``, ``erms`` (the RMS of the per-shape Erms, so the set's Erms, under the unit-radius
+    normalization), ``erms_per_shape``, ``erms_by_normalization`` (the set's Erms under each of
+    :data:`jaxdeform.metrics.NORMALIZATIONS`), ``sted``; with features also ``max_relative_squared_error`` and
+    ``mean_relative_squared_error``.
     """
-    per_shape = metrics.erms_per_shape(ref, rec["positions"])  # one normalization; their RMS is the set's Erms
+    by_norm = {
+        scale: metrics.erms_per_shape(ref, rec["positions"], scale=scale, first=first)
+        for scale in metrics.NORMALIZATIONS
+    }
+    per_shape = by_norm["radius"]  # one normalization for the set; their RMS is the set's Erms
     out = {
         "shapes": int(ref.shape[0]),
         "erms": float(np.sqrt(np.mean(per_shape**2))),
         "erms_per_shape": [round(float(e), 4) for e in per_shape],
+        "erms_by_normalization": {k: float(np.sqrt(np.mean(e**2))) for k, e in by_norm.items()},
         "sted": float(metrics.sted(ref, rec["positions"], faces, temporal=False)["sted"]),
     }
     if "scaled" in rec:
@@ -851,7 +860,7 @@ def evaluate(run: Run, data=None) -> dict:
     for name, idx in (("train", run.train_idx), ("test", run.test_idx)):
         t0 = time.perf_counter()
         rec = reconstruct(run, vertices[idx])
-        result[name] = set_metrics(vertices[idx], rec, faces)
+        result[name] = set_metrics(vertices[idx], rec, faces, first=vertices[0])
         result[name]["seconds"] = round(time.perf_counter() - t0, 3)
     return result
 
