@@ -18,8 +18,7 @@ def run_script(
 ) -> str:
     """Run ``code`` in a fresh interpreter (x64 as asked, ``devices`` forced host devices, nothing else of the
     tests' settings changed but the annotation checks of conftest.py's ``JAXTYPING_ENV``); the script must exit 0
-    and print ``OK`` last; returns its stdout. Scripts on several devices run unchecked: with the checks around
-    the host solver's callbacks, entered from several device threads at once, such scripts hung now and then."""
+    and print ``OK`` last; returns its stdout."""
     env = dict(os.environ)
     env.pop("JAX_ENABLE_X64", None)
     if x64:
@@ -28,7 +27,7 @@ def run_script(
         env["XLA_FLAGS"] = f"--xla_force_host_platform_device_count={devices}"
     env.update(env_extra or {})
     code = textwrap.dedent(code)
-    hook = os.environ.get(JAXTYPING_ENV) if devices == 1 else None
+    hook = os.environ.get(JAXTYPING_ENV)
     if hook:  # the script's imports are checked as the tests' own (jaxtyping's import hook, beartype)
         *packages, checker = hook.split(",")
         code = f"import jaxtyping\njaxtyping.install_import_hook({packages!r}, {checker!r})\n" + code
