@@ -78,16 +78,28 @@ def normalize_pair(
     ``ValueError`` for shapes that differ, an unknown ``scale`` or a reference (or first shape) that collapses
     to a point.
     """
-    if scale not in NORMALIZATIONS:
-        raise ValueError(f"unknown Erms normalization {scale!r}; choose one of {', '.join(NORMALIZATIONS)}.")
+    ref, rec = _aligned(ref, rec, rotate)
+    factor = _factor(ref, scale, first)
+    return ref / factor, rec / factor
+
+
+def _aligned(ref, rec, rotate: bool) -> tuple[np.ndarray, np.ndarray]:
+    """The pair centred shape by shape, rec rotated onto ref shape by shape (``rotate``)."""
     ref, rec = _check_pair(ref, rec)
     ref = ref - ref.mean(axis=1, keepdims=True)
     rec = rec - rec.mean(axis=1, keepdims=True)
     if rotate:
         r = _proper_rotation(np.einsum("nvx,nvy->nxy", ref, rec))  # maps rec onto ref
         rec = np.einsum("nxy,nvy->nvx", r, rec)
+    return ref, rec
+
+
+def _factor(ref: np.ndarray, scale: str, first) -> float:
+    """The divisor of :func:`normalize_pair` for the centred reference ``ref`` (N, V, 3)."""
+    if scale not in NORMALIZATIONS:
+        raise ValueError(f"unknown Erms normalization {scale!r}; choose one of {', '.join(NORMALIZATIONS)}.")
     if scale == "raw":
-        return ref, rec
+        return 1.0
     if scale == "radius":
         factor = float(np.sqrt((ref**2).sum(axis=-1)).max())
     else:
@@ -97,7 +109,7 @@ def normalize_pair(
         factor = 2.0 * float(np.sqrt(((base - base.mean(axis=0)) ** 2).sum(axis=-1)).max())
     if factor <= 0:
         raise ValueError("the reference shapes collapse to points.")
-    return ref / factor, rec / factor
+    return factor
 
 
 def erms(ref, rec, *, normalize: bool = True, rotate: bool = True, scale: str = "radius", first=None) -> float:
@@ -114,8 +126,19 @@ def erms_per_shape(
     """(N,) Erms of each shape under the sequence's normalization (:func:`normalize_pair` of the whole pair):
     their root mean square is :func:`erms` of the sequence."""
     ref, rec = normalize_pair(ref, rec, rotate=rotate, scale=scale, first=first) if normalize else _check_pair(ref, rec)
-    v = ref.shape[1]
-    return 1000.0 * np.sqrt(np.sum((ref - rec) ** 2, axis=(1, 2))) / np.sqrt(3.0 * v)
+    return _per_shape(ref, rec)
+
+
+def erms_per_shape_by_normalization(ref, rec, *, rotate: bool = True, first=None) -> dict[str, np.ndarray]:
+    """:func:`erms_per_shape` under each of :data:`NORMALIZATIONS` (name -> (N,)), the pair aligned once."""
+    ref, rec = _aligned(ref, rec, rotate)
+    raw = _per_shape(ref, rec)
+    return {scale: raw / _factor(ref, scale, first) for scale in NORMALIZATIONS}
+
+
+def _per_shape(ref: np.ndarray, rec: np.ndarray) -> np.ndarray:
+    """(N,) 1000 sqrt(sum over a shape's vertices |v - v'|^2) / sqrt(3 V)."""
+    return 1000.0 * np.sqrt(np.sum((ref - rec) ** 2, axis=(1, 2))) / np.sqrt(3.0 * ref.shape[1])
 
 
 def relative_squared_error(x, x_hat) -> np.ndarray:

@@ -190,10 +190,11 @@ def decode(
     if f.ndim != 3:
         raise ValueError(f"features must be (N, V, 9), got {f.shape}.")
     rec = acap.reconstructor(anchors)  # a new anchor set's factor is built on the host now, once, and kept
-    if isinstance(rec.method, HostCholesky):
-        return map_devices(functools.partial(_decode_on_device, acap, anchors, refine), f, mesh, axis)
     key = None if anchors is None else tuple(np.atleast_1d(np.asarray(anchors)).tolist())
-    return map_frames(_decode_fn(key, int(refine)), f, mesh, axis, replicated=acap)
+    body = _decode_fn(key, int(refine))
+    if isinstance(rec.method, HostCholesky):
+        return map_devices(functools.partial(body, acap), f, mesh, axis)
+    return map_frames(body, f, mesh, axis, replicated=acap)
 
 
 @functools.lru_cache(maxsize=16)
@@ -214,8 +215,3 @@ def _decode_fn(anchors: tuple | None, refine: int):
         return acap.decode(f, anchors=None if anchors is None else list(anchors), refine=refine)
 
     return body
-
-
-def _decode_on_device(acap: Acap, anchors, refine: int, f):
-    """:meth:`Acap.decode` of one device's block, on that device (the Acap's arrays follow the block)."""
-    return acap.decode(f, anchors=anchors, refine=refine)

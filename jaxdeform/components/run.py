@@ -820,10 +820,7 @@ def set_metrics(ref: np.ndarray, rec: dict, faces: np.ndarray, *, first: np.ndar
     :data:`jaxdeform.metrics.NORMALIZATIONS`), ``sted``; with features also ``max_relative_squared_error`` and
     ``mean_relative_squared_error``.
     """
-    by_norm = {
-        scale: metrics.erms_per_shape(ref, rec["positions"], scale=scale, first=first)
-        for scale in metrics.NORMALIZATIONS
-    }
+    by_norm = metrics.erms_per_shape_by_normalization(ref, rec["positions"], first=first)
     per_shape = by_norm["radius"]  # one normalization for the set; their RMS is the set's Erms
     out = {
         "shapes": int(ref.shape[0]),
