@@ -69,12 +69,12 @@ def test_train_evaluate_show(seq_dir, tmp_path, capsys, method):
     if method == "pca":  # PCA spans its training features exactly; positions then differ only by the ACAP solve
         assert m["train"]["max_relative_squared_error"] < 1e-8
         assert m["train"]["erms"] < 0.05 * m["test"]["erms"]
-    assert main(["components", "show", str(out), "--out", str(tmp_path / "fig")]) == 0
+    assert main(["components", "show", str(out), "--out", str(tmp_path / "fig"), "--up", "z"]) == 0
     for name in ("components.png", "similarity.png"):
         with Image.open(tmp_path / "fig" / name) as im:
             assert im.size[0] > 50 and im.size[1] > 50
     info = json.loads((tmp_path / "fig" / "components.json").read_text())
-    assert info["components"] >= info["n_kept"] >= 1
+    assert info["components"] >= info["n_kept"] >= 1 and info["up_axis"] == "z"
     loaded = run.load(out)
     assert loaded.method == method and loaded.rest.shape == (8 * 16, 3)
     if method != "splocs":  # ACAP methods: branch reference and clipped scaler stored, and used on new shapes

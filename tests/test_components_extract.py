@@ -10,7 +10,7 @@ from PIL import Image
 from jaxdeform.acap import Scaler
 from jaxdeform.components import extract, figures, model
 from jaxdeform.errors import ConnectivityError, DegenerateMeshError
-from jaxdeform.mesh.render import auto_camera
+from jaxdeform.mesh.render import auto_camera, cast_rays
 from jaxdeform.mesh.topology import build_topology
 from jaxdeform.nn.graph_conv import rings_from_topology
 
@@ -351,6 +351,31 @@ def test_component_set_figure_with_removal(tmp_path, sphere_set):
     img = figures.component_set_figure(doubled, meshes, f, tmp_path / "set.png", removal=r, panel=48)
     with Image.open(tmp_path / "set.png") as im:
         assert im.size == (img.shape[1], img.shape[0])
+
+
+def test_each_panel_framed_to_fill_it(sphere_set):
+    # an ellipsoid long along x and two copies 10x its size: with frame="each" all fill their panels alike, with
+    # one shared camera the small one is a dot; azimuth 0 faces the first mesh's broad side (it looks along z)
+    v, f, _ = sphere_set
+    small = v * np.array([3.0, 1.0, 1.0])
+    x = np.stack([small, 10.0 * small, 10.0 * small + 1.0])
+    each = figures._panel_cameras(x, f, "front", "y", None, "each")
+    shared = figures._panel_cameras(x, f, "front", "y", None, "shared")
+    assert abs(each[0].basis()[0] @ np.array([0.0, 0.0, 1.0])) > 0.98
+
+    def filled(cam, m):
+        return cast_rays(m, f, cam, 64, 64).hit.mean()
+
+    fills = [filled(c, m) for c, m in zip(each, x)]
+    np.testing.assert_allclose(fills, fills[0], rtol=0.05)
+    assert fills[0] > 0.2
+    assert filled(shared[0], x[0]) < 0.1 * fills[0]
+    turned = figures._panel_cameras(x[:, :, [2, 1, 0]], f, "front", "y", None, "each")
+    assert abs(turned[0].basis()[0] @ np.array([1.0, 0.0, 0.0])) > 0.98  # long along z: looks along x
+    with pytest.raises(ValueError, match="frame must be"):
+        figures._panel_cameras(x, f, "front", "y", None, "tight")
+    with pytest.raises(ValueError, match="up_axis"):
+        figures._panel_cameras(x, f, "front", "x", None, "each")
 
 
 def test_similarity_figure(tmp_path, sphere_set):

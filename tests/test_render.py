@@ -11,6 +11,7 @@ from jaxdeform.mesh.render import (
     auto_camera,
     cast_rays,
     colormap,
+    guess_up_axis,
     render,
     render_png,
     save_png,
@@ -56,6 +57,67 @@ def test_auto_camera_frames_mesh(mesh, request):
     # the whole bounding sphere is in view: no hit on the image border
     border = np.r_[hits.triangle[0], hits.triangle[-1], hits.triangle[:, 0], hits.triangle[:, -1]]
     assert np.all(border == -1)
+
+
+@pytest.mark.parametrize("view", [(30.0, 20.0), (90.0, 10.0), (-140.0, 60.0)])
+def test_box_fit_camera_fills_a_square_view(view):
+    # a long thin box: every vertex projects inside the view, and the widest one lands on the margin's border
+    m = trimesh.creation.box(extents=(0.3, 1.0, 4.0))
+    v = np.asarray(m.vertices) + np.array([5.0, -2.0, 1.0])
+    az, el = view
+    margin = 1.1
+    cam = auto_camera(v, azimuth_deg=az, elevation_deg=el, up_axis="y", fit="box", margin=margin)
+    fwd, right, up = cam.basis()
+    rel = v - np.asarray(cam.eye)
+    depth = rel @ fwd
+    assert np.all(depth > 0)
+    x, y = (rel @ right) / depth, (rel @ up) / depth
+    edge = np.tan(np.radians(cam.fov_deg) / 2)
+    reach = np.maximum(np.abs(x), np.abs(y)).max()
+    np.testing.assert_allclose(reach, edge / margin, rtol=1e-9)
+    # the view is centred on the projected extent along the panel's wider side
+    wide = x if np.ptp(x) >= np.ptp(y) else y
+    np.testing.assert_allclose(wide.max(), -wide.min(), rtol=0.02)
+    # the same direction as the sphere fit, from closer
+    sphere = auto_camera(v, azimuth_deg=az, elevation_deg=el, up_axis="y", margin=margin)
+    np.testing.assert_allclose(sphere.basis()[0], fwd, atol=1e-12)
+    assert np.linalg.norm(np.subtract(cam.eye, cam.target)) < np.linalg.norm(np.subtract(sphere.eye, sphere.target))
+    with pytest.raises(ValueError, match="fit must be"):
+        auto_camera(v, fit="tight")
+
+
+def _table(up: int):
+    """Four legs under a top, standing along axis ``up`` (1: y, 2: z), longer (4) than tall (2) and wide (1)."""
+    parts = [
+        trimesh.creation.box(extents=(1.0, 0.2, 4.0), transform=trimesh.transformations.translation_matrix((0, 1.9, 0)))
+    ]
+    for sx in (-0.4, 0.4):
+        for sz in (-1.8, 1.8):
+            t = trimesh.transformations.translation_matrix((sx, 0.9, sz))
+            parts.append(trimesh.creation.box(extents=(0.1, 1.8, 0.1), transform=t))
+    m = trimesh.util.concatenate(parts)
+    v = np.asarray(m.vertices)
+    if up == 2:  # y up -> z up: (x, y, z) -> (x, -z, y)
+        v = np.c_[v[:, 0], -v[:, 2], v[:, 1]]
+    return v, np.asarray(m.faces)
+
+
+@pytest.mark.parametrize("up", [1, 2])
+def test_guess_up_axis_finds_the_legs(up):
+    v, f = _table(up)
+    assert guess_up_axis(v, f) == "yz"[up - 1]
+    with pytest.raises(ValueError, match="slab"):
+        guess_up_axis(v, f, slab=0.0)
+
+
+def test_guess_up_axis_on_shared_data():
+    from conftest import data_dir
+
+    from jaxdeform.components import run
+
+    for name, up in (("horse-gallop", "y"), ("samba", "y"), ("cactus", "z")):
+        v, f = run.load_data(data_dir(name))
+        assert guess_up_axis(v[0], f) == up, name
 
 
 def test_barycentrics_and_points(sphere):

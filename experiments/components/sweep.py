@@ -43,7 +43,7 @@ import jax.numpy as jnp
 import numpy as np
 
 from jaxdeform import acap, metrics
-from jaxdeform.components import model, train
+from jaxdeform.components import extract, model, train
 from jaxdeform.components import run as crun
 from jaxdeform.components.finetune import regional_mixes
 from jaxdeform.mesh.topology import build_topology
@@ -63,6 +63,24 @@ def inside_fraction(c: np.ndarray, dist: np.ndarray, d: float) -> float:
     inside = dist[norms.argmax(axis=1)] < d
     total = np.maximum(norms.sum(axis=1), 1e-30)
     return float(np.median((norms * inside).sum(axis=1) / total))
+
+
+def kept_components(m: model.Model, data: np.ndarray, rings, dist: np.ndarray, scaler) -> dict:
+    """Per level: the number of components kept by the redundant-component removal (eq. (7), eps2, as
+    ``jaxdeform components show``) and the largest strengths, the magnitudes taken from the codes of ``data``
+    (the training shapes, scaled features)."""
+    final = m(jnp.asarray(data), rings, jnp.asarray(dist))
+    cs = extract.all_components(m, rings, latents=tuple(final.latents), scaler=scaler)
+    removal = extract.remove_redundant(cs)
+    out = {}
+    for lvl in range(len(m.levels)):
+        sel = cs.level == lvl
+        out[f"level{lvl}"] = {
+            "components": int(sel.sum()),
+            "kept": int(removal.keep[sel].sum()),
+            "strongest": [round(float(v), 5) for v in np.sort(removal.strength[sel])[::-1][:8]],
+        }
+    return out
 
 
 def main(argv=None, extra_config: dict | None = None, model_options: dict | None = None) -> dict:
@@ -263,6 +281,7 @@ def main(argv=None, extra_config: dict | None = None, model_options: dict | None
     result["inside_fraction"] = [
         inside_fraction(np.asarray(level.C[...]), dist, cfg.d[lvl]) for lvl, level in enumerate(trained.levels)
     ]
+    result["components"] = kept_components(trained, x[tr], rings, dist, scaler)
     line = json.dumps(result, default=float)
     print(line)
     if a.jsonl:

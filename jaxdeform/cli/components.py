@@ -108,7 +108,7 @@ def cmd_components_show(args: argparse.Namespace) -> int:
     common.check_out_folder(out, args.force, [args.run])
     loaded = run.load(args.run)
     with common.staged_folder(out) as tmp:
-        info = run.show(loaded, tmp)
+        info = run.show(loaded, tmp, up_axis=None if args.up == "auto" else args.up)
     print(
         f"{info['n_kept']} of {info['components']} components kept (eq. 7, eps2 = 0.01); wrote {out}/components.png, "
         f"similarity.png, components.json"
@@ -229,6 +229,9 @@ def _add_show(comp_sub) -> None:
     )
     cshow.add_argument("run", metavar="RUN", help="run folder written by 'jaxdeform components train'")
     common.add_out(cshow, "DIR", "folder to create")
+    cshow.add_argument(
+        "--up", choices=("auto", "y", "z"), default="auto", help="the meshes' vertical (default: guessed)"
+    )
     common.add_force(cshow, "replace DIR if it exists and is not empty")
     cshow.set_defaults(func=cmd_components_show)
 

@@ -7,8 +7,9 @@ eq. (7)) divided by ``vmax`` (default: the panel's own maximum) gives ``t`` in [
 ``shade * ((1 - t) grey + t cmap(t))`` -- a neutral grey body that turns into the colormap where the component
 deforms the shape. :func:`similarity_figure` draws a K x K heat map with a colour bar.
 
-Rendering goes through :mod:`jaxdeform.mesh.render` (Embree ray casting; one camera fitted to all panels so
-they compare): per panel one :func:`~jaxdeform.mesh.render.cast_rays` for the interpolated strength and one
+Rendering goes through :mod:`jaxdeform.mesh.render` (Embree ray casting; by default each panel's camera frames
+its own mesh, from one direction around the data set's up axis so that every mesh stands upright and shows its
+broad side): per panel one :func:`~jaxdeform.mesh.render.cast_rays` for the interpolated strength and one
 :func:`~jaxdeform.mesh.render.render` of a white body for the Lambert shading. Every input is validated before
 anything is rendered, and the PNG is written atomically (:func:`~jaxdeform.mesh.render.save_png`), so invalid
 input never leaves a file. Both functions return the ``(H, W, 3)`` uint8 image.
@@ -31,6 +32,7 @@ from jaxdeform.mesh.render import (
     auto_camera,
     cast_rays,
     colormap,
+    guess_up_axis,
     render,
     save_png,
     view_angles,
@@ -212,6 +214,26 @@ def _framed_points(x: np.ndarray, spread: float = 1.5) -> np.ndarray:
     return x[keep].reshape(-1, 3)
 
 
+def _panel_cameras(x: np.ndarray, faces: np.ndarray, view, up_axis, camera, frame: str) -> list[Camera]:
+    """One camera per mesh of ``x`` (K, V, 3) for :func:`components_figure` (its arguments of the same names)."""
+    if frame not in ("each", "shared"):
+        raise ValueError(f"frame must be 'each' or 'shared', got {frame!r}.")
+    if camera is not None:
+        return [camera] * x.shape[0]
+    if up_axis is None:
+        up_axis = guess_up_axis(x[0], faces)
+    if up_axis not in ("y", "z"):
+        raise ValueError(f"up_axis must be 'y', 'z' or None, got {up_axis!r}.")
+    az, el = view_angles(view)
+    extent = np.ptp(x[0], axis=0)
+    depth = 2 if up_axis == "y" else 1  # the horizontal axis that azimuth 0 looks along (x is the other one)
+    if extent[depth] > extent[0]:
+        az += 90.0  # the broad side faces the other axis
+    if frame == "shared":
+        return [auto_camera(_framed_points(x), azimuth_deg=az, elevation_deg=el, up_axis=up_axis)] * x.shape[0]
+    return [auto_camera(m, azimuth_deg=az, elevation_deg=el, up_axis=up_axis, fit="box") for m in x]
+
+
 def _check_grid_options(panel, max_columns, vmax) -> tuple[int, int]:
     """``(panel, max_columns)`` of :func:`components_figure` as ints, after checking them and ``vmax``.
 
@@ -306,16 +328,19 @@ def components_figure(
     panel: int = 256,
     max_columns: int = 10,
     view="three_quarter",
-    up_axis: str = "y",
+    up_axis: str | None = None,
     camera: Camera | None = None,
+    frame: str = "each",
     cmap: str = "viridis",
     vmax: float | None = None,
     title: str | None = None,
 ) -> np.ndarray:
     """A grid of component meshes coloured by per-vertex strength, written to ``path``.
 
-    One camera (``view`` around ``up_axis``, or ``camera``) serves every panel; it frames the meshes of typical size
-    (:func:`_framed_points`).
+    Every panel looks from one direction: ``view`` turned about ``up_axis`` so that azimuth 0 faces the first
+    mesh's broad side (it looks along the shorter of the two horizontal extents), unless ``camera`` is given.
+    ``frame="each"`` brings each panel's camera as close as lets its mesh fill the panel; ``"shared"`` uses one
+    camera for all, framing the meshes of typical size (:func:`_framed_points`), so that sizes compare.
 
     **Arguments:**
 
@@ -325,7 +350,10 @@ def components_figure(
         fully pruned AEk).
     - ``titles``: ``(K,)`` caption the panels (default "#i"). ``title``: the figure's title.
     - ``panel``: the side of one square panel in pixels; ``max_columns``: panels per row before it wraps.
-    - ``view``, ``up_axis``, ``camera``: the shared camera. ``cmap``: the colour map.
+    - ``view``: a name of :data:`~jaxdeform.mesh.render.VIEWS` or ``(azimuth, elevation)`` in degrees.
+    - ``up_axis``: "y" or "z"; None guesses it from the first mesh (:func:`~jaxdeform.mesh.render.guess_up_axis`).
+    - ``camera``: one camera for every panel (``view``, ``up_axis`` and ``frame`` are then unused).
+    - ``frame``: "each" or "shared", as above. ``cmap``: the colour map.
     - ``vmax``: None scales each panel to its own maximum strength, a number shares one scale.
 
     **Returns:**
@@ -339,9 +367,7 @@ def components_figure(
     panel, max_columns = _check_grid_options(panel, max_columns, vmax)
     _check_cmap(cmap)
     lines = _layout_rows(groups, rows, max_columns)
-    if camera is None:
-        az, el = view_angles(view)
-        camera = auto_camera(_framed_points(x), azimuth_deg=az, elevation_deg=el, up_axis=up_axis)
+    cameras = _panel_cameras(x, f, view, up_axis, camera, frame)
 
     g = _grid_geometry(lines, panel, title)
     canvas = np.full((g.height, g.width, 3), 255, dtype=np.uint8)
@@ -350,7 +376,7 @@ def components_figure(
         for c, i in enumerate(members):
             xo = g.label_w + c * (panel + g.gap)
             canvas[y : y + panel, xo : xo + panel] = render_component(
-                x[i], f, s[i], camera, panel, panel, vmax=vmax, cmap=cmap
+                x[i], f, s[i], cameras[i], panel, panel, vmax=vmax, cmap=cmap
             )
     scale_text = (
         "per-vertex strength ||X_diff,i||, each panel scaled to its maximum"

@@ -909,14 +909,16 @@ def components(run: Run):
     return cs, extract.component_meshes(cs, run.rest, run.faces, base=base)
 
 
-def show(run: Run, out: Path) -> dict:
+def show(run: Run, out: Path, up_axis: str | None = None) -> dict:
     """Write the run's component figures and their summary into ``out``.
 
     **Arguments:**
 
     - ``run``: the run.
-    - ``out``: the folder to write components.png (kept components, one row per block), similarity.png and
-        components.json into.
+    - ``out``: the folder to write components.png (kept components, one row per block, each mesh framed to fill
+        its panel), similarity.png and components.json into.
+    - ``up_axis``: the meshes' vertical, "y" or "z"; None guesses it from the reference
+        (:func:`jaxdeform.mesh.render.guess_up_axis`).
 
     **Returns:**
 
@@ -924,16 +926,20 @@ def show(run: Run, out: Path) -> dict:
     the files written).
     """
     from jaxdeform.components import extract, figures
+    from jaxdeform.mesh.render import guess_up_axis
 
     out = Path(out)
     cs, meshes = components(run)
     removal = extract.remove_redundant(cs)
     keep = np.asarray(removal.keep)
-    figures.component_set_figure(cs, meshes, run.faces, out / "components.png", removal=removal)
+    if up_axis is None:
+        up_axis = guess_up_axis(run.rest, run.faces)
+    figures.component_set_figure(cs, meshes, run.faces, out / "components.png", removal=removal, up_axis=up_axis)
     names = [n for n, k in zip(cs.names(), keep) if k]
     sim = np.asarray(extract.similarity_matrix(cs.values[keep]))
     figures.similarity_figure(sim, out / "similarity.png", labels=names)
-    info = {"method": run.method, "components": len(cs), "n_kept": int(keep.sum()), **removal.as_dict()}
+    info = {"method": run.method, "components": len(cs), "n_kept": int(keep.sum()), "up_axis": up_axis}
+    info.update(removal.as_dict())
     info["files"] = ["components.png", "similarity.png", "components.json"]
     with atomic_path(out / "components.json") as tmp:
         Path(tmp).write_text(json.dumps(info, indent=2))
