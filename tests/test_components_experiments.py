@@ -20,11 +20,15 @@ def test_experiment_test_config(tmp_path, experiment, rows):
     on_disk = json.loads((tmp_path / experiment / "results.json").read_text())
     assert on_disk["experiment"] == experiment and len(on_disk["rows"]) == rows
     table = (tmp_path / experiment / "results.md").read_text()
-    assert table.count("| tube/") == rows
+    assert table.count("| tube/") == rows and "diameter 1" in table
     for row in result["rows"].values():
         assert row["test"]["erms"] >= 0 and row["test"]["shapes"] == 10
         per = np.asarray(row["test"]["erms_per_shape"])  # rounded to 4 decimals
         assert per.shape == (10,) and np.sqrt(np.mean(per**2)) == pytest.approx(row["test"]["erms"], abs=1e-3)
+        by = row["test"]["erms_by_normalization"]
+        assert by["radius"] == pytest.approx(row["test"]["erms"]) and by["diameter-first-shape"] > 0
+        if row["run"].split("/")[-1] in ("multiscale", "default", "levels1", "levels3"):  # autoencoders: kept counts
+            assert len(row["kept_per_level"]) >= 1 and all(k >= 0 for k in row["kept_per_level"])
     if experiment == "table5":  # relative squared errors of every level count
         assert all("max_relative_squared_error" in r["test"] for r in result["rows"].values())
 
@@ -260,6 +264,13 @@ def test_sweep_runs_on_a_tube(tmp_path):
     for key in ("train_erms", "test_erms", "level0_train_erms", "level0_test_erms"):
         assert np.isfinite(res[key]) and res[key] >= 0
     assert len(res["inside_fraction"]) == 2 and all(0 <= f <= 1 for f in res["inside_fraction"])
+    # the redundant-component removal per level: 3 components at level 0, 3 x 2 at level 1, strongest first
+    comps = res["components"]
+    assert [comps[f"level{i}"]["components"] for i in (0, 1)] == [3, 6]
+    for level in comps.values():
+        top = level["strongest"]
+        assert 0 <= level["kept"] <= level["components"] and top == sorted(top, reverse=True)
+        assert level["kept"] <= sum(t >= 0.01 for t in top)  # eps2, then near duplicates; all listed here (<= 8)
     # eq. 8 per shape, its maximum and mean; with every shape training the test keys repeat the train ones
     assert 0 <= res["train_mean_rse"] <= res["train_max_rse"] and 0 <= res["test_mean_rse"] <= res["test_max_rse"]
     res_all = sweep.main(
@@ -308,6 +319,7 @@ def test_sweep_runs_on_a_tube(tmp_path):
     assert res_tie["config"]["variant"] == "init-tie" and res_tie["config"]["tie_conv"] is True
     assert res_tie["config"]["init"] == "normal" and res_tie["config"]["decoder_tanh"] is True
     assert np.isfinite(res_tie["test_erms"]) and res["config"]["tie_conv"] is False
+    assert "components" not in res_tie  # the tied decoder has no extractable components
     assert res_all["test_max_rse"] == res_all["train_max_rse"] and res_all["test_erms"] == res_all["train_erms"]
     assert [p["epoch"] for p in res_all["curve"]] == [50, 100]
     assert set(res_all["curve"][0]) == {"epoch", "seconds", "train_feature_mse", "train_max_rse", "train_mean_rse"}

@@ -96,9 +96,22 @@ def train_and_evaluate(
     result = crun.evaluate(loaded, data)
     result["timing"] = loaded.record.get("timing", {})
     result["run"] = str(folder)
+    shown = folder / "figures" / "components.json"
     if figures and method in crun.AUTOENCODERS and not (folder / "figures" / "components.png").is_file():
         crun.show(loaded, folder / "figures")
+    if method in crun.AUTOENCODERS and shown.is_file():
+        result["kept_per_level"] = kept_per_level(json.loads(shown.read_text()))
     return result
+
+
+def kept_per_level(info: dict) -> list[int]:
+    """Components kept by the redundant-component removal, per level, from a components.json of
+    ``jaxdeform components show`` (its ``kept`` maps "level/block" to the kept indices)."""
+    counts: dict[int, int] = {}
+    for key, kept in info["kept"].items():
+        level = int(key.split("/")[0])
+        counts[level] = counts.get(level, 0) + len(kept)
+    return [counts.get(level, 0) for level in range(max(counts, default=-1) + 1)]
 
 
 def _root(args, experiment: str) -> Path:
@@ -179,6 +192,14 @@ def _fmt(x, digits=4) -> str:
     return "-" if x is None else f"{x:.{digits}g}"
 
 
+def _erms_cells(r: dict) -> str:
+    """Test Erms under the paper's reading (unit-radius ball) and the group's scalemodel.m (diameter 1, the first
+    shape's centre and radius), then the kept components per level ("-" for linear models)."""
+    by = r["test"].get("erms_by_normalization", {})
+    kept = r.get("kept_per_level")
+    return f"{_fmt(by.get('radius'))} | {_fmt(by.get('diameter-first-shape'))} | {'/'.join(map(str, kept)) if kept else '-'}"
+
+
 def markdown(experiment: str, rows: dict, hardware: str, split: str | None = None) -> str:
     """The results table; ``split`` as given to --split (None: each data set's protocol of Sec. 5.1)."""
     what = {
@@ -188,8 +209,9 @@ def markdown(experiment: str, rows: dict, hardware: str, split: str | None = Non
     lines = [f"# Seed 000, {experiment} ({what})", "", f"Hardware: {hardware}.", ""]
     if experiment in ("table2", "table4"):
         lines += [
-            "| data / run | test Erms | test STED | paper Erms | paper STED | train Erms | train time (s) |",
-            "|---|---|---|---|---|---|---|",
+            "| data / run | test Erms | test Erms, diameter 1 | kept per level | test STED | paper Erms | paper STED | "
+            "train Erms | train time (s) |",
+            "|---|---|---|---|---|---|---|---|---|",
         ]
         for key, r in rows.items():
             run_name = key.split("/")[-1]
@@ -198,19 +220,20 @@ def markdown(experiment: str, rows: dict, hardware: str, split: str | None = Non
             t = r.get("timing", {})
             secs = t.get("run_s", t.get("fit_s"))
             lines.append(
-                f"| {key} | {_fmt(r['test']['erms'])} | {_fmt(r['test']['sted'])} | {_fmt(pe)} | {_fmt(ps)} | "
+                f"| {key} | {_erms_cells(r)} | {_fmt(r['test']['sted'])} | {_fmt(pe)} | {_fmt(ps)} | "
                 f"{_fmt(r['train']['erms'])} | {_fmt(secs, 3)} |"
             )
     elif experiment == "table5":
         lines += [
-            "| data / levels | max rel. squared error (test) | (train) | paper (horse) | test Erms |",
-            "|---|---|---|---|---|",
+            "| data / levels | max rel. squared error (test) | (train) | paper (horse) | test Erms | "
+            "test Erms, diameter 1 | kept per level |",
+            "|---|---|---|---|---|---|---|",
         ]
         for key, r in rows.items():
             paper = PAPER["table5"].get(key.split("/")[-1]) if key.startswith("horse-gallop/") else None
             lines.append(
                 f"| {key} | {_fmt(r['test'].get('max_relative_squared_error'))} | "
-                f"{_fmt(r['train'].get('max_relative_squared_error'))} | {_fmt(paper)} | {_fmt(r['test']['erms'])} |"
+                f"{_fmt(r['train'].get('max_relative_squared_error'))} | {_fmt(paper)} | {_erms_cells(r)} |"
             )
     lines.append("")
     return "\n".join(lines)

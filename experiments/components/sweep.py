@@ -281,7 +281,8 @@ def main(argv=None, extra_config: dict | None = None, model_options: dict | None
     result["inside_fraction"] = [
         inside_fraction(np.asarray(level.C[...]), dist, cfg.d[lvl]) for lvl, level in enumerate(trained.levels)
     ]
-    result["components"] = kept_components(trained, x[tr], rings, dist, scaler)
+    if not cfg.tie_conv and cfg.decoder_tanh:  # component extraction reads the default decoder only
+        result["components"] = kept_components(trained, x[tr], rings, dist, scaler)
     line = json.dumps(result, default=float)
     print(line)
     if a.jsonl:

@@ -229,9 +229,7 @@ def _add_show(comp_sub) -> None:
     )
     cshow.add_argument("run", metavar="RUN", help="run folder written by 'jaxdeform components train'")
     common.add_out(cshow, "DIR", "folder to create")
-    cshow.add_argument(
-        "--up", choices=("auto", "y", "z"), default="auto", help="the meshes' vertical (default: guessed)"
-    )
+    cshow.add_argument("--up", choices=("auto", "y", "z"), default="auto", help="the meshes' vertical (or guessed)")
     common.add_force(cshow, "replace DIR if it exists and is not empty")
     cshow.set_defaults(func=cmd_components_show)
 
