@@ -30,12 +30,11 @@ ROOT = Path(__file__).resolve().parents[1]
 # the JSON each table reads, relative to the results root (and, as links, to the README)
 ACAP = "benchmarks/results/acap_h100_cpu_2026-11-27.json"
 ACAP_SOLVERS = "benchmarks/results/acap_cpu_solvers_smoke.json"
-C_TABLE2 = "experiments/components/results/table2_horse_decay.json"
-C_TABLE4 = "experiments/components/results/table4_decay.json"
-C_TABLE5 = "experiments/components/results/table5_h200.json"
-C_TABLE5_ALL = "experiments/components/results/table5_all_h200/results.json"
+C_TABLE2 = "experiments/components/results/kz25/table2.json"
+C_TABLE4 = "experiments/components/results/kz25/table4.json"
+C_TABLE5 = "experiments/components/results/kz25/table5.json"
+C_PAPER_KZ = "experiments/components/results/table4_decay.json"
 C_FINETUNE = "experiments/components/results/finetune_horse/results.json"
-C_BUDGET = "experiments/components/results/budget_horse.json"
 C_FIG6 = "experiments/components/results/fig6_deformation.json"
 CLOTH = "experiments/cloth/results/summary.json"
 PARTS = "experiments/parts/results/summary.json"
@@ -51,7 +50,19 @@ HANDLES_HARDWARE = "one run on the 2-core AMD EPYC VM, float32"
 
 # The papers' figures (constants of the papers, not measurements of ours)
 PAPER_TABLE4 = {"separate": 11.59, "no-attention-separate": 17.42, "no-attention": 20.89}
-PAPER_TABLE5 = {"levels1": 0.1219, "default": 0.005491, "levels3": 0.003567}
+PAPER_TABLE5 = {"levels1": 0.1219, "default": 0.005491, "levels3": 0.003567, "paper-kz-levels1": 0.1219}
+PAPER_TABLE2 = {"tan": "12.96 / 0.0400", "splocs": "7.37 / 0.0807"}
+LABEL4 = {
+    "separate": "separate, attention",
+    "no-attention-separate": "separate, no attention",
+    "no-attention": "joint, no attention",
+}
+LABEL5 = {
+    "levels1": "one level (Kz = 2)",
+    "default": "two (default)",
+    "levels3": "three (2, 5, 2)",
+    "paper-kz-levels1": "one level, Kz = 10 (10,000 epochs)",
+}
 PAPER_REBIND_MS = {"1": 4, "10": 12, "100": 34}  # seed 004, on an A40 GPU
 
 
@@ -211,7 +222,8 @@ def acap_solvers_table(root: Path) -> str:
 
 def components_table(root: Path) -> str:
     t2, t4, t5 = load(root, C_TABLE2), load(root, C_TABLE4), load(root, C_TABLE5)
-    t5all, ft, budget, fig6 = load(root, C_TABLE5_ALL), load(root, C_FINETUNE), load(root, C_BUDGET), load(root, C_FIG6)
+    old4, ft = load(root, C_PAPER_KZ), load(root, C_FINETUNE)
+    fig6 = load(root, C_FIG6)
     rows = []
 
     def erms(v: float) -> str:
@@ -220,28 +232,45 @@ def components_table(root: Path) -> str:
     def sted(v: float) -> str:
         return fixed(v, 4)
 
-    def row(table_name, model, tests, eq8, paper, hardware, source):
+    def kept(r: dict) -> str:
+        return " + ".join(map(str, r["kept_per_level"])) if r.get("kept_per_level") else "-"
+
+    def row(table_name, model, tests, eq8, kept_cell, paper, hardware, source):
         rows.append(
             [
                 table_name,
                 model,
                 slashed([t["erms"] for t in tests], erms),
+                slashed([t.get("erms_by_normalization", {}).get("diameter-first-shape") for t in tests], erms),
                 slashed([t["sted"] for t in tests], sted),
                 slashed(eq8),
+                kept_cell,
                 paper,
                 f"{short_hardware(hardware)}, {source}",
             ]
         )
 
-    d4 = t4["rows"]["horse-gallop/default"]["test"]
+    d4 = t4["rows"]["horse-gallop/default"]
     row(
         "2, 4",
-        "multiscale, default (joint, attention)",
-        [d4],
-        [d4["max_relative_squared_error"]],
+        "multiscale, default: Kz = 2, 5, 2,000 epochs (joint, attention)",
+        [d4["test"]],
+        [d4["test"]["max_relative_squared_error"]],
+        kept(d4),
         "6.92 / 0.0336",
         t4["hardware"],
         link(C_TABLE4),
+    )
+    p4 = old4["rows"]["horse-gallop/default"]["test"]
+    row(
+        "2",
+        "multiscale, `paper-kz`: Kz = 10, 5, 10,000 epochs",
+        [p4],
+        [p4["max_relative_squared_error"]],
+        "-",
+        "6.92 / 0.0336",
+        old4["hardware"],
+        link(C_PAPER_KZ),
     )
     for key, label in (
         ("tan", "Tan et al."),
@@ -250,67 +279,81 @@ def components_table(root: Path) -> str:
         ("splocs", "SPLOCS (coordinates)"),
     ):
         r = t2["rows"][f"horse-gallop/{key}"]
-        paper = "-" if r["paper"] is None else f"{erms(r['paper']['erms'])} / {sted(r['paper']['sted'])}"
-        row("2", label, [r["test"]], [None], paper, t2["hardware"], link(C_TABLE2, "JSON*"))
+        paper = PAPER_TABLE2.get(key, "-")
+        row("2", label, [r["test"]], [None], kept(r), paper, t2["hardware"], link(C_TABLE2))
     keys4 = ("separate", "no-attention-separate", "no-attention")
-    tests = [t4["rows"][f"horse-gallop/{k}"]["test"] for k in keys4]
+    found4 = [k for k in keys4 if f"horse-gallop/{k}" in t4["rows"]]
     row(
         "4",
-        "separate, attention / separate, no attention / joint, no attention",
-        tests,
-        [t["max_relative_squared_error"] for t in tests],
-        slashed([PAPER_TABLE4[k] for k in keys4], erms) + " (Erms)",
+        " / ".join(LABEL4[k] for k in found4),
+        [t4["rows"][f"horse-gallop/{k}"]["test"] for k in found4],
+        [t4["rows"][f"horse-gallop/{k}"]["test"]["max_relative_squared_error"] for k in found4],
+        " / ".join(kept(t4["rows"][f"horse-gallop/{k}"]) for k in found4),
+        slashed([PAPER_TABLE4[k] for k in found4], erms) + " (Erms)",
         t4["hardware"],
         link(C_TABLE4),
     )
-    keys5 = ("levels1", "default", "levels3")
+    keys5 = [k for k in ("levels1", "default", "levels3", "paper-kz-levels1") if f"horse-gallop/{k}" in t5["rows"]]
     tests = [t5["rows"][f"horse-gallop/{k}"]["test"] for k in keys5]
     row(
         "5",
-        "one / two (default) / three levels",
+        " / ".join(LABEL5[k] for k in keys5),
         tests,
         [t["max_relative_squared_error"] for t in tests],
+        " / ".join(kept(t5["rows"][f"horse-gallop/{k}"]) for k in keys5),
         "eq. 8: " + slashed([PAPER_TABLE5[k] for k in keys5]),
         t5["hardware"],
         link(C_TABLE5),
     )
-    r2, r3 = t5all["rows"]["two"], t5all["rows"]["three"]
-    row(
-        "5",
-        f"two / three levels trained on all 48 shapes ({r2['epochs']:,} epochs)",
-        [{"erms": r2["erms"], "sted": None}, {"erms": r3["erms"], "sted": None}],
-        [r2["max_relative_squared_error"], r3["max_relative_squared_error"]],
-        "eq. 8: " + slashed([r2["paper_max_relative_squared_error"], r3["paper_max_relative_squared_error"]]),
-        t5all["hardware"],
-        link(C_TABLE5_ALL),
-    )
     r = ft["multiscale_finetuned_3000_rigid_plus1000_generated400_round6"]["evaluate"]["test"]
     row(
         "2",
-        "multiscale + `components finetune` (3,000 + 6 x 1,000 steps)",
+        "Kz = 10, 5 + `components finetune` (3,000 + 6 x 1,000 steps)",
         [r],
         [r["max_relative_squared_error"]],
+        "-",
         "6.92 / 0.0336",
         ft["hardware"],
         link(C_FINETUNE),
     )
-    head = ["paper table", "model", "test Erms", "test STED", "max eq. 8", "paper Erms / STED", "hardware, source"]
-    default, b3k = budget["runs"]["default_10000_epochs"], budget["runs"]["base_3000_epochs_plus_finetune_2000"]
+    samba = [t2["rows"].get(f"samba/{k}") for k in ("multiscale", "tan", "pca", "pca-xyz", "splocs")]
+    if all(samba):
+        row(
+            "2 (samba)",
+            "multiscale default / Tan et al. / PCA, features / PCA, coordinates / SPLOCS",
+            [x["test"] for x in samba],
+            [samba[0]["test"]["max_relative_squared_error"], None, None, None, None],
+            kept(samba[0]),
+            "-",
+            t2["hardware"],
+            link(C_TABLE2),
+        )
+    head = [
+        "paper table",
+        "model",
+        "test Erms",
+        "test Erms, diameter 1",
+        "test STED",
+        "max eq. 8",
+        "kept per level",
+        "paper Erms / STED",
+        "hardware, source",
+    ]
+    timing = d4.get("timing", {})
     f_ms, f_tan = fig6["rows"]["horse-gallop/multiscale"]["20"], fig6["rows"]["horse-gallop/tan"]["20"]
     lines = [
         "horse-gallop: every 10th shape trains (5), the other 43 test; Erms in the paper's units (unit ball, "
-        "x 1000); max eq. 8: the largest relative squared error of the features over the test shapes (over all "
-        "48 where all train). JSON*: transcribed from the run's markdown.",
+        "x 1000) and as the group's scalemodel.m scales (the first shape in a ball of diameter 1); max eq. 8: the "
+        "largest relative squared error of the features over the test shapes; kept "
+        "per level: components left by the redundant-component removal (eq. 7, eps2 = 0.01).",
         "",
     ]
     tail = [
         "",
-        "Default training (`jaxdeform components train`, 10,000 epochs): compile "
-        f"{fixed(default['compile_s'], 1)} s + {fixed(default['train_s'], 1)} s on "
-        f"{short_hardware(budget['hardware'])} ({link(C_BUDGET)}; with the C++ CPU kernels since removed, see "
-        "the notes); 3,000 epochs, then 2,000 steps of `components finetune --rigid`: test Erms "
-        f"{erms(b3k['test']['erms'])} in {num(b3k['compile_and_training_s'])} s. Editing toward 8 unseen "
-        f"shapes with 20 controls (Fig. 6): mean error {num(f_ms['mean_error'])} of the diagonal (multiscale) against "
+        "Default training (`jaxdeform components train`, Kz = 2, 5, 2,000 epochs): compile "
+        f"{fixed(timing.get('compile_s'), 1)} s + {fixed(timing.get('run_s'), 1)} s on "
+        f"{short_hardware(t4['hardware'])} ({link(C_TABLE4)}). Editing toward 8 unseen shapes with 20 controls "
+        f"(Fig. 6, Kz = 10, 5): mean error {num(f_ms['mean_error'])} of the diagonal (multiscale) against "
         f"{num(f_tan['mean_error'])} (Tan et al.), {short_hardware(fig6['hardware'])} ({link(C_FIG6)}).",
     ]
     return "\n".join(lines + table(head, rows) + tail)

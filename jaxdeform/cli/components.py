@@ -136,7 +136,7 @@ def _add_train_evaluate(comp_sub) -> None:
         default="default",
         metavar="NAME",
         help="named configuration: default, test; multiscale also no-attention, separate, "
-        "no-attention-separate, levels1, levels3",
+        "no-attention-separate, levels1, levels3, paper-kz (Kz = 10, 5), paper-kz-levels1, latent-tanh, mse",
     )
     ctrain.add_argument("--epochs", type=int, metavar="N", help="override the configuration's epochs")
     common.add_seed(ctrain, "override the training seed")
