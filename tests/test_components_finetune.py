@@ -8,6 +8,7 @@ import numpy as np
 import pytest
 
 from experiments.components import run as exp
+from jaxdeform import acap
 from jaxdeform.cli import main as cli_main
 
 
@@ -119,6 +120,62 @@ def test_staged_step_has_the_gradient_of_the_loss(tube_run, rigid):
         np.testing.assert_allclose(np.asarray(p0 - p1), np.asarray(gr), rtol=2e-3, atol=1e-6 * float(np.abs(gr).max()))
 
 
+def test_staged_step_is_the_same_with_every_solver(tube_run):
+    """The reconstruction's solver (host factor, dense XLA factor, conjugate gradients) changes neither the
+    position targets nor the step: the same terms and the same updated parameters, to float32 accuracy."""
+    import jax.numpy as jnp
+    import optax
+    from flax import nnx
+
+    from jaxdeform.components import finetune as ft
+    from jaxdeform.components import run as crun
+    from jaxdeform.mesh.topology import build_topology
+    from jaxdeform.nn.graph_conv import rings_from_topology
+
+    run = crun.load(tube_run[1])
+    vertices, _ = crun.run_data(run, None)
+    x = jnp.asarray(crun.scaled_features(run, vertices[:4]), jnp.float32)
+    dist = jnp.asarray(crun.normalized_geodesics(run.rest, run.faces, np.float32))
+    rings = rings_from_topology(build_topology(run.faces, run.rest.shape[0]))
+    params = nnx.state(run.model)
+    opt = optax.sgd(1.0)
+    results = {}
+    for solver in ("host", "dense", "cg"):
+        _, positions, _ = ft.position_loss_fn(run, rings, dist, 50.0, solver=solver)
+        g = positions(x[::-1])
+        new, _, terms = ft.make_step(run, rings, dist, 50.0, opt, solver=solver)(params, opt.init(params), x, g)
+        results[solver] = (np.asarray(g), np.asarray(terms), [np.asarray(a) for a in jax.tree.leaves(new)])
+    g0, t0, p0 = results["host"]
+    assert float(t0[1]) > 1e-3
+    for solver in ("dense", "cg"):
+        g, t, p = results[solver]
+        scale = float(np.abs(g0).max())
+        np.testing.assert_allclose(g, g0, atol=1e-4 * scale)
+        np.testing.assert_allclose(t, t0, rtol=1e-3)
+        for a, b in zip(p, p0):
+            np.testing.assert_allclose(a, b, rtol=1e-3, atol=1e-3 * float(np.abs(b).max()) + 1e-7)
+
+
+def test_finetune_benchmark_smoke(tube_run, tmp_path):
+    """benchmarks/finetune.py runs on a tiny run and writes every field (it measures nothing here)."""
+    from benchmarks import finetune as bench
+    from jaxdeform.components import run as crun
+
+    out = tmp_path / "bench" / "finetune.json"
+    argv = [str(tube_run[1]), "--json", str(out), "--solvers", "dense,host", "--repeats", "1", "--batch", "3"]
+    x64 = jax.config.jax_enable_x64
+    payload = bench.main(argv + ["--mixes", "2", "--project", "10"])
+    assert jax.config.jax_enable_x64 == x64  # the script restores the setting it found
+    on_disk = json.loads(out.read_text())
+    assert on_disk == json.loads(json.dumps(payload))
+    assert [r["solver"] for r in on_disk["records"]] == ["host", "dense"]
+    assert on_disk["vertices"] == crun.load(tube_run[1]).rest.shape[0] and on_disk["batch"] == 3
+    for r in on_disk["records"]:
+        assert r["setup_s"] > 0 and r["compile_s"] > 0 and r["step_ms_median"] > 0 and r["targets"]["ms_median"] > 0
+        assert r["projected_s"] >= r["compile_s"] and len(r["first_terms"]) == len(r["last_terms"]) == 2
+    assert "| host |" in on_disk["table"] and "| dense |" in on_disk["table"]
+
+
 def test_generated_meshes_are_the_decoded_codes_own_features(tube_run):
     """generated_meshes: without noise a generated mesh is the model's reconstruction of a mix (encoder codes through
     decode_latents, chunk by chunk, equal the model's one-pass reconstruction), decoded to vertices and entering as
@@ -207,6 +264,8 @@ def test_finetune_lowers_the_position_term_and_writes_a_run(tube_run, tmp_path, 
             "--generated",
             "3",
             "--rigid",
+            "--solver",
+            "dense",
             "--steps",
             "2",
             "--batch",
@@ -217,7 +276,8 @@ def test_finetune_lowers_the_position_term_and_writes_a_run(tube_run, tmp_path, 
     )
     assert code == 0, err
     mixed = json.loads((tmp_path / "mixed" / "run.json").read_text())["finetune"]
-    assert mixed["mixes"] == 6 and mixed["generated"] == 3 and mixed["rigid"] is True
+    assert mixed["mixes"] == 6 and mixed["generated"] == 3 and mixed["rigid"] is True and mixed["solver"] == "dense"
+    assert rec["solver"] == acap.default_solver(tuned.rest.shape[0])
     assert rec["lr_final"] == rec["lr"] == 1e-3  # constant unless --lr-final
 
 

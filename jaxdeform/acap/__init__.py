@@ -18,9 +18,10 @@ from jaxdeform.acap.features import (
     split_features,
     turn_reference,
 )
-from jaxdeform.acap.reconstruct import SolveInfo
+from jaxdeform.acap.reconstruct import SOLVERS, SolveInfo
 
 __all__ = [
+    "SOLVERS",
     "Acap",
     "Scaler",
     "SolveInfo",

@@ -1,7 +1,6 @@
 """The ``jaxdeform`` command: ``jaxdeform METHOD ACTION ...`` for the methods acap, parts, components, handles,
-cloth and render, one module each in this package (``components edit`` and ``handles serve`` in modules of
-their own, :mod:`jaxdeform.cli.components_edit` and :mod:`jaxdeform.cli.handles_serve`; :mod:`jaxdeform.cli.common`
-holds what they share).
+cloth and render, one module each in this package (``components edit``, ``components finetune`` and ``handles serve``
+in modules of their own; :mod:`jaxdeform.cli.common` holds what they share).
 
 :func:`main` parses ``argv`` and runs the command; it returns 0, or 2 after one line ``jaxdeform: error:
 <sentence>`` on stderr for every expected failure, with no output left behind (files are written through a
@@ -15,7 +14,18 @@ from __future__ import annotations
 import argparse
 from collections.abc import Sequence
 
-from jaxdeform.cli import acap, cloth, common, components, components_edit, handles, handles_serve, parts, render
+from jaxdeform.cli import (
+    acap,
+    cloth,
+    common,
+    components,
+    components_edit,
+    components_finetune,
+    handles,
+    handles_serve,
+    parts,
+    render,
+)
 
 __all__ = ["build_parser", "main"]
 
@@ -34,7 +44,8 @@ def build_parser() -> argparse.ArgumentParser:
     parser.add_argument("--version", action="version", version=f"%(prog)s {__version__}")
     sub = parser.add_subparsers(dest="command", metavar="COMMAND", required=True)
     actions = {method: method.register(sub) for method in (acap, parts, components, handles, cloth, render)}
-    components_edit.register(actions[components])  # modules of their own, added last
+    components_finetune.register(actions[components])  # modules of their own, added last
+    components_edit.register(actions[components])
     handles_serve.register(actions[handles])
     return parser
 

@@ -138,12 +138,13 @@ def _add_simulate_train(cloth_sub) -> None:
     csim = cloth_sub.add_parser(
         "simulate",
         help="Simulate paired coarse/fine sequences of a scenario.",
-        description="SHEET (81 / 4225 vertices) or DISK (148 / 7729) sequences, simulated separately.",
+        description="SHEET (81 / 4225 vertices), DISK (148 / 7729), or a SKIRT (128 / 7296) or PANTS (225 / 13455) "
+        "on an animated body: coarse and fine sequences, simulated separately.",
     )
-    csim.add_argument("--scenario", required=True, choices=("sheet", "disk"))
+    csim.add_argument("--scenario", required=True, choices=("sheet", "disk", "skirt", "pants"))
     common.add_out(csim, "DIR", "dataset folder to write")
     csim.add_argument("--sequences", type=int, default=10, metavar="N", help="sequences (default 10)")
-    csim.add_argument("--frames", type=int, metavar="T", help="frames per sequence (default 150)")
+    csim.add_argument("--frames", type=int, metavar="T", help="frames per sequence (default 120; garments 165)")
     common.add_seed(csim, default=0)
     common.add_force(csim, "replace a non-empty --out")
     common.add_quiet(csim)

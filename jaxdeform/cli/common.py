@@ -100,6 +100,11 @@ def steps_seed(cfg, args: argparse.Namespace):
 # ------------------------------------------------------------------------------------ inputs and outputs
 
 
+def data_arg(paths: Sequence[str]):
+    """A ``DATA...`` argument as the library takes it: one path as itself, several as a list."""
+    return list(paths) if len(paths) > 1 else paths[0]
+
+
 def check_exists(paths: Sequence[str]) -> None:
     for p in paths:
         if not Path(p).exists():

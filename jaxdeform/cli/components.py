@@ -1,10 +1,10 @@
 """``jaxdeform components train|evaluate|finetune|show|edit``: deformation components of a shape set
 (:mod:`jaxdeform.components`).
 
-``train DATA... --out RUN`` and ``finetune RUN --out RUN2`` write run folders (built beside ``--out`` and renamed
+``train DATA... --out RUN`` writes a run folder (built beside ``--out`` and renamed
 at the end); ``evaluate RUN --data DATA...`` prints the metrics (or writes them with ``--json``); ``show RUN
 --out DIR`` writes ``components.png``, ``similarity.png`` and ``components.json``; ``edit`` (the edited mesh) is
-in :mod:`jaxdeform.cli.components_edit`.
+in :mod:`jaxdeform.cli.components_edit`, ``finetune`` in :mod:`jaxdeform.cli.components_finetune`.
 """
 
 from __future__ import annotations
@@ -15,13 +15,6 @@ from pathlib import Path
 from jaxdeform.cli import common
 
 METHODS = ("multiscale", "tan", "pca", "pca-xyz", "splocs")
-#: the finetune options passed by name to finetune.check_options and finetune.fit
-FINETUNE_OPTIONS = ("mixes", "steps", "batch", "position_weight", "lr", "seed", "lr_final", "generated", "code_noise")
-
-
-def _data(paths: list[str]):
-    """One DATA argument as itself, several as a list."""
-    return paths if len(paths) > 1 else paths[0]
 
 
 def cmd_components_train(args: argparse.Namespace) -> int:
@@ -31,7 +24,7 @@ def cmd_components_train(args: argparse.Namespace) -> int:
     common.check_exists(args.data)
     out = Path(args.out)
     common.check_out_folder(out, args.force, args.data)
-    data = _data(args.data)
+    data = common.data_arg(args.data)
     run.resolve_config(args.method, args.config, args.epochs, args.seed)  # bad names fail before any work
     if args.split_seed < 0:
         raise ValueError(f"--split-seed must be a non-negative integer, got {args.split_seed}.")
@@ -63,7 +56,7 @@ def cmd_components_evaluate(args: argparse.Namespace) -> int:
         protect = [args.run] + [Path(args.run) / f for f in run.RUN_FILES]
         common.check_out_file(Path(args.json), (".json",), list(args.data), "metrics", "--json", protect=protect)
     loaded = run.load(args.run)
-    result = run.evaluate(loaded, _data(args.data))
+    result = run.evaluate(loaded, common.data_arg(args.data))
     text = json.dumps(result, indent=2)
     if args.json:
         with common.atomic_file(Path(args.json)) as tmp:
@@ -75,28 +68,6 @@ def cmd_components_evaluate(args: argparse.Namespace) -> int:
     print(f"{result['method']}: test Erms {te['erms']:.4f}, STED {te['sted']:.4f}{rse}{wrote}")
     if not args.json:
         print(text)
-    return 0
-
-
-def cmd_components_finetune(args: argparse.Namespace) -> int:
-    from jaxdeform.components import finetune, run
-
-    common.check_exists([args.run] + list(args.data or []))
-    out = Path(args.out)
-    common.check_out_folder(out, args.force, [args.run] + list(args.data or []))
-    opts = {k: getattr(args, k) for k in FINETUNE_OPTIONS}
-    finetune.check_options(**opts)
-    loaded = run.load(args.run)
-    finetune.check_run(loaded)
-    data = None if not args.data else _data(args.data)
-    with common.staged_folder(out) as tmp:
-        rec = finetune.fit(loaded, tmp, data, progress=not args.quiet, rigid=args.rigid, **opts)
-    first, last = rec["first_terms"], rec["last_terms"]
-    extra = f" and {args.generated} generated meshes" if args.generated else ""
-    print(
-        f"fine-tuned {args.run} for {args.steps} steps on {args.mixes} mixes{extra} in {rec['seconds']:.0f} s (model loss "
-        f"{first[0]:.4g} -> {last[0]:.4g}, position term {first[1]:.3g} -> {last[1]:.3g}); wrote {out}"
-    )
     return 0
 
 
@@ -169,57 +140,6 @@ def _add_train_evaluate(comp_sub) -> None:
     ceval.set_defaults(func=cmd_components_evaluate)
 
 
-def _add_finetune(comp_sub) -> None:
-    cfine = comp_sub.add_parser(
-        "finetune",
-        help="Train a run further for its vertices, on regional mixes of its training shapes.",
-        description="Adds w x the squared vertex error of the ACAP reconstruction to the model's loss and trains "
-        "on the training shapes and regional mixes of them (jaxdeform.components.finetune); writes a "
-        "new run folder.",
-    )
-    cfine.add_argument("run", metavar="RUN", help="a multiscale or tan run written by 'jaxdeform components train'")
-    common.add_out(cfine, "RUN2", "run folder to create")
-    common.add_data(cfine, "the data the run was trained on (default: its folder)")
-    cfine.add_argument("--mixes", type=int, default=400, metavar="N", help="regional mixes (default 400; 0: none)")
-    common.add_steps(cfine, "Adam steps (default 1000)", default=1000)
-    cfine.add_argument("--batch", type=int, default=8, metavar="B", help="shapes per step (default 8)")
-    cfine.add_argument(
-        "--position-weight", type=float, default=1e5, metavar="W", help="weight w of the position term (default 1e5)"
-    )
-    cfine.add_argument("--lr", type=float, default=2e-4, help="Adam's learning rate (default 2e-4)")
-    cfine.add_argument(
-        "--lr-final",
-        type=float,
-        metavar="LR",
-        help="learning rate at the last step, reached from --lr along a half cosine (default: --lr throughout)",
-    )
-    cfine.add_argument(
-        "--generated",
-        type=int,
-        default=0,
-        metavar="N",
-        help="also train on N meshes that RUN's model decodes from its codes of further mixes, moved by "
-        "--code-noise (default 0: none)",
-    )
-    cfine.add_argument(
-        "--code-noise",
-        type=float,
-        default=1.0,
-        metavar="S",
-        help="Gaussian move of each code entry, in standard deviations of the mixes' codes (default 1)",
-    )
-    cfine.add_argument(
-        "--rigid",
-        action="store_true",
-        help="compare the vertices after rotating each reconstruction onto its target, as Erms does "
-        "(default: translation only)",
-    )
-    common.add_seed(cfine, "mixes and batch order (default 0)", default=0)
-    common.add_quiet(cfine, "no progress bar")
-    common.add_force(cfine, "replace RUN2 if it exists and is not empty")
-    cfine.set_defaults(func=cmd_components_finetune)
-
-
 def _add_show(comp_sub) -> None:
     cshow = comp_sub.add_parser(
         "show",
@@ -235,7 +155,7 @@ def _add_show(comp_sub) -> None:
 
 
 def register(sub):
-    """Add ``components train|evaluate|finetune|show`` to ``sub``; returns the ``components`` subparsers."""
+    """Add ``components train|evaluate|show`` to ``sub``; returns the ``components`` subparsers."""
     comp = sub.add_parser(
         "components",
         help="Multiscale deformation components (seed 000) and baselines.",
@@ -243,6 +163,5 @@ def register(sub):
     )
     comp_sub = comp.add_subparsers(dest="components_command", metavar="ACTION", required=True)
     _add_train_evaluate(comp_sub)
-    _add_finetune(comp_sub)
     _add_show(comp_sub)
     return comp_sub

@@ -8,8 +8,8 @@ A dataset is a folder::
     DIR/seq_000.npz       coarse (T, Vc, 3), fine (T, Vf, 3) float32 frames; coarse_rest (Vc, 3), fine_rest
                           (Vf, 3) the rest meshes (the ACAP reference); coarse_faces, fine_faces (int32);
                           obs_<name> the obstacle track (leading axis T); meta (a JSON string: the scenario);
-                          optionally coarse_pins / fine_pins (indices) and *_pin_positions (P, 3): the
-                          vertices the scenario holds fixed
+                          optionally coarse_pins / fine_pins (indices) and *_pin_positions: where the
+                          scenario holds them, (P, 3) fixed or (T, P, 3) per frame (a garment's waistband)
 
 Every file is written through an atomic rename, and ``dataset.json`` last, so an interrupted run leaves no
 dataset that looks complete. :func:`load_dataset` checks what training needs and says in one sentence what is
@@ -217,7 +217,7 @@ def read_sequence(path: Path) -> tuple[Sequence, dict]:
             n = (coarse if res == "coarse" else fine).shape[1]
             if (
                 pos is None
-                or pos.shape != (idx.size, 3)
+                or pos.shape not in ((idx.size, 3), (coarse.shape[0], idx.size, 3))
                 or idx.dtype.kind not in "iu"
                 or (idx.size and (idx.min() < 0 or idx.max() >= n))
             ):

@@ -55,13 +55,13 @@ def generate(
 
     **Arguments:**
 
-    - ``kind``: the scenario (``"sheet"`` or ``"disk"``, :mod:`jaxdeform.cloth.scenarios`).
+    - ``kind``: the scenario (``"sheet"``, ``"disk"``, ``"skirt"`` or ``"pants"``, :mod:`jaxdeform.cloth.scenarios`).
     - ``out``: the dataset folder.
     - ``n_sequences``: how many sequences (at least 2: one to train on, one to test).
-    - ``n_frames``: frames per sequence (default None: the scenarios' ``N_FRAMES``).
+    - ``n_frames``: frames per sequence (default None: the scenarios' ``N_FRAMES``, ``GARMENT_FRAMES`` for garments).
     - ``seed``: the scenarios' seed.
     - ``progress``: show a progress bar.
-    - ``levels``: Loop levels from the coarse to the fine mesh (3: the paper's SHEET / DISK sizes).
+    - ``levels``: Loop levels from the coarse to the fine mesh (3: the paper's sizes).
 
     **Returns:**
 
@@ -78,7 +78,7 @@ def generate(
         raise JaxDeformError("a dataset needs at least 2 sequences (one to train on, one to test).")
     out = Path(out)
     names, pen_c, pen_f, t_c, t_f, edge_c, edge_f, pen_n = [], [], [], [], [], [], [], []
-    frames = n_frames or scenarios.N_FRAMES
+    frames = n_frames or (scenarios.GARMENT_FRAMES if kind in scenarios.GARMENT_KINDS else scenarios.N_FRAMES)
     for i in tqdm(range(n_sequences), desc=f"simulate {kind}", unit="seq", disable=not progress):
         sc = scenarios.scenario(kind, i, seed=seed, n_frames=frames, n_sequences=n_sequences, levels=levels)
         name = f"seq_{i:03d}.npz"

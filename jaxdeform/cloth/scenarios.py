@@ -59,21 +59,25 @@ import numpy as np
 
 from jaxdeform.errors import JaxDeformError
 
+from . import garments as garm
 from . import obstacles as obst
 from . import simulate as sim
 from .obstacles import Obstacles
 from .simulate import ClothParams
 
-KINDS = ("sheet", "disk")
-#: Default recorded frames per sequence (4 s at 30 frames/s).
+#: the garments worn by the animated body (:mod:`jaxdeform.cloth.garments`, :mod:`jaxdeform.cloth.body`)
+GARMENT_KINDS = tuple(garm.GARMENTS)
+KINDS = ("sheet", "disk") + GARMENT_KINDS
+#: Default recorded frames per sequence (4 s at 30 frames/s); garments: the 15 intro frames and 5 s of motion.
 N_FRAMES = 120
+GARMENT_FRAMES = 165
 #: Settling frames before recording (obstacles at t = 0, no wind).
-SETTLE_FRAMES = {"sheet": 10, "disk": 30}
+SETTLE_FRAMES = {"sheet": 10, "disk": 30, **{k: 30 for k in GARMENT_KINDS}}
 #: (substeps, iterations) per frame for the coarse meshes (per kind) and the fine ones. With frictionless contact
 #: points inside the triangles DISK's coarse cloth needed 4 iterations (with 2 a gust slapping it onto the rounded
 #: rim left one frame of seq_018 2.7 mm inside the table); with friction there (``ClothParams.face_friction``) 2
 #: iterations leave no coarse frame of the 20 scenarios inside it.
-COARSE_STEPS = {"sheet": (10, 2), "disk": (10, 2)}
+COARSE_STEPS = {"sheet": (10, 2), "disk": (10, 2), **{k: (10, 2) for k in GARMENT_KINDS}}
 FINE_STEPS = (40, 4)
 #: Physical parameters shared by both resolutions (defaults of ClothParams unless listed).
 PARAMS = ClothParams()
@@ -84,7 +88,7 @@ PARAMS = ClothParams()
 #: alone: 0.27x on scenario 2), with both 0.07x and 0.004x: the fine cloth is determined by its scenario, so
 #: what it adds to the coarse one can be learned (:func:`simulate_pair` against :func:`simulate_fine` with
 #: ``perturbation=1e-4``, 100 frames).
-KIND_PARAMS = {"sheet": dict(bend_stiffness=1.0e-4, damping=2.0), "disk": {}}
+KIND_PARAMS = {"sheet": dict(bend_stiffness=1.0e-4, damping=2.0), "disk": {}, **{k: {} for k in GARMENT_KINDS}}
 
 SHEET_TOP = 1.4
 SHEET_SIZE = 1.0
@@ -105,7 +109,13 @@ POLE_HALF_LENGTH = 0.3
 #: needs smooth obstacles: DISK's table rims are rounded (:data:`TABLE_RIM_RADIUS`), which gives its coarse mesh
 #: the order-6 grid (25 points per triangle; sag 2.4 mm) and its 3-level fine mesh none (sag 1.7 mm). Per kind.
 TABLE_RIM_RADIUS = 0.05
-MIN_OBSTACLE_RADIUS = {"sheet": min(SPHERE_RADII + (POLE_RADIUS,)), "disk": TABLE_RIM_RADIUS}
+#: the body's thinnest capsule (the forearms)
+BODY_MIN_RADIUS = 0.04
+MIN_OBSTACLE_RADIUS = {
+    "sheet": min(SPHERE_RADII + (POLE_RADIUS,)),
+    "disk": TABLE_RIM_RADIUS,
+    **{k: BODY_MIN_RADIUS for k in GARMENT_KINDS},
+}
 #: Range of the distance (m) the obstacle's centre travels past the sheet's rest plane before it turns back.
 SHEET_REACH = (0.05, 0.25)
 PIN_RADIUS_DISK = 0.06
@@ -132,6 +142,9 @@ class Scenario:
     x0_coarse: np.ndarray  # (Vc, 3) initial (pre-settling) positions
     meta: dict
     levels: int = 3  # Loop subdivision levels from the coarse to the fine mesh (3: the paper's resolutions)
+    #: garments: the pins' rigid motion (rotation (T, 3, 3), translation (T, 3)) from their start positions;
+    #: None: the pins stay where they were placed
+    attach: tuple | None = None
 
     @property
     def key(self):
@@ -198,6 +211,9 @@ def _meshes(kind: str, levels: int = 3):
         cv, cf = _grid(SHEET_N, SHEET_SIZE, SHEET_TOP)
     elif kind == "disk":
         cv, cf = _disk()
+    elif kind in GARMENT_KINDS:
+        g = garm.GARMENTS[kind]()
+        cv, cf = g.vertices, g.faces
     else:
         raise ScenarioError(f"Unknown scenario kind {kind!r}; expected one of {KINDS}.")
     if levels < 1:
@@ -255,9 +271,15 @@ def _pins(kind: str, levels: int = 3):
         arc = max(arcs, key=lambda a: fv[a, 1].mean())
         pf = np.zeros(len(fv), bool)
         pf[arc] = True
-    else:
+    elif kind == "disk":
         pc = np.linalg.norm(cv[:, [0, 2]], axis=1) < PIN_RADIUS_DISK
         pf = np.linalg.norm(fv[:, [0, 2]], axis=1) < PIN_RADIUS_DISK
+    else:  # a garment: its waistband
+        waist = garm.GARMENTS[kind]().waist
+        pc = np.zeros(len(cv), bool)
+        pc[waist] = True
+        pf = np.zeros(len(fv), bool)
+        pf[garm.fine_waist(waist, ff)] = True
     return pc, pf
 
 
@@ -370,8 +392,14 @@ def scenario(
     pc, pf = _pins(kind, levels)
     params = PARAMS.replace(substeps=COARSE_STEPS[kind][0], iterations=COARSE_STEPS[kind][1], **KIND_PARAMS[kind])
     params = params.replace(face_samples=sim.face_samples_for(cv, cf, params.thickness, MIN_OBSTACLE_RADIUS[kind]))
+    attach = None
     if kind == "sheet":
         track, wind, meta = _sheet_track(rng, index, n_frames, dt)
+        x0 = cv.copy()
+    elif kind in GARMENT_KINDS:
+        track, rot, trans, meta = garm.motion_track(rng, n_frames, 1.0 / dt)
+        wind = np.zeros((n_frames, 3))
+        attach = (rot.astype(np.float32), trans.astype(np.float32))
         x0 = cv.copy()
     else:
         track, wind, turb, meta = _disk_track(rng, index, max(n_sequences, 1), n_frames, dt)
@@ -409,6 +437,7 @@ def scenario(
         x0.astype(np.float32),
         meta,
         levels,
+        attach,
     )
 
 
@@ -430,7 +459,7 @@ def _run_one(model, params, x0, sc: Scenario, pinned, progress: bool, desc: str)
         progress=progress,
         desc=f"{desc} settle",
     )
-    pins = np.broadcast_to(x0, (sc.n_frames,) + x0.shape)  # pinned vertices stay where they were placed
+    pins = pin_track(sc, x0)
     res = sim.run(
         model,
         params,
@@ -445,6 +474,16 @@ def _run_one(model, params, x0, sc: Scenario, pinned, progress: bool, desc: str)
         desc=desc,
     )
     return res, settle.compile_seconds + res.compile_seconds
+
+
+def pin_track(sc: Scenario, x0) -> np.ndarray:
+    """Where the pinned vertices are held in each frame ``(T, V, 3)``: at their start positions ``x0`` ``(V, 3)``,
+    or carried from there by the scenario's rigid motion (a garment's waistband rides with the pelvis)."""
+    x0 = np.asarray(x0, np.float32)
+    if sc.attach is None:
+        return np.broadcast_to(x0, (sc.n_frames,) + x0.shape)
+    rot, trans = sc.attach
+    return (np.einsum("tij,vj->tvi", rot, x0) + trans[:, None]).astype(np.float32)
 
 
 def fine_start(sc: Scenario) -> np.ndarray:
@@ -470,7 +509,7 @@ def _run_fine(sc: Scenario, x0: np.ndarray, progress: bool):
 
 
 def pins(sc: Scenario) -> dict:
-    """The pinned vertices of both meshes and where they are held (they never move).
+    """The pinned vertices of both meshes and where they are held.
 
     These are part of the scenario, like the obstacles: the synthesis anchors its reconstruction on them.
 
@@ -480,16 +519,20 @@ def pins(sc: Scenario) -> dict:
 
     **Returns:**
 
-    A dict: "coarse_pins" / "fine_pins" (int32 indices) and "coarse_pin_positions" / "fine_pin_positions"
-    (float32 ``(P, 3)``).
+    A dict: "coarse_pins" / "fine_pins" (int32 indices) and "coarse_pin_positions" / "fine_pin_positions" (float32
+    ``(P, 3)`` for pins that never move; ``(T, P, 3)``, one row per frame, for pins that follow the body).
     """
     x0f = fine_start(sc)
     pc, pf = np.flatnonzero(sc.pinned_coarse), np.flatnonzero(sc.pinned_fine)
+    if sc.attach is None:
+        at_c, at_f = np.asarray(sc.x0_coarse)[pc], x0f[pf]
+    else:
+        at_c, at_f = pin_track(sc, np.asarray(sc.x0_coarse)[pc]), pin_track(sc, x0f[pf])
     return {
         "coarse_pins": pc.astype(np.int32),
-        "coarse_pin_positions": np.asarray(sc.x0_coarse)[pc].astype(np.float32),
+        "coarse_pin_positions": np.asarray(at_c, np.float32),
         "fine_pins": pf.astype(np.int32),
-        "fine_pin_positions": x0f[pf].astype(np.float32),
+        "fine_pin_positions": np.asarray(at_f, np.float32),
     }
 
 

@@ -122,7 +122,7 @@ def rigid_residual(p, g):
     return jnp.einsum("bxy,bvy->bvx", r, p) - g
 
 
-def position_loss_fn(run: crun.Run, rings, dist, weight: float, rigid: bool = False):
+def position_loss_fn(run: crun.Run, rings, dist, weight: float, rigid: bool = False, solver: str | None = None):
     """The fine-tuning loss and its parts, as functions.
 
     **Arguments:**
@@ -133,6 +133,8 @@ def position_loss_fn(run: crun.Run, rings, dist, weight: float, rigid: bool = Fa
     - ``weight``: the position term's weight w.
     - ``rigid``: take the term after rotating each reconstruction onto its target (:func:`rigid_residual`), so a
         global rotation, which Erms does not count, costs nothing.
+    - ``solver``: the reconstruction's linear solver, "host", "dense" or "cg" (:func:`jaxdeform.acap.prepare`; None:
+        :func:`jaxdeform.acap.default_solver`).
 
     **Returns:**
 
@@ -142,8 +144,8 @@ def position_loss_fn(run: crun.Run, rings, dist, weight: float, rigid: bool = Fa
     ``positions(x)`` the plain ACAP reconstruction of scaled features that the position term compares (the targets
     g come from it too); ``term(x_hat, g)`` the position term of the model's output x_hat.
     """
-    machinery = acap.cached(run.rest, run.faces)
-    machinery.reconstructor(None)  # factorized on the host now, not inside a trace
+    machinery = acap.cached(run.rest, run.faces, solver=solver)
+    machinery.reconstructor(None)  # factorized now, not inside a trace
     inv_r2 = 1.0 / float(np.mean(np.sum((run.rest - run.rest.mean(axis=0)) ** 2, axis=-1)))
 
     def positions(x):
@@ -167,14 +169,22 @@ def position_loss_fn(run: crun.Run, rings, dist, weight: float, rigid: bool = Fa
     return loss, positions, term
 
 
-def make_step(run: crun.Run, rings, dist, weight: float, opt: optax.GradientTransformation, rigid: bool = False):
+def make_step(
+    run: crun.Run,
+    rings,
+    dist,
+    weight: float,
+    opt: optax.GradientTransformation,
+    rigid: bool = False,
+    solver: str | None = None,
+):
     """step(params, state, x, g) -> (params, state, (model loss, position term)), ``params`` the ``nnx.State`` of a
     model of ``run.model``'s structure (``nnx.state(run.model)``): one Adam step on
     :func:`position_loss_fn`'s loss, as three jitted stages: the model's forward with its VJP, the position term
     with its gradient in the model's output, then the model's pullback and the update. The same gradient as one
     jitted ``value_and_grad`` of the loss; the ACAP decode inside a larger XLA program loses the stage boundaries
     that keep it fast on the CPU (the staged step runs in about half the time of the fused one)."""
-    _, _, term = position_loss_fn(run, rings, dist, weight, rigid)
+    _, _, term = position_loss_fn(run, rings, dist, weight, rigid, solver)
     graphdef = nnx.graphdef(run.model)
 
     @jax.jit
@@ -231,6 +241,7 @@ def check_options(
     lr_final: float | None = None,
     generated: int = 0,
     code_noise: float = 1.0,
+    solver: str | None = None,
 ) -> None:
     """Check the fine-tuning options.
 
@@ -246,6 +257,8 @@ def check_options(
 
     ``ValueError`` (one sentence) for an option out of range.
     """
+    if solver is not None and solver not in acap.SOLVERS:
+        raise ValueError(f"--solver must be one of {', '.join(acap.SOLVERS)}, got '{solver}'.")
     if seed < 0:
         raise ValueError(f"--seed must be a non-negative integer, got {seed}.")
     if steps < 1 or batch < 1:
@@ -285,6 +298,7 @@ def finetune(
     rigid: bool = False,
     generated: int = 0,
     code_noise: float = 1.0,
+    solver: str | None = None,
 ):
     """Fine-tune the run's model on its training shapes and their mixes (module docstring).
 
@@ -296,11 +310,11 @@ def finetune(
     - ``steps``, ``batch``: Adam steps and shapes per step.
     - ``position_weight``: the weight w of the position term.
     - ``lr``, ``lr_final``: the learning rate, constant or falling to ``lr_final`` (:func:`schedule`).
-    - ``seed``: the seed of the mixes and the batches.
-    - ``progress``: show a progress bar.
+    - ``seed``, ``progress``: the seed of the mixes and the batches; show a progress bar.
     - ``rigid``: the position term after rotating each reconstruction onto its target (:func:`rigid_residual`).
     - ``generated``, ``code_noise``: shapes the model generates from noisy codes of regional mixes, added to the pool
         (:func:`generated_meshes`).
+    - ``solver``: the reconstruction's linear solver (:func:`position_loss_fn`).
 
     **Returns:**
 
@@ -311,7 +325,7 @@ def finetune(
 
     ``ValueError`` for an option out of range (:func:`check_options`); ``RunError`` for a run without an autoencoder.
     """
-    check_options(steps, batch, mixes, position_weight, lr, seed, lr_final, generated, code_noise)
+    check_options(steps, batch, mixes, position_weight, lr, seed, lr_final, generated, code_noise, solver)
     check_run(run)
     faces, rest = run.faces, run.rest
     dtype = np.dtype(run.record.get("dtype", "float32"))
@@ -322,11 +336,11 @@ def finetune(
     rings = rings_from_topology(build_topology(faces, rest.shape[0]))
     if generated:
         pool = np.concatenate([pool, generated_meshes(run, x_train, dist, generated, code_noise, rng, rings)])
-    _, positions, _ = position_loss_fn(run, rings, jnp.asarray(dist), position_weight)
+    _, positions, _ = position_loss_fn(run, rings, jnp.asarray(dist), position_weight, solver=solver)
     positions = jax.jit(positions)
     targets = np.concatenate([np.asarray(positions(jnp.asarray(pool[i : i + 8]))) for i in range(0, len(pool), 8)])
     opt = optax.adam(schedule(lr, steps, lr_final))
-    step = make_step(run, rings, jnp.asarray(dist), position_weight, opt, rigid)
+    step = make_step(run, rings, jnp.asarray(dist), position_weight, opt, rigid, solver)
 
     graphdef, params = nnx.split(run.model)
     params = jax.tree_util.tree_map(jnp.copy, params)  # a state of its own: run.model stays as it is
@@ -367,6 +381,7 @@ def fit(
     rigid: bool = False,
     generated: int = 0,
     code_noise: float = 1.0,
+    solver: str | None = None,
 ) -> dict:
     """Fine-tune ``run`` and write the result as a new run folder.
 
@@ -387,33 +402,25 @@ def fit(
     """
     vertices, _ = crun.run_data(run, data)
     x_train = crun.scaled_features(run, vertices[run.train_idx])
-    t0 = time.perf_counter()
-    tuned, history = finetune(
-        run,
-        x_train,
+    options = dict(
         mixes=mixes,
         steps=steps,
         batch=batch,
         position_weight=position_weight,
         lr=lr,
         seed=seed,
-        progress=progress,
         lr_final=lr_final,
         rigid=rigid,
         generated=generated,
         code_noise=code_noise,
+        solver=solver,
     )
+    t0 = time.perf_counter()
+    tuned, history = finetune(run, x_train, progress=progress, **options)
     record = {
-        "mixes": mixes,
-        "steps": steps,
-        "batch": batch,
-        "position_weight": position_weight,
-        "lr": lr,
+        **options,
         "lr_final": lr if lr_final is None else lr_final,
-        "seed": seed,
-        "rigid": rigid,
-        "generated": generated,
-        "code_noise": code_noise,
+        "solver": acap.default_solver(run.rest.shape[0]) if solver is None else solver,
         "seconds": round(time.perf_counter() - t0, 1),
         "first_terms": history[0].tolist(),
         "last_terms": history[-1].tolist(),
