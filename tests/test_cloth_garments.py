@@ -84,7 +84,9 @@ def test_garment_scenario_pins_ride_with_the_pelvis():
     assert not np.allclose(other.track.capsule_a, sc.track.capsule_a)
 
 
-def test_skirt_pair_follows_the_body_without_penetrating():
+def test_skirt_pair_follows_the_body_without_penetrating(tmp_path):
+    from jaxdeform.cloth import data as cdata
+
     sc = S.scenario("skirt", 0, n_frames=24, levels=1)
     sc = S.dataclasses.replace(sc, settle_frames=4)
     out = S.simulate_pair(sc, progress=False)
@@ -98,3 +100,12 @@ def test_skirt_pair_follows_the_body_without_penetrating():
     pelvis = np.asarray(sc.track.capsule_a[:, 1])
     offset = out["fine"].mean(axis=1) - pelvis
     assert np.abs(offset - offset[0]).max() < 0.15
+    # stored and read back: the per-frame pin positions are part of the sequence
+    cdata.write_sequence(tmp_path / "seq_000.npz", out)
+    seq, _ = cdata.read_sequence(tmp_path / "seq_000.npz")
+    assert seq.pins["fine_pin_positions"].shape == (24, len(out["fine_pins"]), 3)
+    np.testing.assert_array_equal(seq.pins["coarse_pin_positions"], out["coarse_pin_positions"])
+    bad = dict(out, fine_pin_positions=out["fine_pin_positions"][:5])
+    cdata.write_sequence(tmp_path / "seq_001.npz", bad)
+    with pytest.raises(Exception, match="fine pins do not match its fine mesh"):
+        cdata.read_sequence(tmp_path / "seq_001.npz")

@@ -1,4 +1,4 @@
-"""Seed 002 experiments: Tables 1, 2, 4 and 5 on generated SHEET and DISK data, and PNG strips.
+"""Seed 002 experiments: Tables 1, 2, 4 and 5 on generated SHEET, DISK, SKIRT and PANTS data, and PNG strips.
 
     python -m experiments.cloth.run [--config default|test] [--out DIR] [--datasets sheet disk]
                                     [--stages data train evaluate linear scale scaling jumps timing floor figures]
@@ -95,12 +95,21 @@ class Settings:
     timing_frames: int
     levels: int = 3  # Loop levels coarse -> fine
     floor_sequences: int | None = None  # test scenarios re-simulated by the ``floor`` stage (None: all of them)
+    garment_frames: int | None = None  # frames of a garment sequence (None: scenarios.GARMENT_FRAMES)
+
+    def frames_for(self, kind: str) -> int:
+        """Frames per sequence of a scenario kind."""
+        from jaxdeform.cloth import scenarios
+
+        if kind in scenarios.GARMENT_KINDS:
+            return self.garment_frames or scenarios.GARMENT_FRAMES
+        return self.frames or scenarios.N_FRAMES
 
 
 def settings(config: str) -> Settings:
     if config == "test":
         return Settings(
-            sequences={"sheet": 3, "disk": 3},
+            sequences={"sheet": 3, "disk": 3, "skirt": 3, "pants": 3},
             frames=8,
             steps=5,
             batch=4,
@@ -109,10 +118,12 @@ def settings(config: str) -> Settings:
             timing_frames=8,
             levels=1,
             floor_sequences=1,
+            garment_frames=20,
         )
-    # SHEET: 40 x 100 frames, the paper's 4,000; DISK: 20 x 100, the paper's 2,000 (16 / 4 sequences: its 1,600 / 400)
+    # SHEET: 40 x 100 frames, the paper's 4,000; DISK: 20 x 100, the paper's 2,000 (16 / 4 sequences: its 1,600 / 400);
+    # garments: 20 x 165 frames (16 / 4 sequences; the paper's 18 / 2 of 300-450 frames)
     return Settings(
-        sequences={"sheet": 40, "disk": 20},
+        sequences={"sheet": 40, "disk": 20, "skirt": 20, "pants": 20},
         frames=100,
         steps=1000,
         batch=8,
@@ -150,9 +161,7 @@ def stage_data(out: Path, kind: str, s: Settings, force: bool) -> dict:
         if len(names) == s.sequences[kind]:
             from jaxdeform.cloth import scenarios
 
-            sc = scenarios.scenario(
-                kind, 0, n_frames=s.frames or scenarios.N_FRAMES, n_sequences=len(names), levels=s.levels
-            )
+            sc = scenarios.scenario(kind, 0, n_frames=s.frames_for(kind), n_sequences=len(names), levels=s.levels)
             if crun.holds_scenario(root / names[0], sc.meta):
                 return record
             # the scenes changed since (e.g. DISK's rounded table rims): generate() simulates what no longer matches
@@ -160,7 +169,9 @@ def stage_data(out: Path, kind: str, s: Settings, force: bool) -> dict:
     elif force and root.is_dir():
         shutil.rmtree(root)
     t0 = time.perf_counter()
-    record = crun.generate(kind, root, n_sequences=s.sequences[kind], n_frames=s.frames, progress=True, levels=s.levels)
+    record = crun.generate(
+        kind, root, n_sequences=s.sequences[kind], n_frames=s.frames_for(kind), progress=True, levels=s.levels
+    )
     record["wall_seconds"] = time.perf_counter() - t0
     return record
 
@@ -542,7 +553,7 @@ def main(argv=None) -> int:
     ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
     ap.add_argument("--config", choices=("default", "test"), default="default")
     ap.add_argument("--out")
-    ap.add_argument("--datasets", nargs="+", default=["sheet", "disk"], choices=["sheet", "disk"])
+    ap.add_argument("--datasets", nargs="+", default=["sheet", "disk"], choices=["sheet", "disk", "skirt", "pants"])
     ap.add_argument("--stages", nargs="+", default=list(STAGES), choices=STAGES)
     ap.add_argument("--force", action="store_true", help="redo cached data and runs")
     args = ap.parse_args(argv)
