@@ -285,6 +285,14 @@ def test_experiment_test_config_writes_summary(tmp_path):
     assert sc["rmse"] == pytest.approx(r["rmse"]["upsampled_coarse"], rel=1e-5)
     assert sc["coarse_scale_rmse"] ** 2 + sc["finer_rmse"] ** 2 == pytest.approx(sc["rmse"] ** 2, rel=1e-9)
     assert np.isfinite(r["evaluate"]["methods"]["linear_residual"]["train_rmse"])
+    details = {k: m["detail"] for k, m in r["evaluate"]["methods"].items() if k != "linear_residual"}
+    assert set(details) == set(exp.METHODS) | {"upsampled_coarse"}
+    assert details["upsampled_coarse"]["fine_scale_rms"] < 1e-6  # in the coarse Loop basis: no fine-scale part
+    assert details["upsampled_coarse"]["fine_scale_rmse"] == pytest.approx(
+        details["upsampled_coarse"]["fine_scale_rms_ref"], rel=1e-3
+    )
+    assert all(np.isfinite(d["dihedral_w1"]) and d["dihedral_w1"] >= 0 for d in details.values())
+    assert "dihedral W1" in (tmp_path / "results.md").read_text()
     sg = {g["train_sequences"]: g for g in r["scaling"]}  # every 4th / 2nd / every training sequence: 1 and 2 here
     assert sorted(sg) == [1, 2]
     full = sg[2]  # the whole training split: the linear stage's fit again and the experiment's per-frame run

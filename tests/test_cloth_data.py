@@ -182,6 +182,56 @@ def test_coarse_level_split_is_the_orthogonal_projection_onto_upsampled_offsets(
         ceval.coarse_level_split(up, d[:, :-1])
 
 
+def test_dihedral_angles_of_a_folded_sheet():
+    """A flat grid bends nowhere; folded by phi along the line x = 0.5 its hinges on that line bend by phi, the rest
+    by 0; every interior edge has one hinge."""
+    v, f = grid(5)
+    h = ceval.hinge_faces(f)
+    edges = np.unique(np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1), axis=0)
+    boundary = 4 * 4  # a 5 x 5 grid has 16 boundary edges
+    assert len(h) == len(edges) - boundary
+    np.testing.assert_allclose(ceval.dihedral_angles(v[None], f), 0.0, atol=1e-7)
+    phi = 0.7
+    folded = v.copy()
+    right = v[:, 0] > 0.5
+    dx = v[right, 0] - 0.5
+    folded[right, 0] = 0.5 + dx * np.cos(phi)
+    folded[right, 1] = dx * np.sin(phi)
+    ang = ceval.dihedral_angles(folded[None], f, h)[0]
+    shared = [len(set(f[a]) & set(f[b]) & set(np.flatnonzero(np.isclose(v[:, 0], 0.5)))) == 2 for a, b in h]
+    np.testing.assert_allclose(ang[np.array(shared)], phi, atol=1e-9)
+    np.testing.assert_allclose(ang[~np.array(shared)], 0.0, atol=1e-7)
+    assert np.sum(shared) == 4  # the four grid edges on the fold line
+
+
+def test_detail_errors_identities():
+    """Zero against itself and under a rigid motion; the Loop-upsampled coarse cloth has no fine-scale part, so
+    its detail error is the reference's whole fine-scale part."""
+    from scipy.spatial.transform import Rotation
+
+    cv, cf = grid(5)
+    fv, ff = igl.loop(cv, cf)
+    up = ceval.Upsampler(cf, len(cv), ff)
+    rng = np.random.default_rng(7)
+    fine = fv[None] + 0.02 * rng.standard_normal((3, len(fv), 3))
+    same = ceval.detail_errors(fine, fine, ff, up)
+    assert same["dihedral_w1"] == 0.0 and same["fine_scale_rmse"] == 0.0 and same["fine_scale_rms_ref"] > 0.005
+    r = Rotation.from_rotvec([0.3, -1.1, 0.4]).as_matrix()
+    moved = ceval.detail_errors(fine, fine @ r.T + [0.5, -2.0, 1.0], ff, up)
+    assert moved["dihedral_w1"] < 1e-9
+    assert moved["fine_scale_rms"] == pytest.approx(same["fine_scale_rms_ref"], rel=1e-9)
+    coarse = cv[None] + 0.02 * rng.standard_normal((3, len(cv), 3))
+    smooth = ceval.detail_errors(fine, up(coarse), ff, up)
+    assert smooth["fine_scale_rms"] < 1e-6
+    assert smooth["fine_scale_rmse"] == pytest.approx(smooth["fine_scale_rms_ref"], rel=1e-4)
+    assert smooth["dihedral_w1"] > 0.05  # the noisy reference bends much more than the smooth subdivision
+    pooled = ceval.pool_details([same, smooth])
+    assert pooled["frames"] == 6 and pooled["sequences"] == 2
+    assert pooled["fine_scale_rmse"] == pytest.approx(smooth["fine_scale_rmse"] / np.sqrt(2), rel=1e-9)
+    with pytest.raises(ValueError, match="shapes differ"):
+        ceval.detail_errors(fine, fine[:2], ff, up)
+
+
 def test_errors_analytic():
     cv, cf = grid(5)
     rng = np.random.default_rng(2)

@@ -109,3 +109,35 @@ def test_skirt_pair_follows_the_body_without_penetrating(tmp_path):
     cdata.write_sequence(tmp_path / "seq_001.npz", bad)
     with pytest.raises(Exception, match="fine pins do not match its fine mesh"):
         cdata.read_sequence(tmp_path / "seq_001.npz")
+
+
+@pytest.mark.parametrize(
+    "argv, message",
+    [
+        (["--scenario", "skirt", "--motions", "moonwalk"], "unknown motion 'moonwalk'"),
+        (["--scenario", "skirt", "--motions", "walk", "run:speed=9"], "run speed must lie in [0.0, 4.0], got 9.0."),
+        (["--scenario", "pants", "--motions", "jump:height"], "a motion parameter is written NAME=VALUE"),
+        (["--scenario", "skirt", "--motions", "kick:amp=big"], "kick amp must be a number"),
+        (["--scenario", "skirt", "--motions", "sway:tempo=2"], "a sway motion has no parameter 'tempo'"),
+        (["--scenario", "sheet", "--motions", "walk"], "motions apply to the garment scenarios (skirt, pants)"),
+    ],
+)
+def test_simulate_refuses_malformed_motions(tmp_path, capsys, argv, message):
+    from jaxdeform.cli import main
+
+    out = tmp_path / "data"
+    code = main(["cloth", "simulate", "--out", str(out), "--sequences", "2", "--quiet"] + argv)
+    err = capsys.readouterr().err
+    assert code == 2 and message in err and err.count("\n") == 1, err
+    assert not out.exists() and list(tmp_path.iterdir()) == []
+
+
+def test_motion_choices_fix_parameters_and_restrict_kinds():
+    choices = garments.motion_choices("skirt", ["run:speed=3,amp=1.2", "walk"])
+    assert choices == [("run", {"speed": 3.0, "amp": 1.2}), ("walk", {})]
+    assert garments.motion_choices("skirt", None) is None
+    program = body.random_program(np.random.default_rng(1), 30.0, choices)
+    assert {m.kind for m in program} == {"run", "walk"}
+    assert all(m.params["speed"] == 3.0 and m.params["amp"] == 1.2 for m in program if m.kind == "run")
+    sc = S.scenario("skirt", 0, n_frames=20, levels=1, motions=choices)
+    assert {m["kind"] for m in sc.meta["program"]} <= {"run", "walk"} and sc.meta["motions"][0][0] == "run"

@@ -2,7 +2,7 @@
 
     python -m experiments.cloth.run [--config default|test] [--out DIR] [--datasets sheet disk]
                                     [--stages data train evaluate linear scale scaling jumps timing floor figures]
-                                    [--force]
+                                    [--sequences N] [--floor-sequences N] [--force]
 
 Stages (each dataset in turn; results merge into OUT/summary.json, markdown into OUT/results.md):
 - ``data``: simulate the paired dataset (``jaxdeform.cloth.run.generate``; cached in OUT/data/KIND unless
@@ -202,12 +202,13 @@ def train_method(ds, name: str, s: Settings, cache: dict, seed: int = 0, progres
     )
 
 
-def method_errors(run, test, faces) -> list[dict]:
-    """:func:`jaxdeform.cloth.evaluate.sequence_errors` of ``run``'s synthesis of every test sequence."""
+def method_errors(run, test, faces, ups=None) -> list[dict]:
+    """:func:`jaxdeform.cloth.evaluate.sequence_errors` of ``run``'s synthesis of every test sequence (with the detail
+    measure when the upsampler ``ups`` is given)."""
     per = []
     for x in test:
         fine, _ = crun.synthesize_timed(run, x.coarse, x.obstacles, pins=x.pins)
-        per.append(ceval.sequence_errors(x.fine, fine, faces))
+        per.append(ceval.sequence_errors(x.fine, fine, faces, upsampler=ups))
     return per
 
 
@@ -229,10 +230,13 @@ def stage_evaluate(out: Path, ds, cache: dict) -> dict:
     test = ds.subset("test")
     ups = upsampler(ds)
     methods = {
-        "upsampled_coarse": ceval.pool([ceval.sequence_errors(x.fine, ups(x.coarse), ds.fine_faces) for x in test])
+        "upsampled_coarse": ceval.pool(
+            [ceval.sequence_errors(x.fine, ups(x.coarse), ds.fine_faces, upsampler=ups) for x in test]
+        )
     }
     for name in METHODS:
-        methods[name] = ceval.pool(method_errors(crun.load_run(out / "runs" / ds.scenario / name), test, ds.fine_faces))
+        run = crun.load_run(out / "runs" / ds.scenario / name)
+        methods[name] = ceval.pool(method_errors(run, test, ds.fine_faces, ups))
         print(f"{ds.scenario} {name}: rmse {methods[name]['rmse']:.5f} sted {methods[name]['sted']:.4f}", flush=True)
     return {"methods": methods, "test_sequences": [x.name for x in test]}
 
@@ -427,6 +431,12 @@ def _tested_at(samples_per_edge: int) -> str:
     return "tested at the vertices only"
 
 
+def _detail_cells(m: dict) -> list[str]:
+    """The detail measure's cells of a method's pooled errors (blank where it was not measured)."""
+    d = m.get("detail")
+    return [f"{d['dihedral_w1']:.4f}", f"{d['fine_scale_rmse']:.5f}"] if d else ["", ""]
+
+
 def markdown(summary: dict) -> str:
     lines = [f"# Seed 002 results ({summary.get('machine', '')})", ""]
     for kind, r in summary.get("datasets", {}).items():
@@ -446,9 +456,9 @@ def markdown(summary: dict) -> str:
         ev = r.get("evaluate")
         if ev:
             lines += _table(
-                ["method", "RMSE (m)", "Hausdorff (m)", "STED"],
+                ["method", "RMSE (m)", "Hausdorff (m)", "STED", "detail: dihedral W1 (rad)", "fine-scale RMSE (m)"],
                 [
-                    [name, f"{m['rmse']:.5f}", f"{m['hausdorff']:.5f}", f"{m['sted']:.4f}"]
+                    [name, f"{m['rmse']:.5f}", f"{m['hausdorff']:.5f}", f"{m['sted']:.4f}", *_detail_cells(m)]
                     for name, m in ev["methods"].items()
                 ],
             )
@@ -556,6 +566,8 @@ def main(argv=None) -> int:
     ap.add_argument("--datasets", nargs="+", default=["sheet", "disk"], choices=["sheet", "disk", "skirt", "pants"])
     ap.add_argument("--stages", nargs="+", default=list(STAGES), choices=STAGES)
     ap.add_argument("--force", action="store_true", help="redo cached data and runs")
+    ap.add_argument("--sequences", type=int, metavar="N", help="sequences per dataset (default: the configuration's)")
+    ap.add_argument("--floor-sequences", type=int, metavar="N", help="test scenarios the floor stage re-simulates")
     args = ap.parse_args(argv)
     root = Path(__file__).resolve().parent
     out = (
@@ -565,6 +577,12 @@ def main(argv=None) -> int:
     )
     out.mkdir(parents=True, exist_ok=True)
     s = settings(args.config)
+    if args.sequences is not None:
+        if args.sequences < 2:
+            ap.error(f"--sequences must be at least 2, got {args.sequences}.")
+        s = dataclasses.replace(s, sequences={k: args.sequences for k in s.sequences})
+    if args.floor_sequences is not None:
+        s = dataclasses.replace(s, floor_sequences=max(args.floor_sequences, 1))
     path = out / "summary.json"
     summary = json.loads(path.read_text()) if path.is_file() else {}
     summary["machine"] = f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, CPU only"

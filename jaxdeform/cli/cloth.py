@@ -24,6 +24,9 @@ def cmd_cloth_simulate(args: argparse.Namespace) -> int:
         raise ValueError(f"--sequences and --frames must be at least 2, got {args.sequences} and {args.frames}.")
     if args.seed < 0:
         raise ValueError(f"--seed must be a whole number >= 0, got {args.seed}.")
+    from jaxdeform.cloth.garments import motion_choices
+
+    motions = motion_choices(args.scenario, args.motions)  # before any work: one sentence for a malformed motion
     with common.staged_folder(out) as tmp:
         record = generate(
             args.scenario,
@@ -32,6 +35,7 @@ def cmd_cloth_simulate(args: argparse.Namespace) -> int:
             n_frames=args.frames,
             seed=args.seed,
             progress=not args.quiet,
+            motions=motions,
         )
     pen = record["penetration"]
     print(
@@ -145,6 +149,13 @@ def _add_simulate_train(cloth_sub) -> None:
     common.add_out(csim, "DIR", "dataset folder to write")
     csim.add_argument("--sequences", type=int, default=10, metavar="N", help="sequences (default 10)")
     csim.add_argument("--frames", type=int, metavar="T", help="frames per sequence (default 120; garments 165)")
+    csim.add_argument(
+        "--motions",
+        nargs="+",
+        metavar="M",
+        help="garments: the body's motions to draw from, each KIND or KIND:NAME=VALUE,... (walk, run, jump, turn, "
+        "kick, sway; e.g. run:speed=3; default: all, random parameters)",
+    )
     common.add_seed(csim, default=0)
     common.add_force(csim, "replace a non-empty --out")
     common.add_quiet(csim)

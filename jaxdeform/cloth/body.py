@@ -358,16 +358,33 @@ def attached(anim: Animation, joint: int, points) -> np.ndarray:
     return anim.positions[:, joint, None, :] + np.einsum("tij,pj->tpi", anim.frames[:, joint], local)
 
 
+def parse_motion(text: str) -> tuple[str, dict]:
+    """A motion choice written ``KIND`` or ``KIND:NAME=VALUE,...`` (e.g. ``run:speed=3,amp=1.2``): the kind and the
+    parameters it fixes, checked against :data:`MOTIONS`; :class:`BodyError` (one sentence) otherwise."""
+    kind, _, rest = str(text).strip().partition(":")
+    params = {}
+    for item in filter(None, (s.strip() for s in rest.split(","))):
+        name, eq, value = item.partition("=")
+        if not eq or not name.strip():
+            raise BodyError(f"a motion parameter is written NAME=VALUE, got '{item}' in '{text}'.")
+        params[name.strip()] = value.strip()
+    Motion(kind, 1.0, params).resolved()  # unknown kind or parameter, a value out of range: one sentence
+    return kind, {k: float(v) for k, v in params.items()}
+
+
 def random_program(rng: np.random.Generator, seconds: float, kinds=tuple(MOTIONS), min_s=2.0, max_s=4.0) -> list:
     """Motions of random kinds, durations and parameters (uniform within :data:`MOTIONS`' ranges) filling
-    ``seconds``."""
+    ``seconds``. ``kinds``: the choices, each a kind or a ``(kind, fixed parameters)`` pair (:func:`parse_motion`)
+    whose fixed parameters are kept."""
+    choices = [(k, {}) if isinstance(k, str) else (k[0], dict(k[1])) for k in kinds]
     out, total = [], 0.0
     while total < seconds:
-        kind = str(rng.choice(list(kinds)))
+        kind, fixed = choices[int(rng.integers(len(choices)))]
         dur = float(rng.uniform(min_s, max_s))
         params = {}
         for name, (lo, _, hi) in MOTIONS[kind].items():
             params[name] = float(rng.choice([-1.0, 1.0])) if name == "side" else float(rng.uniform(lo, hi))
+        params.update(fixed)
         out.append(Motion(kind, dur, params))
         total += dur
     return out

@@ -118,6 +118,19 @@ def pants(
 GARMENTS = {"skirt": skirt, "pants": pants}
 
 
+def motion_choices(kind: str, texts) -> list | None:
+    """The body motions a request names (``KIND`` or ``KIND:NAME=VALUE,...`` each,
+    :func:`jaxdeform.cloth.body.parse_motion`) for the scenario ``kind``: None for none; ``ValueError`` (one
+    sentence) for motions asked of a scene without a body or a malformed motion."""
+    if not texts:
+        return None
+    if kind not in GARMENTS:
+        raise ValueError(f"motions apply to the garment scenarios ({', '.join(GARMENTS)}), not to '{kind}'.")
+    from jaxdeform.cloth.body import parse_motion
+
+    return [parse_motion(m) for m in texts]
+
+
 def fine_waist(coarse_waist: np.ndarray, fine_faces: np.ndarray) -> np.ndarray:
     """The fine waistband: the fine mesh's boundary loop through the coarse waistband's vertices (Loop subdivision
     keeps the coarse vertices first, at the same indices), as sorted indices."""
@@ -145,7 +158,7 @@ def fine_waist(coarse_waist: np.ndarray, fine_faces: np.ndarray) -> np.ndarray:
     return np.array(sorted(seen), np.int64)
 
 
-def motion_track(rng: np.random.Generator, n_frames: int, fps: float, kinds=None):
+def motion_track(rng: np.random.Generator, n_frames: int, fps: float, motions=None):
     """A random body animation for a garment sequence and what the waistband follows.
 
     **Arguments:**
@@ -153,7 +166,8 @@ def motion_track(rng: np.random.Generator, n_frames: int, fps: float, kinds=None
     - ``rng``: the generator of the program (:func:`jaxdeform.cloth.body.random_program`).
     - ``n_frames``: frames, the 15 intro frames from the rest pose included.
     - ``fps``: frames per second.
-    - ``kinds``: the motions to draw from (default: all of :data:`jaxdeform.cloth.body.MOTIONS`).
+    - ``motions``: the motions to draw from, ``(kind, fixed parameters)`` pairs (:func:`jaxdeform.cloth.body.
+        parse_motion`); default None: every kind of :data:`jaxdeform.cloth.body.MOTIONS`, no parameter fixed.
 
     **Returns:**
 
@@ -163,7 +177,7 @@ def motion_track(rng: np.random.Generator, n_frames: int, fps: float, kinds=None
     """
     from jaxdeform.cloth import body
 
-    program = body.random_program(rng, n_frames / fps, tuple(body.MOTIONS) if kinds is None else tuple(kinds))
+    program = body.random_program(rng, n_frames / fps, tuple(motions) if motions else tuple(body.MOTIONS))
     anim = body.animate(program, n_frames, fps)
     rest_pos, _ = body.rest_pose()
     rot = anim.frames[:, body.J["pelvis"]]

@@ -46,6 +46,7 @@ def generate(
     seed: int = 0,
     progress: bool = True,
     levels: int = 3,
+    motions=None,
 ) -> dict:
     """Simulate ``n_sequences`` paired (coarse, fine) sequences of a scenario into ``out``.
 
@@ -62,6 +63,7 @@ def generate(
     - ``seed``: the scenarios' seed.
     - ``progress``: show a progress bar.
     - ``levels``: Loop levels from the coarse to the fine mesh (3: the paper's sizes).
+    - ``motions``: garments: the body's motions to draw from (:func:`jaxdeform.cloth.scenarios.scenario`).
 
     **Returns:**
 
@@ -80,7 +82,9 @@ def generate(
     names, pen_c, pen_f, t_c, t_f, edge_c, edge_f, pen_n = [], [], [], [], [], [], [], []
     frames = n_frames or (scenarios.GARMENT_FRAMES if kind in scenarios.GARMENT_KINDS else scenarios.N_FRAMES)
     for i in tqdm(range(n_sequences), desc=f"simulate {kind}", unit="seq", disable=not progress):
-        sc = scenarios.scenario(kind, i, seed=seed, n_frames=frames, n_sequences=n_sequences, levels=levels)
+        sc = scenarios.scenario(
+            kind, i, seed=seed, n_frames=frames, n_sequences=n_sequences, levels=levels, motions=motions
+        )
         name = f"seq_{i:03d}.npz"
         pair = _stored_pair(out / name, sc.meta)
         if pair is None:

@@ -361,7 +361,13 @@ def _disk_track(rng, index: int, n_per: int, T: int, dt: float):
 
 
 def scenario(
-    kind: str, index: int, seed: int = 0, n_frames: int = N_FRAMES, n_sequences: int = 10, levels: int = 3
+    kind: str,
+    index: int,
+    seed: int = 0,
+    n_frames: int = N_FRAMES,
+    n_sequences: int = 10,
+    levels: int = 3,
+    motions=None,
 ) -> Scenario:
     """Sequence ``index`` of a scenario kind; deterministic from (kind, index, seed).
 
@@ -373,6 +379,8 @@ def scenario(
     - ``n_frames``: frames of the sequence (at least 2).
     - ``n_sequences``: spreads the disk's wind speeds over [1, 5] m/s across indices.
     - ``levels``: Loop levels of the fine mesh.
+    - ``motions``: garments: the body's motions to draw from, ``(kind, fixed parameters)`` pairs
+        (:func:`jaxdeform.cloth.body.parse_motion`; default None: all of them, nothing fixed).
 
     **Returns:**
 
@@ -397,7 +405,9 @@ def scenario(
         track, wind, meta = _sheet_track(rng, index, n_frames, dt)
         x0 = cv.copy()
     elif kind in GARMENT_KINDS:
-        track, rot, trans, meta = garm.motion_track(rng, n_frames, 1.0 / dt)
+        track, rot, trans, meta = garm.motion_track(rng, n_frames, 1.0 / dt, motions)
+        if motions:
+            meta["motions"] = [[k, dict(p)] for k, p in motions]
         wind = np.zeros((n_frames, 3))
         attach = (rot.astype(np.float32), trans.astype(np.float32))
         x0 = cv.copy()
