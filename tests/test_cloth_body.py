@@ -157,3 +157,24 @@ def test_malformed_animations_are_refused():
         body.animate([body.Motion("walk", 2.0)], 1)
     with pytest.raises(body.BodyError, match="non-negative"):
         body.animate([body.Motion("walk", 2.0)], 50, blend=-1.0)
+
+
+def test_capsule_meshes_are_closed_outward_and_on_the_capsule():
+    a, b, r = np.array([0.1, 0.2, 0.3]), np.array([0.5, -0.2, 0.1]), 0.07
+    v, f = body.capsule_mesh(a, b, r, n_around=16, n_lat=6)
+    e = np.sort(np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]]), axis=1)
+    _, counts = np.unique(e, axis=0, return_counts=True)
+    assert np.all(counts == 2)  # closed
+    directed = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    assert len(np.unique(directed, axis=0)) == len(directed)  # consistently wound
+    tri = v[f]
+    volume = np.sum(np.einsum("ij,ij->i", tri[:, 0], np.cross(tri[:, 1], tri[:, 2]))) / 6.0
+    exact = np.pi * r**2 * np.linalg.norm(b - a) + 4.0 / 3.0 * np.pi * r**3
+    assert 0.9 * exact < volume < exact  # outward (positive) and inscribed
+    caps = obst.make(capsules=[(a, b, r)], dtype=np.float64)
+    d, _ = obst.signed_distance(caps, v)
+    np.testing.assert_allclose(np.asarray(d), 0.0, atol=1e-9)  # every vertex on the surface
+    anim = _animation(0, n_frames=40)
+    tr = body.track(anim)
+    sv, sf = body.capsules_mesh(tr.capsule_a[20], tr.capsule_b[20], tr.capsule_r[20])
+    assert sf.max() == len(sv) - 1 and len(sv) == body.N_CAPSULES * (2 * 4 * 12 + 2)

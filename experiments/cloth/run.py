@@ -413,7 +413,8 @@ def stage_figures(out: Path, ds, s: Settings) -> list[str]:
     paths = []
     for t in frames:
         path = out / f"strip_{ds.scenario}_{x.name.removesuffix('.npz')}_f{t:03d}.png"
-        crun.strip_figure(coarse_up[t], fine[t], x.fine[t], ds.fine_faces, path, s.size)
+        scene = crun.body_scene(ds.scenario, x.obstacles, t)
+        crun.strip_figure(coarse_up[t], fine[t], x.fine[t], ds.fine_faces, path, s.size, scene)
         paths.append(path.name)
     return paths
 

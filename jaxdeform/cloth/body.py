@@ -388,3 +388,49 @@ def random_program(rng: np.random.Generator, seconds: float, kinds=tuple(MOTIONS
         out.append(Motion(kind, dur, params))
         total += dur
     return out
+
+
+def capsule_mesh(a, b, radius: float, n_around: int = 12, n_lat: int = 4) -> tuple[np.ndarray, np.ndarray]:
+    """A triangle mesh of the capsule of segment ``a``-``b`` and ``radius``, for figures: two hemispheres of
+    ``n_lat`` rings of ``n_around`` vertices and a pole each, joined by the cylinder; faces oriented outward.
+
+    **Returns:** ``(vertices (2 n_lat n_around + 2, 3), faces (F, 3))``."""
+    a, b = np.asarray(a, np.float64), np.asarray(b, np.float64)
+    axis = b - a
+    length = float(np.linalg.norm(axis))
+    w = axis / length if length > 1e-12 else np.array([0.0, 1.0, 0.0])
+    u = np.cross(w, [1.0, 0.0, 0.0] if abs(w[0]) < 0.9 else [0.0, 0.0, 1.0])
+    u /= np.linalg.norm(u)
+    v = np.cross(w, u)
+    th = 2.0 * np.pi * np.arange(n_around) / n_around
+    around = np.cos(th)[:, None] * u + np.sin(th)[:, None] * v  # (n_around, 3)
+    lower = np.linspace(-np.pi / 2, 0.0, n_lat + 1)[1:]
+    upper = np.linspace(0.0, np.pi / 2, n_lat + 1)[:-1]
+    rings = [a + radius * (np.cos(p) * around + np.sin(p) * w) for p in lower]
+    rings += [b + radius * (np.cos(p) * around + np.sin(p) * w) for p in upper]
+    verts = np.concatenate(rings + [(a - radius * w)[None], (b + radius * w)[None]])
+    n_rings = len(rings)
+    idx = np.arange(n_rings * n_around).reshape(n_rings, n_around)
+    k = np.arange(n_around)
+    k1 = (k + 1) % n_around
+    faces = []
+    for r in range(n_rings - 1):  # over the capsule's few rings
+        lo, hi = idx[r], idx[r + 1]
+        faces += [np.stack([lo[k], lo[k1], hi[k1]], 1), np.stack([lo[k], hi[k1], hi[k]], 1)]
+    south, north = n_rings * n_around, n_rings * n_around + 1
+    faces += [np.stack([np.full(n_around, south), idx[0][k1], idx[0][k]], 1)]
+    faces += [np.stack([np.full(n_around, north), idx[-1][k], idx[-1][k1]], 1)]
+    return verts, np.concatenate(faces).astype(np.int64)
+
+
+def capsules_mesh(capsule_a, capsule_b, capsule_r) -> tuple[np.ndarray, np.ndarray]:
+    """One mesh of every capsule of one instant (``(C, 3)``, ``(C, 3)``, ``(C,)``), for figures."""
+    verts, faces, n = [], [], 0
+    for a, b, r in zip(np.asarray(capsule_a), np.asarray(capsule_b), np.asarray(capsule_r)):
+        cv, cf = capsule_mesh(a, b, float(r))
+        verts.append(cv)
+        faces.append(cf + n)
+        n += len(cv)
+    if not verts:
+        return np.zeros((0, 3)), np.zeros((0, 3), np.int64)
+    return np.concatenate(verts), np.concatenate(faces)

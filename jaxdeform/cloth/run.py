@@ -592,7 +592,7 @@ def evaluate(run: Run, data=None, *, part: str = "test", progress: bool = False)
     return evaluate_run(run, ds, part=part, progress=progress)
 
 
-def strip_figure(coarse_up, ours, fine, faces, path, size: int = 256) -> np.ndarray:
+def strip_figure(coarse_up, ours, fine, faces, path, size: int = 256, scene=None) -> np.ndarray:
     """One frame side by side: the upsampled coarse cloth, the synthesis, the fine simulation and its error.
 
     **Arguments:**
@@ -601,6 +601,8 @@ def strip_figure(coarse_up, ours, fine, faces, path, size: int = 256) -> np.ndar
     - ``faces``: the fine faces ``(F, 3)``.
     - ``path``: the PNG to write (atomically).
     - ``size``: the panels' height in pixels.
+    - ``scene``: ``(vertices, faces)`` of what the cloth lies on (a garment's body, :func:`jaxdeform.cloth.body.
+        capsules_mesh`), drawn in the first three panels; None: the cloth alone.
 
     **Returns:**
 
@@ -608,14 +610,22 @@ def strip_figure(coarse_up, ours, fine, faces, path, size: int = 256) -> np.ndar
     """
     from jaxdeform.mesh.render import auto_camera, caption, hstack, render, save_png
 
-    cam = auto_camera(np.concatenate([fine, ours, coarse_up]), azimuth_deg=35, elevation_deg=25)
+    sv, sf = (np.zeros((0, 3)), np.zeros((0, 3), np.int64)) if scene is None else scene
+    cam = auto_camera(np.concatenate([fine, ours, coarse_up, sv]), azimuth_deg=35, elevation_deg=25)
     err = np.linalg.norm(ours - fine, axis=1)
     vmax = float(max(np.linalg.norm(coarse_up - fine, axis=1).max(), err.max(), 1e-6))
     plain = {"camera": cam, "width": size, "height": size, "colorbar": False}
+    colours = np.concatenate([np.tile([0.62, 0.70, 0.88], (len(fine), 1)), np.tile([0.86, 0.72, 0.60], (len(sv), 1))])
+
+    def with_scene(x):
+        if not len(sv):
+            return render(x, faces, **plain)
+        return render(np.concatenate([x, sv]), np.concatenate([faces, sf + len(x)]), vertex_colors=colours, **plain)
+
     panels = [
-        caption(render(coarse_up, faces, **plain), "coarse (upsampled)"),
-        caption(render(ours, faces, **plain), "ours"),
-        caption(render(fine, faces, **plain), "fine simulation"),
+        caption(with_scene(coarse_up), "coarse (upsampled)"),
+        caption(with_scene(ours), "ours"),
+        caption(with_scene(fine), "fine simulation"),
         caption(
             render(
                 ours,
@@ -664,5 +674,16 @@ def show(run: Run, out, data=None, *, frames: int = 3, size: int = 256) -> dict:
     files = []
     for t in picked:
         files.append(f"strip_{x.name.removesuffix('.npz')}_f{t:03d}.png")
-        strip_figure(coarse_up[t], fine[t], x.fine[t], ds.fine_faces, out / files[-1], size)
+        scene = body_scene(ds.scenario, x.obstacles, t)
+        strip_figure(coarse_up[t], fine[t], x.fine[t], ds.fine_faces, out / files[-1], size, scene)
     return {"sequence": x.name, "frames": picked, "files": files}
+
+
+def body_scene(kind: str, obstacles: dict, t: int):
+    """The body a garment of scenario ``kind`` is worn on at frame ``t`` of its obstacle track, as a mesh
+    ``(vertices, faces)`` for :func:`strip_figure`; None for the scenes without a body."""
+    from jaxdeform.cloth import body, scenarios
+
+    if kind not in scenarios.GARMENT_KINDS or not obstacles:
+        return None
+    return body.capsules_mesh(obstacles["capsule_a"][t], obstacles["capsule_b"][t], obstacles["capsule_r"][t])
