@@ -1,4 +1,5 @@
-"""The paired SHEET and DISK scenes of seed 002 (Sec. 4, "Datasets"): coarse and fine cloth simulated separately.
+"""The paired SHEET, DISK, SKIRT and PANTS scenes of seed 002 (Sec. 4, "Datasets"): coarse and fine cloth simulated
+separately.
 
 Meshes (metres):
 - SHEET: a 1 m x 1 m square in the plane z = 0, x in [-0.5, 0.5], y in [0.4, 1.4]; coarse = regular 9 x 9 grid
@@ -31,6 +32,12 @@ Scenes (every sequence is determined by (kind, index, seed) through ``np.random.
   horizontally from a random direction; its mean speed is index-dependent across [1, 5] m/s (jittered), ramps up
   over the first second and gusts +-30 % (periods 1.5-4 s), its direction drifts by up to +-25 degrees over the
   sequence, and the turbulence RMS is 15-35 % of the speed.
+
+- SKIRT, PANTS (:data:`GARMENT_KINDS`): garments (:mod:`jaxdeform.cloth.garments`) worn by the animated capsule body
+  of :mod:`jaxdeform.cloth.body`, which plays a random program of motions (walk, run, jump, turn, kick, sway; the
+  15 intro frames from the rest pose first; :data:`GARMENT_FRAMES` frames by default). The waistband is pinned and
+  rides rigidly with the pelvis (``Scenario.attach``, :func:`pin_track`); the cloth settles on the body at rest
+  before the recorded frames; no wind, no ground.
 
 Both resolutions use the same :class:`ClothParams` physics and the same obstacle / wind / pin tracks; only the
 iteration budget differs (:data:`COARSE_STEPS` = 10 x 2, :data:`FINE_STEPS` = 40 x 4 (substeps,
