@@ -82,9 +82,7 @@ def generate(
     names, pen_c, pen_f, t_c, t_f, edge_c, edge_f, pen_n = [], [], [], [], [], [], [], []
     frames = n_frames or (scenarios.GARMENT_FRAMES if kind in scenarios.GARMENT_KINDS else scenarios.N_FRAMES)
     for i in tqdm(range(n_sequences), desc=f"simulate {kind}", unit="seq", disable=not progress):
-        sc = scenarios.scenario(
-            kind, i, seed=seed, n_frames=frames, n_sequences=n_sequences, levels=levels, motions=motions
-        )
+        sc = scenarios.scenario(kind, i, seed, frames, n_sequences, levels, motions)
         name = f"seq_{i:03d}.npz"
         pair = _stored_pair(out / name, sc.meta)
         if pair is None:
@@ -94,9 +92,7 @@ def generate(
         m = pair["meta"]
         pen_c.append(m["coarse_max_penetration"])
         pen_f.append(m["fine_max_penetration"])
-        pen_n.append(
-            int(m.get("penetration_samples", 0))
-        )  # 0: a record without the count was measured at the vertices only
+        pen_n.append(int(m.get("penetration_samples", 0)))  # 0: a record measured at the vertices only
         t_c.append(m["coarse_seconds_per_frame"])
         t_f.append(m["fine_seconds_per_frame"])
         edge_c.append(_mean_edge(pair["coarse_rest"], pair["coarse_faces"]))

@@ -367,6 +367,23 @@ def _disk_track(rng, index: int, n_per: int, T: int, dt: float):
     return obst.static_track(table, T), wind, turb, meta
 
 
+def _scene(kind: str, rng, index: int, n_frames: int, n_sequences: int, params: ClothParams, cv, motions):
+    """The kind's tracks and start: ``(obstacle track, wind (T, 3), params, x0 (Vc, 3), attach, meta)``."""
+    dt = PARAMS.frame_dt
+    if kind == "sheet":
+        track, wind, meta = _sheet_track(rng, index, n_frames, dt)
+        return track, wind, params, cv.copy(), None, meta
+    if kind in GARMENT_KINDS:
+        track, rot, trans, meta = garm.motion_track(rng, n_frames, 1.0 / dt, motions)
+        if motions:
+            meta["motions"] = [[k, dict(p)] for k, p in motions]
+        attach = (rot.astype(np.float32), trans.astype(np.float32))
+        return track, np.zeros((n_frames, 3)), params, cv.copy(), attach, meta
+    track, wind, turb, meta = _disk_track(rng, index, max(n_sequences, 1), n_frames, dt)
+    x0 = cv + np.array([0.0, TABLE_TOP + PARAMS.thickness + 0.005, 0.0])
+    return track, wind, params.replace(turbulence=float(turb)), x0, None, meta
+
+
 def scenario(
     kind: str,
     index: int,
@@ -380,7 +397,7 @@ def scenario(
 
     **Arguments:**
 
-    - ``kind``: ``"sheet"`` or ``"disk"`` (:data:`KINDS`).
+    - ``kind``: ``"sheet"``, ``"disk"``, ``"skirt"`` or ``"pants"`` (:data:`KINDS`).
     - ``index``: the sequence's index (non-negative).
     - ``seed``: the seed of the random draws.
     - ``n_frames``: frames of the sequence (at least 2).
@@ -407,21 +424,7 @@ def scenario(
     pc, pf = _pins(kind, levels)
     params = PARAMS.replace(substeps=COARSE_STEPS[kind][0], iterations=COARSE_STEPS[kind][1], **KIND_PARAMS[kind])
     params = params.replace(face_samples=sim.face_samples_for(cv, cf, params.thickness, MIN_OBSTACLE_RADIUS[kind]))
-    attach = None
-    if kind == "sheet":
-        track, wind, meta = _sheet_track(rng, index, n_frames, dt)
-        x0 = cv.copy()
-    elif kind in GARMENT_KINDS:
-        track, rot, trans, meta = garm.motion_track(rng, n_frames, 1.0 / dt, motions)
-        if motions:
-            meta["motions"] = [[k, dict(p)] for k, p in motions]
-        wind = np.zeros((n_frames, 3))
-        attach = (rot.astype(np.float32), trans.astype(np.float32))
-        x0 = cv.copy()
-    else:
-        track, wind, turb, meta = _disk_track(rng, index, max(n_sequences, 1), n_frames, dt)
-        params = params.replace(turbulence=float(turb))
-        x0 = cv + np.array([0.0, TABLE_TOP + PARAMS.thickness + 0.005, 0.0])
+    track, wind, params, x0, attach, meta = _scene(kind, rng, index, n_frames, n_sequences, params, cv, motions)
     meta = dict(
         kind=kind,
         index=index,
