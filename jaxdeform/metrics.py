@@ -42,8 +42,9 @@ def _check_pair(ref, rec) -> tuple[np.ndarray, np.ndarray]:
     return ref, rec
 
 
-def _proper_rotation(a: np.ndarray) -> np.ndarray:
-    """The proper rotation R maximizing tr(R^T A) for each (3, 3) in a batch."""
+def proper_rotation(a: np.ndarray) -> np.ndarray:
+    """The proper rotation R maximizing tr(R^T A) for each (3, 3) in a batch (numpy): with A = sum_i y_i x_i^T,
+    the rotation that best maps the points x_i onto y_i (Kabsch)."""
     u, _, vt = np.linalg.svd(a)
     flip = np.where(np.linalg.det(u @ vt) < 0, -1.0, 1.0)
     u = u.copy()
@@ -89,7 +90,7 @@ def _aligned(ref, rec, rotate: bool) -> tuple[np.ndarray, np.ndarray]:
     ref = ref - ref.mean(axis=1, keepdims=True)
     rec = rec - rec.mean(axis=1, keepdims=True)
     if rotate:
-        r = _proper_rotation(np.einsum("nvx,nvy->nxy", ref, rec))  # maps rec onto ref
+        r = proper_rotation(np.einsum("nvx,nvy->nxy", ref, rec))  # maps rec onto ref
         rec = np.einsum("nxy,nvy->nvx", r, rec)
     return ref, rec
 

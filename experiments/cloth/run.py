@@ -101,9 +101,8 @@ class Settings:
         """Frames per sequence of a scenario kind."""
         from jaxdeform.cloth import scenarios
 
-        if kind in scenarios.GARMENT_KINDS:
-            return self.garment_frames or scenarios.GARMENT_FRAMES
-        return self.frames or scenarios.N_FRAMES
+        own = self.garment_frames if kind in scenarios.GARMENT_KINDS else self.frames
+        return own or scenarios.default_frames(kind)
 
 
 def settings(config: str) -> Settings:

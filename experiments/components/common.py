@@ -8,6 +8,7 @@ from pathlib import Path
 import numpy as np
 
 from jaxdeform.mesh.io import atomic_path, load_mesh, load_sequence, save_mesh
+from jaxdeform.metrics import proper_rotation
 
 #: data set -> split mode (Sec. 5.1: sequences every 10th, pose sets a random half)
 SPLITS = {"horse-gallop": "every10", "horse-49": "every10", "samba": "every10", "cactus": "half", "tube": "every10"}
@@ -20,10 +21,8 @@ def similarity_onto(src: np.ndarray, dst: np.ndarray) -> np.ndarray:
     a = src - src.mean(axis=0)
     b = dst - dst.mean(axis=0)
     a = a * np.sqrt((b**2).sum() / (a**2).sum())
-    u, _, vt = np.linalg.svd(a.T @ b)
-    d = np.sign(np.linalg.det(u @ vt))
-    rot = u @ np.diag([1.0, 1.0, d]) @ vt  # a @ rot ~ b
-    return a @ rot + dst.mean(axis=0)
+    rot = proper_rotation(b.T @ a)  # rot @ a_i ~ b_i
+    return a @ rot.T + dst.mean(axis=0)
 
 
 def horse49(data: Path, out: Path) -> Path:

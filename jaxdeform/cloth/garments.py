@@ -18,6 +18,8 @@ from typing import NamedTuple
 
 import numpy as np
 
+from jaxdeform.mesh.topology import half_edge_groups, vertex_components
+
 SKIRT_AROUND = 16
 SKIRT_RINGS = 8
 #: (height, semi-axis along x, semi-axis along z) of the skirt's rings at the waist, the hips and the hem; the
@@ -134,28 +136,16 @@ def motion_choices(kind: str, texts) -> list | None:
 def fine_waist(coarse_waist: np.ndarray, fine_faces: np.ndarray) -> np.ndarray:
     """The fine waistband: the fine mesh's boundary loop through the coarse waistband's vertices (Loop subdivision
     keeps the coarse vertices first, at the same indices), as sorted indices."""
-    f = np.asarray(fine_faces, np.int64)
-    edges = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
-    key = np.sort(edges, axis=1)
-    _, inverse, counts = np.unique(key, axis=0, return_inverse=True, return_counts=True)
-    boundary = key[counts[inverse.ravel()] == 1]
-    # the connected boundary component that holds the first coarse waist vertex
-    nbrs: dict[int, list[int]] = {}
-    for a, b in boundary.tolist():
-        nbrs.setdefault(a, []).append(b)
-        nbrs.setdefault(b, []).append(a)
+    g = half_edge_groups(fine_faces)
+    boundary = g.key[g.starts[g.counts == 1]]
     start = int(coarse_waist[0])
-    if start not in nbrs:
+    if start not in boundary:
         raise ValueError("the coarse waistband is not on the fine mesh's boundary.")
-    seen, stack = {start}, [start]
-    while stack:  # over the loop's vertices (host set-up, once per garment)
-        for n in nbrs[stack.pop()]:
-            if n not in seen:
-                seen.add(n)
-                stack.append(n)
-    if not set(int(i) for i in coarse_waist) <= seen:
+    _, labels = vertex_components(boundary, int(np.asarray(fine_faces).max()) + 1)
+    loop = np.flatnonzero(labels == labels[start])  # the boundary component that holds the first waist vertex
+    if not np.isin(coarse_waist, loop).all():
         raise ValueError("the coarse waistband's vertices do not lie on one fine boundary loop.")
-    return np.array(sorted(seen), np.int64)
+    return loop
 
 
 def motion_track(rng: np.random.Generator, n_frames: int, fps: float, motions=None):

@@ -59,7 +59,7 @@ def generate(
     - ``kind``: the scenario (``"sheet"``, ``"disk"``, ``"skirt"`` or ``"pants"``, :mod:`jaxdeform.cloth.scenarios`).
     - ``out``: the dataset folder.
     - ``n_sequences``: how many sequences (at least 2: one to train on, one to test).
-    - ``n_frames``: frames per sequence (default None: the scenarios' ``N_FRAMES``, ``GARMENT_FRAMES`` for garments).
+    - ``n_frames``: frames per sequence (default None: :func:`jaxdeform.cloth.scenarios.default_frames`).
     - ``seed``: the scenarios' seed.
     - ``progress``: show a progress bar.
     - ``levels``: Loop levels from the coarse to the fine mesh (3: the paper's sizes).
@@ -80,7 +80,7 @@ def generate(
         raise JaxDeformError("a dataset needs at least 2 sequences (one to train on, one to test).")
     out = Path(out)
     names, pen_c, pen_f, t_c, t_f, edge_c, edge_f, pen_n = [], [], [], [], [], [], [], []
-    frames = n_frames or (scenarios.GARMENT_FRAMES if kind in scenarios.GARMENT_KINDS else scenarios.N_FRAMES)
+    frames = n_frames or scenarios.default_frames(kind)
     for i in tqdm(range(n_sequences), desc=f"simulate {kind}", unit="seq", disable=not progress):
         sc = scenarios.scenario(kind, i, seed, frames, n_sequences, levels, motions)
         name = f"seq_{i:03d}.npz"

@@ -78,6 +78,13 @@ KINDS = ("sheet", "disk") + GARMENT_KINDS
 #: Default recorded frames per sequence (4 s at 30 frames/s); garments: the 15 intro frames and 5 s of motion.
 N_FRAMES = 120
 GARMENT_FRAMES = 165
+
+
+def default_frames(kind: str) -> int:
+    """Recorded frames of a sequence of scenario ``kind`` when none are asked for."""
+    return GARMENT_FRAMES if kind in GARMENT_KINDS else N_FRAMES
+
+
 #: Settling frames before recording (obstacles at t = 0, no wind).
 SETTLE_FRAMES = {"sheet": 10, "disk": 30, **{k: 30 for k in GARMENT_KINDS}}
 #: (substeps, iterations) per frame for the coarse meshes (per kind) and the fine ones. With frictionless contact

@@ -97,6 +97,7 @@ import numpy as np
 from jaxtyping import Array, Bool, Float, Int
 
 from jaxdeform.errors import ConnectivityError, DegenerateMeshError, JaxDeformError
+from jaxdeform.mesh.topology import half_edge_groups
 
 from . import obstacles as obst
 from .obstacles import Obstacles
@@ -244,16 +245,7 @@ def _edge_table(X: np.ndarray, F: np.ndarray, tri_area: np.ndarray) -> _EdgeTabl
     Takes the checked rest mesh ``X``, ``F`` and its triangle areas. Raises ConnectivityError if an edge has
     more than two triangles (not a manifold).
     """
-    he = np.concatenate([F[:, [0, 1]], F[:, [1, 2]], F[:, [2, 0]]])
-    opp = np.concatenate([F[:, 2], F[:, 0], F[:, 1]])
-    fid = np.tile(np.arange(len(F)), 3)
-    key = np.sort(he, axis=1)
-    order = np.lexsort((key[:, 1], key[:, 0]))
-    key, he, opp, fid = key[order], he[order], opp[order], fid[order]
-    first = np.ones(len(key), bool)
-    first[1:] = np.any(key[1:] != key[:-1], axis=1)
-    starts = np.flatnonzero(first)
-    counts = np.diff(np.append(starts, len(key)))
+    key, he, opp, fid, starts, counts = half_edge_groups(F)
     if counts.max(initial=1) > 2:
         raise ConnectivityError("The cloth mesh is not a manifold (an edge has more than two triangles).")
     edges = key[starts]

@@ -15,6 +15,7 @@ Conventions
 from __future__ import annotations
 
 import dataclasses
+from typing import NamedTuple
 
 import jax
 import jax.numpy as jnp
@@ -69,6 +70,35 @@ def unique_edges(faces: Int[ArrayLike, "f 3"]) -> Int[np.ndarray, "e 2"]:
     f = np.asarray(faces, dtype=np.int64)
     e = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
     return np.unique(np.sort(e, axis=1), axis=0)
+
+
+class HalfEdgeGroups(NamedTuple):
+    """A triangle list's half-edges sorted by their undirected edge (:func:`half_edge_groups`)."""
+
+    key: np.ndarray  # (3F, 2) the undirected edge of each half-edge, i < j, lexicographic order
+    he: np.ndarray  # (3F, 2) the half-edges, as their triangles walk them
+    opp: np.ndarray  # (3F,) the vertex opposite each half-edge in its triangle
+    fid: np.ndarray  # (3F,) the triangle of each half-edge
+    starts: np.ndarray  # (E,) the index of each unique edge's first half-edge
+    counts: np.ndarray  # (E,) the half-edges (triangles) of each unique edge: 1 on the boundary, 2 inside
+
+
+def half_edge_groups(faces: Int[ArrayLike, "f 3"]) -> HalfEdgeGroups:
+    """The half-edges of a triangle list grouped by undirected edge (numpy, no checks): the unique edges are
+    ``key[starts]`` (as :func:`unique_edges`), the triangles of edge ``e`` are ``fid[starts[e]:starts[e] +
+    counts[e]]``."""
+    f = np.asarray(faces, dtype=np.int64)
+    he = np.concatenate([f[:, [0, 1]], f[:, [1, 2]], f[:, [2, 0]]])
+    opp = np.concatenate([f[:, 2], f[:, 0], f[:, 1]])
+    fid = np.tile(np.arange(len(f)), 3)
+    key = np.sort(he, axis=1)
+    order = np.lexsort((key[:, 1], key[:, 0]))
+    key, he, opp, fid = key[order], he[order], opp[order], fid[order]
+    first = np.ones(len(key), bool)
+    first[1:] = np.any(key[1:] != key[:-1], axis=1)
+    starts = np.flatnonzero(first)
+    counts = np.diff(np.append(starts, len(key)))
+    return HalfEdgeGroups(key, he, opp, fid, starts, counts)
 
 
 def repeated_vertex_face(faces: Int[ArrayLike, "f 3"]) -> int:
