@@ -49,6 +49,34 @@ def test_sdf_sphere_capsule_ground():
     np.testing.assert_allclose(n[5], [0, 1, 0], atol=1e-6)  # the ground
 
 
+def test_query_closest_shape_and_its_surface_motion():
+    # a sphere translates, a capsule turns about its end a (so its surface moves by (1 - t) da + t db at parameter
+    # t), a cylinder and the ground rise; each point is nearest one of them
+    prev = O.make(
+        spheres=[((0, 1, 0), 0.5)],
+        capsules=[((3, 0, 0), (3, 2, 0), 0.25)],
+        cylinders=[((-3, 1, 0), 0.5, 1.0)],
+        ground=-1.0,
+    )
+    now = O.make(
+        spheres=[((0.1, 1, 0), 0.5)],
+        capsules=[((3, 0, 0), (3.2, 2, 0), 0.25)],
+        cylinders=[((-3, 1.05, 0), 0.5, 1.0)],
+        ground=-0.9,
+    )
+    pts = np.array([[0.1, 1.7, 0], [3.5, 1.0, 0], [3.4, 1.5, 0], [-3, 1.3, 0], [10, -0.5, 10]], np.float32)
+    d, n, disp, k = O.query(now, prev, pts)
+    np.testing.assert_array_equal(k, [0, 1, 1, 2, 3])  # spheres, capsules, cylinders, then the ground
+    ab = np.array([0.2, 2.0, 0.0])
+    t = [(pts[i] - [3, 0, 0]) @ ab / (ab @ ab) for i in (1, 2)]
+    expect = [[0.1, 0, 0], [0.2 * t[0], 0, 0], [0.2 * t[1], 0, 0], [0, 0.05, 0], [0, 0.1, 0]]
+    np.testing.assert_allclose(disp, expect, atol=1e-6)
+    d_ref, n_ref = O.signed_distance(now, pts)
+    np.testing.assert_allclose(d, d_ref, atol=1e-7)
+    np.testing.assert_allclose(n, n_ref, atol=1e-7)
+    np.testing.assert_allclose(np.asarray(d)[[0, 3, 4]], [0.2, 0.25, 0.4], atol=1e-6)
+
+
 def test_sdf_capped_cylinder_side_caps_rim_and_inside():
     obs = O.make(cylinders=[((0, 1, 0), 0.5, 1.0)])  # y in [0, 1], radius 0.5
     pts = np.array(

@@ -30,6 +30,7 @@ VARIANTS = {
     "default": {},
     "damped": {"damping": 2.0},
     "stiff-damped": {"bend_stiffness": 1.0e-4, "damping": 2.0},
+    "stiff-damped-untethered": {"bend_stiffness": 1.0e-4, "damping": 2.0, "tethers": False},
 }
 
 

@@ -171,69 +171,79 @@ def from_dict(d: dict) -> Obstacles:
     return Obstacles(**{k: np.asarray(d[k]) for k in Obstacles._fields})
 
 
-def _safe_unit(v, fallback):
-    n = jnp.sqrt(jnp.sum(v * v, axis=-1, keepdims=True))
-    ok = n > _TINY
-    return jnp.where(ok, v / jnp.where(ok, n, 1.0), fallback), n[..., 0]
+def _unit_cols(v, fallback):
+    """Columns ``v`` (3 arrays of the same shape) normalised, ``fallback`` (3,) where shorter than _TINY; and their
+    lengths."""
+    length = jnp.sqrt(v[0] * v[0] + v[1] * v[1] + v[2] * v[2])
+    ok = length > _TINY
+    safe = jnp.where(ok, length, 1.0)
+    return [jnp.where(ok, v[i] / safe, float(fallback[i])) for i in range(3)], length
 
 
-def _spheres(obs, x):
-    """(p, s) distances and normals to every sphere, plus the closest-point segment parameter (0)."""
-    diff = x[:, None, :] - obs.sphere_c[None]  # (p, s, 3)
-    n, dist = _safe_unit(diff, jnp.asarray(_UP, x.dtype))
-    return dist - obs.sphere_r[None], n
+# The shape functions below work in a shapes-by-points layout: the points' coordinates are three (P,) rows, every
+# result is (K, P) per component, so that the points run along the vectorised axis (the shapes are few).
 
 
-def _capsule_param(obs, x):
-    ab = obs.capsule_b - obs.capsule_a  # (c, 3)
-    ab2 = jnp.sum(ab * ab, -1)
-    t = jnp.sum((x[:, None, :] - obs.capsule_a[None]) * ab[None], -1) / jnp.maximum(ab2, _TINY)[None]
-    return jnp.clip(t, 0.0, 1.0)  # (p, c)
+def _spheres(obs, X):
+    """Signed distances (s, P) and normal components to every sphere."""
+    rel = [X[i][None] - obs.sphere_c[:, i, None] for i in range(3)]
+    n, dist = _unit_cols(rel, _UP)
+    return dist - obs.sphere_r[:, None], n
 
 
-def _capsules(obs, x):
-    t = _capsule_param(obs, x)
-    p = obs.capsule_a[None] + t[..., None] * (obs.capsule_b - obs.capsule_a)[None]
-    n, dist = _safe_unit(x[:, None, :] - p, jnp.asarray(_UP, x.dtype))
-    return dist - obs.capsule_r[None], n
+def _capsule_param(obs, X):
+    """The closest-point parameter t in [0, 1] along every capsule's segment (c, P)."""
+    a = obs.capsule_a
+    ab = obs.capsule_b - a
+    ab2 = jnp.maximum(jnp.sum(ab * ab, -1), _TINY)
+    dot = sum((X[i][None] - a[:, i, None]) * ab[:, i, None] for i in range(3))
+    return jnp.clip(dot / ab2[:, None], 0.0, 1.0)
 
 
-def _cylinders(obs, x):
-    e = obs.cylinder_rounding  # the sharp inner cylinder, offset by e
-    rel = x[:, None, :] - (obs.cylinder_c - e[:, None] * jnp.asarray(_UP, x.dtype))[None]  # (p, y, 3)
-    radial = rel * jnp.asarray([1.0, 0.0, 1.0], x.dtype)
-    rdir, rho = _safe_unit(radial, jnp.asarray([1.0, 0.0, 0.0], x.dtype))
-    half = 0.5 * obs.cylinder_h[None] - e[None]
-    ym = rel[..., 1] + half  # height above the mid plane
-    q0 = rho - (obs.cylinder_r - e)[None]
+def _capsules(obs, X, t):
+    a = obs.capsule_a
+    ab = obs.capsule_b - a
+    rel = [X[i][None] - (a[:, i, None] + t * ab[:, i, None]) for i in range(3)]
+    n, dist = _unit_cols(rel, _UP)
+    return dist - obs.capsule_r[:, None], n
+
+
+def _cylinders(obs, X):
+    e = obs.cylinder_rounding[:, None]  # the sharp inner cylinder, offset by e
+    c = obs.cylinder_c
+    rel = [X[0][None] - c[:, 0, None], X[1][None] - (c[:, 1, None] - e), X[2][None] - c[:, 2, None]]
+    rdir, rho = _unit_cols([rel[0], jnp.zeros_like(rel[0]), rel[2]], (1.0, 0.0, 0.0))
+    half = 0.5 * obs.cylinder_h[:, None] - e
+    ym = rel[1] + half  # height above the mid plane
+    q0 = rho - (obs.cylinder_r[:, None] - e)
     q1 = jnp.abs(ym) - half
-    sgn = jnp.where(ym >= 0, 1.0, -1.0).astype(x.dtype)
-    up = jnp.asarray(_UP, x.dtype)
-    axial = sgn[..., None] * up
+    sgn = jnp.where(ym >= 0, 1.0, -1.0).astype(q0.dtype)
     # outside (some q > 0): gradient of |max(q, 0)|
     o0 = jnp.maximum(q0, 0.0)
     o1 = jnp.maximum(q1, 0.0)
     out_len = jnp.sqrt(o0 * o0 + o1 * o1)
-    out_dir = o0[..., None] * rdir + o1[..., None] * axial
-    out_n = out_dir / jnp.maximum(out_len, _TINY)[..., None]
+    inv = 1.0 / jnp.maximum(out_len, _TINY)
+    out_n = [o0 * rdir[0] * inv, o1 * sgn * inv, o0 * rdir[2] * inv]
     # inside (both q <= 0): the nearer of side and caps
-    in_n = jnp.where((q0 >= q1)[..., None], rdir, axial)
+    side = q0 >= q1
+    in_n = [jnp.where(side, rdir[0], 0.0), jnp.where(side, 0.0, sgn), jnp.where(side, rdir[2], 0.0)]
     outside = (q0 > 0) | (q1 > 0)
-    d = jnp.where(outside, out_len, jnp.maximum(q0, q1)) - e[None]
-    n = jnp.where(outside[..., None], out_n, in_n)
-    return d, n
+    d = jnp.where(outside, out_len, jnp.maximum(q0, q1)) - e
+    return d, [jnp.where(outside, out_n[i], in_n[i]) for i in range(3)]
 
 
-def _candidates(obs: Obstacles, x):
-    """Distances (p, k) and normals (p, k, 3) to the k = s + c + y + 1 shapes, in that order (ground last)."""
-    ds, ns = _spheres(obs, x)
-    dc, nc = _capsules(obs, x)
-    dy, ny = _cylinders(obs, x)
-    dg = (x[:, 1] - obs.ground)[:, None]
-    ng = jnp.broadcast_to(jnp.asarray(_UP, x.dtype), (x.shape[0], 1, 3))
-    d = jnp.concatenate([ds, dc, dy, dg.astype(x.dtype)], axis=1)
-    n = jnp.concatenate([ns, nc, ny, ng], axis=1)
-    return d, n
+def _closest(obs: Obstacles, x):
+    """The closest of the k = s + c + y + 1 shapes (spheres, capsules, cylinders, the ground last) to each point:
+    (distance (P,), normal (P, 3), shape index (P,), capsule parameter per capsule (c, P))."""
+    X = [x[:, i] for i in range(3)]
+    t = _capsule_param(obs, X)
+    parts = [_spheres(obs, X), _capsules(obs, X, t), _cylinders(obs, X)]
+    up = [jnp.full((1, x.shape[0]), v, x.dtype) for v in _UP]
+    d = jnp.concatenate([p[0] for p in parts] + [(X[1] - obs.ground)[None]], 0)
+    k = jnp.argmin(d, axis=0)
+    pick = lambda a: jnp.take_along_axis(a, k[None], 0)[0]  # noqa: E731
+    n = jnp.stack([pick(jnp.concatenate([p[1][i] for p in parts] + [up[i]], 0)) for i in range(3)], -1)
+    return pick(d), n, k, t
 
 
 @jax.jit
@@ -255,9 +265,8 @@ def signed_distance(obs: Obstacles, x: Float[Array, "p 3"]) -> tuple[Float[Array
     if not jnp.issubdtype(x.dtype, jnp.floating):
         x = x.astype(jnp.float32)
     obs = jax.tree_util.tree_map(lambda a: jnp.asarray(a, x.dtype), obs)
-    d, n = _candidates(obs, x)
-    k = jnp.argmin(d, axis=1)
-    return jnp.take_along_axis(d, k[:, None], 1)[:, 0], jnp.take_along_axis(n, k[:, None, None], 1)[:, 0]
+    d, n, _, _ = _closest(obs, x)
+    return d, n
 
 
 def query(
@@ -278,23 +287,15 @@ def query(
     with its end points blended at the closest-point parameter), and its index.
     """
     x = jnp.asarray(x)
-    d, n = _candidates(obs, x)
-    k = jnp.argmin(d, axis=1)
-    t = _capsule_param(obs, x)  # (p, c)
-    disp = jnp.concatenate(
-        [
-            jnp.broadcast_to((obs.sphere_c - prev.sphere_c)[None], (x.shape[0],) + obs.sphere_c.shape),
-            (1.0 - t)[..., None] * (obs.capsule_a - prev.capsule_a)[None]
-            + t[..., None] * (obs.capsule_b - prev.capsule_b)[None],
-            jnp.broadcast_to((obs.cylinder_c - prev.cylinder_c)[None], (x.shape[0],) + obs.cylinder_c.shape),
-            jnp.broadcast_to((obs.ground - prev.ground) * jnp.asarray(_UP, x.dtype), (x.shape[0], 1, 3)),
-        ],
-        axis=1,
-    )
-    pick = k[:, None]
-    return (
-        jnp.take_along_axis(d, pick, 1)[:, 0],
-        jnp.take_along_axis(n, pick[..., None], 1)[:, 0],
-        jnp.take_along_axis(disp, pick[..., None], 1)[:, 0],
-        k,
-    )
+    d, n, k, t = _closest(obs, x)
+    # each shape's translation since prev at its two ends (one point for all but capsules), blended at the
+    # winning capsule's parameter
+    ground = ((obs.ground - prev.ground) * jnp.asarray(_UP, x.dtype))[None]
+    ends = [obs.sphere_c - prev.sphere_c, None, obs.cylinder_c - prev.cylinder_c, ground]
+    move_a = jnp.concatenate([e if e is not None else obs.capsule_a - prev.capsule_a for e in ends], 0)
+    move_b = jnp.concatenate([e if e is not None else obs.capsule_b - prev.capsule_b for e in ends], 0)
+    n_s, n_c = obs.sphere_r.shape[0], obs.capsule_r.shape[0]
+    on_capsule = (k >= n_s) & (k < n_s + n_c)
+    tc = jnp.take_along_axis(t, jnp.clip(k - n_s, 0, max(n_c - 1, 0))[None], 0)[0] if n_c else jnp.zeros_like(d)
+    tw = jnp.where(on_capsule, tc, 0.0)[:, None]
+    return d, n, (1.0 - tw) * move_a[k] + tw * move_b[k], k
