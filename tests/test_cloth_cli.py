@@ -310,6 +310,12 @@ def test_experiment_test_config_writes_summary(tmp_path):
     assert fl["upsampled_coarse_sted"] == pytest.approx(r["sted"]["upsampled_coarse"], rel=1e-9)
     assert 0 < fl["perturbed_fine_sted"] < fl["upsampled_coarse_sted"]
     assert (tmp_path / "results.md").is_file() and r["figures"] and (tmp_path / r["figures"][0]).is_file()
+    # one method evaluated again (its stored run) merges into the table: every other row stays, its own is the same
+    argv = ["--config", "test", "--out", str(tmp_path), "--datasets", "sheet", "--stages", "train", "evaluate"]
+    assert exp.main(argv + ["--methods", "ours"]) == 0
+    again = json.loads((tmp_path / "summary.json").read_text())["datasets"]["sheet"]
+    assert set(again["rmse"]) == set(r["rmse"]) and again["rmse"]["ours"] == pytest.approx(r["rmse"]["ours"], rel=1e-6)
+    assert again["rmse"]["acap"] == r["rmse"]["acap"]
 
     # the seed spread reuses the stored seed-0 run (same figure as the experiment's) and trains another draw
     from experiments.cloth import seeds

@@ -2,9 +2,10 @@
 
     python -m experiments.cloth.run [--config default|test] [--out DIR] [--datasets sheet disk]
                                     [--stages data train evaluate linear scale scaling jumps timing floor figures]
-                                    [--sequences N] [--floor-sequences N] [--force]
+                                    [--sequences N] [--floor-sequences N] [--methods ours ...] [--force]
 
-Stages (each dataset in turn; results merge into OUT/summary.json, markdown into OUT/results.md):
+Stages (each dataset in turn; results merge into OUT/summary.json, markdown into OUT/results.md; ``--methods``
+limits ``train`` and ``evaluate`` to some methods, merging their rows into the stored table):
 - ``data``: simulate the paired dataset (``jaxdeform.cloth.run.generate``; cached in OUT/data/KIND unless
   ``--force``), recording the obstacle penetration and the coarse / fine simulation time per frame.
 - ``train``: the methods of Tables 2, 4 and 5 on the training split, one run folder each in OUT/runs/KIND/NAME.
@@ -211,9 +212,10 @@ def method_errors(run, test, faces, ups=None) -> list[dict]:
     return per
 
 
-def stage_train(out: Path, ds, s: Settings, force: bool, cache: dict) -> dict:
+def stage_train(out: Path, ds, s: Settings, force: bool, cache: dict, methods=tuple(METHODS)) -> dict:
     res = {}
-    for name, (model_kind, rep_kind, *_) in METHODS.items():
+    for name in methods:
+        model_kind, rep_kind, *_ = METHODS[name]
         root = out / "runs" / ds.scenario / name
         if (root / "run.json").is_file() and not force:
             res[name] = json.loads((root / "run.json").read_text())
@@ -225,7 +227,7 @@ def stage_train(out: Path, ds, s: Settings, force: bool, cache: dict) -> dict:
     return {n: {k: r[k] for k in ("final_loss", "train_seconds", "compile_seconds")} for n, r in res.items()}
 
 
-def stage_evaluate(out: Path, ds, cache: dict) -> dict:
+def stage_evaluate(out: Path, ds, cache: dict, names=tuple(METHODS)) -> dict:
     test = ds.subset("test")
     ups = upsampler(ds)
     methods = {
@@ -233,7 +235,7 @@ def stage_evaluate(out: Path, ds, cache: dict) -> dict:
             [ceval.sequence_errors(x.fine, ups(x.coarse), ds.fine_faces, upsampler=ups) for x in test]
         )
     }
-    for name in METHODS:
+    for name in names:
         run = crun.load_run(out / "runs" / ds.scenario / name)
         methods[name] = ceval.pool(method_errors(run, test, ds.fine_faces, ups))
         print(f"{ds.scenario} {name}: rmse {methods[name]['rmse']:.5f} sted {methods[name]['sted']:.4f}", flush=True)
@@ -568,6 +570,9 @@ def main(argv=None) -> int:
     ap.add_argument("--force", action="store_true", help="redo cached data and runs")
     ap.add_argument("--sequences", type=int, metavar="N", help="sequences per dataset (default: the configuration's)")
     ap.add_argument("--floor-sequences", type=int, metavar="N", help="test scenarios the floor stage re-simulates")
+    ap.add_argument(
+        "--methods", nargs="+", choices=list(METHODS), default=list(METHODS), help="methods to train and evaluate"
+    )
     args = ap.parse_args(argv)
     root = Path(__file__).resolve().parent
     out = (
@@ -594,9 +599,11 @@ def main(argv=None) -> int:
         ds = cdata.load_dataset(out / "data" / kind)
         cache: dict = {}
         if "train" in args.stages:
-            r["train"] = stage_train(out, ds, s, args.force, cache)
+            r["train"] = {**r.get("train", {}), **stage_train(out, ds, s, args.force, cache, args.methods)}
         if "evaluate" in args.stages:
-            r["evaluate"] = stage_evaluate(out, ds, cache)
+            ev = stage_evaluate(out, ds, cache, args.methods)
+            ev["methods"] = {**r.get("evaluate", {}).get("methods", {}), **ev["methods"]}
+            r["evaluate"] = {**r.get("evaluate", {}), **ev}
             m = r["evaluate"]["methods"]
             r["rmse"] = {k: v["rmse"] for k, v in m.items()}
             r["hausdorff"] = {k: v["hausdorff"] for k, v in m.items()}
