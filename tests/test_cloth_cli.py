@@ -293,6 +293,9 @@ def test_experiment_test_config_writes_summary(tmp_path):
     )
     assert all(np.isfinite(d["dihedral_w1"]) and d["dihedral_w1"] >= 0 for d in details.values())
     assert "dihedral W1" in (tmp_path / "results.md").read_text()
+    # refined frames (every learned method) keep their vertices within 1 mm of the obstacles' surface
+    pens = {k: m["max_penetration"] for k, m in r["evaluate"]["methods"].items() if k != "linear_residual"}
+    assert set(pens) == set(exp.METHODS) | {"upsampled_coarse"} and all(pens[k] <= 1e-3 for k in exp.METHODS)
     sg = {g["train_sequences"]: g for g in r["scaling"]}  # every 4th / 2nd / every training sequence: 1 and 2 here
     assert sorted(sg) == [1, 2]
     full = sg[2]  # the whole training split: the linear stage's fit again and the experiment's per-frame run

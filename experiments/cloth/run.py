@@ -205,11 +205,17 @@ def train_method(ds, name: str, s: Settings, cache: dict, seed: int = 0, progres
 def method_errors(run, test, faces, ups=None) -> list[dict]:
     """:func:`jaxdeform.cloth.evaluate.sequence_errors` of ``run``'s synthesis of every test sequence (with the detail
     measure when the upsampler ``ups`` is given)."""
-    per = []
-    for x in test:
-        fine, _ = crun.synthesize_timed(run, x.coarse, x.obstacles, pins=x.pins)
-        per.append(ceval.sequence_errors(x.fine, fine, faces, upsampler=ups))
-    return per
+    return [_errors(x, crun.synthesize_timed(run, x.coarse, x.obstacles, pins=x.pins)[0], faces, ups) for x in test]
+
+
+def _errors(x, fine, faces, ups) -> dict:
+    """:func:`jaxdeform.cloth.evaluate.sequence_errors` of fine frames of the sequence ``x`` with the largest obstacle
+    penetration of their vertices (``max_penetration``, metres)."""
+    from jaxdeform.cloth import obstacles, scenarios
+
+    e = ceval.sequence_errors(x.fine, fine, faces, upsampler=ups)
+    e["max_penetration"] = scenarios.max_penetration(fine, obstacles.from_dict(x.obstacles))
+    return e
 
 
 def stage_train(out: Path, ds, s: Settings, force: bool, cache: dict, methods=tuple(METHODS)) -> dict:
@@ -230,11 +236,7 @@ def stage_train(out: Path, ds, s: Settings, force: bool, cache: dict, methods=tu
 def stage_evaluate(out: Path, ds, cache: dict, names=tuple(METHODS)) -> dict:
     test = ds.subset("test")
     ups = upsampler(ds)
-    methods = {
-        "upsampled_coarse": ceval.pool(
-            [ceval.sequence_errors(x.fine, ups(x.coarse), ds.fine_faces, upsampler=ups) for x in test]
-        )
-    }
+    methods = {"upsampled_coarse": ceval.pool([_errors(x, ups(x.coarse), ds.fine_faces, ups) for x in test])}
     for name in names:
         run = crun.load_run(out / "runs" / ds.scenario / name)
         methods[name] = ceval.pool(method_errors(run, test, ds.fine_faces, ups))
@@ -439,6 +441,11 @@ def _detail_cells(m: dict) -> list[str]:
     return [f"{d['dihedral_w1']:.4f}", f"{d['fine_scale_rmse']:.5f}"] if d else ["", ""]
 
 
+def _pen(m: dict) -> str:
+    """The largest obstacle penetration of a method's frames at their vertices, in mm (blank if not measured)."""
+    return f"{1e3 * m['max_penetration']:.2f}" if "max_penetration" in m else ""
+
+
 def markdown(summary: dict) -> str:
     lines = [f"# Seed 002 results ({summary.get('machine', '')})", ""]
     for kind, r in summary.get("datasets", {}).items():
@@ -458,9 +465,17 @@ def markdown(summary: dict) -> str:
         ev = r.get("evaluate")
         if ev:
             lines += _table(
-                ["method", "RMSE (m)", "Hausdorff (m)", "STED", "detail: dihedral W1 (rad)", "fine-scale RMSE (m)"],
                 [
-                    [name, f"{m['rmse']:.5f}", f"{m['hausdorff']:.5f}", f"{m['sted']:.4f}", *_detail_cells(m)]
+                    "method",
+                    "RMSE (m)",
+                    "Hausdorff (m)",
+                    "STED",
+                    "detail: dihedral W1 (rad)",
+                    "fine-scale RMSE (m)",
+                    "max penetration (mm)",
+                ],
+                [
+                    [name, f"{m['rmse']:.5f}", f"{m['hausdorff']:.5f}", f"{m['sted']:.4f}", *_detail_cells(m), _pen(m)]
                     for name, m in ev["methods"].items()
                 ],
             )

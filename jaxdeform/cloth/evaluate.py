@@ -203,7 +203,8 @@ def pool(per_sequence: list[dict]) -> dict:
 
     **Returns:**
 
-    A dict of the pooled errors with the total ``frames`` and the number of ``sequences``.
+    A dict of the pooled errors with the total ``frames`` and the number of ``sequences`` (and the largest
+    ``max_penetration`` when every sequence has one).
 
     **Raises:**
 
@@ -221,6 +222,8 @@ def pool(per_sequence: list[dict]) -> dict:
         out[k] = float(np.sum(frames * np.array([r[k] for r in per_sequence])) / frames.sum())
     if all("detail" in r for r in per_sequence):
         out["detail"] = pool_details([r["detail"] for r in per_sequence])
+    if all("max_penetration" in r for r in per_sequence):
+        out["max_penetration"] = float(max(r["max_penetration"] for r in per_sequence))
     return out
 
 
