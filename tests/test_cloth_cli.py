@@ -266,6 +266,13 @@ def test_bad_paths_are_one_sentence(tmp_path, capsys):
     assert code == 2 and err.count("\n") == 1 and "not a cloth run" in err
 
 
+def test_loss_curve_is_block_means():
+    from jaxdeform.cloth.run import loss_curve
+
+    assert loss_curve([1.0, 2.0, 3.0, 4.0, 5.0], every=2) == {"every": 2, "mean": [1.5, 3.5, 5.0]}
+    assert loss_curve([], every=3) == {"every": 3, "mean": []}
+
+
 def test_experiment_test_config_writes_summary(tmp_path):
     """The CPU test configuration of experiments/cloth runs every stage on a tiny SHEET dataset."""
     from experiments.cloth import run as exp
@@ -313,6 +320,9 @@ def test_experiment_test_config_writes_summary(tmp_path):
     assert fl["upsampled_coarse_sted"] == pytest.approx(r["sted"]["upsampled_coarse"], rel=1e-9)
     assert 0 < fl["perturbed_fine_sted"] < fl["upsampled_coarse_sted"]
     assert (tmp_path / "results.md").is_file() and r["figures"] and (tmp_path / r["figures"][0]).is_file()
+    assert "loss_sheet.png" in r["figures"] and (tmp_path / "loss_sheet.png").stat().st_size > 0
+    rec = json.loads((tmp_path / "runs" / "sheet" / "ours" / "run.json").read_text())
+    assert len(rec["loss_curve"]["mean"]) == -(-exp.settings("test").steps // rec["loss_curve"]["every"])
     # one method evaluated again (its stored run) merges into the table: every other row stays, its own is the same
     argv = ["--config", "test", "--out", str(tmp_path), "--datasets", "sheet", "--stages", "train", "evaluate"]
     assert exp.main(argv + ["--methods", "ours"]) == 0

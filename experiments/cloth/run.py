@@ -39,7 +39,8 @@ limits ``train`` and ``evaluate`` to some methods, merging their rows into the s
   (``scenarios.simulate_fine``) and compared with the stored fine run (RMSE and STED, pooled as the evaluation
   pools), beside the upsampled coarse cloth's errors on the same sequences. No method that sees the scenario can
   be expected below that RMSE, and the STED is that of a cloth as valid as the simulation's own.
-- ``figures``: strips coarse (upsampled) | ours | fine simulation | error colour map for a few test frames.
+- ``figures``: strips coarse (upsampled) | ours | fine simulation | error colour map for a few test frames, and
+  the training loss curves of the stored runs (``loss_KIND.png``).
 
 ``--config test`` runs everything in about a minute on tiny datasets (3 short sequences, one Loop level from
 coarse to fine, few steps), for CI.
@@ -405,6 +406,35 @@ def stage_floor(ds, s: Settings) -> dict:
     }
 
 
+def loss_figure(out: Path, scenario: str) -> str | None:
+    """The training loss curves of the stored runs of ``scenario`` (OUT/runs/KIND/*/run.json with a
+    ``loss_curve``) in one log-scale chart, ``loss_KIND.png``; None when no run has a curve."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    curves = {}
+    for path in sorted((out / "runs" / scenario).glob("*/run.json")):
+        c = json.loads(path.read_text()).get("loss_curve")
+        if c and c["mean"]:
+            curves[path.parent.name] = c
+    if not curves:
+        return None
+    fig, ax = plt.subplots(figsize=(7, 4))
+    for name, c in curves.items():
+        ax.plot(c["every"] * (np.arange(len(c["mean"])) + 0.5), c["mean"], label=name)
+    ax.set(xlabel="step", ylabel=f"training loss (mean of {next(iter(curves.values()))['every']} steps)", yscale="log")
+    ax.set_title(f"{scenario.upper()}: training loss")
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    name = f"loss_{scenario}.png"
+    with atomic_path(out / name) as tmp:
+        fig.savefig(tmp, dpi=110, format="png")
+    plt.close(fig)
+    return name
+
+
 def stage_figures(out: Path, ds, s: Settings) -> list[str]:
     run = crun.load_run(out / "runs" / ds.scenario / "ours")
     ups = upsampler(ds)
@@ -419,7 +449,8 @@ def stage_figures(out: Path, ds, s: Settings) -> list[str]:
         scene = crun.body_scene(ds.scenario, x.obstacles, t)
         crun.strip_figure(coarse_up[t], fine[t], x.fine[t], ds.fine_faces, path, s.size, scene)
         paths.append(path.name)
-    return paths
+    curve = loss_figure(out, ds.scenario)
+    return paths + ([curve] if curve else [])
 
 
 def _table(head: list[str], rows: list[list[str]]) -> list[str]:

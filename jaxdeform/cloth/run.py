@@ -272,11 +272,24 @@ def train_run(
         "model": mcfg.to_dict(),
         "train": _asdict(tcfg),
         "final_loss": float(np.mean(hist.loss[-50:])) if len(hist.loss) else None,
+        "loss_curve": loss_curve(hist.loss),
         "train_seconds": float(hist.seconds),
         "compile_seconds": float(hist.compile_seconds),
         "thickness": _thickness(ds),
     }
     return Run(model, rep, record)
+
+
+#: steps per point of a run's recorded loss curve
+LOSS_CURVE_EVERY = 25
+
+
+def loss_curve(loss, every: int = LOSS_CURVE_EVERY) -> dict:
+    """The training loss as means over consecutive blocks of ``every`` steps (a trailing partial block too):
+    ``{"every": every, "mean": [...]}``."""
+    loss = np.asarray(loss, np.float64)
+    starts = np.arange(0, len(loss), every)
+    return {"every": int(every), "mean": [float(loss[i : i + every].mean()) for i in starts]}
 
 
 def position_target(ds: cdata.ClothDataset, rep: cfeat.Representation, names: list[str]):
