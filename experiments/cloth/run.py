@@ -2,7 +2,8 @@
 
     python -m experiments.cloth.run [--config default|test] [--out DIR] [--datasets sheet disk]
                                     [--stages data train evaluate linear scale scaling jumps timing floor figures]
-                                    [--sequences N] [--floor-sequences N] [--methods ours ...] [--force]
+                                    [--sequences N] [--floor-sequences N] [--steps N] [--methods ours ...]
+                                    [--force]
 
 Stages (each dataset in turn; results merge into OUT/summary.json, markdown into OUT/results.md; ``--methods``
 limits ``train`` and ``evaluate`` to some methods, merging their rows into the stored table):
@@ -616,6 +617,7 @@ def main(argv=None) -> int:
     ap.add_argument("--force", action="store_true", help="redo cached data and runs")
     ap.add_argument("--sequences", type=int, metavar="N", help="sequences per dataset (default: the configuration's)")
     ap.add_argument("--floor-sequences", type=int, metavar="N", help="test scenarios the floor stage re-simulates")
+    ap.add_argument("--steps", type=int, metavar="N", help="training steps per model (default: the configuration's)")
     ap.add_argument(
         "--methods", nargs="+", choices=list(METHODS), default=list(METHODS), help="methods to train and evaluate"
     )
@@ -632,6 +634,10 @@ def main(argv=None) -> int:
         if args.sequences < 2:
             ap.error(f"--sequences must be at least 2, got {args.sequences}.")
         s = dataclasses.replace(s, sequences={k: args.sequences for k in s.sequences})
+    if args.steps is not None:
+        if args.steps < 1:
+            ap.error(f"--steps must be at least 1, got {args.steps}.")
+        s = dataclasses.replace(s, steps=args.steps)
     if args.floor_sequences is not None:
         s = dataclasses.replace(s, floor_sequences=max(args.floor_sequences, 1))
     path = out / "summary.json"
