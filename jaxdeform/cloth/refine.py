@@ -20,6 +20,12 @@ positions ``P0`` (V, 3) and the obstacles' signed distance ``d(x)`` with outward
 3. repeat from 1 on the result, at most ``iterations`` (3, the paper: "usually takes less than 3
    iterations") or until no vertex is inside.
 
+By default (``exact=True``) the targets are met exactly: the constrained vertices are moved onto them and
+eliminated (the limit w -> infinity), and the same normal matrix without the w term is solved for the others.
+With the soft penalty (``exact=False``, the paper's form) the Laplacian term holds the deepest vertices back: on
+synthesised SKIRT frames whose hem the model put 6.8 cm inside a thigh, 3-20 iterations leave vertices 1.1-1.3 cm
+inside, where the exact form leaves none after 2.
+
 Frames without collisions are returned unchanged, bit for bit.
 """
 
@@ -51,6 +57,14 @@ def uniform_laplacian(faces: np.ndarray, n: int) -> sp.csr_matrix:
     return (sp.diags(np.asarray(a.sum(axis=1)).ravel()) - a).tocsr()
 
 
+def _spd_solve(a: sp.csc_matrix, rhs: np.ndarray) -> np.ndarray:
+    """Solve a sparse symmetric positive definite system: a symmetric fill-reducing order (minimum degree on
+    A + A^T) with diagonal pivots, 1.6x faster on the DISK's contact regions than spsolve's default (COLAMD)."""
+    from scipy.sparse.linalg import splu
+
+    return splu(a, permc_spec="MMD_AT_PLUS_A", options={"SymmetricMode": True}).solve(rhs)
+
+
 class Refiner:
     """Collision refinement for one connectivity (the Laplacian and its square are built once)."""
 
@@ -63,6 +77,7 @@ class Refiner:
         eps: float = 0.1,
         iterations: int = 3,
         rings: int = 6,
+        exact: bool = True,
     ):
         if iterations < 1:
             raise ValueError("iterations must be at least 1.")
@@ -75,6 +90,7 @@ class Refiner:
         self.adj = adj
         self.rings = int(rings)
         self.weight, self.eps, self.iterations = float(weight), float(eps), int(iterations)
+        self.exact = bool(exact)
 
     def region(self, mask: np.ndarray) -> np.ndarray:
         """The vertices within ``rings`` + 2 edges of the masked ones (the solve's unknowns)."""
@@ -84,20 +100,22 @@ class Refiner:
         return np.flatnonzero(grow)
 
     def _solve(self, p0: np.ndarray, mask: np.ndarray, targets: np.ndarray) -> np.ndarray:
-        from scipy.sparse.linalg import splu
-
         r = self.region(mask)
-        diag = self.eps + self.weight * mask[r].astype(np.float64)
-        a = (self.ltl[r][:, r] + sp.diags(diag)).tocsc()
-        # unknown: displacement D = P - P0 on the region (0 outside); rhs = w (t - p0) on C, 0 elsewhere
-        rhs = np.zeros((r.size, 3))
         m = mask[r]
-        rhs[m] = self.weight * (targets[r][m] - p0[r][m])
-        # the matrix is symmetric positive definite: a symmetric fill-reducing order (minimum degree on A + A^T)
-        # with diagonal pivots, 1.6x faster on the DISK's contact regions than spsolve's default (COLAMD)
-        d = splu(a, permc_spec="MMD_AT_PLUS_A", options={"SymmetricMode": True}).solve(rhs)
         out = p0.copy()
-        out[r] += d.reshape(-1, 3)
+        # unknown: displacement D = P - P0 on the region (0 outside)
+        if self.exact:  # D = t - p0 on C; the rest solves (L^T L + eps I)_ff D_f = -(L^T L)_fc D_c
+            free, held = r[~m], r[m]
+            d_held = targets[held] - p0[held]
+            out[held] += d_held
+            if free.size:
+                a = (self.ltl[free][:, free] + sp.diags(np.full(free.size, self.eps))).tocsc()
+                out[free] += _spd_solve(a, -(self.ltl[free][:, held] @ d_held))
+            return out
+        a = (self.ltl[r][:, r] + sp.diags(self.eps + self.weight * m.astype(np.float64))).tocsc()
+        rhs = np.zeros((r.size, 3))  # w (t - p0) on C, 0 elsewhere
+        rhs[m] = self.weight * (targets[r][m] - p0[r][m])
+        out[r] += _spd_solve(a, rhs)
         return out
 
     def __call__(self, p0: np.ndarray, sdf: SDF, margin: float) -> tuple[np.ndarray, RefineStats]:
