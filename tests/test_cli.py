@@ -128,7 +128,8 @@ def test_decode_round_trip(encoded, tube, tmp_path, capsys):
     out = tmp_path / "dec"
     assert main(["acap", "decode", str(encoded), "--out", str(out)]) == 0
     names = sorted(p.name for p in out.iterdir())
-    assert names == [f"{k:03d}.obj" for k in range(N_FRAMES)]
+    assert names == [".jaxdeform"] + [f"{k:03d}.obj" for k in range(N_FRAMES)]  # the frames and the output marker
+    names = names[1:]
     from jaxdeform.mesh.io import load_mesh
 
     for k, name in enumerate(names):
@@ -158,20 +159,30 @@ def test_decode_from_scaled_with_anchors(encoded, tube, tmp_path, capsys):
 
 
 def test_decode_refuses_non_empty_folder_unless_forced(encoded, tmp_path, capsys):
+    """A non-empty --out needs --force, and --force replaces only a folder jaxdeform wrote (it holds the marker):
+    a folder of the user's own files survives it, subfolder included."""
     out = tmp_path / "dec"
-    out.mkdir()
+    (out / "sub").mkdir(parents=True)
     (out / "keep.txt").write_text("mine")
+    (out / "sub" / "notes.txt").write_text("mine too")
     rc = main(["acap", "decode", str(encoded), "--out", str(out)])
     assert_one_line_error(capsys, rc)
-    assert sorted(p.name for p in out.iterdir()) == ["keep.txt"]
-    assert main(["acap", "decode", str(encoded), "--out", str(out), "--force"]) == 0
-    assert sorted(p.name for p in out.iterdir()) == [f"{k:03d}.obj" for k in range(N_FRAMES)]
-    assert sorted(p.name for p in tmp_path.iterdir()) == ["dec"]
+    rc = main(["acap", "decode", str(encoded), "--out", str(out), "--force"])
+    assert "did not write" in assert_one_line_error(capsys, rc)
+    assert sorted(p.name for p in out.iterdir()) == ["keep.txt", "sub"]
+    assert (out / "sub" / "notes.txt").read_text() == "mine too"
+    ours = tmp_path / "ours"
+    assert main(["acap", "decode", str(encoded), "--out", str(ours)]) == 0
+    (ours / "000.obj").write_text("stale")
+    assert main(["acap", "decode", str(encoded), "--out", str(ours), "--force"]) == 0  # jaxdeform's own: replaced
+    assert sorted(p.name for p in ours.iterdir()) == [".jaxdeform"] + [f"{k:03d}.obj" for k in range(N_FRAMES)]
+    assert (ours / "000.obj").read_text() != "stale"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["dec", "ours"]
     # An existing empty folder is fine without --force.
     empty = tmp_path / "empty"
     empty.mkdir()
     assert main(["acap", "decode", str(encoded), "--out", str(empty)]) == 0
-    assert len(list(empty.iterdir())) == N_FRAMES
+    assert len(list(empty.iterdir())) == N_FRAMES + 1
 
 
 def test_render_plain_and_with_scalar(seq_dir, tmp_path, capsys):

@@ -59,7 +59,7 @@ def test_train_synthesize_evaluate_round_trip(tmp_path, capsys):
     run = tmp_path / "run"
     code, out, err = run_cli(["cloth", "train", str(data), "--out", str(run), "--steps", "3", "--quiet"], capsys)
     assert code == 0, err
-    assert {p.name for p in run.iterdir()} == {"model", "representation.npz", "run.json"}
+    assert {p.name for p in run.iterdir()} == {".jaxdeform", "model", "representation.npz", "run.json"}
     rec = json.loads((run / "run.json").read_text())
     assert rec["representation"] == "ts-acap" and rec["split"]["test"] == ["seq_002.npz"]
     assert rec["residual"] is True  # default target: the residual over the Loop-upsampled coarse cloth

@@ -12,6 +12,7 @@ a command imports what it needs when it runs.
 from __future__ import annotations
 
 import argparse
+import sys
 from collections.abc import Sequence
 
 from jaxdeform.cli import (
@@ -53,5 +54,9 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the CLI on ``argv`` (default ``sys.argv[1:]``); returns the exit status."""
     args = build_parser().parse_args(argv)
-    common.setup_process()  # after parsing, so that --help imports no JAX
+    try:
+        common.setup_process()  # after parsing, so that --help imports no JAX
+    except KeyboardInterrupt:
+        print(f"{common.PROG}: interrupted; nothing was written.", file=sys.stderr)
+        return 130
     return common.run_command(args.func, args)

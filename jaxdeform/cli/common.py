@@ -2,7 +2,9 @@
 
 Error contract: an expected failure (a :class:`~jaxdeform.errors.JaxDeformError`, a ``ValueError`` from bad
 arguments, a missing file or another ``OSError``) prints exactly one line ``jaxdeform: error: <sentence>`` to
-stderr and the command returns 2, leaving no output behind. Unexpected exceptions propagate with their traceback.
+stderr and the command returns 2, leaving no output behind. Ctrl-C (SIGINT) and SIGTERM end the command with one
+line ``jaxdeform: interrupted; ...`` and status 130 or 143, after the outputs being staged are removed (a training
+run's checkpoints are kept where the command says so). Unexpected exceptions propagate with their traceback.
 
 This module imports only the standard library and :mod:`jaxdeform.errors`; the libraries a command needs are
 imported when it runs.
@@ -13,6 +15,7 @@ from __future__ import annotations
 import argparse
 import contextlib
 import os
+import signal
 import sys
 from collections.abc import Callable, Sequence
 from pathlib import Path
@@ -20,6 +23,7 @@ from pathlib import Path
 from jaxdeform.errors import JaxDeformError
 
 PROG = "jaxdeform"
+MARKER = ".jaxdeform"  # the file every staged output folder holds (jaxdeform.mesh.io.OUTPUT_MARKER)
 MESH_OUT = (".obj", ".ply", ".off")  # the formats save_mesh writes one mesh in
 
 
@@ -44,13 +48,34 @@ def setup_process() -> None:
     jax.config.update("jax_enable_x64", True)
 
 
+class Terminated(BaseException):
+    """Raised in the command's main thread on SIGTERM, so that staged outputs are cleaned up as on Ctrl-C."""
+
+
+class Interrupted(BaseException):
+    """A command interrupted after it kept something on purpose; ``str(exc)`` says what and where."""
+
+
+def _on_sigterm(signum, frame) -> None:
+    raise Terminated()
+
+
 def run_command(func: Callable[[argparse.Namespace], int | None], args: argparse.Namespace) -> int:
-    """Run a parsed command; an expected failure becomes one ``jaxdeform: error:`` line and exit status 2."""
+    """Run a parsed command; an expected failure becomes one ``jaxdeform: error:`` line and exit status 2,
+    Ctrl-C one ``jaxdeform: interrupted;`` line and status 130 (143 for SIGTERM)."""
+    previous = signal.signal(signal.SIGTERM, _on_sigterm)
     try:
         return int(func(args) or 0)
     except (JaxDeformError, ValueError, OSError) as exc:  # FileNotFoundError is an OSError
         print(f"{PROG}: error: {message(exc)}", file=sys.stderr)
         return 2
+    except (KeyboardInterrupt, Terminated, Interrupted) as exc:
+        status = 143 if isinstance(exc, Terminated) or isinstance(exc.__context__, Terminated) else 130
+        what = str(exc) if isinstance(exc, Interrupted) else "nothing was written"
+        print(f"{PROG}: interrupted; {what}.", file=sys.stderr)
+        return status
+    finally:
+        signal.signal(signal.SIGTERM, previous)
 
 
 # ---------------------------------------------------------------------------------------- shared options
@@ -135,8 +160,20 @@ def check_out_folder(out: Path, force: bool, inputs: Sequence[str | os.PathLike]
     blocking = next((p for p in out.parents if p.exists() and not p.is_dir()), None)
     if blocking is not None:
         raise NotADirectoryError(f"--out {out} cannot be created: {blocking} is a file, not a folder.")
-    if out.is_dir() and any(out.iterdir()) and not force:
-        raise FileExistsError(f"--out {out} exists and is not empty; use --force to replace it.")
+    if out.is_dir() and any(out.iterdir()):
+        if not force:
+            raise FileExistsError(f"--out {out} exists and is not empty; use --force to replace it.")
+        if not is_jaxdeform_output(out):
+            raise FileExistsError(
+                f"--out {out} holds files jaxdeform did not write (no {MARKER} marker); --force replaces only "
+                "jaxdeform's own output folders: give a new path or remove the folder yourself."
+            )
+
+
+def is_jaxdeform_output(folder: Path) -> bool:
+    """Whether ``folder`` is an output folder jaxdeform wrote (it holds the marker file that
+    :func:`jaxdeform.mesh.io.staged_folder` puts in every folder it stages)."""
+    return (Path(folder) / MARKER).is_file()
 
 
 def check_out_checkpoint(out: Path, inputs: Sequence[str | os.PathLike], what: str, key: str = "record") -> None:

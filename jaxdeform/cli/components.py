@@ -32,8 +32,25 @@ def cmd_components_train(args: argparse.Namespace) -> int:
     check_quantile(q, "--scale-quantile")  # before any work (Scaler.fit checks it too, after encoding)
     loaded = run.load_data(data)  # fewer than 2 shapes or mixed connectivity: one sentence, nothing written
     kw = {k: getattr(args, k) for k in ("epochs", "seed", "split", "split_seed", "method")}
-    with common.writing(out):
-        record = run.fit(data, args.config, out, progress=not args.quiet, scale_quantile=q, loaded=loaded, **kw).record
+    try:
+        with common.writing(out):
+            record = run.fit(
+                data,
+                args.config,
+                out,
+                progress=not args.quiet,
+                scale_quantile=q,
+                loaded=loaded,
+                resume=args.resume,
+                **kw,
+            ).record
+    except (KeyboardInterrupt, common.Terminated) as exc:
+        partial = run.partial_folder(out)
+        if partial.exists():
+            raise common.Interrupted(
+                f"checkpoint kept in {partial}; run the same command with --resume to continue"
+            ) from exc
+        raise
     t = record["timing"]
     extra = ""
     if "run_s" in t:
@@ -128,6 +145,11 @@ def _add_train_evaluate(comp_sub) -> None:
     )
     common.add_quiet(ctrain, "no progress bar")
     common.add_force(ctrain, "replace RUN if it exists and is not empty")
+    ctrain.add_argument(
+        "--resume",
+        action="store_true",
+        help="continue an interrupted training of the same command from its newest checkpoint (kept beside RUN)",
+    )
     ctrain.set_defaults(func=cmd_components_train)
     ceval = comp_sub.add_parser(
         "evaluate",

@@ -406,8 +406,11 @@ def _model_config(d: dict) -> model.Config:
     return model.Config(**{k: (tuple(v) if isinstance(v, list) else v) for k, v in d.items()})
 
 
-def _fit_autoencoder(out, record, method, config, x, rest, faces, dist, cfg, tc, train_idx, progress, log) -> dict:
-    """Train the autoencoder ``method`` on the scaled ACAP features ``x`` (checkpoints under out/params).
+def _fit_autoencoder(
+    out, record, method, config, x, rest, faces, dist, cfg, tc, train_idx, progress, log, resume=False
+) -> dict:
+    """Train the autoencoder ``method`` on the scaled ACAP features ``x`` (checkpoints under out/params; with
+    ``resume``, continued from the newest one there).
 
     Writes out/history.npy and adds the training timings, ``final_terms`` and ``final_loss`` to ``record``
     (in that order). Returns the training codes, ``{"level<i>": latents}``.
@@ -426,6 +429,7 @@ def _fit_autoencoder(out, record, method, config, x, rest, faces, dist, cfg, tc,
         tc,
         checkpoint_dir=out / "params",
         checkpoint_every=max(tc.epochs // 10, 1),
+        resume=resume,
         progress=progress,
         timing=timing,
     )
@@ -493,11 +497,14 @@ def fit(
     dtype=np.float32,
     log: Callable[[str], None] = print,
     loaded: tuple[np.ndarray, np.ndarray] | None = None,
+    resume: bool = False,
 ) -> Run:
     """Train ``method`` on the training split of ``data`` and write the run folder ``out``.
 
-    The folder is built beside ``out`` and renamed at the end (replacing ``out``), so a failed fit leaves no
-    half-written run.
+    The folder is built in :func:`partial_folder` beside ``out`` and renamed at the end (replacing ``out``), so
+    a failed fit leaves no half-written run. An autoencoder's training interrupted by Ctrl-C or a signal after its
+    first checkpoint keeps the partial folder; ``resume=True`` continues from its newest checkpoint (the same
+    final parameters and loss history as an uninterrupted fit).
 
     **Arguments:**
 
@@ -512,6 +519,8 @@ def fit(
     - ``dtype``: the dtype of the features and the model (default float32).
     - ``log``: receives the progress lines (what is trained, on how many shapes and vertices).
     - ``loaded``: ``load_data(data)``'s result where the caller has it already (the CLI checks the data first).
+    - ``resume``: continue the interrupted fit of the same settings kept in :func:`partial_folder` (a fresh fit
+      when there is none). Without it, a partial folder left by an earlier fit is discarded.
 
     **Returns:**
 
@@ -520,20 +529,93 @@ def fit(
     **Raises:**
 
     ``ValueError`` for an unknown method or configuration, or no ``out``; :class:`RunError` and the loaders'
-    one-sentence errors for bad data.
+    one-sentence errors for bad data, and for ``resume`` with a partial fit of other settings.
     """
+    import shutil
+
     if out is None:
         raise ValueError("a components run needs a folder to write (out).")
     out = Path(out)
-    with staged_folder(out) as tmp:
+    staging = partial_folder(out)
+    settings = {
+        "method": method,
+        "config": config,
+        "epochs": epochs,
+        "seed": seed,
+        "split": split,
+        "split_seed": split_seed,
+        "scale_quantile": scale_quantile,
+        "dtype": np.dtype(dtype).name,
+        "data": str(data),
+    }
+    resuming = False
+    if staging.exists():
+        try:
+            kept = json.loads((staging / RESUME_FILE).read_text())
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+            kept = None
+        if resume and kept == settings:
+            resuming = True
+            log(f"resuming the interrupted fit kept in {staging}")
+        elif resume:
+            differ = sorted(k for k in settings if not isinstance(kept, dict) or kept.get(k) != settings[k])
+            raise RunError(
+                f"the interrupted fit kept in {staging} was started with other settings ({', '.join(differ)}); "
+                "run without --resume to start afresh."
+            )
+        else:
+            shutil.rmtree(staging)
+    elif resume:
+        log(f"no interrupted fit in {staging}; starting from the first epoch")
+    keep = (lambda d: any(p.name.isdigit() for p in (d / "params").glob("*"))) if method in AUTOENCODERS else None
+    with staged_folder(out, staging=staging, keep=keep) as tmp:
+        (tmp / RESUME_FILE).write_text(json.dumps(settings))
         _fit_into(
-            tmp, data, method, config, epochs, seed, split, split_seed, progress, scale_quantile, dtype, log, loaded
+            tmp,
+            data,
+            method,
+            config,
+            epochs,
+            seed,
+            split,
+            split_seed,
+            progress,
+            scale_quantile,
+            dtype,
+            log,
+            loaded,
+            resuming,
         )
+        (tmp / RESUME_FILE).unlink()
     return Run.load(out)
 
 
+#: the settings of a fit, kept in its partial folder (what ``resume`` checks)
+RESUME_FILE = "fit-settings.json"
+
+
+def partial_folder(out: str | Path) -> Path:
+    """The folder a fit of the run folder ``out`` is built in (a hidden sibling, kept when a training is
+    interrupted after its first checkpoint)."""
+    out = Path(out)
+    return out.parent / f".{out.name}.partial"
+
+
 def _fit_into(
-    out: Path, data, method, config, epochs, seed, split, split_seed, progress, scale_quantile, dtype, log, loaded
+    out: Path,
+    data,
+    method,
+    config,
+    epochs,
+    seed,
+    split,
+    split_seed,
+    progress,
+    scale_quantile,
+    dtype,
+    log,
+    loaded,
+    resume=False,
 ) -> dict:
     """:func:`fit`'s work, written into the folder ``out``; returns the record."""
     out = Path(out)
@@ -570,7 +652,9 @@ def _fit_into(
         if geo is not None:
             dist, record["timing"]["geodesics_s"] = geo.result()
     if method in AUTOENCODERS:
-        codes = _fit_autoencoder(out, record, method, config, x, rest, faces, dist, cfg, tc, train_idx, progress, log)
+        codes = _fit_autoencoder(
+            out, record, method, config, x, rest, faces, dist, cfg, tc, train_idx, progress, log, resume
+        )
     else:
         codes = _fit_linear(out, record, method, config, x, vertices, train_idx, rest, faces)
     record["timing"]["total_s"] = round(time.perf_counter() - t0, 3)

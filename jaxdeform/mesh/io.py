@@ -457,16 +457,25 @@ def atomic_path(path: Path):
     return _cm()
 
 
-def staged_folder(out: str | os.PathLike):
+OUTPUT_MARKER = ".jaxdeform"  # the file in every folder staged_folder writes
+
+
+def staged_folder(out: str | os.PathLike, *, staging: str | os.PathLike | None = None, keep=None):
     """Context manager yielding a temporary sibling folder of ``out`` to fill, which replaces ``out`` on success.
 
     **Arguments:**
 
     - `out`: the folder to write; an existing one (empty or not) is replaced only when the block succeeds.
+    - `staging`: the folder to fill instead of a fresh temporary one (created if missing, reused as it is if
+      present: a resumable job's partial output).
+    - `keep`: called with the staging folder when the block is interrupted (an exception that is not an
+      ``Exception``: Ctrl-C, a termination signal); if it returns True the staging folder is left in place.
 
     **Returns:**
 
-    The context manager; on an exception the temporary folder is removed and ``out`` is left as it was.
+    The context manager; on an exception the staging folder is removed (unless `keep` keeps it) and ``out`` is
+    left as it was. The folder written holds the marker file :data:`OUTPUT_MARKER` (what the CLI's ``--force``
+    checks before it replaces a folder).
     """
     import contextlib
     import shutil
@@ -476,10 +485,15 @@ def staged_folder(out: str | os.PathLike):
     @contextlib.contextmanager
     def _cm():
         out.parent.mkdir(parents=True, exist_ok=True)
-        tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent))
-        default_mode(tmp, directory=True)
+        if staging is None:
+            tmp = Path(tempfile.mkdtemp(prefix=f".{out.name}.", suffix=".tmp", dir=out.parent))
+            default_mode(tmp, directory=True)
+        else:
+            tmp = Path(staging)
+            tmp.mkdir(parents=True, exist_ok=True)
         trash = None
         try:
+            (tmp / OUTPUT_MARKER).write_text("written by jaxdeform\n")
             yield tmp
             if out.exists():
                 if any(out.iterdir()):  # move aside, swap in, then delete
@@ -488,8 +502,9 @@ def staged_folder(out: str | os.PathLike):
                 else:
                     out.rmdir()
             os.replace(tmp, out)
-        except BaseException:
-            shutil.rmtree(tmp, ignore_errors=True)
+        except BaseException as exc:
+            if isinstance(exc, Exception) or keep is None or not keep(tmp):
+                shutil.rmtree(tmp, ignore_errors=True)
             if trash is not None:
                 if not out.exists() and (trash / out.name).exists():
                     os.replace(trash / out.name, out)  # put the old folder back

@@ -1,0 +1,123 @@
+"""Ctrl-C and SIGTERM end a command with one line and status 130 / 143 and leave no partial output; an
+interrupted ``components train`` keeps its checkpoints and ``--resume`` ends bit-identical to an uninterrupted
+run. Each command runs in a fresh process (``python -m jaxdeform``)."""
+
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from jaxdeform.components import run as crun
+from jaxdeform.data.synthetic import bending_tube_sequence
+from jaxdeform.mesh.io import save_mesh
+
+EPOCHS = 3000  # checkpoints every 300 epochs: the first appears well before the end
+
+
+@pytest.fixture(scope="module")
+def seq_dir(tmp_path_factory):
+    vertices, faces = bending_tube_sequence(n_frames=12, n_around=8, n_along=16)
+    d = tmp_path_factory.mktemp("tube")
+    for k in range(len(vertices)):
+        save_mesh(d / f"f{k}.obj", vertices[k], faces)
+    return d
+
+
+def _train_cmd(seq_dir, out, *extra):
+    return [sys.executable, "-m", "jaxdeform", "components", "train", str(seq_dir), "--out", str(out)] + [
+        "--config",
+        "test",
+        "--epochs",
+        str(EPOCHS),
+        "--quiet",
+        *extra,
+    ]
+
+
+def _wait_for(predicate, proc, timeout=240.0):
+    t0 = time.monotonic()
+    while not predicate():
+        assert proc.poll() is None, "the command ended before it could be interrupted"
+        assert time.monotonic() - t0 < timeout, "timed out waiting for the command"
+        time.sleep(0.05)
+
+
+def _interrupt(cmd, sig, ready):
+    proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True, env=_env())
+    try:
+        _wait_for(ready, proc)
+        proc.send_signal(sig)
+        out, err = proc.communicate(timeout=240)
+    finally:
+        if proc.poll() is None:
+            proc.kill()
+    return proc.returncode, out, err
+
+
+def _env():
+    env = dict(os.environ)
+    env.setdefault("JAX_PLATFORMS", "cpu")
+    return env
+
+
+def _has_checkpoint(partial):
+    return (partial / "params").is_dir() and any(p.name.isdigit() for p in (partial / "params").iterdir())
+
+
+def _one_line(err):
+    lines = [ln for ln in err.splitlines() if ln.strip()]
+    assert len(lines) == 1 and lines[0].startswith("jaxdeform: interrupted; "), err
+    return lines[0]
+
+
+@pytest.mark.parametrize("sig, status", [(signal.SIGINT, 130), (signal.SIGTERM, 143)])
+def test_interrupt_before_a_checkpoint_leaves_nothing(seq_dir, tmp_path, sig, status):
+    out = tmp_path / "run"
+    partial = crun.partial_folder(out)
+    rc, _, err = _interrupt(_train_cmd(seq_dir, out), sig, partial.exists)
+    assert rc == status, err
+    assert "nothing was written" in _one_line(err)
+    assert list(tmp_path.iterdir()) == []  # neither the run nor its partial folder
+
+
+def test_sigterm_keeps_the_checkpoint_and_resume_is_bit_identical(seq_dir, tmp_path):
+    reference = tmp_path / "reference"
+    done = subprocess.run(_train_cmd(seq_dir, reference), capture_output=True, text=True, env=_env())
+    assert done.returncode == 0, done.stderr
+
+    out = tmp_path / "run"
+    partial = crun.partial_folder(out)
+    rc, _, err = _interrupt(_train_cmd(seq_dir, out), signal.SIGTERM, lambda: _has_checkpoint(partial))
+    assert rc == 143, err
+    line = _one_line(err)
+    assert "checkpoint kept" in line and str(partial) in line and "--resume" in line
+    assert partial.is_dir() and not out.exists()
+
+    resumed = subprocess.run(_train_cmd(seq_dir, out, "--resume"), capture_output=True, text=True, env=_env())
+    assert resumed.returncode == 0, resumed.stderr
+    assert "resuming" in resumed.stdout and not partial.exists()
+    np.testing.assert_array_equal(np.load(out / "history.npy"), np.load(reference / "history.npy"))
+    a, b = crun.load(out), crun.load(reference)
+    import jax
+    from flax import nnx
+
+    for x, y in zip(jax.tree.leaves(nnx.state(a.model)), jax.tree.leaves(nnx.state(b.model)), strict=True):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+
+
+def test_resume_refuses_a_partial_fit_of_other_settings(seq_dir, tmp_path):
+    out = tmp_path / "run"
+    partial = crun.partial_folder(out)
+    rc, _, err = _interrupt(_train_cmd(seq_dir, out), signal.SIGINT, lambda: _has_checkpoint(partial))
+    assert rc == 130, err
+    cmd = _train_cmd(seq_dir, out, "--resume", "--seed", "7")
+    done = subprocess.run(cmd, capture_output=True, text=True, env=_env())
+    assert done.returncode == 2
+    lines = [ln for ln in done.stderr.splitlines() if ln.strip()]
+    assert len(lines) == 1 and "other settings (seed)" in lines[0], done.stderr
+    assert partial.is_dir() and not out.exists()  # the kept fit is untouched
