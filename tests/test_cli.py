@@ -140,6 +140,18 @@ def test_decode_round_trip(encoded, tube, tmp_path, capsys):
     assert not [p for p in tmp_path.iterdir() if p.name.startswith(".")]  # no temporary folder left
 
 
+def test_decode_refuses_absurd_features(encoded, tmp_path, capsys):
+    """Features scaled by 1e30 decode to coordinates of 1e30: refused (one sentence), nothing written."""
+    with np.load(encoded) as d:
+        data = {k: d[k] for k in d.files}
+    data["features"] = data["features"] * 1e30
+    huge = tmp_path / "huge.npz"
+    np.savez(huge, **data)
+    out = tmp_path / "dec"
+    line = assert_one_line_error(capsys, main(["acap", "decode", str(huge), "--out", str(out)]), out)
+    assert "reference sizes away" in line and "nothing was written" in line
+
+
 def test_decode_from_scaled_with_anchors(encoded, tube, tmp_path, capsys):
     """Without 'features' the decoder inverse-scales 'scaled' with 'scaler'; anchors (two vertices of the fixed
     end ring, which never moves) are held at their reference positions."""

@@ -236,6 +236,14 @@ def test_edit_bad_controls(seq_dir, tmp_path, capsys):
             ["components", "edit", str(out), "--controls", str(tmp_path / "bad.json"), "--out", str(tmp_path / "e.obj")]
         ),
     )
+    (tmp_path / "far.json").write_text(json.dumps({"indices": [0, 5], "targets": [[0, 0, 0], [0, 1e300, 0]]}))
+    line = _one_line_error(
+        capsys,
+        main(
+            ["components", "edit", str(out), "--controls", str(tmp_path / "far.json"), "--out", str(tmp_path / "e.obj")]
+        ),
+    )
+    assert "far.json" in line and "mesh's size" in line and not (tmp_path / "e.obj").exists()
     (tmp_path / "bad.txt").write_text("0 1 2\n")
     _one_line_error(
         capsys,

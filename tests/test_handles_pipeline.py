@@ -168,6 +168,7 @@ def test_cli_deform_moves_the_handle_and_show_writes_a_png(bar_files, tmp_path):
         "no-faces",
         "rotate-axis",
         "nan-translate",
+        "huge-translate",
         "inf-rotate",
         "anchor-is-handle",
         "npy-field",
@@ -194,6 +195,8 @@ def test_cli_bad_input_exits_2_with_one_sentence_and_writes_nothing(bar_files, t
         _write_field(field, v.shape[0], f.shape[0] + 2, (v.min(0), v.max(0)))
     elif case == "nan-translate":
         args += ["--translate", "nan", "0", "0"]
+    elif case == "huge-translate":  # finite, but 1e300 mesh sizes away: refused at the input
+        args += ["--translate", "0", "1e300", "0"]
     elif case == "inf-rotate":
         args += ["--rotate", "x", "inf"]
     elif case == "anchor-is-handle":

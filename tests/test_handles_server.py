@@ -366,6 +366,51 @@ def test_other_refusals_and_static_files(fresh, mesh):
     assert "http://" not in page and "https://" not in page  # everything is served locally
 
 
+def test_absurd_transforms_other_methods_and_disconnects(fresh, mesh, capfd):
+    """Drags or transforms that are not finite or move a handle beyond 1,000 mesh sizes answer a JSON 400 and
+    change nothing; the state never carries NaN; PUT / DELETE answer a JSON 405; a client that goes away mid-
+    answer prints nothing."""
+    post(fresh, "/api/handle", {"action": "add", "vertex": 5})
+    before = get(fresh, "/api/state")
+    for body in (
+        {"mode": "translate", "from": [0, 0], "to": [1e300, 1e300]},
+        {"mode": "translate", "from": [0, 0], "to": [1e308, -1e308]},
+        {"mode": "rotate", "from": [1e300, 0], "to": [0, 1e300]},
+    ):
+        status, out = request(fresh, "/api/drag", body)
+        if status == 200:  # a rotation by a finite angle is a valid edit: the mesh stays finite
+            assert np.isfinite(served_vertices(fresh)[1]).all()
+            post(fresh, "/api/reset", {"what": "transforms"})
+            continue
+        assert status == 400, out
+        check_one_sentence(out["error"])
+    huge = [[1e300, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 0]]
+    far = [[1, 0, 0, 1e9], [0, 1, 0, 0], [0, 0, 1, 0]]
+    for t in (huge, far):
+        status, out = request(fresh, "/api/handle", {"action": "transform", "handle": 0, "transform": t})
+        assert status == 400 and "not applied" in out["error"], out
+    status, raw = request(fresh, "/api/state?vertices=1", headers={"Accept": "application/json"})
+    assert status == 200 and raw["transforms"] == before["transforms"]
+    assert np.isfinite(decode_vertices(raw["vertices"])).all()
+    for method in ("PUT", "DELETE"):
+        req = urllib.request.Request(fresh.url + "api/state", data=b"{}", method=method)
+        try:
+            urllib.request.urlopen(req, timeout=30)
+            raise AssertionError(f"{method} was answered")
+        except urllib.error.HTTPError as e:
+            assert e.code == 405 and e.headers.get("Content-Type", "").startswith("application/json")
+            check_one_sentence(json.loads(e.read())["error"])
+    capfd.readouterr()
+    for _ in range(5):  # ask for a large image and hang up before reading it
+        with socket.create_connection((fresh.host, fresh.port)) as sock:
+            sock.sendall(f"GET /api/image.png?scale=2 HTTP/1.1\r\nHost: 127.0.0.1:{fresh.port}\r\n\r\n".encode())
+            sock.setsockopt(socket.SOL_SOCKET, socket.SO_LINGER, b"\x01\x00\x00\x00\x00\x00\x00\x00")
+    time.sleep(1.0)
+    get(fresh, "/api/state")
+    err = capfd.readouterr().err
+    assert "Traceback" not in err and "BrokenPipe" not in err and "ConnectionReset" not in err, err
+
+
 def test_binds_only_loopback(server, mesh):
     assert server.server_address[0] == "127.0.0.1" and server.url == f"http://127.0.0.1:{server.port}/"
     assert loopback_host("localhost") == "127.0.0.1"

@@ -225,6 +225,65 @@ def check_out_file(
             raise ValueError(f"{option} {out} would replace {p}, which the command reads; write the output elsewhere.")
 
 
+#: how far outside its reference mesh a result may lie (bounding-box diagonals) before it is refused as absurd
+EXTENT_LIMIT = 1e3
+
+
+def _diagonal(points) -> float:
+    import numpy as np
+
+    return float(np.linalg.norm(points.max(axis=-2) - points.min(axis=-2)))
+
+
+def check_result(positions, reference, what: str) -> None:
+    """Refuse a result before it is written: non-finite coordinates, or a mesh (of each frame of ``positions``,
+    ``(V, 3)`` or ``(N, V, 3)``) whose bounding box or centre lies more than :data:`EXTENT_LIMIT` reference
+    bounding-box diagonals from ``reference``'s. ``what`` names the result ("decoded frame", "edited mesh").
+
+    **Raises:** ``JaxDeformError`` (one sentence, saying nothing was written).
+    """
+    import numpy as np
+
+    from jaxdeform.errors import JaxDeformError
+
+    p = np.asarray(positions, np.float64)
+    frames = p.reshape(-1, *p.shape[-2:])
+    ref = np.asarray(reference, np.float64)
+    size = max(_diagonal(ref), np.finfo(np.float64).tiny)
+    centre = 0.5 * (ref.max(axis=0) + ref.min(axis=0))
+    for k, frame in enumerate(frames):
+        name = what if len(frames) == 1 else f"{what} {k}"
+        if not np.all(np.isfinite(frame)):
+            bad = int(np.count_nonzero(~np.isfinite(frame).all(axis=-1)))
+            raise JaxDeformError(f"the {name} has {bad} vertices with non-finite coordinates; nothing was written.")
+        far = max(_diagonal(frame), float(np.linalg.norm(0.5 * (frame.max(axis=0) + frame.min(axis=0)) - centre)))
+        if far > EXTENT_LIMIT * size:
+            raise JaxDeformError(
+                f"the {name} lies {far / size:.3g} reference sizes away (the limit is {EXTENT_LIMIT:g}): its "
+                "input is far outside what the reference mesh can produce; nothing was written."
+            )
+
+
+def check_magnitude(values, reference, option: str, offset: bool = False) -> None:
+    """Refuse input positions (control targets), or an ``offset`` (``--translate``), that are not finite or lie
+    more than :data:`EXTENT_LIMIT` bounding-box diagonals of ``reference`` from its centre (from zero for an
+    offset): one sentence naming ``option``."""
+    import numpy as np
+
+    v = np.asarray(values, np.float64)
+    ref = np.asarray(reference, np.float64)
+    if not np.all(np.isfinite(v)):
+        raise ValueError(f"{option} must be finite numbers.")
+    size = max(_diagonal(ref), np.finfo(np.float64).tiny)
+    centre = 0.5 * (ref.max(axis=0) + ref.min(axis=0))
+    far = float(np.abs(v - (0.0 if offset else centre)).max(initial=0.0))
+    if far > EXTENT_LIMIT * size:
+        raise ValueError(
+            f"{option} reaches {far:.3g}, more than {EXTENT_LIMIT:g} times the mesh's size ({size:.3g}); "
+            "give a value on the mesh's scale."
+        )
+
+
 @contextlib.contextmanager
 def staged_folder(out: Path):
     """:func:`jaxdeform.mesh.io.staged_folder` with a system error while writing named by ``out`` (one sentence)."""

@@ -26,14 +26,14 @@ def cmd_components_edit(args: argparse.Namespace) -> int:
     common.check_out_file(out, common.MESH_OUT, [args.run, args.controls], "mesh file")
     loaded = run.load(args.run)
     controls, targets = run.read_controls(args.controls)
+    common.check_magnitude(targets, loaded.rest, f"the targets of {args.controls}")
     t0 = time.perf_counter()
     ed = run.editor(loaded)
     result = ed.edit(
         controls, targets, steps=args.steps, stages=None if args.one_stage else ed.stages, objective=args.objective
     )
     positions = np.asarray(result.positions)
-    if not np.all(np.isfinite(positions)):
-        raise ValueError("the edit did not converge to a finite mesh; try fewer or closer control points.")
+    common.check_result(positions, loaded.rest, "edited mesh")
     with common.writing(out):
         save_mesh(out, positions, loaded.faces)
     stages = "" if ed.stages is None or args.one_stage else f", coarse to fine over {len(ed.stages)} levels"

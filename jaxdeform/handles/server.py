@@ -31,6 +31,7 @@ import json
 import logging
 import math
 import re
+import sys
 import threading
 from collections.abc import Callable
 from http import HTTPStatus
@@ -262,7 +263,7 @@ class _Handler(BaseHTTPRequestHandler):
             self.wfile.write(body)
 
     def _json(self, status: int, obj) -> None:
-        self._send(status, json.dumps(obj).encode("utf-8"), "application/json")
+        self._send(status, json.dumps(obj, allow_nan=False).encode("utf-8"), "application/json")
 
     def _error(self, status: int, message: str) -> None:
         self.close_connection = True  # a refused request's body may be unread: never reuse the connection
@@ -372,6 +373,11 @@ class _Handler(BaseHTTPRequestHandler):
     def do_POST(self):  # noqa: N802
         self._route("POST")
 
+    def _unsupported(self) -> None:
+        self._error(HTTPStatus.METHOD_NOT_ALLOWED, f"the page answers GET, HEAD and POST, not {self.command}.")
+
+    do_PUT = do_DELETE = do_PATCH = do_OPTIONS = do_TRACE = do_CONNECT = _unsupported  # noqa: N815
+
 
 class _Server(ThreadingHTTPServer):
     """The threading HTTP server of one session (requests meet under the session's lock)."""
@@ -382,6 +388,14 @@ class _Server(ThreadingHTTPServer):
     def __init__(self, address, session: EditSession):
         self.session = session
         super().__init__(address, _Handler)
+
+    def handle_error(self, request, client_address) -> None:
+        """A client that went away (closed tab, cancelled request) is logged at debug level, not printed."""
+        exc = sys.exc_info()[1]
+        if isinstance(exc, (ConnectionError, TimeoutError)):
+            log.debug("client %s went away: %s", client_address, exc)
+            return
+        super().handle_error(request, client_address)
 
 
 def loopback_host(host: str) -> str:

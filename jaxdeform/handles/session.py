@@ -41,6 +41,9 @@ from jaxdeform.handles.weights import Deformer, make_transform
 PICK_ACTIONS = ("query", "handle", "rotate", "anchor")
 DRAG_MODES = ("translate", "rotate", "orbit")
 RESET_TARGETS = ("transforms", "all", "view")
+#: a handle's transform is refused when its linear part has an entry above this, or when it takes the handle more
+#: than this many mesh sizes (bounding-box diagonals) from the mesh's centre
+TRANSFORM_LIMIT = 1e3
 
 
 @dataclass
@@ -162,9 +165,39 @@ class EditSession:
 
     def _apply(self, k: int, step: np.ndarray) -> None:
         """Compose ``step`` on the left of handle ``k``'s transform and select the handle."""
-        self.selected = k
-        self.transforms[k] = compose(step, self.transforms[k])
+        previous, self.selected = self.selected, k
+        try:
+            self._set_transform(k, compose(step, self.transforms[k]))
+        except ValueError:
+            self.selected = previous
+            raise
+
+    def _set_transform(self, k: int, transform: np.ndarray) -> None:
+        """Give handle ``k`` the ``(3, 4)`` ``transform`` and recompute the mesh, or raise ``ValueError`` and keep
+        the session as it was when the transform or the mesh it gives is not finite or beyond
+        :data:`TRANSFORM_LIMIT`."""
+        t = np.asarray(transform, np.float64)
+        lo, hi = self.rest.min(axis=0).astype(np.float64), self.rest.max(axis=0).astype(np.float64)
+        size, centre = float(np.linalg.norm(hi - lo)) or 1.0, 0.5 * (lo + hi)
+        with np.errstate(over="ignore", invalid="ignore"):
+            image = t[:, :3] @ np.asarray(self.rest[self.handles[k]], np.float64) + t[:, 3]
+            absurd = (
+                not np.all(np.isfinite(t))
+                or np.abs(t[:, :3]).max() > TRANSFORM_LIMIT
+                or not np.abs(image - centre).max() <= TRANSFORM_LIMIT * size
+            )
+        if absurd:
+            raise ValueError(
+                f"the transform of handle {k} is not finite or moves it beyond {TRANSFORM_LIMIT:g} mesh sizes; "
+                "it was not applied."
+            )
+        old = self.transforms[k]
+        self.transforms[k] = t
         self._changed()
+        if not np.all(np.isfinite(self.deformed)):
+            self.transforms[k] = old
+            self._changed()
+            raise ValueError(f"the transform of handle {k} gives a mesh that is not finite; it was not applied.")
 
     # ------------------------------------------------------------------------------------------------- queries
 
@@ -390,13 +423,13 @@ class EditSession:
 
         **Raises:**
 
-        ``ValueError`` for an invalid handle or a transform that is not a finite ``(3, 4)`` array.
+        ``ValueError`` for an invalid handle, a transform that is not a finite ``(3, 4)`` array, or one beyond
+        :data:`TRANSFORM_LIMIT` (the session is left as it was).
         """
         k = self._handle(handle)
-        self.transforms[k] = check_array(
-            transform, (3, 4), "'transform' must be 3 rows of 4 finite numbers (an affine map)."
+        self._set_transform(
+            k, check_array(transform, (3, 4), "'transform' must be 3 rows of 4 finite numbers (an affine map).")
         )
-        self._changed()
 
     def reset_handle(self, handle: int | None = None) -> None:
         """Give a handle the identity transform.
