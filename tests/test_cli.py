@@ -170,6 +170,38 @@ def test_decode_from_scaled_with_anchors(encoded, tube, tmp_path, capsys):
     np.testing.assert_allclose(v[[0, 3]], vertices[3][[0, 3]], atol=1e-3 * diag(vertices[3]))
 
 
+def test_decode_two_components_anchors_each(tube, tmp_path, capfd):
+    """A mesh of two disjoint tubes decodes with one anchor per component chosen automatically (and says so);
+    anchors that leave a component free are refused in one sentence naming --anchors, with nothing on stdout."""
+    vertices, faces = tube
+    shift = np.array([0.0, 0.0, 3.0])
+    both = np.concatenate([vertices, vertices[:, ::-1] * 0.7 + shift], axis=1)  # the copy bends the other way
+    two_faces = np.concatenate([faces, faces + NV])
+    seq = tmp_path / "seq"
+    for k in range(N_FRAMES):
+        save_mesh(seq / f"f{k}.obj", both[k], two_faces)
+    enc = tmp_path / "f.npz"
+    assert main(["acap", "encode", str(seq), "--reference", str(seq / "f0.obj"), "--out", str(enc)]) == 0
+    capfd.readouterr()
+    out = tmp_path / "dec"
+    assert main(["acap", "decode", str(enc), "--out", str(out)]) == 0
+    said = capfd.readouterr().out
+    assert f"2 connected components, one anchored at its lowest vertex: 0 {NV}" in said
+    from jaxdeform.mesh.io import load_mesh
+
+    for k in range(N_FRAMES):
+        v, _ = load_mesh(out / f"{k:03d}.obj")
+        for part in (slice(0, NV), slice(NV, 2 * NV)):  # each component's shape, up to its translation
+            err = np.abs(centred(v[part]) - centred(both[k][part])).max()
+            assert err < 1e-2 * diag(both[k][part]), (k, err)
+    bad = tmp_path / "bad"
+    rc = main(["acap", "decode", str(enc), "--out", str(bad), "--anchors", "0", "5"])
+    captured = capfd.readouterr()
+    lines = [ln for ln in captured.err.splitlines() if ln.strip()]
+    assert rc == 2 and len(lines) == 1 and "--anchors" in lines[0] and "2 connected components" in lines[0], lines
+    assert captured.out == "" and not bad.exists()
+
+
 def test_decode_refuses_non_empty_folder_unless_forced(encoded, tmp_path, capsys):
     """A non-empty --out needs --force, and --force replaces only a folder jaxdeform wrote (it holds the marker):
     a folder of the user's own files survives it, subfolder included."""

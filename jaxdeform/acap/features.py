@@ -422,7 +422,8 @@ class Acap(eqx.Module):
         **Arguments:**
 
         - `features`: features, shape `(..., V, 9)`.
-        - `anchors`: vertex indices held at `targets`; None: the prepared default (vertex 0).
+        - `anchors`: vertex indices held at `targets`; None: the prepared default (the lowest vertex of each
+          connected component: vertex 0 for a connected mesh).
         - `targets`: anchor positions, shape `(..., A, 3)`; None: the anchors' reference positions.
         - `refine`: number of defect-correction steps (0: plain reconstruction).
         - `initial`: a starting guess of the positions `(..., V, 3)` for conjugate gradients (default: the
@@ -573,7 +574,8 @@ def prepare(
     - `weighting`: the edge weighting of the local fits (default "official").
     - `solver`: "host" (sparse Cholesky on the host), "dense" (XLA Cholesky, on the device), "cg" (matrix-free
       conjugate gradients) or None (:func:`default_solver`).
-    - `anchors`: the default anchor vertex indices; None: vertex 0.
+    - `anchors`: the default anchor vertex indices; None: the lowest vertex of each connected
+      component (vertex 0 for a connected mesh).
     - `cg_rtol`: relative tolerance of conjugate gradients (None: the solver's default).
     - `cg_max_steps`: at most this many conjugate-gradient steps.
 
@@ -689,8 +691,8 @@ def decode(
 
     - `features`: features, shape `(..., V, 9)`.
     - `rest`, `faces`, `weighting`: as :func:`encode`.
-    - `anchors`: vertex indices held at `targets`; without anchors vertex 0 is held at its reference
-      position (the features carry no translation).
+    - `anchors`: vertex indices held at `targets`; without anchors the lowest vertex of each connected
+      component is held at its reference position (the features carry no translation).
     - `targets`: anchor positions; None: their reference positions.
     - `refine`: number of defect-correction steps (see :meth:`Acap.decode_info`; 0 = plain ACAP
       reconstruction).

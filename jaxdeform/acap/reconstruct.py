@@ -22,7 +22,8 @@ Derivatives are implicit (one more solve of the same system), hence exact with r
 the anchor targets and the reference-side constants (edge vectors, weights, anchor weight): see
 :meth:`Reconstructor.with_rest` for derivatives with respect to the reference positions.
 
-Translation is free without anchors, so at least one anchor is always used: by default vertex 0 held at its
+Translation is free without anchors, so at least one anchor per connected component is always used: by default
+the lowest vertex of each component (vertex 0 for a connected mesh) held at its
 reference position. The anchor weight ``a`` is ANCHOR_WEIGHT times the mean edge weight: large enough that
 anchors act as near-hard constraints, small enough to keep the factor well conditioned.
 """
@@ -572,12 +573,54 @@ class SolveInfo(eqx.Module):
         return SolveInfo(self.converged & other.converged, jnp.maximum(self.steps, other.steps))
 
 
-def _check_anchors(anchors, n: int) -> np.ndarray:
-    anchors = np.atleast_1d(np.asarray([0] if anchors is None else anchors, dtype=np.int64))
+def component_anchors(edges: Int[ArrayLike, "e 2"], n: int) -> tuple[np.ndarray, np.ndarray]:
+    """The connected components of a mesh's edge graph and the default anchor of each.
+
+    **Arguments:**
+
+    - `edges`: the undirected edges `(E, 2)` (host values).
+    - `n`: the number of vertices (a vertex on no edge is a component of its own).
+
+    **Returns:**
+
+    `(labels, anchors)`: the component of each vertex `(V,)`, numbered in the order of their lowest vertex, and
+    that lowest vertex of each component `(K,)`, ascending.
+    """
+    from scipy.sparse import coo_matrix
+    from scipy.sparse.csgraph import connected_components
+
+    e = np.asarray(edges, dtype=np.int64).reshape(-1, 2)
+    graph = coo_matrix((np.ones(len(e)), (e[:, 0], e[:, 1])), shape=(n, n))
+    _, labels = connected_components(graph, directed=False)
+    first = np.full(labels.max(initial=-1) + 1, n, dtype=np.int64)
+    np.minimum.at(first, labels, np.arange(n))
+    order = np.argsort(first)
+    relabel = np.empty_like(order)
+    relabel[order] = np.arange(order.size)
+    return relabel[labels], first[order]
+
+
+def _check_anchors(anchors, n: int, edges=None) -> np.ndarray:
+    """Concrete anchor indices, checked; None gives vertex 0, or (given the host `edges`) the lowest vertex of
+    each connected component. Given `edges`, every component must hold an anchor (else the solve is singular)."""
+    labels = firsts = None
+    if edges is not None:
+        labels, firsts = component_anchors(edges, n)
+    if anchors is None:
+        anchors = [0] if firsts is None else firsts
+    anchors = np.atleast_1d(np.asarray(anchors, dtype=np.int64))
     if anchors.ndim != 1 or anchors.size == 0 or anchors.min() < 0 or anchors.max() >= n:
         raise ValueError(f"anchor indices must lie in [0, {n}).")
     if np.unique(anchors).size != anchors.size:
         raise ValueError("anchor indices must be distinct.")
+    if labels is not None:
+        free = np.setdiff1d(np.arange(firsts.size), labels[anchors])
+        if free.size:
+            raise ValueError(
+                f"the mesh has {firsts.size} connected components and {free.size} of them hold no anchor (the "
+                f"one of vertex {int(firsts[free[0]])}, ...); give one anchor per component (the CLI's --anchors), "
+                "or none for the lowest vertex of each."
+            )
     return anchors
 
 
@@ -649,7 +692,8 @@ class Reconstructor(eqx.Module):
         - `rest`: reference positions `(V, 3)`, a jax or numpy array; its dtype is the problem's.
         - `topo`: the mesh topology.
         - `weights`: edge weights `(E,)`, a jax or numpy array; all positive.
-        - `anchors`: vertex indices, a concrete sequence (default [0]).
+        - `anchors`: vertex indices, a concrete sequence, one at least in each connected component (default:
+          the lowest vertex of each component, :func:`component_anchors`; vertex 0 for a connected mesh).
         - `anchor_weight`: the anchor weight relative to the mean edge weight.
         - `solver`: "host", "dense" or "cg".
         - `cg_rtol`, `cg_max_steps`: conjugate-gradient settings (:class:`ConjugateGradient`).
@@ -672,7 +716,7 @@ class Reconstructor(eqx.Module):
                 "reconstruction needs positive edge weights; use weighting='official' for this mesh."
             )
         n = topo.n_vertices
-        anchors = _check_anchors(anchors, n)
+        anchors = _check_anchors(anchors, n, np.asarray(topo.edges))
         a = float(anchor_weight * np.mean(w_host))
         weights = jnp.asarray(weights, dtype=rest.dtype)
         edges = jnp.asarray(topo.edges)
@@ -751,7 +795,8 @@ class Reconstructor(eqx.Module):
             if not isinstance(self.method, ConjugateGradient):
                 raise ValueError("traced anchor indices need solver='cg'; the factored solvers need concrete indices.")
             return eqx.tree_at(lambda r: r.anchors, self, anchors.astype(jnp.int32))
-        idx = _check_anchors(anchors, self.rest.shape[0]).astype(np.int32)  # numpy: concrete inside a trace too
+        edges = None if is_traced(self.edge_i, self.edge_j) else np.stack([self.edge_i, self.edge_j], axis=1)
+        idx = _check_anchors(anchors, self.rest.shape[0], edges).astype(np.int32)  # numpy: concrete in a trace too
         rec = eqx.tree_at(lambda r: r.anchors, self, idx)
         if isinstance(self.method, HostCholesky):
             return eqx.tree_at(lambda r: r.method, rec, HostCholesky.build(rec.matrix()))

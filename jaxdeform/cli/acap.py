@@ -97,9 +97,15 @@ def cmd_decode(args: argparse.Namespace) -> int:
     with common.staged_folder(out) as tmp:
         for k in range(n):
             save_mesh(tmp / f"{k:0{width}d}.obj", positions[k], faces)
+    if anchors is not None:
+        held = "anchors " + " ".join(map(str, anchors.tolist()))
+    elif np.asarray(acap.rec.anchors).size > 1:
+        used = np.asarray(acap.rec.anchors).tolist()
+        held = f"{len(used)} connected components, one anchored at its lowest vertex: {' '.join(map(str, used))}"
+    else:
+        held = "vertex 0 anchored"
     print(
-        f"decoded {n} frames x {nv} vertices ({weighting} weighting, "
-        f"{'anchors ' + ' '.join(map(str, anchors.tolist())) if anchors is not None else 'vertex 0 anchored'}"
+        f"decoded {n} frames x {nv} vertices ({weighting} weighting, {held}"
         f"{'' if args.refine is None else f', {args.refine} refinement steps'}) "
         f"in {elapsed:.2f} s; wrote {out}/{0:0{width}d}.obj .. {n - 1:0{width}d}.obj"
     )
