@@ -227,6 +227,40 @@ def _train_pca_xyz(seq_dir, out, capsys):
     return out
 
 
+def test_evaluate_refuses_other_data_and_damaged_records(seq_dir, tmp_path, capsys):
+    """A run knows its data: the same count and connectivity but other shapes (all scaled by 1e-8, or one shape
+    moved) are refused, naming what differs; a record with a split index out of range, a negative one, or an
+    autoencoder method without its configuration is refused in one sentence."""
+    from jaxdeform.mesh.io import load_mesh
+
+    out = _train_pca_xyz(seq_dir, tmp_path / "run", capsys)
+    for case, change in (("scaled", lambda k, v: v * 1e-8), ("moved", lambda k, v: v * (1.1 if k == 7 else 1.0))):
+        other = tmp_path / case
+        other.mkdir()
+        for k in range(N_FRAMES):
+            v, f = load_mesh(seq_dir / f"f{k}.obj")
+            save_mesh(other / f"f{k}.obj", change(k, v), f)
+        line = _one_line_error(capsys, main(["components", "evaluate", str(out), "--data", str(other)]))
+        assert "not the data the run was fitted on" in line and ("shape 0" if case == "scaled" else "shape 7") in line
+    # the data itself still evaluates
+    assert main(["components", "evaluate", str(out), "--data", str(seq_dir)]) == 0
+    capsys.readouterr()
+    record = json.loads((out / "run.json").read_text())
+    for damage, expect in (("test", "split.test holds 99"), ("train", "split.train holds -1"), ("method", "config")):
+        bad = json.loads(json.dumps(record))
+        if damage == "test":
+            bad["split"]["test"].append(99)
+        elif damage == "train":
+            bad["split"]["train"][0] = -1
+        else:
+            bad["method"] = "multiscale"
+        (out / "run.json").write_text(json.dumps(bad))
+        for argv in (["evaluate", str(out), "--data", str(seq_dir)], ["show", str(out), "--out", str(tmp_path / "s")]):
+            line = _one_line_error(capsys, main(["components", *argv]))
+            assert expect in line and "run.json" in line, line
+            assert not (tmp_path / "s").exists()
+
+
 def test_edit_bad_controls(seq_dir, tmp_path, capsys):
     out = _train_pca_xyz(seq_dir, tmp_path / "run", capsys)
     (tmp_path / "bad.json").write_text(json.dumps({"indices": [0, 9999], "targets": [[0, 0, 0], [1, 1, 1]]}))

@@ -141,6 +141,11 @@ def test_cli_parts_fit_show_interpolate(tmp_path):
     assert len(list(out.glob("*.obj"))) == 4 and (out / "strip.png").is_file()
     gaps = json.loads((out / "gaps.json").read_text())
     assert gaps["max_gap_over_diagonal"] <= 1e-2
+    for flag in ("--source", "--target"):  # negative indices are refused, not read from the end
+        argv = ["parts", "interpolate", str(run), "--source", "0", "--target", "2", "--out", str(tmp_path / "neg")]
+        argv[argv.index(flag) + 1] = "-1"
+        assert main(argv) == 2 and not (tmp_path / "neg").exists()
+    assert main(["parts", "show", str(run), "--shape", "-1", "--out", str(tmp_path / "neg")]) == 2
 
 
 @pytest.mark.parametrize("case", ["one shape", "different connectivity", "more parts than vertices"])

@@ -38,9 +38,10 @@ def cmd_parts_fit(args: argparse.Namespace) -> int:
 
 
 def _shape_index(value: int, n: int, name: str) -> int:
-    if not -n <= value < n:
+    """``value`` checked to index one of ``n`` shapes (negative indices are refused, not counted from the end)."""
+    if not 0 <= value < n:
         raise ValueError(f"--{name} {value} is not a shape of the run (it has {n} shapes: 0..{n - 1}).")
-    return value % n
+    return value
 
 
 def cmd_parts_interpolate(args: argparse.Namespace) -> int:

@@ -634,6 +634,7 @@ def _fit_into(
         "n_shapes": int(vertices.shape[0]),
         "n_vertices": int(vertices.shape[1]),
         "dtype": np.dtype(dtype).name,
+        "shape_sizes": shape_sizes(vertices),  # with the rest shape and faces (mesh.npz): what data checks compare
     }
     scaler = turns = x = dist = None
     t0 = time.perf_counter()
@@ -766,7 +767,48 @@ def read_record(path: Path) -> dict:
         raise RunError(f"{path} is a {record['kind']} run, not a components run.")
     if record["method"] not in METHOD_CONFIGS:
         raise RunError(f"{path / 'run.json'} names an unknown method {record['method']!r}.")
+    _check_record(path / "run.json", record)
     return record
+
+
+def _is_int(x) -> bool:
+    return isinstance(x, int) and not isinstance(x, bool)
+
+
+def _check_record(where: Path, record: dict) -> None:
+    """The types and ranges of a run record's fields (``where`` names run.json in the messages).
+
+    **Raises:** ``RunError``, one sentence naming the first field that is wrong.
+    """
+    n = record["n_shapes"]
+    if not _is_int(n) or n < 1:
+        raise RunError(f"{where}: n_shapes must be a positive integer, got {n!r}.")
+    if not _is_int(record["n_vertices"]) or record["n_vertices"] < 3:
+        raise RunError(f"{where}: n_vertices must be an integer of at least 3, got {record['n_vertices']!r}.")
+    split = record["split"]
+    if not isinstance(split, dict):
+        raise RunError(f"{where}: split must be an object with train and test index lists.")
+    for part in ("train", "test"):
+        idx = split.get(part)
+        if not isinstance(idx, list) or not all(_is_int(i) for i in idx) or (part == "train" and not idx):
+            raise RunError(
+                f"{where}: split.{part} must be a list of shape indices{' (not empty)' * (part == 'train')}."
+            )
+        bad = [i for i in idx if not 0 <= i < n]
+        if bad:
+            raise RunError(
+                f"{where}: split.{part} holds {bad[0]}, not a shape index (the run has {n} shapes: 0..{n - 1})."
+            )
+    if record.get("dtype", "float32") not in ("float32", "float64"):
+        raise RunError(f"{where}: dtype must be float32 or float64, got {record['dtype']!r}.")
+    if record["method"] in AUTOENCODERS:
+        cfg = record.get("config")
+        fields = {f.name for f in dataclasses.fields(model.Config)}
+        if not isinstance(cfg, dict) or not set(cfg) <= fields:
+            raise RunError(
+                f"{where}: the {record['method']} method needs its model configuration (config: an object with "
+                f"the fields of jaxdeform.components.model.Config), got {type(cfg).__name__}."
+            )
 
 
 def load(path) -> Run:
@@ -795,7 +837,14 @@ def load(path) -> Run:
     dtype = np.dtype(record.get("dtype", "float32"))
     cfg = trained = linear = None
     if record["method"] in AUTOENCODERS:
-        cfg = _model_config(record["config"])
+        if not (path / "params").is_dir():
+            raise RunError(f"{path}: params is missing (the {record['method']} method's trained parameters).")
+        try:
+            cfg = _model_config(record["config"])
+        except (TypeError, ValueError) as exc:
+            raise RunError(
+                f"{path / 'run.json'}: config is not a valid {record['method']} configuration ({exc})."
+            ) from None
         like = model.Model(record["n_vertices"], cfg, key=jax.random.PRNGKey(0), dtype=dtype)
         trained = train.load_params(path / "params", like)
     else:
@@ -808,13 +857,44 @@ def load(path) -> Run:
     )
 
 
+#: relative tolerance of the data check: shapes read back from another file format of the same data pass
+DATA_RTOL = 1e-5
+
+
+def shape_sizes(vertices: np.ndarray) -> list[float]:
+    """Each shape's RMS distance from its centroid, ``(N,)`` as a list: the part of a run's data fingerprint that
+    tells one set of shapes from another of the same count and connectivity."""
+    v = np.asarray(vertices, np.float64)
+    return np.sqrt(((v - v.mean(axis=1, keepdims=True)) ** 2).sum(-1).mean(-1)).tolist()
+
+
 def _check_data(run: Run, vertices: np.ndarray, faces: np.ndarray, where: str) -> None:
+    """``vertices`` and ``faces`` (read from ``where``) must be the data the run was fitted on: the same shape
+    count and connectivity, shape 0 the run's reference, and (runs that stored them) the same shape sizes."""
     if vertices.shape[0] != run.record["n_shapes"]:
         raise RunError(
             f"{where} holds {vertices.shape[0]} shapes but the run was trained on a set of "
             f"{run.record['n_shapes']}; pass the same data folder."
         )
     check_same_connectivity(run.faces, faces, run.rest.shape[0], vertices.shape[1], where)
+    rest = np.asarray(run.rest, np.float64)
+    size = float(np.linalg.norm(np.ptp(rest, axis=0))) or 1.0
+    off = float(np.abs(np.asarray(vertices[0], np.float64) - rest).max())
+    if not off <= DATA_RTOL * size:
+        raise RunError(
+            f"{where} is not the data the run was fitted on: its shape 0 lies up to {off:.3g} from the run's "
+            f"reference shape ({off / size:.3g} of its size); pass the run's own data."
+        )
+    kept = run.record.get("shape_sizes")
+    if isinstance(kept, list) and len(kept) == vertices.shape[0]:
+        got = np.asarray(shape_sizes(vertices))
+        bad = np.flatnonzero(~(np.abs(got - np.asarray(kept, np.float64)) <= DATA_RTOL * np.abs(kept)))
+        if bad.size:
+            k = int(bad[0])
+            raise RunError(
+                f"{where} is not the data the run was fitted on: its shape {k} has size {got[k]:.6g} where the "
+                f"run's had {kept[k]:.6g}; pass the run's own data."
+            )
 
 
 # ---------------------------------------------------------------------------------------- evaluate
