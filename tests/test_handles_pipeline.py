@@ -165,6 +165,7 @@ def test_cli_deform_moves_the_handle_and_show_writes_a_png(bar_files, tmp_path):
         "anchor",
         "field-size",
         "field-faces",
+        "field-other-mesh",
         "no-faces",
         "rotate-axis",
         "nan-translate",
@@ -193,6 +194,10 @@ def test_cli_bad_input_exits_2_with_one_sentence_and_writes_nothing(bar_files, t
         _write_field(field, v.shape[0] + 7, f.shape[0], (v.min(0), v.max(0)))
     elif case == "field-faces":
         _write_field(field, v.shape[0], f.shape[0] + 2, (v.min(0), v.max(0)))
+    elif case == "field-other-mesh":  # same counts, another mesh (three times larger): every weight would be 1
+        from jaxdeform.mesh.io import save_mesh
+
+        save_mesh(mesh, 3.0 * v, f)
     elif case == "nan-translate":
         args += ["--translate", "nan", "0", "0"]
     elif case == "huge-translate":  # finite, but 1e300 mesh sizes away: refused at the input
@@ -232,7 +237,7 @@ def test_cli_bad_input_exits_2_with_one_sentence_and_writes_nothing(bar_files, t
         assert _contents(mesh, field) == before and "--out" in err[0]
     if case in ("field-count-null", "repeated-vertex-face"):
         assert (field.name if case == "field-count-null" else mesh.name) in err[0]
-    if case in ("field-size", "field-faces"):
+    if case in ("field-size", "field-faces", "field-other-mesh"):
         assert "--remap" in err[0]
 
 

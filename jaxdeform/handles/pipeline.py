@@ -28,6 +28,7 @@ from pathlib import Path
 import numpy as np
 
 from jaxdeform.errors import ConnectivityError, DegenerateMeshError
+from jaxdeform.mesh.io import connectivity_hash
 from jaxdeform.mesh.topology import repeated_vertex_face
 
 
@@ -177,6 +178,7 @@ def distill_mesh(
     meta = {
         "n_vertices": int(v.shape[0]),
         "n_faces": int(f.shape[0]),
+        "faces_sha256": connectivity_hash(f),
         "rendered_faces": int(fs.shape[0]),
         "backbone": getattr(backbone, "name", type(backbone).__name__),
         "n_views": config.n_views,
@@ -217,8 +219,9 @@ def load_backbone(name: str | None = None):
 def field_features(field_path, mesh_path, vertices, faces, remap: bool = False):
     """The field saved at ``field_path`` and the unit features of ``vertices``.
 
-    Checks that the field was distilled on this mesh (same vertex and face counts) unless ``remap`` (a field
-    applied to another mesh of the same shape).
+    Checks that the field was distilled on this mesh unless ``remap`` (a field applied to another mesh of the
+    same shape): the same vertex and face counts, the same triangles (fields that recorded them) and a bounding
+    box within 1 % of the field's.
 
     **Arguments:**
 
@@ -251,4 +254,19 @@ def field_features(field_path, mesh_path, vertices, faces, remap: bool = False):
             f"{vertices.shape[0]} and {faces.shape[0]}; pass --remap to apply the field to a different mesh of "
             "the same shape."
         )
+    if not remap:
+        kept = meta.get("faces_sha256")
+        lo, hi = (np.asarray(b, np.float64) for b in meta.get("bbox", (vertices.min(0), vertices.max(0))))
+        v = np.asarray(vertices, np.float64)
+        off = max(np.abs(v.min(axis=0) - lo).max(), np.abs(v.max(axis=0) - hi).max())
+        what = None
+        if kept is not None and kept != connectivity_hash(faces):
+            what = "its triangles differ"
+        elif not off <= 0.01 * (float(np.linalg.norm(hi - lo)) or 1.0):
+            what = f"its bounding box differs by {off:.3g}"
+        if what is not None:
+            raise ConnectivityError(
+                f"{field_path} was distilled on another mesh than {mesh_path} (same counts, but {what}); pass "
+                "--remap to apply the field to a different mesh of the same shape."
+            )
     return fitted, evaluate_field(fitted, vertices)

@@ -457,6 +457,14 @@ def atomic_path(path: Path):
     return _cm()
 
 
+def connectivity_hash(faces) -> str:
+    """A SHA-256 hex digest of a mesh's triangles (as int64, in their order): equal for meshes of one
+    connectivity, what run folders and fields store to recognise the mesh they were fitted on."""
+    import hashlib
+
+    return hashlib.sha256(np.ascontiguousarray(np.asarray(faces, dtype=np.int64)).tobytes()).hexdigest()
+
+
 OUTPUT_MARKER = ".jaxdeform"  # the file in every folder staged_folder writes
 
 
