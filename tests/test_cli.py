@@ -418,6 +418,8 @@ def test_render_bad_input(seq_dir, tmp_path, capsys):
         assert_one_line_error(capsys, rc, out)
     rc = main(["render", str(mesh), "--out", str(out), "--width", "0"])
     assert_one_line_error(capsys, rc, out)
+    rc = main(["render", str(mesh), "--out", str(out), "--width", "200000", "--height", "200000"])
+    assert "at most" in assert_one_line_error(capsys, rc, out)
 
 
 def test_output_files_never_replace_an_input(seq_dir, encoded, tmp_path, capsys):

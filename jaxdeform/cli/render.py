@@ -36,6 +36,9 @@ def _read_scalar(path: str, mesh: Path, n_vertices: int):
     return scalar
 
 
+MAX_SIDE = 8192  # pixels: the largest image side render writes
+
+
 def cmd_render(args: argparse.Namespace) -> int:
     from jaxdeform.mesh.io import load_mesh
     from jaxdeform.mesh.render import auto_camera, render, save_png
@@ -48,6 +51,8 @@ def cmd_render(args: argparse.Namespace) -> int:
     scalar = _read_scalar(args.scalar, mesh, vertices.shape[0]) if args.scalar else None
     if args.width < 1 or args.height < 1:
         raise ValueError(f"--width and --height must be positive, got {args.width} x {args.height}.")
+    if args.width > MAX_SIDE or args.height > MAX_SIDE:
+        raise ValueError(f"--width and --height must be at most {MAX_SIDE} pixels, got {args.width} x {args.height}.")
     camera = auto_camera(vertices, azimuth_deg=args.azimuth, elevation_deg=args.elevation, up_axis=args.up)
     t0 = time.perf_counter()
     image = render(
