@@ -123,6 +123,24 @@ def test_encode_prints_one_summary_line(seq_dir, tmp_path, capsys):
         assert str(d["consistency"]) == "spatial"
 
 
+def test_encode_warns_of_zero_area_reference_faces(tube, tmp_path, capsys):
+    """A reference with a zero-area face encodes with one warning line naming the face as the file counts it."""
+    vertices, faces = tube
+    ref = vertices[0].copy()
+    a, b, c = faces[6]
+    ref[c] = 0.5 * (ref[a] + ref[b])  # face 6 (the file's 7th) collapses onto its edge a-b
+    save_mesh(tmp_path / "ref.npz", ref, faces)  # exact: an OBJ would round the collapsed vertex off the edge
+    save_mesh(tmp_path / "f1.obj", vertices[1], faces)
+    out = tmp_path / "f.npz"
+    assert (
+        main(["acap", "encode", str(tmp_path / "f1.obj"), "--reference", str(tmp_path / "ref.npz"), "--out", str(out)])
+        == 0
+    )
+    err = [ln for ln in capsys.readouterr().err.splitlines() if ln.strip()]
+    assert len(err) == 1 and err[0].startswith("warning: ") and "face 7, counting from 1" in err[0], err
+    assert out.is_file()
+
+
 def test_decode_round_trip(encoded, tube, tmp_path, capsys):
     vertices, faces = tube
     out = tmp_path / "dec"

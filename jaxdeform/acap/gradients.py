@@ -43,6 +43,9 @@ NORMAL_ROW_SCALE = 0.3
 OFFICIAL_EXPONENT = 0.25
 
 
+SEXP_FLOOR = -30.0  # the official weight map's smallest exponent: e^-30 ~ 1e-13, a normal float32
+
+
 def sexp(x: Array) -> Array:
     """The official positive weight map.
 
@@ -52,9 +55,10 @@ def sexp(x: Array) -> Array:
 
     **Returns:**
 
-    e^x for x <= 0, 1 + x above; non-finite values or values above 1e5 become 1. Same shape, always positive.
+    e^x for x <= 0 (x held at -30 or above, so that a near-flat triangle's huge negative cotangent still gives
+    a positive weight), 1 + x above; non-finite values or values above 1e5 become 1. Same shape, always positive.
     """
-    y = jnp.where(x <= 0, jnp.exp(jnp.minimum(x, 0.0)), 1.0 + x)
+    y = jnp.where(x <= 0, jnp.exp(jnp.clip(x, SEXP_FLOOR, 0.0)), 1.0 + x)
     return jnp.where(jnp.isfinite(y) & (y <= 1e5), y, 1.0)
 
 

@@ -7,6 +7,7 @@
 from __future__ import annotations
 
 import argparse
+import sys
 import time
 from pathlib import Path
 
@@ -47,6 +48,16 @@ def cmd_encode(args: argparse.Namespace) -> int:
         ) from None
     dtype = np.float32 if args.float32 else np.float64
     vertices, ref_v = vertices.astype(dtype), ref_v.astype(dtype)
+    from jaxdeform.mesh.geometry import zero_area_faces
+
+    flat = zero_area_faces(ref_v, ref_f)
+    if flat.size:
+        print(
+            f"warning: the reference {args.reference} has {flat.size} zero-area face(s) (the first is its face "
+            f"{flat[0] + 1}, counting from 1); they add nothing to their vertices' deformation gradients, which are "
+            "less accurate there, and decoding returns those vertices less exactly.",
+            file=sys.stderr,
+        )
 
     t0 = time.perf_counter()
     arrays = encode_arrays(vertices, ref_v, ref_f, args.consistency, args.weighting)
