@@ -121,5 +121,17 @@ def test_sequence_npz_without_shapes(tmp_path):
 
 def test_sequence_with_a_face_repeating_a_vertex_names_the_file(tmp_path):
     io.save_mesh(tmp_path / "a.obj", TRI, np.array([[0, 1, 2], [1, 3, 3]]))
-    with pytest.raises(ConnectivityError, match="a.obj: face 1 repeats a vertex"):
-        io.load_sequence(tmp_path)
+    with pytest.raises(MeshFormatError, match="a.obj: a face joins the vertices 2, 4 and 4, one of them twice"):
+        io.load_sequence(tmp_path)  # numbered as the OBJ file numbers its vertices, from 1
+
+
+def test_obj_messages_number_vertices_as_the_file_does(tmp_path):
+    """Out-of-range and duplicate faces are named in the file's own (1-based) vertex numbers."""
+    bad = tmp_path / "bad.obj"
+    bad.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nf 1 2 3\nf 1 2 10000\n")
+    with pytest.raises(MeshFormatError, match="bad.obj: a face refers to vertex 10000 .*numbered 1..3"):
+        io.load_mesh(bad)
+    dup = tmp_path / "dup.obj"
+    dup.write_text("v 0 0 0\nv 1 0 0\nv 0 1 0\nv 1 1 0\nf 1 2 3\nf 2 4 3\nf 3 1 2\n")
+    with pytest.raises(MeshFormatError, match="dup.obj: two faces join the same vertices 1, 2 and 3"):
+        io.load_mesh(dup)

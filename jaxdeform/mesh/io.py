@@ -58,8 +58,8 @@ def _read_text(path: Path) -> str:
     return text
 
 
-def _finish(path: Path, vertices: np.ndarray, faces: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-    """Shared validation of a parsed mesh."""
+def _finish(path: Path, vertices: np.ndarray, faces: np.ndarray, base: int = 0) -> tuple[np.ndarray, np.ndarray]:
+    """Shared validation of a parsed mesh; messages number vertices as the file does (from ``base``: 1 for OBJ)."""
     if vertices.shape[0] == 0:
         raise MeshFormatError(f"{path}: the file holds no vertices.")
     if faces.shape[0] == 0:
@@ -68,9 +68,25 @@ def _finish(path: Path, vertices: np.ndarray, faces: np.ndarray) -> tuple[np.nda
         bad = int(np.argwhere(~np.isfinite(vertices))[0, 0])
         raise MeshFormatError(f"{path}: vertex {bad} has a NaN or infinite coordinate.")
     if faces.min() < 0 or faces.max() >= vertices.shape[0]:
+        bad = int(faces.max()) if faces.max() >= vertices.shape[0] else int(faces.min())
         raise MeshFormatError(
-            f"{path}: a face refers to vertex {int(faces.max()) if faces.max() >= vertices.shape[0] else int(faces.min())}"
-            f" but the file has {vertices.shape[0]} vertices (truncated or corrupt file)."
+            f"{path}: a face refers to vertex {bad + base} but the file has {vertices.shape[0]} vertices "
+            f"(numbered {base}..{vertices.shape[0] - 1 + base}; truncated or corrupt file)."
+        )
+    keys = np.sort(faces, axis=1)
+    rep = np.flatnonzero((keys[:, 0] == keys[:, 1]) | (keys[:, 1] == keys[:, 2]))
+    if rep.size:
+        a, b, c = faces[rep[0]] + base
+        raise MeshFormatError(
+            f"{path}: a face joins the vertices {a}, {b} and {c}, one of them twice; faces must have 3 distinct "
+            "vertices."
+        )
+    _, first, counts = np.unique(keys, axis=0, return_index=True, return_counts=True)
+    if counts.max(initial=0) > 1:
+        dup = keys[first[np.argmax(counts > 1)]] + base
+        raise MeshFormatError(
+            f"{path}: two faces join the same vertices {dup[0]}, {dup[1]} and {dup[2]} (a duplicate face); "
+            "remove one of them."
         )
     return vertices.astype(np.float64), faces.astype(np.int32)
 
@@ -128,7 +144,7 @@ def read_obj(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
             polys.append([i - 1 if i > 0 else n + i for i in idx])
     except ValueError:
         raise MeshFormatError(f"{path}: a face line is truncated or not numeric.") from None
-    return _finish(path, vertices, _triangulate(polys, path))
+    return _finish(path, vertices, _triangulate(polys, path), base=1)
 
 
 def read_off(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
