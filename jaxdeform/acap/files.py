@@ -17,6 +17,26 @@ from jaxdeform.errors import ConnectivityError, JaxDeformError, MeshFormatError
 WEIGHTINGS = ("official", "cotangent")
 
 
+def _not_finite_reason(vertices, reference, features) -> str:
+    """One sentence on why encoded features are not finite: a scale the dtype cannot hold, or collapsed faces."""
+    frames = np.asarray(vertices)
+    bad = np.flatnonzero(~np.isfinite(np.asarray(features)).reshape(len(features), -1).all(axis=1))
+    k = int(bad[0]) if bad.size else 0
+    dtype = np.asarray(reference).dtype
+    sizes = [float(np.linalg.norm(np.ptp(np.asarray(x, np.float64), axis=0))) for x in (reference, frames[k])]
+    tiny, huge = float(np.finfo(dtype).tiny) ** 0.25, float(np.finfo(dtype).max) ** 0.25
+    if any(not tiny < size < huge for size in sizes):
+        return (
+            f"the features of frame {k} are not finite: the reference spans {sizes[0]:.3g} and the frame "
+            f"{sizes[1]:.3g}, beyond what {dtype.name} features hold ({tiny:.1g} to {huge:.1g}); rescale the meshes"
+            f"{' or encode in float64' if dtype == np.float32 else ''}; nothing was written."
+        )
+    return (
+        f"the features of frame {k} are not finite: the frame or the reference has collapsed (zero-area or "
+        "zero-length) faces; nothing was written."
+    )
+
+
 def encode_arrays(
     vertices: np.ndarray,
     reference: np.ndarray,
@@ -53,7 +73,7 @@ def encode_arrays(
     scaled = np.asarray(scaler.transform(features))
     log_r = np.asarray(log_matrices(v))
     if not (np.all(np.isfinite(features)) and np.all(np.isfinite(scaled))):
-        raise JaxDeformError("the encoded features are not finite (degenerate meshes?); nothing was written.")
+        raise JaxDeformError(_not_finite_reason(vertices, reference, features))
     return {
         "log_r": log_r,
         "s": s,

@@ -20,8 +20,10 @@ def cmd_cloth_simulate(args: argparse.Namespace) -> int:
 
     out = Path(args.out)
     common.check_out_folder(out, args.force)
-    if args.sequences < 2 or (args.frames is not None and args.frames < 2):
-        raise ValueError(f"--sequences and --frames must be at least 2, got {args.sequences} and {args.frames}.")
+    if args.sequences < 2:
+        raise ValueError(f"--sequences must be at least 2 (a training and a test sequence), got {args.sequences}.")
+    if args.frames is not None and args.frames < 2:
+        raise ValueError(f"--frames must be at least 2, got {args.frames}.")
     if args.seed < 0:
         raise ValueError(f"--seed must be a whole number >= 0, got {args.seed}.")
     from jaxdeform.cloth.garments import motion_choices
@@ -132,7 +134,7 @@ def cmd_cloth_evaluate(args: argparse.Namespace) -> int:
         tmp.write_text(json.dumps(res, indent=1) + "\n")
     t = res[part]
     print(
-        f"{part}: rmse {t['rmse']:.5f} m, hausdorff {t['hausdorff']:.5f} m, sted {t['sted']:.4f} "
+        f"{part}: rmse {t['rmse']:.5f} m, hausdorff {t['hausdorff']:.5f} m, sted {t['sted']:.4g} "
         f"(upsampled coarse rmse {res['upsampled_coarse'][part]['rmse']:.5f}); wrote {out}"
     )
     return 0
@@ -163,7 +165,8 @@ def _add_simulate_train(cloth_sub) -> None:
     ctr = cloth_sub.add_parser(
         "train",
         help="Train a detail model on a dataset's training split.",
-        description="TS-ACAP features of both resolutions -> DeformTransformer (teacher forcing).",
+        description="TS-ACAP features of both resolutions -> DeformTransformer, trained on its own earlier "
+        "predictions with probability 0.5 (--self-feed; 0 is the paper's teacher forcing).",
     )
     ctr.add_argument("data", metavar="DATA", help="dataset folder written by 'cloth simulate'")
     common.add_out(ctr, "RUN", "run folder to write")

@@ -82,7 +82,7 @@ def cmd_components_evaluate(args: argparse.Namespace) -> int:
     rse = "max_relative_squared_error"
     rse = f", max relative squared error {te[rse]:.4g}" if rse in te else ""
     wrote = f"; wrote {args.json}" if args.json else ""
-    print(f"{result['method']}: test Erms {te['erms']:.4f}, STED {te['sted']:.4f}{rse}{wrote}")
+    print(f"{result['method']}: test Erms {te['erms']:.4g}, STED {te['sted']:.4g}{rse}{wrote}")
     if not args.json:
         print(text)
     return 0

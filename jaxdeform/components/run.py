@@ -622,6 +622,11 @@ def _fit_into(
     cfg, tc = resolve_config(method, config, epochs, seed)
     vertices, faces = load_data(data) if loaded is None else loaded
     train_idx, test_idx = split_indices(vertices.shape[0], split, split_seed)
+    if train_idx.size < 2:
+        raise RunError(
+            f"the training split ({split}) of the {vertices.shape[0]} shapes of {data} holds {train_idx.size}; "
+            "fitting needs at least 2: give more shapes or another split (half, all)."
+        )
     rest = vertices[0]
     record = {
         "kind": KIND,
@@ -829,8 +834,11 @@ def load(path) -> Run:
     run's.
     """
     path = Path(path)
-    if not (path / "run.json").is_file() or not (path / "mesh.npz").is_file():
-        raise RunError(f"{path} is not a components run (run.json and mesh.npz are missing).")
+    missing = [name for name in ("run.json", "mesh.npz") if not (path / name).is_file()]
+    if missing:
+        raise RunError(
+            f"{path} is not a components run ({' and '.join(missing)} {'is' if len(missing) == 1 else 'are'} missing)."
+        )
     record = read_record(path)
     arrays = read_npz_arrays(path / "mesh.npz")
     scaler = acap.Scaler.from_array(arrays["scaler"]) if "scaler" in arrays else None
