@@ -120,3 +120,42 @@ def test_resume_refuses_a_partial_fit_of_other_settings(seq_dir, tmp_path):
     lines = [ln for ln in done.stderr.splitlines() if ln.strip()]
     assert len(lines) == 1 and "other settings (seed)" in lines[0], done.stderr
     assert partial.is_dir() and not out.exists()  # the kept fit is untouched
+
+
+def test_long_commands_say_what_they_wait_for_on_a_terminal(seq_dir, tmp_path):
+    """On a terminal, acap encode prints one status line on stderr before its wait; --quiet and a captured
+    stderr print none (the one-line error contract)."""
+    import pty
+
+    def run(*extra):
+        out = tmp_path / f"f{len(extra)}.npz"
+        cmd = [sys.executable, "-m", "jaxdeform", "acap", "encode", str(seq_dir), "--reference"]
+        cmd += [str(seq_dir / "f0.obj"), "--out", str(out), *extra]
+        leader, follower = pty.openpty()
+        proc = subprocess.Popen(cmd, stdout=subprocess.PIPE, stderr=follower, text=True, env=_env())
+        os.close(follower)
+        chunks = []
+        while True:
+            try:
+                data = os.read(leader, 4096)
+            except OSError:  # the terminal closed with the process
+                break
+            if not data:
+                break
+            chunks.append(data)
+        proc.wait(timeout=240)
+        os.close(leader)
+        assert proc.returncode == 0
+        return b"".join(chunks).decode()
+
+    said = [ln for ln in run().splitlines() if ln.strip()]
+    assert len(said) == 1 and said[0].startswith("jaxdeform: encoding 12 frames x 128 vertices"), said
+    assert [ln for ln in run("--quiet").splitlines() if ln.strip()] == []
+    captured = subprocess.run(
+        [sys.executable, "-m", "jaxdeform", "acap", "encode", str(seq_dir), "--reference", str(seq_dir / "f0.obj")]
+        + ["--out", str(tmp_path / "c.npz")],
+        capture_output=True,
+        text=True,
+        env=_env(),
+    )
+    assert captured.returncode == 0 and captured.stderr == ""

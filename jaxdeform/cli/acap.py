@@ -59,6 +59,11 @@ def cmd_encode(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
 
+    common.status(
+        args,
+        f"encoding {vertices.shape[0]} frames x {vertices.shape[1]} vertices ({args.consistency} consistency; "
+        "the first call compiles)...",
+    )
     t0 = time.perf_counter()
     arrays = encode_arrays(vertices, ref_v, ref_f, args.consistency, args.weighting)
     elapsed = time.perf_counter() - t0
@@ -97,6 +102,7 @@ def cmd_decode(args: argparse.Namespace) -> int:
             raise ValueError(f"anchor {int(bad[0])} is not a vertex index (the mesh has {nv} vertices).")
         anchors = np.unique(anchors)
 
+    common.status(args, f"decoding {n} frames x {nv} vertices (the first call compiles)...")
     t0 = time.perf_counter()
     acap = prepare(reference, faces, weighting=weighting)
     extra = {} if args.refine is None else {"refine": args.refine}
@@ -157,6 +163,7 @@ def register(sub) -> None:
         "--weighting", choices=WEIGHTINGS, default="official", help="one-ring edge weights (default: official)"
     )
     enc.add_argument("--float32", action="store_true", help="compute in float32 (default: float64)")
+    common.add_quiet(enc, "no status line")
     enc.set_defaults(func=cmd_encode)
 
     dec = acap_sub.add_parser(
@@ -181,4 +188,5 @@ def register(sub) -> None:
         help="refinement steps after the least-squares solve (default: the library's)",
     )
     common.add_force(dec, "replace DIR if it exists and is not empty")
+    common.add_quiet(dec, "no status line")
     dec.set_defaults(func=cmd_decode)

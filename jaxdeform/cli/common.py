@@ -107,6 +107,13 @@ def add_quiet(p: argparse.ArgumentParser, help: str = "no progress bars") -> Non
     p.add_argument("--quiet", action="store_true", help=help)
 
 
+def status(args: argparse.Namespace, text: str) -> None:
+    """One status line ``jaxdeform: <text>`` on stderr before a wait of more than a few seconds, when stderr is a
+    terminal (a captured stderr keeps the one-line error contract) and ``--quiet`` is not given."""
+    if not getattr(args, "quiet", False) and sys.stderr.isatty():
+        print(f"{PROG}: {text}", file=sys.stderr, flush=True)
+
+
 def add_force(p: argparse.ArgumentParser, help: str) -> None:
     p.add_argument("--force", action="store_true", help=help)
 

@@ -32,6 +32,9 @@ def cmd_components_train(args: argparse.Namespace) -> int:
     check_quantile(q, "--scale-quantile")  # before any work (Scaler.fit checks it too, after encoding)
     loaded = run.load_data(data)  # fewer than 2 shapes or mixed connectivity: one sentence, nothing written
     kw = {k: getattr(args, k) for k in ("epochs", "seed", "split", "split_seed", "method")}
+    what = "features" + (" and geodesic distances" if args.method in run.AUTOENCODERS else "")
+    if args.method in run.ACAP_METHODS or args.method in run.AUTOENCODERS:
+        common.status(args, f"computing the {what} of {loaded[0].shape[0]} shapes x {loaded[0].shape[1]} vertices...")
     try:
         with common.writing(out):
             record = run.fit(
@@ -73,6 +76,8 @@ def cmd_components_evaluate(args: argparse.Namespace) -> int:
         protect = [args.run] + [Path(args.run) / f for f in run.RUN_FILES]
         common.check_out_file(Path(args.json), (".json",), list(args.data), "metrics", "--json", protect=protect)
     loaded = run.load(args.run)
+    n = loaded.record["n_shapes"]
+    common.status(args, f"evaluating the {loaded.method} run on {n} shapes (encode, reconstruct, compare)...")
     result = run.evaluate(loaded, common.data_arg(args.data))
     text = json.dumps(result, indent=2)
     if args.json:
@@ -95,6 +100,7 @@ def cmd_components_show(args: argparse.Namespace) -> int:
     out = Path(args.out)
     common.check_out_folder(out, args.force, [args.run])
     loaded = run.load(args.run)
+    common.status(args, f"drawing the {loaded.method} run's components...")
     with common.staged_folder(out) as tmp:
         info = run.show(loaded, tmp, up_axis=None if args.up == "auto" else args.up)
     print(
@@ -159,6 +165,7 @@ def _add_train_evaluate(comp_sub) -> None:
     ceval.add_argument("run", metavar="RUN", help="run folder written by 'jaxdeform components train'")
     common.add_data(ceval, "the data the run was trained on", required=True)
     common.add_json(ceval, "write the metrics here")
+    common.add_quiet(ceval, "no status line")
     ceval.set_defaults(func=cmd_components_evaluate)
 
 
@@ -173,6 +180,7 @@ def _add_show(comp_sub) -> None:
     common.add_out(cshow, "DIR", "folder to create")
     cshow.add_argument("--up", choices=("auto", "y", "z"), default="auto", help="the meshes' vertical (or guessed)")
     common.add_force(cshow, "replace DIR if it exists and is not empty")
+    common.add_quiet(cshow, "no status line")
     cshow.set_defaults(func=cmd_components_show)
 
 

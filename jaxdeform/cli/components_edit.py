@@ -27,6 +27,7 @@ def cmd_components_edit(args: argparse.Namespace) -> int:
     loaded = run.load(args.run)
     controls, targets = run.read_controls(args.controls)
     common.check_magnitude(targets, loaded.rest, f"the targets of {args.controls}")
+    common.status(args, f"editing with {controls.size} control points (the editor compiles first)...")
     t0 = time.perf_counter()
     ed = run.editor(loaded)
     result = ed.edit(
@@ -84,4 +85,5 @@ def register(comp_sub) -> None:
         help="multiscale runs: optimise every level's codes at once instead of coarse to fine "
         "(one stage per level: level 0's codes first)",
     )
+    common.add_quiet(cedit, "no status line")
     cedit.set_defaults(func=cmd_components_edit)

@@ -376,7 +376,8 @@ def apply_feature_transform(
 
 
 def normalized_geodesics(rest: np.ndarray, faces: np.ndarray, dtype=np.float32) -> np.ndarray:
-    """Normalized geodesic distances on the reference shape (exact up to 5000 vertices, heat method above).
+    """Normalized geodesic distances on the reference shape (all pairs: exact up to 447 vertices, heat method
+    above; :data:`jaxdeform.mesh.geodesic.AUTO_EXACT_MAX_WORK`).
 
     **Arguments:**
 
