@@ -26,14 +26,17 @@ Each module provides
 - ``show(run, out) -> dict``: figures of the run written into the folder ``out``, and their summary.
 
 The functions below read the kind of a folder and dispatch to its module; method modules are imported only when
-a run of theirs is met.
+a run of theirs is met. :func:`resumable` is how the trained methods (components, cloth) build a run folder that
+an interrupted training can continue (``fit(..., resume=True)``).
 """
 
 from __future__ import annotations
 
+import contextlib
 import importlib
 import json
 import os
+import shutil
 from pathlib import Path
 from types import ModuleType
 from typing import Any, Protocol
@@ -223,3 +226,69 @@ def config(kind: str, value: Any, cls: type | None = None):
     if cls is not None and not isinstance(value, cls):
         raise TypeError(f"a {kind} configuration must be a name or a {cls.__name__}, got {type(value).__name__}.")
     return value
+
+
+#: the settings of a fit, kept in its partial folder (what ``resume`` compares)
+RESUME_FILE = "fit-settings.json"
+
+
+def partial_folder(out: str | os.PathLike) -> Path:
+    """The folder a resumable fit of the run folder ``out`` is built in: the hidden sibling ``.NAME.partial``."""
+    out = Path(out)
+    return out.parent / f".{out.name}.partial"
+
+
+@contextlib.contextmanager
+def resumable(out: Path, settings: dict, resume: bool, log=print):
+    """Build the run folder ``out`` in :func:`partial_folder` and rename it onto ``out`` when the block succeeds.
+
+    **Arguments:**
+
+    - ``out``: the run folder.
+    - ``settings``: JSON values that identify the fit (method, configuration, data, seeds); kept in the partial
+      folder.
+    - ``resume``: reuse a partial folder kept by an interrupted fit of equal ``settings``; without it a kept
+      partial folder is discarded.
+    - ``log``: receives one line when a fit resumes or finds nothing to resume.
+
+    **Yields:**
+
+    ``(folder, resuming)``: the folder to fill (its ``checkpoints`` or ``params`` subfolders are what a training
+    resumes from) and whether it holds a kept partial fit.
+
+    **Raises:**
+
+    ``JaxDeformError`` for ``resume`` with a partial fit of other settings. An exception that is not an
+    ``Exception`` (Ctrl-C, a termination signal) keeps the partial folder when it holds a checkpoint (a step
+    folder of orbax); any other removes it.
+    """
+    from jaxdeform.mesh.io import staged_folder
+
+    staging = partial_folder(out)
+    resuming = False
+    if staging.exists():
+        try:
+            kept = json.loads((staging / RESUME_FILE).read_text())
+        except (OSError, UnicodeDecodeError, json.JSONDecodeError):
+            kept = None
+        if resume and kept == settings:
+            resuming = True
+            log(f"resuming the interrupted fit kept in {staging}")
+        elif resume:
+            differ = sorted(k for k in settings if not isinstance(kept, dict) or kept.get(k) != settings[k])
+            raise JaxDeformError(
+                f"the interrupted fit kept in {staging} was started with other settings ({', '.join(differ)}); "
+                "run without --resume to start afresh."
+            )
+        else:
+            shutil.rmtree(staging)
+    elif resume:
+        log(f"no interrupted fit in {staging}; starting from the first step")
+
+    def keep(folder: Path) -> bool:
+        return any(p.name.isdigit() for sub in ("params", "checkpoints") for p in (folder / sub).glob("*"))
+
+    with staged_folder(out, staging=staging, keep=keep) as tmp:
+        (tmp / RESUME_FILE).write_text(json.dumps(settings))
+        yield tmp, resuming
+        (tmp / RESUME_FILE).unlink()

@@ -159,3 +159,44 @@ def test_long_commands_say_what_they_wait_for_on_a_terminal(seq_dir, tmp_path):
         env=_env(),
     )
     assert captured.returncode == 0 and captured.stderr == ""
+
+
+CLOTH_STEPS = 1000  # checkpoints every 100 steps
+
+
+def test_cloth_train_resumes_bit_identical(tmp_path):
+    """cloth train killed by SIGINT after a checkpoint keeps it; --resume ends with the losses and parameters of
+    an uninterrupted training."""
+    from test_cloth_cli import pair, write
+
+    from jaxdeform.cloth.run import Run
+
+    data = tmp_path / "data"
+    write(data, [pair(k) for k in range(3)])
+
+    def cmd(out, *extra):
+        args = ["cloth", "train", str(data), "--out", str(out), "--steps", str(CLOTH_STEPS), "--quiet", *extra]
+        return [sys.executable, "-m", "jaxdeform", *args]
+
+    done = subprocess.run(cmd(tmp_path / "reference"), capture_output=True, text=True, env=_env())
+    assert done.returncode == 0, done.stderr
+    out = tmp_path / "run"
+    partial = crun.partial_folder(out)
+
+    def ready():
+        return (partial / "checkpoints").is_dir() and any(p.name.isdigit() for p in (partial / "checkpoints").iterdir())
+
+    rc, _, err = _interrupt(cmd(out), signal.SIGINT, ready)
+    assert rc == 130, err
+    assert "checkpoint kept" in _one_line(err) and partial.is_dir() and not out.exists()
+    resumed = subprocess.run(cmd(out, "--resume"), capture_output=True, text=True, env=_env())
+    assert resumed.returncode == 0, resumed.stderr
+    assert "resuming" in resumed.stdout and not partial.exists()
+    assert not (out / "checkpoints").exists()
+    a, b = Run.load(out), Run.load(tmp_path / "reference")
+    assert a.record["final_loss"] == b.record["final_loss"]
+    import jax
+    from flax import nnx
+
+    for x, y in zip(jax.tree.leaves(nnx.state(a.model)), jax.tree.leaves(nnx.state(b.model)), strict=True):
+        np.testing.assert_array_equal(np.asarray(x), np.asarray(y))

@@ -77,8 +77,17 @@ def cmd_cloth_train(args: argparse.Namespace) -> int:
     ds = cdata.load_dataset(args.data)
     mcfg, tcfg = _cloth_configs(args)
     config = crun.Config(mcfg, tcfg, representation=args.representation, residual=args.target == "residual")
-    with common.writing(out):
-        run = crun.fit(ds, config, out, progress=not args.quiet)
+    try:
+        with common.writing(out):
+            run = crun.fit(ds, config, out, progress=not args.quiet, resume=args.resume)
+    except (KeyboardInterrupt, common.Terminated) as exc:
+        from jaxdeform.runs import partial_folder
+
+        if partial_folder(out).exists():
+            raise common.Interrupted(
+                f"checkpoint kept in {partial_folder(out)}; run the same command with --resume to continue"
+            ) from exc
+        raise
     print(
         f"trained a {args.model} on {len(ds.subset('train'))} {ds.scenario} sequences ({args.representation}) in "
         f"{run.record['train_seconds']:.1f} s, final loss {run.record['final_loss']:.5f}; wrote {out}"
@@ -204,6 +213,11 @@ def _add_simulate_train(cloth_sub) -> None:
     common.add_steps(ctr, "training steps (default: the TrainConfig's)")
     common.add_seed(ctr)
     common.add_force(ctr, "replace a non-empty --out")
+    ctr.add_argument(
+        "--resume",
+        action="store_true",
+        help="continue an interrupted training of the same command from its newest checkpoint (kept beside RUN)",
+    )
     common.add_quiet(ctr)
     ctr.set_defaults(func=cmd_cloth_train)
 

@@ -48,7 +48,7 @@ def cmd_components_train(args: argparse.Namespace) -> int:
                 **kw,
             ).record
     except (KeyboardInterrupt, common.Terminated) as exc:
-        partial = run.partial_folder(out)
+        partial = run.partial_folder(out)  # jaxdeform.runs.partial_folder
         if partial.exists():
             raise common.Interrupted(
                 f"checkpoint kept in {partial}; run the same command with --resume to continue"

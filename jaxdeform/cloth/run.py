@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import functools
 import json
+import shutil
 import time
 from dataclasses import dataclass
 from pathlib import Path
@@ -29,7 +30,7 @@ from jaxdeform.cloth import evaluate as ceval
 from jaxdeform.cloth import features as cfeat
 from jaxdeform.cloth.refine import Refiner
 from jaxdeform.errors import ConnectivityError, JaxDeformError
-from jaxdeform.mesh.io import atomic_path, read_npz_arrays, staged_folder
+from jaxdeform.mesh.io import atomic_path, read_npz_arrays
 from jaxdeform.mesh.topology import build_topology
 
 RUN_FORMAT = "jaxdeform-cloth-run"
@@ -209,6 +210,8 @@ def train_run(
     progress: bool = True,
     features: tuple | None = None,
     residual: bool = False,
+    checkpoint_dir=None,
+    resume: bool = False,
 ) -> Run:
     """Train a detail model on the dataset's training split.
 
@@ -222,6 +225,8 @@ def train_run(
     - ``progress``: show progress bars.
     - ``features``: a cached ``fit_representation`` result ``(representation, scaled features)`` (default None: fit it).
     - ``residual``: the fine target is features(fine) - features(Loop(coarse)) (:mod:`jaxdeform.cloth.features`).
+    - ``checkpoint_dir``: save the training state there every tenth of the steps; ``resume``: continue from the
+        newest one there (:func:`jaxdeform.cloth.train.train`).
 
     **Returns:**
 
@@ -260,6 +265,9 @@ def train_run(
         progress=progress,
         positions=positions,
         upsample=rep.upsampler.matrix.toarray() if mcfg.skip else None,
+        checkpoint_dir=checkpoint_dir,
+        checkpoint_every=max(tcfg.steps // 10, 1),
+        resume=resume,
     )
     record = {
         "format": RUN_FORMAT,
@@ -542,33 +550,53 @@ def _test_config() -> Config:
 CONFIGS = {"default": Config(), "test": _test_config()}
 
 
-def fit(data, config: str | Config = "default", out=None, *, progress: bool = True) -> Run:
+def fit(
+    data, config: str | Config = "default", out=None, *, progress: bool = True, resume: bool = False, log=print
+) -> Run:
     """Train a detail model on the dataset's training split and write the run folder ``out``.
 
     **Arguments:**
 
     - ``data``: a dataset folder or a loaded :class:`~jaxdeform.cloth.data.ClothDataset`.
     - ``config``: a name of :data:`CONFIGS` or a :class:`Config`.
-    - ``out``: the run folder (built beside it, renamed at the end); None: nothing is written.
+    - ``out``: the run folder, built beside it with the training's checkpoints (:func:`jaxdeform.runs.resumable`)
+        and renamed at the end; None: nothing is written.
     - ``progress``: show progress bars.
+    - ``resume``: continue the interrupted fit of the same settings kept beside ``out`` (training interrupted by
+        Ctrl-C or a signal after a checkpoint keeps it); without it a kept partial fit is discarded.
+    - ``log``: receives a line when a fit resumes.
 
     **Returns:**
 
     The :class:`Run` (:func:`train_run`).
+
+    **Raises:**
+
+    ``JaxDeformError`` as :func:`train_run`, and for ``resume`` with a partial fit of other settings.
     """
     cfg = runs.config(KIND, config, Config)
-    run = train_run(
-        data,
-        representation=cfg.representation,
-        model_cfg=cfg.model,
-        train_cfg=cfg.train,
-        progress=progress,
-        residual=cfg.residual,
-    )
-    if out is not None:
-        with staged_folder(Path(out)) as tmp:
-            save_run(run, tmp)
-        run.root = Path(out)
+
+    def work(checkpoints, resuming):
+        return train_run(
+            data,
+            representation=cfg.representation,
+            model_cfg=cfg.model,
+            train_cfg=cfg.train,
+            progress=progress,
+            residual=cfg.residual,
+            checkpoint_dir=checkpoints,
+            resume=resuming,
+        )
+
+    if out is None:
+        return work(None, False)
+    source = data.root if isinstance(data, cdata.ClothDataset) else data
+    settings = {"config": repr(cfg), "data": str(Path(source).resolve())}
+    with runs.resumable(Path(out), settings, resume, log) as (tmp, resuming):
+        run = work(tmp / "checkpoints", resuming)
+        shutil.rmtree(tmp / "checkpoints", ignore_errors=True)
+        save_run(run, tmp)
+    run.root = Path(out)
     return run
 
 

@@ -85,7 +85,7 @@ from jaxdeform import parallel
 from jaxdeform.cloth.model import DetailModel, ModelConfig, new_model
 from jaxdeform.errors import JaxDeformError
 from jaxdeform.nn import xla
-from jaxdeform.nn.archive import load_state, read_archive, save_module
+from jaxdeform.nn.archive import StepCheckpoints, load_state, read_archive, save_module
 from jaxdeform.nn.graph_conv import Rings
 from jaxdeform.nn.host import host_scalars, recent_mean
 
@@ -460,35 +460,50 @@ def _run_steps(
     tc: TrainConfig,
     desc: str,
     progress: bool,
+    ckpt: StepCheckpoints | None = None,
+    checkpoint_every: int = 0,
+    resume: bool = False,
 ) -> tuple[tuple, np.ndarray, float, float]:
     """Run ``tc.steps`` calls of the jitted ``step_fn`` from ``state`` = (params, rest, opt_state).
 
     Step t passes ``jnp.int32(t)`` and the same ``key``, windows and ``positions``. A tqdm bar titled ``desc``
     (shown when ``progress``) advances every ``tc.log_every`` steps and at the end, with the mean recent loss.
+    With ``ckpt``, the state and the losses so far are saved every ``checkpoint_every`` steps; ``resume``
+    continues from the newest one (the steps are deterministic: the same result as an uninterrupted loop).
     Returns ``(final state, losses (steps,) float32, seconds, compile seconds)``: the wall time of the whole loop
-    (the losses' transfer to the host included) and of the first step (tracing, compilation and one step).
+    (the losses' transfer to the host included) and of the first step run (tracing, compilation and one step).
     """
     from tqdm.auto import tqdm
 
     params, rest, opt_state = state
+    done = np.zeros(tc.steps, np.float32)
+    start = 0
+    if ckpt is not None and resume and ckpt.latest() is not None:
+        like = {"params": params, "rest": rest, "opt_state": opt_state, "losses": done}
+        got = ckpt.restore(ckpt.latest(), jax.tree_util.tree_map(np.asarray, like))
+        params, rest, opt_state = (jax.tree_util.tree_map(jnp.asarray, got[k]) for k in ("params", "rest", "opt_state"))
+        done, start = np.asarray(got["losses"]).copy(), int(ckpt.latest())
     losses = []
     t0 = time.perf_counter()
     compile_s = 0.0
-    with tqdm(total=tc.steps, desc=desc, unit="step", disable=not progress) as bar:
-        for t in range(tc.steps):
+    with tqdm(total=tc.steps, initial=start, desc=desc, unit="step", disable=not progress) as bar:
+        for t in range(start, tc.steps):
             params, rest, opt_state, loss = step_fn(
                 params, rest, opt_state, win.coarse, win.fine, win.starts, key, jnp.int32(t), positions
             )
             losses.append(loss)
-            if t == 0:
+            if t == start:
                 loss.block_until_ready()
                 compile_s = time.perf_counter() - t0
             if (t + 1) % tc.log_every == 0 or t + 1 == tc.steps:
                 bar.set_postfix(loss=f"{recent_mean(losses, tc.log_every):.5f}")
                 bar.update((t + 1) - bar.n)
-    loss_arr = host_scalars(losses)
+            if ckpt is not None and checkpoint_every and (t + 1) % checkpoint_every == 0 and t + 1 < tc.steps:
+                done[start : t + 1] = host_scalars(losses)
+                ckpt.save(t + 1, {"params": params, "rest": rest, "opt_state": opt_state, "losses": done})
+    done[start:] = host_scalars(losses)
     seconds = time.perf_counter() - t0
-    return (params, rest, opt_state), loss_arr, seconds, compile_s
+    return (params, rest, opt_state), done, seconds, compile_s
 
 
 def train(
@@ -505,6 +520,9 @@ def train(
     upsample=None,
     mesh: jax.sharding.Mesh | None = None,
     axis: str = parallel.BATCH,
+    checkpoint_dir=None,
+    checkpoint_every: int = 0,
+    resume: bool = False,
 ) -> tuple[DetailModel, History]:
     """Fit a :class:`DetailModel` to paired scaled feature sequences with teacher forcing (module docstring).
 
@@ -520,6 +538,8 @@ def train(
     - ``positions``: enables the position term of the loss (``train_cfg.position_weight`` > 0; module docstring).
     - ``upsample``: the ``(Vf, Vc)`` interpolation matrix a ``skip`` model needs.
     - ``mesh``: data parallel over ``mesh``'s ``axis`` (module docstring); None trains on one device.
+    - ``checkpoint_dir``, ``checkpoint_every``: save the training state there every that many steps (orbax,
+        :class:`~jaxdeform.nn.archive.StepCheckpoints`); ``resume``: continue from the newest one there.
 
     **Returns:**
 
@@ -562,7 +582,17 @@ def train(
         win = Windows(*arrays, window=win.window)
 
     (params, rest, opt_state), loss_arr, seconds, compile_s = _run_steps(
-        step_fn, (params, rest, opt_state), win, key, positions, tc, f"train {model_cfg.kind}", progress
+        step_fn,
+        (params, rest, opt_state),
+        win,
+        key,
+        positions,
+        tc,
+        f"train {model_cfg.kind}",
+        progress,
+        None if checkpoint_dir is None else StepCheckpoints(checkpoint_dir),
+        checkpoint_every,
+        resume,
     )
     nnx.update(model, params, rest)
     model.eval()

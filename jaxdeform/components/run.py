@@ -49,12 +49,12 @@ import jax
 import jax.numpy as jnp
 import numpy as np
 
-from jaxdeform import acap, metrics
+from jaxdeform import acap, metrics, runs
 from jaxdeform.components import baselines, model, train
 from jaxdeform.errors import DegenerateMeshError, JaxDeformError
 from jaxdeform.mesh import geodesic
 from jaxdeform.mesh.geometry import zero_area_faces
-from jaxdeform.mesh.io import atomic_path, check_same_connectivity, load_sequence, read_npz_arrays, staged_folder
+from jaxdeform.mesh.io import atomic_path, check_same_connectivity, load_sequence, read_npz_arrays
 from jaxdeform.mesh.topology import build_topology
 from jaxdeform.nn.graph_conv import rings_from_topology
 
@@ -532,12 +532,9 @@ def fit(
     ``ValueError`` for an unknown method or configuration, or no ``out``; :class:`RunError` and the loaders'
     one-sentence errors for bad data, and for ``resume`` with a partial fit of other settings.
     """
-    import shutil
-
     if out is None:
         raise ValueError("a components run needs a folder to write (out).")
     out = Path(out)
-    staging = partial_folder(out)
     settings = {
         "method": method,
         "config": config,
@@ -549,28 +546,7 @@ def fit(
         "dtype": np.dtype(dtype).name,
         "data": str(data),
     }
-    resuming = False
-    if staging.exists():
-        try:
-            kept = json.loads((staging / RESUME_FILE).read_text())
-        except (OSError, UnicodeDecodeError, json.JSONDecodeError):
-            kept = None
-        if resume and kept == settings:
-            resuming = True
-            log(f"resuming the interrupted fit kept in {staging}")
-        elif resume:
-            differ = sorted(k for k in settings if not isinstance(kept, dict) or kept.get(k) != settings[k])
-            raise RunError(
-                f"the interrupted fit kept in {staging} was started with other settings ({', '.join(differ)}); "
-                "run without --resume to start afresh."
-            )
-        else:
-            shutil.rmtree(staging)
-    elif resume:
-        log(f"no interrupted fit in {staging}; starting from the first epoch")
-    keep = (lambda d: any(p.name.isdigit() for p in (d / "params").glob("*"))) if method in AUTOENCODERS else None
-    with staged_folder(out, staging=staging, keep=keep) as tmp:
-        (tmp / RESUME_FILE).write_text(json.dumps(settings))
+    with runs.resumable(out, settings, resume, log) as (tmp, resuming):
         _fit_into(
             tmp,
             data,
@@ -587,19 +563,10 @@ def fit(
             loaded,
             resuming,
         )
-        (tmp / RESUME_FILE).unlink()
     return Run.load(out)
 
 
-#: the settings of a fit, kept in its partial folder (what ``resume`` checks)
-RESUME_FILE = "fit-settings.json"
-
-
-def partial_folder(out: str | Path) -> Path:
-    """The folder a fit of the run folder ``out`` is built in (a hidden sibling, kept when a training is
-    interrupted after its first checkpoint)."""
-    out = Path(out)
-    return out.parent / f".{out.name}.partial"
+partial_folder = runs.partial_folder  # where fit builds the run folder (kept when a training is interrupted)
 
 
 def _fit_into(

@@ -30,7 +30,6 @@ import dataclasses
 import functools
 import time
 from collections.abc import Callable
-from pathlib import Path
 
 import jax
 import jax.numpy as jnp
@@ -41,6 +40,7 @@ from flax import nnx
 from jaxdeform import parallel
 from jaxdeform.components import model
 from jaxdeform.nn import xla
+from jaxdeform.nn.archive import StepCheckpoints
 from jaxdeform.nn.graph_conv import Rings
 from jaxdeform.nn.host import host_scalars
 
@@ -234,26 +234,7 @@ def _opt_init(tc: TrainConfig, params, stage):
     return optimizer(tc).init(params if stage is None else params[stage])
 
 
-class _Checkpoints:
-    """Thin orbax wrapper: one step directory per saved epoch count, newest kept (plus the final)."""
-
-    def __init__(self, directory, every: int):
-        import orbax.checkpoint as ocp
-
-        self._ocp = ocp
-        self.every = every
-        opts = ocp.CheckpointManagerOptions(max_to_keep=2, enable_async_checkpointing=False)
-        self.manager = ocp.CheckpointManager(Path(directory).absolute(), options=opts)
-
-    def latest(self) -> int | None:
-        return self.manager.latest_step()
-
-    def save(self, step: int, state: dict) -> None:
-        self.manager.save(step, args=self._ocp.args.StandardSave(state))
-        self.manager.wait_until_finished()
-
-    def restore(self, step: int, like: dict) -> dict:
-        return self.manager.restore(step, args=self._ocp.args.StandardRestore(like))
+_Checkpoints = StepCheckpoints  # training checkpoints: jaxdeform.nn.archive.StepCheckpoints
 
 
 def _state(params, opt_state, key, history, stage_index, epoch):

@@ -364,3 +364,30 @@ class RecordConfig:
         if unknown:
             raise ValueError(f"unknown {cls.__name__} keys: {', '.join(sorted(unknown))}.")
         return cls(**d)
+
+
+class StepCheckpoints:
+    """Training checkpoints in ``directory``: one orbax step folder per saved step, the newest two kept; saves
+    are synchronous. What the components' and the cloth models' trainings resume from.
+
+    ``latest()`` is the newest saved step (None: none); ``save(step, state)`` writes a pytree of arrays;
+    ``restore(step, like)`` reads one back in the structure and dtypes of ``like``.
+    """
+
+    def __init__(self, directory, every: int = 1):
+        import orbax.checkpoint as ocp
+
+        self._ocp = ocp
+        self.every = every
+        opts = ocp.CheckpointManagerOptions(max_to_keep=2, enable_async_checkpointing=False)
+        self.manager = ocp.CheckpointManager(Path(directory).absolute(), options=opts)
+
+    def latest(self) -> int | None:
+        return self.manager.latest_step()
+
+    def save(self, step: int, state) -> None:
+        self.manager.save(step, args=self._ocp.args.StandardSave(state))
+        self.manager.wait_until_finished()
+
+    def restore(self, step: int, like):
+        return self.manager.restore(step, args=self._ocp.args.StandardRestore(like))
