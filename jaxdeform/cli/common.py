@@ -286,8 +286,8 @@ def check_magnitude(values, reference, option: str, offset: bool = False) -> Non
     far = float(np.abs(v - (0.0 if offset else centre)).max(initial=0.0))
     if far > EXTENT_LIMIT * size:
         raise ValueError(
-            f"{option} reaches {far:.3g}, more than {EXTENT_LIMIT:g} times the mesh's size ({size:.3g}); "
-            "give a value on the mesh's scale."
+            f"{option}: {far:.3g} is more than {EXTENT_LIMIT:g} times the mesh's size ({size:.3g}); "
+            "give values on the mesh's scale."
         )
 
 
