@@ -342,11 +342,18 @@ def stage_jumps(ds) -> dict:
     }
 
 
+def _ours_run(out: Path, ds):
+    """The run the timing and the figures show: the CLI's default training (self-fed) where it was trained, else
+    the teacher-forced one."""
+    root = out / "runs" / ds.scenario
+    return crun.load_run(root / ("ours_self_fed" if (root / "ours_self_fed" / "run.json").is_file() else "ours"))
+
+
 def stage_timing(out: Path, ds, s: Settings) -> dict:
     """Table 1: re-simulate a test scenario (coarse and fine) and run our pipeline on its coarse frames, now."""
     from jaxdeform.cloth import scenarios
 
-    run = crun.load_run(out / "runs" / ds.scenario / "ours")
+    run = _ours_run(out, ds)
     sc = _scenario_of(ds, ds.subset("test")[0], s.timing_frames)
     pair = scenarios.simulate_pair(sc, progress=False)  # seconds per frame exclude compilation
     coarse, obstacles = pair["coarse"], pair["obstacles"]
@@ -437,7 +444,7 @@ def loss_figure(out: Path, scenario: str) -> str | None:
 
 
 def stage_figures(out: Path, ds, s: Settings) -> list[str]:
-    run = crun.load_run(out / "runs" / ds.scenario / "ours")
+    run = _ours_run(out, ds)
     ups = upsampler(ds)
     x = ds.subset("test")[0]
     fine, _ = crun.synthesize_timed(run, x.coarse, x.obstacles, pins=x.pins)
