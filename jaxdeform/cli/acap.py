@@ -11,7 +11,7 @@ import sys
 import time
 from pathlib import Path
 
-from jaxdeform.cli import common
+from jaxdeform.cli import checks, common
 from jaxdeform.errors import ConnectivityError
 
 CONSISTENCY_MODES = ("spatial", "temporal", "none")
@@ -108,7 +108,7 @@ def cmd_decode(args: argparse.Namespace) -> int:
     extra = {} if args.refine is None else {"refine": args.refine}
     positions = np.asarray(acap.decode(features, anchors=anchors, **extra))
     elapsed = time.perf_counter() - t0
-    common.check_result(positions, reference, "decoded frame")
+    checks.check_result(positions, reference, "decoded frame")
 
     width = max(3, len(str(n - 1)))
     with common.staged_folder(out) as tmp:

@@ -20,10 +20,9 @@ def cmd_cloth_simulate(args: argparse.Namespace) -> int:
 
     out = Path(args.out)
     common.check_out_folder(out, args.force)
-    if args.sequences < 2:
-        raise ValueError(f"--sequences must be at least 2 (a training and a test sequence), got {args.sequences}.")
-    if args.frames is not None and args.frames < 2:
-        raise ValueError(f"--frames must be at least 2, got {args.frames}.")
+    for name, n in (("sequences", args.sequences), ("frames", args.frames)):
+        if n is not None and n < 2:
+            raise ValueError(f"--{name} must be at least 2, got {n}.")
     if args.seed < 0:
         raise ValueError(f"--seed must be a whole number >= 0, got {args.seed}.")
     from jaxdeform.cloth.garments import motion_choices
@@ -77,17 +76,8 @@ def cmd_cloth_train(args: argparse.Namespace) -> int:
     ds = cdata.load_dataset(args.data)
     mcfg, tcfg = _cloth_configs(args)
     config = crun.Config(mcfg, tcfg, representation=args.representation, residual=args.target == "residual")
-    try:
-        with common.writing(out):
-            run = crun.fit(ds, config, out, progress=not args.quiet, resume=args.resume)
-    except (KeyboardInterrupt, common.Terminated) as exc:
-        from jaxdeform.runs import partial_folder
-
-        if partial_folder(out).exists():
-            raise common.Interrupted(
-                f"checkpoint kept in {partial_folder(out)}; run the same command with --resume to continue"
-            ) from exc
-        raise
+    with common.keeping_checkpoints(out), common.writing(out):
+        run = crun.fit(ds, config, out, progress=not args.quiet, resume=args.resume)
     print(
         f"trained a {args.model} on {len(ds.subset('train'))} {ds.scenario} sequences ({args.representation}) in "
         f"{run.record['train_seconds']:.1f} s, final loss {run.record['final_loss']:.5f}; wrote {out}"
@@ -174,8 +164,7 @@ def _add_simulate_train(cloth_sub) -> None:
     ctr = cloth_sub.add_parser(
         "train",
         help="Train a detail model on a dataset's training split.",
-        description="TS-ACAP features of both resolutions -> DeformTransformer, trained on its own earlier "
-        "predictions with probability 0.5 (--self-feed; 0 is the paper's teacher forcing).",
+        description="TS-ACAP features -> DeformTransformer, self-fed with probability 0.5 (--self-feed).",
     )
     ctr.add_argument("data", metavar="DATA", help="dataset folder written by 'cloth simulate'")
     common.add_out(ctr, "RUN", "run folder to write")
@@ -205,19 +194,13 @@ def _add_simulate_train(cloth_sub) -> None:
         type=float,
         default=0.5,
         metavar="P",
-        help="train a window on the model's own predictions of its earlier frames with probability "
-        "P (ramped up over the first half of training), as synthesis feeds them (default 0.5: "
-        "it keeps the transformer from drifting on unseen sequences; 0: teacher forcing only, "
-        "as the paper; the per-frame model ignores it)",
+        help="train windows on the model's own earlier predictions with probability P (ramped up over the "
+        "first half), as synthesis feeds them (default 0.5; 0: the paper's teacher forcing)",
     )
     common.add_steps(ctr, "training steps (default: the TrainConfig's)")
     common.add_seed(ctr)
     common.add_force(ctr, "replace a non-empty --out")
-    ctr.add_argument(
-        "--resume",
-        action="store_true",
-        help="continue an interrupted training of the same command from its newest checkpoint (kept beside RUN)",
-    )
+    common.add_resume(ctr)
     common.add_quiet(ctr)
     ctr.set_defaults(func=cmd_cloth_train)
 

@@ -35,25 +35,11 @@ def cmd_components_train(args: argparse.Namespace) -> int:
     what = "features" + (" and geodesic distances" if args.method in run.AUTOENCODERS else "")
     if args.method in run.ACAP_METHODS or args.method in run.AUTOENCODERS:
         common.status(args, f"computing the {what} of {loaded[0].shape[0]} shapes x {loaded[0].shape[1]} vertices...")
-    try:
-        with common.writing(out):
-            record = run.fit(
-                data,
-                args.config,
-                out,
-                progress=not args.quiet,
-                scale_quantile=q,
-                loaded=loaded,
-                resume=args.resume,
-                **kw,
-            ).record
-    except (KeyboardInterrupt, common.Terminated) as exc:
-        partial = run.partial_folder(out)  # jaxdeform.runs.partial_folder
-        if partial.exists():
-            raise common.Interrupted(
-                f"checkpoint kept in {partial}; run the same command with --resume to continue"
-            ) from exc
-        raise
+    with common.keeping_checkpoints(out), common.writing(out):
+        fitted = run.fit(
+            data, args.config, out, progress=not args.quiet, scale_quantile=q, loaded=loaded, resume=args.resume, **kw
+        )
+    record = fitted.record
     t = record["timing"]
     extra = ""
     if "run_s" in t:
@@ -151,11 +137,7 @@ def _add_train_evaluate(comp_sub) -> None:
     )
     common.add_quiet(ctrain, "no progress bar")
     common.add_force(ctrain, "replace RUN if it exists and is not empty")
-    ctrain.add_argument(
-        "--resume",
-        action="store_true",
-        help="continue an interrupted training of the same command from its newest checkpoint (kept beside RUN)",
-    )
+    common.add_resume(ctrain)
     ctrain.set_defaults(func=cmd_components_train)
     ceval = comp_sub.add_parser(
         "evaluate",

@@ -12,7 +12,7 @@ import sys
 import time
 from pathlib import Path
 
-from jaxdeform.cli import common
+from jaxdeform.cli import checks, common
 
 
 def cmd_components_edit(args: argparse.Namespace) -> int:
@@ -26,7 +26,7 @@ def cmd_components_edit(args: argparse.Namespace) -> int:
     common.check_out_file(out, common.MESH_OUT, [args.run, args.controls], "mesh file")
     loaded = run.load(args.run)
     controls, targets = run.read_controls(args.controls)
-    common.check_magnitude(targets, loaded.rest, f"the targets of {args.controls}")
+    checks.check_magnitude(targets, loaded.rest, f"the targets of {args.controls}")
     common.status(args, f"editing with {controls.size} control points (the editor compiles first)...")
     t0 = time.perf_counter()
     ed = run.editor(loaded)
@@ -34,7 +34,7 @@ def cmd_components_edit(args: argparse.Namespace) -> int:
         controls, targets, steps=args.steps, stages=None if args.one_stage else ed.stages, objective=args.objective
     )
     positions = np.asarray(result.positions)
-    common.check_result(positions, loaded.rest, "edited mesh")
+    checks.check_result(positions, loaded.rest, "edited mesh")
     with common.writing(out):
         save_mesh(out, positions, loaded.faces)
     stages = "" if ed.stages is None or args.one_stage else f", coarse to fine over {len(ed.stages)} levels"

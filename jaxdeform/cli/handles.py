@@ -11,7 +11,7 @@ import argparse
 import time
 from pathlib import Path
 
-from jaxdeform.cli import common
+from jaxdeform.cli import checks, common
 
 AXES = {"x": (1.0, 0.0, 0.0), "y": (0.0, 1.0, 0.0), "z": (0.0, 0.0, 1.0)}
 
@@ -106,7 +106,7 @@ def cmd_handles_deform(args: argparse.Namespace) -> int:
 
     vertices, faces, out, handle, anchors = _handle_request(args, "mesh file")
     axis, degrees = _motion(args)
-    common.check_magnitude(args.translate, vertices, "--translate", offset=True)
+    checks.check_magnitude(args.translate, vertices, "--translate", offset=True)
     fitted, Z = field_features(args.field, args.mesh, vertices, faces, args.remap)
     deformer = Deformer(vertices, faces, Z, field_fn=lambda p: evaluate_field(fitted, p))
     transform = make_transform(vertices[handle], translate=args.translate, axis=axis, degrees=degrees)
@@ -117,7 +117,7 @@ def cmd_handles_deform(args: argparse.Namespace) -> int:
         [handle], transform[None], anchors=anchors, locality=args.locality, symmetric=args.symmetric, pou=args.pou
     )
     elapsed = time.perf_counter() - t0
-    common.check_result(deformed, vertices, "deformed mesh")
+    checks.check_result(deformed, vertices, "deformed mesh")
     with common.writing(out):
         save_mesh(out, deformed, faces)
     moved = float(np.linalg.norm(deformed[handle] - vertices[handle]))

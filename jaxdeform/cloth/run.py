@@ -210,23 +210,20 @@ def train_run(
     progress: bool = True,
     features: tuple | None = None,
     residual: bool = False,
-    checkpoint_dir=None,
-    resume: bool = False,
-) -> Run:
+    checkpoint_dir=None, resume: bool = False,
+) -> Run:  # fmt: skip
     """Train a detail model on the dataset's training split.
 
     **Arguments:**
 
     - ``data``: a dataset folder or a loaded :class:`~jaxdeform.cloth.data.ClothDataset`.
     - ``representation``: the feature representation (default ``"ts-acap"``).
-    - ``model_cfg``: the model's configuration (default None: ``ModelConfig()``; its ``in_channels`` follows the
-        representation).
+    - ``model_cfg``: the model's configuration (default None: ``ModelConfig()``; ``in_channels`` follows ``representation``).
     - ``train_cfg``: the training configuration (default None: ``TrainConfig()``).
     - ``progress``: show progress bars.
     - ``features``: a cached ``fit_representation`` result ``(representation, scaled features)`` (default None: fit it).
     - ``residual``: the fine target is features(fine) - features(Loop(coarse)) (:mod:`jaxdeform.cloth.features`).
-    - ``checkpoint_dir``: save the training state there every tenth of the steps; ``resume``: continue from the
-        newest one there (:func:`jaxdeform.cloth.train.train`).
+    - ``checkpoint_dir``, ``resume``: save the training state there every tenth of the steps, continue from it.
 
     **Returns:**
 
@@ -265,9 +262,7 @@ def train_run(
         progress=progress,
         positions=positions,
         upsample=rep.upsampler.matrix.toarray() if mcfg.skip else None,
-        checkpoint_dir=checkpoint_dir,
-        checkpoint_every=max(tcfg.steps // 10, 1),
-        resume=resume,
+        **{"checkpoint_dir": checkpoint_dir, "checkpoint_every": max(tcfg.steps // 10, 1), "resume": resume},
     )
     record = {
         "format": RUN_FORMAT,

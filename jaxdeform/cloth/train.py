@@ -520,10 +520,8 @@ def train(
     upsample=None,
     mesh: jax.sharding.Mesh | None = None,
     axis: str = parallel.BATCH,
-    checkpoint_dir=None,
-    checkpoint_every: int = 0,
-    resume: bool = False,
-) -> tuple[DetailModel, History]:
+    checkpoint_dir=None, checkpoint_every: int = 0, resume: bool = False,
+) -> tuple[DetailModel, History]:  # fmt: skip
     """Fit a :class:`DetailModel` to paired scaled feature sequences with teacher forcing (module docstring).
 
     **Arguments:**
@@ -538,8 +536,7 @@ def train(
     - ``positions``: enables the position term of the loss (``train_cfg.position_weight`` > 0; module docstring).
     - ``upsample``: the ``(Vf, Vc)`` interpolation matrix a ``skip`` model needs.
     - ``mesh``: data parallel over ``mesh``'s ``axis`` (module docstring); None trains on one device.
-    - ``checkpoint_dir``, ``checkpoint_every``: save the training state there every that many steps (orbax,
-        :class:`~jaxdeform.nn.archive.StepCheckpoints`); ``resume``: continue from the newest one there.
+    - ``checkpoint_dir``, ``checkpoint_every``, ``resume``: checkpoints every that many steps, resumed from.
 
     **Returns:**
 
@@ -582,18 +579,9 @@ def train(
         win = Windows(*arrays, window=win.window)
 
     (params, rest, opt_state), loss_arr, seconds, compile_s = _run_steps(
-        step_fn,
-        (params, rest, opt_state),
-        win,
-        key,
-        positions,
-        tc,
-        f"train {model_cfg.kind}",
-        progress,
-        None if checkpoint_dir is None else StepCheckpoints(checkpoint_dir),
-        checkpoint_every,
-        resume,
-    )
+        step_fn, (params, rest, opt_state), win, key, positions, tc, f"train {model_cfg.kind}", progress,
+        None if checkpoint_dir is None else StepCheckpoints(checkpoint_dir), checkpoint_every, resume,
+    )  # fmt: skip
     nnx.update(model, params, rest)
     model.eval()
     step_s = (seconds - compile_s) / max(tc.steps - 1, 1)

@@ -535,34 +535,12 @@ def fit(
     if out is None:
         raise ValueError("a components run needs a folder to write (out).")
     out = Path(out)
-    settings = {
-        "method": method,
-        "config": config,
-        "epochs": epochs,
-        "seed": seed,
-        "split": split,
-        "split_seed": split_seed,
-        "scale_quantile": scale_quantile,
-        "dtype": np.dtype(dtype).name,
-        "data": str(data),
-    }
+    args = (data, method, config, epochs, seed, split, split_seed, progress, scale_quantile, dtype)
+    names = ("data", "method", "config", "epochs", "seed", "split", "split_seed", "progress", "scale_quantile")
+    settings = {k: (str(v) if k == "data" else v) for k, v in zip(names, args[:-1], strict=True) if k != "progress"}
+    settings["dtype"] = np.dtype(dtype).name
     with runs.resumable(out, settings, resume, log) as (tmp, resuming):
-        _fit_into(
-            tmp,
-            data,
-            method,
-            config,
-            epochs,
-            seed,
-            split,
-            split_seed,
-            progress,
-            scale_quantile,
-            dtype,
-            log,
-            loaded,
-            resuming,
-        )
+        _fit_into(tmp, *args, log, loaded, resuming)
     return Run.load(out)
 
 
