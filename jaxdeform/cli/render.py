@@ -21,7 +21,7 @@ def _read_scalar(path: str, mesh: Path, n_vertices: int):
 
     try:
         scalar = np.load(path, allow_pickle=False)
-    except (ValueError, EOFError, zipfile.BadZipFile) as exc:
+    except (ValueError, EOFError, zipfile.BadZipFile, NotImplementedError, RuntimeError) as exc:
         raise MeshFormatError(f"{path}: not a readable .npy array ({type(exc).__name__}).") from None
     if not isinstance(scalar, np.ndarray):
         scalar.close()

@@ -427,6 +427,7 @@ def read_npz_arrays(path: str | os.PathLike) -> dict[str, np.ndarray]:
     `FileNotFoundError` for a missing file; `MeshFormatError` (one sentence) for anything unreadable.
     """
     import zipfile
+    import zlib
 
     path = Path(path)
     if not path.is_file():
@@ -439,7 +440,17 @@ def read_npz_arrays(path: str | os.PathLike) -> dict[str, np.ndarray]:
             return {k: np.asarray(data[k]) for k in data.files}
     except MeshFormatError:
         raise
-    except (OSError, ValueError, EOFError, zipfile.BadZipFile, KeyError) as exc:
+    except (
+        OSError,
+        ValueError,
+        EOFError,
+        zipfile.BadZipFile,
+        KeyError,
+        NotImplementedError,
+        RuntimeError,
+        zlib.error,
+    ) as exc:
+        # a damaged zip header can claim an unsupported compression (NotImplementedError) or encryption (RuntimeError)
         raise MeshFormatError(f"{path}: not a readable .npz archive ({type(exc).__name__}).") from None
 
 
