@@ -44,6 +44,14 @@ def apply(path: Path, how) -> None:
     path.write_bytes(bytes(data))
 
 
+def damaged_copy(src: Path, tmp_path_factory, how) -> Path:
+    """A copy of ``src`` (same name, in a fresh folder) damaged by ``how``."""
+    path = tmp_path_factory.mktemp("damaged") / src.name
+    shutil.copy(src, path)
+    apply(path, how)
+    return path
+
+
 def valid_mesh(v, f) -> None:
     assert v.ndim == 2 and v.shape[1] == 3 and v.shape[0] > 0 and np.all(np.isfinite(v))
     assert f.ndim == 2 and f.shape[1] == 3 and f.shape[0] > 0 and f.min() >= 0 and f.max() < v.shape[0]
@@ -85,9 +93,7 @@ def features_file(tmp_path_factory):
 def test_feature_file_reader(features_file, tmp_path_factory, how):
     from jaxdeform.acap.files import read_features
 
-    path = tmp_path_factory.mktemp("fd") / "f.npz"
-    shutil.copy(features_file, path)
-    apply(path, how)
+    path = damaged_copy(features_file, tmp_path_factory, how)
 
     def check(result):
         features, reference, faces, weighting = result
@@ -144,9 +150,7 @@ def cloth_sequence(tmp_path_factory):
 def test_cloth_sequence_reader(cloth_sequence, tmp_path_factory, how):
     from jaxdeform.cloth import data as cdata
 
-    path = tmp_path_factory.mktemp("c") / "seq_000.npz"
-    shutil.copy(cloth_sequence, path)
-    apply(path, how)
+    path = damaged_copy(cloth_sequence, tmp_path_factory, how)
 
     def check(result):
         seq, shared = result

@@ -23,8 +23,8 @@ import numpy as np
 from jaxdeform.errors import ConnectivityError, DegenerateMeshError, MeshFormatError
 from jaxdeform.mesh.topology import vertex_components
 
-#: ``method="auto"`` uses the exact algorithm up to this many vertices and this much work (sources x vertices:
-#: about 80 ms per source on 2,000 vertices, growing with the square of the size), the heat method above either.
+#: ``method="auto"`` uses the exact algorithm up to this many vertices and this much work (sources x vertices;
+#: the exact algorithm's cost per source grows with the mesh), the heat method above either.
 AUTO_EXACT_MAX_VERTICES = 5000
 AUTO_EXACT_MAX_WORK = 200_000
 
