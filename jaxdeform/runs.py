@@ -35,6 +35,7 @@ from __future__ import annotations
 import contextlib
 import importlib
 import json
+import math
 import os
 import shutil
 from pathlib import Path
@@ -101,6 +102,70 @@ def read_record(path: str | os.PathLike, kind: str | None = None) -> dict:
     if kind is not None and record["kind"] != kind:
         raise RunFolderError(f"{path} is a {record['kind']} run, not a {kind} run.")
     return record
+
+
+#: what each JSON type name of :func:`check_fields` accepts (a bool is not a number)
+_JSON_TYPES = {
+    "object": lambda x: isinstance(x, dict),
+    "list": lambda x: isinstance(x, list),
+    "string": lambda x: isinstance(x, str),
+    "number": lambda x: isinstance(x, (int, float)) and not isinstance(x, bool) and math.isfinite(x),
+    "integer": lambda x: isinstance(x, int) and not isinstance(x, bool),
+    "boolean": lambda x: isinstance(x, bool),
+    "null": lambda x: x is None,
+}
+
+
+def check_fields(where: str | os.PathLike, record: dict, fields: dict[str, tuple[str, ...]], optional=()) -> None:
+    """Check the types of a run record's fields.
+
+    **Arguments:**
+
+    - ``where``: names the record (its run.json) in the message.
+    - ``record``: the record.
+    - ``fields``: for each field, the JSON types it may take (``"object"``, ``"list"``, ``"string"``,
+      ``"number"`` (finite), ``"integer"``, ``"boolean"``, ``"null"``).
+    - ``optional``: fields that may be absent (records written before they existed).
+
+    **Raises:**
+
+    :class:`RunFolderError`, one sentence naming the first field that is missing or of another type.
+    """
+    for name, types in fields.items():
+        if name not in record:
+            if name in optional:
+                continue
+            raise RunFolderError(f"{where}: its {name!r} field is missing.")
+        if not any(_JSON_TYPES[t](record[name]) for t in types):
+            got = "null" if record[name] is None else type(record[name]).__name__
+            raise RunFolderError(f"{where}: its {name!r} field must be {' or '.join(types)}, got {got}.")
+
+
+def check_fingerprint(where: str | os.PathLike, record: dict, vertices, faces, what: str) -> None:
+    """Check that arrays a run folder holds are the data its record's ``"fingerprint"`` names (records without
+    one pass).
+
+    **Arguments:**
+
+    - ``where``: names the record in the message.
+    - ``record``: the run record.
+    - ``vertices``, ``faces``: the arrays (as :func:`jaxdeform.mesh.fingerprint.fingerprint` takes them).
+    - ``what``: names the arrays' file in the message.
+
+    **Raises:**
+
+    :class:`RunFolderError`, one sentence, for a malformed fingerprint or arrays that differ from it.
+    """
+    from jaxdeform.mesh.fingerprint import difference, malformed
+
+    if "fingerprint" not in record:
+        return
+    problem = malformed(record["fingerprint"])
+    if problem is not None:
+        raise RunFolderError(f"{where}: its fingerprint {problem}.")
+    differs = difference(record["fingerprint"], vertices, faces, rtol=0.0, whose="the recorded data")
+    if differs is not None:
+        raise RunFolderError(f"{where}: {what} is not the data the record fingerprints ({differs}).")
 
 
 def module(kind: str) -> ModuleType:

@@ -3,6 +3,7 @@ interrupted ``components train`` keeps its checkpoints and ``--resume`` ends bit
 run. Each command runs in a fresh process (``python -m jaxdeform``)."""
 
 import os
+import re
 import signal
 import subprocess
 import sys
@@ -123,8 +124,8 @@ def test_resume_refuses_a_partial_fit_of_other_settings(seq_dir, tmp_path):
 
 
 def test_long_commands_say_what_they_wait_for_on_a_terminal(seq_dir, tmp_path):
-    """On a terminal, acap encode prints one status line on stderr before its wait; --quiet and a captured
-    stderr print none (the one-line error contract)."""
+    """On a terminal, acap encode shows one live status line on stderr during its wait, ended with the time
+    taken; --quiet and a captured stderr print none (the one-line error contract)."""
     import pty
 
     def run(*extra):
@@ -148,8 +149,10 @@ def test_long_commands_say_what_they_wait_for_on_a_terminal(seq_dir, tmp_path):
         assert proc.returncode == 0
         return b"".join(chunks).decode()
 
-    said = [ln for ln in run().splitlines() if ln.strip()]
+    shown = [ln.split("\r\x1b[K")[-1] for ln in run().replace("\r\n", "\n").split("\n")]  # as a terminal shows it
+    said = [ln for ln in shown if ln.strip()]
     assert len(said) == 1 and said[0].startswith("jaxdeform: encoding 12 frames x 128 vertices"), said
+    assert re.search(r" \d+\.\d s$", said[0]), said  # ended with the time taken
     assert [ln for ln in run("--quiet").splitlines() if ln.strip()] == []
     captured = subprocess.run(
         [sys.executable, "-m", "jaxdeform", "acap", "encode", str(seq_dir), "--reference", str(seq_dir / "f0.obj")]
@@ -200,3 +203,38 @@ def test_cloth_train_resumes_bit_identical(tmp_path):
 
     for x, y in zip(jax.tree.leaves(nnx.state(a.model)), jax.tree.leaves(nnx.state(b.model)), strict=True):
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
+
+
+def test_the_status_line_counts_seconds_and_ends_before_other_output(monkeypatch, capsys):
+    """common.waiting (cli/feedback.py) on a terminal: the line is redrawn once per TICK with the seconds elapsed, ended (a newline)
+    before ``say`` prints on stdout, and not drawn again after; off the terminal or with --quiet it draws nothing."""
+    import argparse
+    import io
+
+    from jaxdeform.cli import common, feedback
+
+    class Terminal(io.StringIO):
+        def isatty(self):
+            return True
+
+    monkeypatch.setattr(feedback, "TICK", 0.05)
+    term = Terminal()
+    monkeypatch.setattr(sys, "stderr", term)
+    with common.waiting(argparse.Namespace(quiet=False), "working...") as say:
+        time.sleep(0.4)
+        say("first line of the work's own output")
+        drawn = term.getvalue()
+        time.sleep(0.2)
+    assert term.getvalue() == drawn  # nothing drawn after say ended the line
+    frames = drawn.split("\r\x1b[K")[1:]
+    assert len(frames) >= 4 and all(f.startswith("jaxdeform: working... ") for f in frames), frames
+    assert frames[-1].endswith(" s\n") and not any(f.endswith("\n") for f in frames[:-1])
+    assert capsys.readouterr().out == "first line of the work's own output\n"
+    for args, stderr in (
+        (argparse.Namespace(quiet=True), Terminal()),
+        (argparse.Namespace(quiet=False), io.StringIO()),
+    ):
+        monkeypatch.setattr(sys, "stderr", stderr)
+        with common.waiting(args, "working..."):
+            time.sleep(0.1)
+        assert stderr.getvalue() == ""

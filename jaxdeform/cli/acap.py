@@ -59,13 +59,13 @@ def cmd_encode(args: argparse.Namespace) -> int:
             file=sys.stderr,
         )
 
-    common.status(
-        args,
+    wait = (
         f"encoding {vertices.shape[0]} frames x {vertices.shape[1]} vertices ({args.consistency} consistency; "
-        "the first call compiles)...",
+        "the first call compiles)..."
     )
     t0 = time.perf_counter()
-    arrays = encode_arrays(vertices, ref_v, ref_f, args.consistency, args.weighting)
+    with common.waiting(args, wait):
+        arrays = encode_arrays(vertices, ref_v, ref_f, args.consistency, args.weighting)
     elapsed = time.perf_counter() - t0
     with common.writing(out):
         save_features(out, arrays)
@@ -102,11 +102,11 @@ def cmd_decode(args: argparse.Namespace) -> int:
             raise ValueError(f"anchor {int(bad[0])} is not a vertex index (the mesh has {nv} vertices).")
         anchors = np.unique(anchors)
 
-    common.status(args, f"decoding {n} frames x {nv} vertices (the first call compiles)...")
     t0 = time.perf_counter()
-    acap = prepare(reference, faces, weighting=weighting)
-    extra = {} if args.refine is None else {"refine": args.refine}
-    positions = np.asarray(acap.decode(features, anchors=anchors, **extra))
+    with common.waiting(args, f"decoding {n} frames x {nv} vertices (the first call compiles)..."):
+        acap = prepare(reference, faces, weighting=weighting)
+        extra = {} if args.refine is None else {"refine": args.refine}
+        positions = np.asarray(acap.decode(features, anchors=anchors, **extra))
     elapsed = time.perf_counter() - t0
     checks.check_result(positions, reference, "decoded frame")
 

@@ -17,6 +17,14 @@ def _diagonal(points) -> float:
     return float(np.linalg.norm(points.max(axis=-2) - points.min(axis=-2)))
 
 
+def _size_and_centre(reference):
+    """``(diagonal, centre)`` of a mesh's bounding box ``(V, 3)``; the diagonal at least the smallest float64."""
+    import numpy as np
+
+    ref = np.asarray(reference, np.float64)
+    return max(_diagonal(ref), np.finfo(np.float64).tiny), 0.5 * (ref.max(axis=0) + ref.min(axis=0))
+
+
 def check_result(positions, reference, what: str) -> None:
     """Refuse a result before it is written: non-finite coordinates, or a mesh (of each frame of ``positions``,
     ``(V, 3)`` or ``(N, V, 3)``) whose bounding box or centre lies more than :data:`EXTENT_LIMIT` reference
@@ -30,9 +38,7 @@ def check_result(positions, reference, what: str) -> None:
 
     p = np.asarray(positions, np.float64)
     frames = p.reshape(-1, *p.shape[-2:])
-    ref = np.asarray(reference, np.float64)
-    size = max(_diagonal(ref), np.finfo(np.float64).tiny)
-    centre = 0.5 * (ref.max(axis=0) + ref.min(axis=0))
+    size, centre = _size_and_centre(reference)
     for k, frame in enumerate(frames):
         name = what if len(frames) == 1 else f"{what} {k}"
         if not np.all(np.isfinite(frame)):
@@ -53,11 +59,9 @@ def check_magnitude(values, reference, option: str, offset: bool = False) -> Non
     import numpy as np
 
     v = np.asarray(values, np.float64)
-    ref = np.asarray(reference, np.float64)
     if not np.all(np.isfinite(v)):
         raise ValueError(f"{option} must be finite numbers.")
-    size = max(_diagonal(ref), np.finfo(np.float64).tiny)
-    centre = 0.5 * (ref.max(axis=0) + ref.min(axis=0))
+    size, centre = _size_and_centre(reference)
     far = float(np.abs(v - (0.0 if offset else centre)).max(initial=0.0))
     if far > EXTENT_LIMIT * size:
         raise ValueError(

@@ -12,7 +12,6 @@ import argparse
 from pathlib import Path
 
 from jaxdeform.cli import common
-from jaxdeform.errors import ConnectivityError
 
 
 def cmd_cloth_simulate(args: argparse.Namespace) -> int:
@@ -89,7 +88,7 @@ def cmd_cloth_synthesize(args: argparse.Namespace) -> int:
     import numpy as np
 
     from jaxdeform.cloth import data as cdata
-    from jaxdeform.cloth.run import Run, synthesize_timed
+    from jaxdeform.cloth.run import Run, check_meshes, synthesize_timed
     from jaxdeform.mesh.io import save_sequence
 
     run = Run.load(args.run)
@@ -103,9 +102,7 @@ def cmd_cloth_synthesize(args: argparse.Namespace) -> int:
         ds = cdata.load_dataset(src)
         seqs = ds.subset(args.split) if args.split else ds.sequences
         shared = {"coarse_faces": ds.coarse_faces, "coarse_rest": ds.coarse_rest}
-    faces = np.asarray(shared["coarse_faces"], np.int64)
-    if faces.shape != run.rep.coarse_faces.shape or not np.array_equal(faces, run.rep.coarse_faces):
-        raise ConnectivityError(f"{src}: its coarse mesh differs from the one the run was trained on.")
+    check_meshes(run, src, (shared["coarse_rest"], np.asarray(shared["coarse_faces"], np.int64)))
     with common.staged_folder(out) as tmp:
         for s in seqs:
             fine, timing = synthesize_timed(run, s.coarse, s.obstacles, refine=not args.no_refine, pins=s.pins)

@@ -21,9 +21,9 @@ from collections.abc import Callable, Sequence
 from pathlib import Path
 
 from jaxdeform.cli.checks import check_out_checkpoint, check_out_file  # noqa: F401 (the commands' API)
+from jaxdeform.cli.feedback import PROG, waiting  # noqa: F401 (the commands' API)
 from jaxdeform.errors import JaxDeformError
 
-PROG = "jaxdeform"
 MARKER = ".jaxdeform"  # the file every staged output folder holds (jaxdeform.mesh.io.OUTPUT_MARKER)
 MESH_OUT = (".obj", ".ply", ".off")  # the formats save_mesh writes one mesh in
 
@@ -106,13 +106,6 @@ def add_steps(p: argparse.ArgumentParser, help: str, default: int | None = None)
 def add_quiet(p: argparse.ArgumentParser, help: str = "no progress bars") -> None:
     """``--quiet``: the command's progress bars off."""
     p.add_argument("--quiet", action="store_true", help=help)
-
-
-def status(args: argparse.Namespace, text: str) -> None:
-    """One status line ``jaxdeform: <text>`` on stderr before a wait of more than a few seconds, when stderr is a
-    terminal (a captured stderr keeps the one-line error contract) and ``--quiet`` is not given."""
-    if not getattr(args, "quiet", False) and sys.stderr.isatty():
-        print(f"{PROG}: {text}", file=sys.stderr, flush=True)
 
 
 def add_resume(p: argparse.ArgumentParser) -> None:

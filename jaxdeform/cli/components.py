@@ -33,11 +33,19 @@ def cmd_components_train(args: argparse.Namespace) -> int:
     loaded = run.load_data(data)  # fewer than 2 shapes or mixed connectivity: one sentence, nothing written
     kw = {k: getattr(args, k) for k in ("epochs", "seed", "split", "split_seed", "method")}
     what = "features" + (" and geodesic distances" if args.method in run.AUTOENCODERS else "")
-    if args.method in run.ACAP_METHODS or args.method in run.AUTOENCODERS:
-        common.status(args, f"computing the {what} of {loaded[0].shape[0]} shapes x {loaded[0].shape[1]} vertices...")
-    with common.keeping_checkpoints(out), common.writing(out):
+    slow = args.method in run.ACAP_METHODS or args.method in run.AUTOENCODERS
+    wait = f"computing the {what} of {loaded[0].shape[0]} shapes x {loaded[0].shape[1]} vertices..." if slow else None
+    with common.keeping_checkpoints(out), common.writing(out), common.waiting(args, wait) as say:
         fitted = run.fit(
-            data, args.config, out, progress=not args.quiet, scale_quantile=q, loaded=loaded, resume=args.resume, **kw
+            data,
+            args.config,
+            out,
+            progress=not args.quiet,
+            scale_quantile=q,
+            loaded=loaded,
+            resume=args.resume,
+            log=say,
+            **kw,
         )
     record = fitted.record
     t = record["timing"]
@@ -63,8 +71,8 @@ def cmd_components_evaluate(args: argparse.Namespace) -> int:
         common.check_out_file(Path(args.json), (".json",), list(args.data), "metrics", "--json", protect=protect)
     loaded = run.load(args.run)
     n = loaded.record["n_shapes"]
-    common.status(args, f"evaluating the {loaded.method} run on {n} shapes (encode, reconstruct, compare)...")
-    result = run.evaluate(loaded, common.data_arg(args.data))
+    with common.waiting(args, f"evaluating the {loaded.method} run on {n} shapes (encode, reconstruct, compare)..."):
+        result = run.evaluate(loaded, common.data_arg(args.data))
     text = json.dumps(result, indent=2)
     if args.json:
         with common.atomic_file(Path(args.json)) as tmp:
@@ -86,8 +94,7 @@ def cmd_components_show(args: argparse.Namespace) -> int:
     out = Path(args.out)
     common.check_out_folder(out, args.force, [args.run])
     loaded = run.load(args.run)
-    common.status(args, f"drawing the {loaded.method} run's components...")
-    with common.staged_folder(out) as tmp:
+    with common.waiting(args, f"drawing the {loaded.method} run's components..."), common.staged_folder(out) as tmp:
         info = run.show(loaded, tmp, up_axis=None if args.up == "auto" else args.up)
     print(
         f"{info['n_kept']} of {info['components']} components kept (eq. 7, eps2 = 0.01); wrote {out}/components.png, "

@@ -27,13 +27,13 @@ def cmd_components_edit(args: argparse.Namespace) -> int:
     loaded = run.load(args.run)
     controls, targets = run.read_controls(args.controls)
     checks.check_magnitude(targets, loaded.rest, f"the targets of {args.controls}")
-    common.status(args, f"editing with {controls.size} control points (the editor compiles first)...")
     t0 = time.perf_counter()
-    ed = run.editor(loaded)
-    result = ed.edit(
-        controls, targets, steps=args.steps, stages=None if args.one_stage else ed.stages, objective=args.objective
-    )
-    positions = np.asarray(result.positions)
+    with common.waiting(args, f"editing with {controls.size} control points (the editor compiles first)..."):
+        ed = run.editor(loaded)
+        result = ed.edit(
+            controls, targets, steps=args.steps, stages=None if args.one_stage else ed.stages, objective=args.objective
+        )
+        positions = np.asarray(result.positions)
     checks.check_result(positions, loaded.rest, "edited mesh")
     with common.writing(out):
         save_mesh(out, positions, loaded.faces)

@@ -17,7 +17,7 @@ import functools
 import json
 import shutil
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import jax
@@ -30,6 +30,7 @@ from jaxdeform.cloth import evaluate as ceval
 from jaxdeform.cloth import features as cfeat
 from jaxdeform.cloth.refine import Refiner
 from jaxdeform.errors import ConnectivityError, JaxDeformError
+from jaxdeform.mesh.fingerprint import difference, fingerprint
 from jaxdeform.mesh.io import atomic_path, read_npz_arrays
 from jaxdeform.mesh.topology import build_topology
 
@@ -245,9 +246,7 @@ def train_run(
         representation, ds, train_names, progress=progress, residual=residual
     )
     if mcfg.in_channels != rep.channels:
-        import dataclasses
-
-        mcfg = dataclasses.replace(mcfg, in_channels=rep.channels)
+        mcfg = replace(mcfg, in_channels=rep.channels)
     tcfg = train_cfg or ctrain.TrainConfig()
     ct = build_topology(ds.coarse_faces, ds.coarse_rest.shape[0])
     ft = build_topology(ds.fine_faces, ds.fine_rest.shape[0])
@@ -279,8 +278,16 @@ def train_run(
         "train_seconds": float(hist.seconds),
         "compile_seconds": float(hist.compile_seconds),
         "thickness": _thickness(ds),
+        "fingerprint": data_fingerprint(ds),
     }
     return Run(model, rep, record)
+
+
+def data_fingerprint(ds: cdata.ClothDataset) -> dict:
+    """What a cloth run records of its dataset: ``{"coarse", "fine"}`` fingerprints of the rest meshes
+    (:func:`jaxdeform.mesh.fingerprint.fingerprint`) and ``"n_sequences"``."""
+    coarse, fine = fingerprint(ds.coarse_rest, ds.coarse_faces), fingerprint(ds.fine_rest, ds.fine_faces)
+    return {"coarse": coarse, "fine": fine, "n_sequences": len(ds.sequences)}
 
 
 #: steps per point of a run's recorded loss curve
@@ -361,6 +368,25 @@ def save_run(run: Run, root: str | Path) -> Path:
     return root
 
 
+#: the fields of a cloth run.json and their JSON types (:func:`jaxdeform.runs.check_fields`)
+RECORD_FIELDS = {
+    "kind": ("string",),
+    "dataset": ("string",),
+    "scenario": ("string", "null"),
+    "split": ("object",),
+    "representation": ("string",),
+    "residual": ("boolean",),
+    "model": ("object",),
+    "train": ("object",),
+    "final_loss": ("number", "null"),
+    "train_seconds": ("number",),
+    "thickness": ("number",),
+    "fingerprint": ("object",),
+}
+#: fields a cloth run.json may lack (runs saved without a dataset or before the field existed)
+RECORD_OPTIONAL = tuple(RECORD_FIELDS)
+
+
 def load_run(root: str | Path) -> Run:
     """Load the cloth run in the folder ``root``.
 
@@ -389,6 +415,11 @@ def load_run(root: str | Path) -> Run:
         raise JaxDeformError(f"{path}: not valid JSON.") from None
     if not isinstance(record, dict) or record.get("format") != RUN_FORMAT:
         raise JaxDeformError(f"{path}: not a jaxdeform cloth run record.")
+    runs.check_fields(path, record, RECORD_FIELDS, optional=RECORD_OPTIONAL)
+    if record.get("representation", "ts-acap") not in cfeat.KINDS:
+        raise JaxDeformError(
+            f"{path}: its representation must be one of {', '.join(cfeat.KINDS)}, got {record['representation']!r}."
+        )
     cdata.check_split(record.get("split", {}), path)
     thickness = record.get("thickness", 0.005)
     if isinstance(thickness, bool) or not isinstance(thickness, (int, float)) or not 0 <= thickness < float("inf"):
@@ -402,6 +433,14 @@ def load_run(root: str | Path) -> Run:
         raise JaxDeformError(f"{rep_path}: not a cloth feature representation (missing {exc.args[0]}).") from None
     except (TypeError, ValueError) as exc:
         raise JaxDeformError(f"{rep_path}: not a cloth feature representation ({exc}).") from None
+    if record.get("representation", rep.kind) != rep.kind:
+        raise JaxDeformError(
+            f"{path}: it names the {record['representation']} representation, {rep_path} holds {rep.kind}."
+        )
+    prints = record.get("fingerprint", {})
+    for name, rest, faces in (("coarse", rep.coarse_rest, rep.coarse_faces), ("fine", rep.fine_rest, rep.fine_faces)):
+        if name in prints:
+            runs.check_fingerprint(path, {"fingerprint": prints[name]}, rest, faces, f"the {name} mesh of {rep_path}")
     return Run(model, rep, record, root)
 
 
@@ -478,14 +517,37 @@ def synthesize_timed(
     return fine, timing
 
 
+def check_meshes(run: Run, where, coarse: tuple, fine: tuple | None = None) -> None:
+    """Check that rest meshes read from ``where`` are the ones ``run`` was trained on.
+
+    **Arguments:**
+
+    - ``run``: the run.
+    - ``where``: names the data in the message.
+    - ``coarse``: ``(rest (V, 3), faces (F, 3))`` of the coarse mesh.
+    - ``fine``: the same of the fine mesh (None: not checked).
+
+    **Raises:**
+
+    ``ConnectivityError``, one sentence naming the mesh and what differs (:func:`jaxdeform.mesh.fingerprint.difference`
+    against the run's own rest meshes).
+    """
+    pairs = [("coarse", coarse, run.rep.coarse_rest, run.rep.coarse_faces)]
+    if fine is not None:
+        pairs.append(("fine", fine, run.rep.fine_rest, run.rep.fine_faces))
+    for name, (rest, faces), run_rest, run_faces in pairs:
+        what = difference(fingerprint(run_rest, run_faces), rest, faces, whose=f"the run's {name} mesh")
+        if what is not None:
+            raise ConnectivityError(
+                f"{where}: its {name} mesh is not the one the run was trained on ({what}); pass the run's data."
+            )
+
+
 def check_dataset(run: Run, ds: cdata.ClothDataset, data: str | Path, run_dir: str | Path) -> None:
-    """Check that ``ds`` (read from ``data``) has the meshes ``run`` (read from ``run_dir``) was trained on, and give
-    it the run's split when it is the run's own dataset (the split checked against its sequences). One sentence
-    (ConnectivityError, or the split's error) on a mismatch."""
-    if not np.array_equal(ds.fine_faces, run.rep.fine_faces) or not np.array_equal(
-        ds.coarse_faces, run.rep.coarse_faces
-    ):
-        raise ConnectivityError(f"{data}: its meshes differ from the ones the run was trained on.")
+    """Check that ``ds`` (read from ``data``) has the rest meshes ``run`` (read from ``run_dir``) was trained on
+    (:func:`check_meshes`), and give it the run's split when it is the run's own dataset (the split checked against
+    its sequences). One sentence (ConnectivityError, or the split's error) on a mismatch."""
+    check_meshes(run, data, (ds.coarse_rest, ds.coarse_faces), (ds.fine_rest, ds.fine_faces))
     if "split" in run.record and Path(run.record.get("dataset", "")) == Path(data).resolve():
         cdata.check_split(
             run.record["split"], f"{Path(run_dir) / 'run.json'} (read against {data})", {x.name for x in ds.sequences}

@@ -53,6 +53,7 @@ from jaxdeform import acap, metrics, runs
 from jaxdeform.components import baselines, model, train
 from jaxdeform.errors import DegenerateMeshError, JaxDeformError
 from jaxdeform.mesh import geodesic
+from jaxdeform.mesh.fingerprint import fingerprint
 from jaxdeform.mesh.geometry import zero_area_faces
 from jaxdeform.mesh.io import atomic_path, check_same_connectivity, load_sequence, read_npz_arrays
 from jaxdeform.mesh.topology import build_topology
@@ -536,9 +537,17 @@ def fit(
         raise ValueError("a components run needs a folder to write (out).")
     out = Path(out)
     args = (data, method, config, epochs, seed, split, split_seed, progress, scale_quantile, dtype)
-    names = ("data", "method", "config", "epochs", "seed", "split", "split_seed", "progress", "scale_quantile")
-    settings = {k: (str(v) if k == "data" else v) for k, v in zip(names, args[:-1], strict=True) if k != "progress"}
-    settings["dtype"] = np.dtype(dtype).name
+    settings = {  # what identifies the fit: a resumed one must match all of it
+        "data": str(data),
+        "method": method,
+        "config": config,
+        "epochs": epochs,
+        "seed": seed,
+        "split": split,
+        "split_seed": split_seed,
+        "scale_quantile": scale_quantile,
+        "dtype": np.dtype(dtype).name,
+    }
     with runs.resumable(out, settings, resume, log) as (tmp, resuming):
         _fit_into(tmp, *args, log, loaded, resuming)
     return Run.load(out)
@@ -586,6 +595,7 @@ def _fit_into(
         "n_vertices": int(vertices.shape[1]),
         "dtype": np.dtype(dtype).name,
         "shape_sizes": shape_sizes(vertices),  # with the rest shape and faces (mesh.npz): what data checks compare
+        "fingerprint": fingerprint(vertices, faces),
     }
     scaler = turns = x = dist = None
     t0 = time.perf_counter()
@@ -787,6 +797,8 @@ def load(path) -> Run:
         )
     record = read_record(path)
     arrays = read_npz_arrays(path / "mesh.npz")
+    if "rest" not in arrays or "faces" not in arrays:
+        raise RunError(f"{path / 'mesh.npz'}: not a components run's mesh (rest and faces are needed).")
     scaler = acap.Scaler.from_array(arrays["scaler"]) if "scaler" in arrays else None
     dtype = np.dtype(record.get("dtype", "float32"))
     cfg = trained = linear = None
@@ -805,6 +817,7 @@ def load(path) -> Run:
         if not (path / "model").exists():
             raise RunError(f"{path}: model is missing.")
         linear = baselines.load(path / "model")
+    runs.check_fingerprint(path / "run.json", record, arrays["rest"], arrays["faces"], f"{path / 'mesh.npz'}")
     turns = np.asarray(arrays["turn_reference"]) if "turn_reference" in arrays else None
     return Run(
         path, record, np.asarray(arrays["rest"]), np.asarray(arrays["faces"]), scaler, cfg, trained, linear, turns

@@ -27,9 +27,14 @@ from pathlib import Path
 
 import numpy as np
 
-from jaxdeform.errors import ConnectivityError, DegenerateMeshError
+from jaxdeform.errors import ConnectivityError, DegenerateMeshError, JaxDeformError
+from jaxdeform.mesh.fingerprint import difference, fingerprint, malformed
 from jaxdeform.mesh.io import connectivity_hash
 from jaxdeform.mesh.topology import repeated_vertex_face
+
+#: how far (of its bounding-box diagonal) a mesh may lie from the one a field was distilled on and still be read
+#: as that mesh (a re-exported file); further needs ``remap``
+FIELD_RTOL = 0.01
 
 
 @dataclass(frozen=True)
@@ -45,6 +50,11 @@ class DistillConfig:
     def __post_init__(self):
         if self.mirror not in ("alternate", "none"):
             raise ValueError(f"mirror must be 'alternate' or 'none', got {self.mirror!r}.")
+        counts = {"n_views": 1, "resolution": 16, "target_faces": 4, "batch_size": 1}
+        for name, least in counts.items():
+            value = getattr(self, name)
+            if not (isinstance(value, int) and not isinstance(value, bool) and value >= least):
+                raise ValueError(f"{name} must be a whole number of at least {least}, got {value!r}.")
 
     field: object = None  # a field.FieldConfig; None = its defaults
 
@@ -179,6 +189,7 @@ def distill_mesh(
         "n_vertices": int(v.shape[0]),
         "n_faces": int(f.shape[0]),
         "faces_sha256": connectivity_hash(f),
+        "fingerprint": fingerprint(v, f),
         "rendered_faces": int(fs.shape[0]),
         "backbone": getattr(backbone, "name", type(backbone).__name__),
         "n_views": config.n_views,
@@ -220,8 +231,8 @@ def field_features(field_path, mesh_path, vertices, faces, remap: bool = False):
     """The field saved at ``field_path`` and the unit features of ``vertices``.
 
     Checks that the field was distilled on this mesh unless ``remap`` (a field applied to another mesh of the
-    same shape): the same vertex and face counts, the same triangles (fields that recorded them) and a bounding
-    box within 1 % of the field's.
+    same shape): the field's fingerprint (:mod:`jaxdeform.mesh.fingerprint`; the counts, triangles and bounding box
+    of older fields) must match, the reference's positions within :data:`FIELD_RTOL`.
 
     **Arguments:**
 
@@ -247,26 +258,19 @@ def field_features(field_path, mesh_path, vertices, faces, remap: bool = False):
     if (Path(field_path) / "run.json").is_file():  # a handles run folder: its field
         field_path = Path(field_path) / FIELD
     fitted, meta = load_field(field_path)
-    n, nf = int(meta.get("n_vertices", -1)), int(meta.get("n_faces", -1))
-    if (n, nf) != (vertices.shape[0], faces.shape[0]) and not remap:
-        raise ConnectivityError(
-            f"{field_path} was distilled on a mesh of {n} vertices and {nf} faces but {mesh_path} has "
-            f"{vertices.shape[0]} and {faces.shape[0]}; pass --remap to apply the field to a different mesh of "
-            "the same shape."
-        )
     if not remap:
-        kept = meta.get("faces_sha256")
-        lo, hi = (np.asarray(b, np.float64) for b in meta.get("bbox", (vertices.min(0), vertices.max(0))))
-        v = np.asarray(vertices, np.float64)
-        off = max(np.abs(v.min(axis=0) - lo).max(), np.abs(v.max(axis=0) - hi).max())
-        what = None
-        if kept is not None and kept != connectivity_hash(faces):
-            what = "its triangles differ"
-        elif not off <= 0.01 * (float(np.linalg.norm(hi - lo)) or 1.0):
-            what = f"its bounding box differs by {off:.3g}"
+        kept = meta.get("fingerprint")
+        if kept is None:  # fields saved before fingerprints: their counts, triangles and box
+            named = {"n_vertices": meta.get("n_vertices"), "n_faces": meta.get("n_faces")}
+            named |= {"connectivity_sha256": meta.get("faces_sha256"), "reference_bbox": meta.get("bbox")}
+            kept = {k: v for k, v in named.items() if v is not None}
+        what = malformed(kept)
+        if what is not None:
+            raise JaxDeformError(f"{field_path}: its record's fingerprint {what}.")
+        what = difference(kept, vertices, faces, rtol=FIELD_RTOL, whose="its mesh")
         if what is not None:
             raise ConnectivityError(
-                f"{field_path} was distilled on another mesh than {mesh_path} (same counts, but {what}); pass "
-                "--remap to apply the field to a different mesh of the same shape."
+                f"{field_path} was distilled on another mesh than {mesh_path} ({what}); pass --remap to apply the "
+                "field to a different mesh of the same shape."
             )
     return fitted, evaluate_field(fitted, vertices)

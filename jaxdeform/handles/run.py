@@ -27,6 +27,7 @@ from jaxdeform import runs
 from jaxdeform.errors import MeshFormatError
 from jaxdeform.handles.field import FieldConfig
 from jaxdeform.handles.pipeline import DistillConfig
+from jaxdeform.mesh.fingerprint import fingerprint
 from jaxdeform.mesh.io import atomic_path, read_npz_arrays, staged_folder
 
 KIND = "handles"
@@ -37,6 +38,27 @@ CONFIGS = {
     "default": DistillConfig(),
     "test": DistillConfig(n_views=4, resolution=96, field=FieldConfig(steps=30, batch_size=256, hidden=64)),
 }
+#: the fields of a handles run.json and their JSON types (:func:`jaxdeform.runs.check_fields`)
+RECORD_FIELDS = {
+    "config": ("object",),
+    "data": ("string", "null"),
+    "timings": ("object",),
+    "field": ("object",),
+    "fingerprint": ("object",),
+}
+
+
+def config_from_record(where, value: dict) -> DistillConfig:
+    """The :class:`~jaxdeform.handles.pipeline.DistillConfig` a run record stores (``where`` names it in the
+    message); ``RunFolderError`` (one sentence) for one that is not."""
+    try:
+        rest = {k: v for k, v in value.items() if k != "field"}
+        field = FieldConfig.from_dict(value["field"]) if isinstance(value.get("field"), dict) else None
+        return DistillConfig(**rest, field=field)
+    except (TypeError, ValueError, KeyError) as exc:
+        raise runs.RunFolderError(f"{where}: its config is not a distillation configuration ({exc}).") from None
+
+
 #: the handles :func:`evaluate` and :func:`show` use: this many vertices, spread by farthest-point sampling
 N_HANDLES = 4
 
@@ -73,11 +95,20 @@ class Run:
 
         path = Path(path)
         record = runs.read_record(path, KIND)
+        where = path / runs.RECORD
+        runs.check_fields(where, record, RECORD_FIELDS, optional=("data", "timings", "field", "fingerprint"))
+        config_from_record(where, record["config"])
         arrays = read_npz_arrays(path / "mesh.npz")
         if "vertices" not in arrays or "faces" not in arrays:
             raise MeshFormatError(f"{path / 'mesh.npz'}: not a mesh archive (vertices and faces are missing).")
         vertices, faces = check_mesh(arrays["vertices"], arrays["faces"])
-        field, _ = load_field(path / FIELD)
+        runs.check_fingerprint(where, record, vertices, faces, f"{path / 'mesh.npz'}")
+        field, meta = load_field(path / FIELD)
+        if (meta.get("n_vertices"), meta.get("n_faces")) != (vertices.shape[0], faces.shape[0]):
+            raise runs.RunFolderError(
+                f"{path / FIELD} was distilled on a mesh of {meta.get('n_vertices')} vertices and "
+                f"{meta.get('n_faces')} faces, not on the run's mesh.npz ({vertices.shape[0]} and {faces.shape[0]})."
+            )
         return cls(path, record, field, vertices, faces)
 
     @functools.cached_property
@@ -138,6 +169,7 @@ def fit(
         "kind": KIND,
         "config": {**dataclasses.asdict(dataclasses.replace(cfg, field=None)), "field": cfg.field_config().to_dict()},
         "data": str(data) if isinstance(data, (str, os.PathLike)) else None,
+        "fingerprint": fingerprint(vertices, faces),
         "timings": {k: round(float(v), 3) for k, v in result.timings.items()},
         "field": result.meta,
     }

@@ -100,6 +100,8 @@ class EditSession:
         self.field_given = field_fn is not None
         self.plane = self.deformer.symmetry_plane() if self.field_given else None
         self.view = Viewport(self.rest, width, height, up_axis)
+        lo, hi = self.rest.min(axis=0), self.rest.max(axis=0)
+        self._size, self._centre = float(np.linalg.norm(hi - lo)) or 1.0, 0.5 * (lo + hi)
         self.lock = threading.RLock()
         self.version = 0
         self._reset_all()
@@ -177,8 +179,7 @@ class EditSession:
         the session as it was when the transform or the mesh it gives is not finite or beyond
         :data:`TRANSFORM_LIMIT`."""
         t = np.asarray(transform, np.float64)
-        lo, hi = self.rest.min(axis=0).astype(np.float64), self.rest.max(axis=0).astype(np.float64)
-        size, centre = float(np.linalg.norm(hi - lo)) or 1.0, 0.5 * (lo + hi)
+        size, centre = self._size, self._centre
         with np.errstate(over="ignore", invalid="ignore"):
             image = t[:, :3] @ np.asarray(self.rest[self.handles[k]], np.float64) + t[:, 3]
             absurd = (

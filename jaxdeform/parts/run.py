@@ -25,6 +25,7 @@ import numpy as np
 
 from jaxdeform import runs
 from jaxdeform.errors import JaxDeformError, MeshFormatError
+from jaxdeform.mesh.fingerprint import RTOL, fingerprint
 from jaxdeform.mesh.io import atomic_path, check_same_connectivity, load_sequence, staged_folder
 from jaxdeform.nn.archive import read_tree, save_tree
 from jaxdeform.parts import hierarchy
@@ -52,6 +53,13 @@ class Config:
             raise ValueError("max_split must be at least 2 and min_part_vertices at least 1.")
 
 
+#: the fields of a parts run.json and their JSON types (:func:`jaxdeform.runs.check_fields`)
+RECORD_FIELDS = {
+    "config": ("object",),
+    "data": ("string", "list", "null"),
+    "summary": ("object",),
+    "fingerprint": ("object",),
+}
 #: named configurations: the library defaults and a CPU-sized one (fewer coarse parts, coarser threshold)
 CONFIGS = {"default": Config(), "test": Config(initial_parts=2, threshold=1e-3, max_split=2)}
 
@@ -85,7 +93,14 @@ class Run:
         """
         path = Path(path)
         record = runs.read_record(path, KIND)
+        where = path / runs.RECORD
+        runs.check_fields(where, record, RECORD_FIELDS, optional=("data", "summary", "fingerprint"))
+        try:
+            Config(**record["config"])
+        except (TypeError, ValueError) as exc:
+            raise runs.RunFolderError(f"{where}: its config is not a parts configuration ({exc}).") from None
         fit_, vertices, faces = load_run(path)
+        runs.check_fingerprint(where, record, vertices, faces, f"{path / 'model'}")
         return cls(path, record, fit_, vertices, faces)
 
 
@@ -279,6 +294,7 @@ def fit(
         log = (lambda line: print(line, flush=True)) if progress else (lambda line: None)
     fit_ = hierarchy.fit(vertices, faces, **dataclasses.asdict(cfg), log=log)
     record = {"kind": KIND, "config": dataclasses.asdict(cfg), "data": _data_name(data)}
+    record["fingerprint"] = fingerprint(vertices, faces)
     record["summary"] = hierarchy.summary(fit_, vertices)
     run = Run(None, record, fit_, vertices, faces)
     if out is not None:
@@ -297,8 +313,9 @@ def evaluate(run: Run, data=None) -> dict:
     **Arguments:**
 
     - ``run``: the run.
-    - ``data``: the shapes to compare with (None: the shapes of the run); they must be the run's population (the
-        same number of shapes and the same connectivity), since a fit's parts and rotations are per shape.
+    - ``data``: the shapes to compare with (None: the shapes of the run); they must be the run's own shapes (the
+        same number, connectivity and positions within :data:`jaxdeform.mesh.fingerprint.RTOL` of their size, as
+        another file format of them reads back), since a fit's parts and rotations are per shape.
 
     **Returns:**
 
@@ -316,6 +333,15 @@ def evaluate(run: Run, data=None) -> dict:
         if vertices.shape[0] != run.vertices.shape[0]:
             raise JaxDeformError(
                 f"{where} holds {vertices.shape[0]} shapes but the run was fitted to {run.vertices.shape[0]}."
+            )
+        size = hierarchy.bbox_diagonal(run.vertices) or 1.0
+        off = np.abs(np.asarray(vertices, np.float64) - run.vertices).max(axis=(1, 2))
+        bad = np.flatnonzero(~(off <= RTOL * size))
+        if bad.size:
+            k = int(bad[0])
+            raise JaxDeformError(
+                f"{where} is not the data the run was fitted on: its shape {k} lies up to {off[k]:.3g} from the "
+                f"run's ({off[k] / size:.3g} of the shapes' size); pass the run's own data."
             )
     diff = np.sum((vertices - run.fit.reconstruction) ** 2, axis=-1)  # (M, V)
     diag = hierarchy.bbox_diagonal(vertices)
