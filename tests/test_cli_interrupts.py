@@ -124,8 +124,8 @@ def test_resume_refuses_a_partial_fit_of_other_settings(seq_dir, tmp_path):
 
 
 def test_long_commands_say_what_they_wait_for_on_a_terminal(seq_dir, tmp_path):
-    """On a terminal, acap encode shows one live status line on stderr during its wait, ended with the time
-    taken; --quiet and a captured stderr print none (the one-line error contract)."""
+    """On a terminal, acap encode shows a live status line on stderr from its start, then one for its encoding,
+    each ended with the time taken; --quiet and a captured stderr print none (the one-line error contract)."""
     import pty
 
     def run(*extra):
@@ -151,8 +151,9 @@ def test_long_commands_say_what_they_wait_for_on_a_terminal(seq_dir, tmp_path):
 
     shown = [ln.split("\r\x1b[K")[-1] for ln in run().replace("\r\n", "\n").split("\n")]  # as a terminal shows it
     said = [ln for ln in shown if ln.strip()]
-    assert len(said) == 1 and said[0].startswith("jaxdeform: encoding 12 frames x 128 vertices"), said
-    assert re.search(r" \d+\.\d s$", said[0]), said  # ended with the time taken
+    assert said[0].startswith("jaxdeform: acap encode..."), said  # from the start: JAX's import, the reading
+    assert said[-1].startswith("jaxdeform: encoding 12 frames x 128 vertices") and len(said) == 2, said
+    assert all(re.search(r" \d+\.\d s$", line) for line in said), said  # each ended with the time taken
     assert [ln for ln in run("--quiet").splitlines() if ln.strip()] == []
     captured = subprocess.run(
         [sys.executable, "-m", "jaxdeform", "acap", "encode", str(seq_dir), "--reference", str(seq_dir / "f0.obj")]
@@ -238,3 +239,32 @@ def test_the_status_line_counts_seconds_and_ends_before_other_output(monkeypatch
         with common.waiting(args, "working..."):
             time.sleep(0.1)
         assert stderr.getvalue() == ""
+
+
+def test_the_session_status_line_ends_before_any_other_output(monkeypatch):
+    """feedback.session: the command's status line runs from its start and is ended before the first write to
+    stdout or stderr by anything else; the streams are restored afterwards."""
+    import argparse
+    import io
+
+    from jaxdeform.cli import feedback
+
+    class Terminal(io.StringIO):
+        def isatty(self):
+            return True
+
+    monkeypatch.setattr(feedback, "TICK", 0.05)
+    term, out = Terminal(), io.StringIO()
+    monkeypatch.setattr(sys, "stderr", term)
+    monkeypatch.setattr(sys, "stdout", out)
+    with feedback.session(argparse.Namespace(quiet=False), "acap encode..."):
+        time.sleep(0.3)
+        print("the result")
+        drawn = term.getvalue()
+        time.sleep(0.2)
+        print("a warning", file=sys.stderr)
+    assert sys.stdout is out and sys.stderr is term
+    frames = drawn.split("\r\x1b[K")[1:]
+    assert len(frames) >= 3 and all(f.startswith("jaxdeform: acap encode... ") for f in frames), frames
+    assert frames[-1].endswith(" s\n") and out.getvalue() == "the result\n"
+    assert term.getvalue() == drawn + "a warning\n"

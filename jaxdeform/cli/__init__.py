@@ -22,6 +22,7 @@ from jaxdeform.cli import (
     components,
     components_edit,
     components_finetune,
+    feedback,
     handles,
     handles_serve,
     parts,
@@ -53,10 +54,13 @@ def build_parser() -> argparse.ArgumentParser:
 
 def main(argv: Sequence[str] | None = None) -> int:
     """Run the CLI on ``argv`` (default ``sys.argv[1:]``); returns the exit status."""
+    argv = sys.argv[1:] if argv is None else list(argv)
     args = build_parser().parse_args(argv)
-    try:
-        common.setup_process()  # after parsing, so that --help imports no JAX
-    except KeyboardInterrupt:
-        print(f"{common.PROG}: interrupted; nothing was written.", file=sys.stderr)
-        return 130
-    return common.run_command(args.func, args)
+    label = " ".join(a for a in argv[:2] if not a.startswith("-"))
+    with feedback.session(args, f"{label}..."):
+        try:
+            common.setup_process()  # after parsing, so that --help imports no JAX
+        except KeyboardInterrupt:
+            print(f"{common.PROG}: interrupted; nothing was written.", file=sys.stderr)
+            return 130
+        return common.run_command(args.func, args)
