@@ -268,3 +268,28 @@ def test_the_session_status_line_ends_before_any_other_output(monkeypatch):
     assert len(frames) >= 3 and all(f.startswith("jaxdeform: acap encode... ") for f in frames), frames
     assert frames[-1].endswith(" s\n") and out.getvalue() == "the result\n"
     assert term.getvalue() == drawn + "a warning\n"
+
+
+def test_the_session_redraws_open_progress_bars(monkeypatch):
+    """A bar whose step is long is redrawn once per TICK within a session (its elapsed time moves)."""
+    import argparse
+    import io
+
+    from tqdm.auto import tqdm
+
+    from jaxdeform.cli import feedback
+
+    class Terminal(io.StringIO):
+        def isatty(self):
+            return True
+
+    monkeypatch.setattr(feedback, "TICK", 0.05)
+    term = Terminal()
+    monkeypatch.setattr(sys, "stderr", term)
+    with feedback.session(argparse.Namespace(quiet=False), "cloth simulate..."):
+        bar = tqdm(total=2, desc="slow step", file=sys.stderr, mininterval=0)
+        time.sleep(0.5)  # one long step
+        drawn = term.getvalue().count("slow step")
+        bar.update(1)
+        bar.close()
+    assert drawn >= 4, term.getvalue()

@@ -38,7 +38,8 @@ def cmd_components_finetune(args: argparse.Namespace) -> int:
     loaded = run.load(args.run)
     finetune.check_run(loaded)
     data = None if not args.data else common.data_arg(args.data)
-    with common.staged_folder(out) as tmp:
+    wait = f"preparing {args.mixes} regional mixes and the features of the training shapes..."
+    with common.staged_folder(out) as tmp, common.waiting(args, wait):
         rec = finetune.fit(loaded, tmp, data, progress=not args.quiet, rigid=args.rigid, **opts)
     first, last = rec["first_terms"], rec["last_terms"]
     extra = f" and {args.generated} generated meshes" if args.generated else ""

@@ -96,19 +96,36 @@ def session(args: argparse.Namespace, text: str):
     """The status line of a whole command: ``jaxdeform: <text> N s`` from its start (JAX's import included) until
     the command writes anything, on a terminal's stderr, unless ``--quiet``. Within it, :func:`waiting` shows the
     command's own waits; any other output on stdout or stderr (results, warnings, progress bars, errors) first
-    ends the status line, so lines never mix.
+    ends the status line, so lines never mix; open progress bars are redrawn once per :data:`TICK`.
     """
     global _SESSION
     out, err = sys.stdout, sys.stderr
     w = Waiting(not getattr(args, "quiet", False) and err.isatty(), stream=err)
     sys.stdout, sys.stderr = _EndingStatus(out, w), _EndingStatus(err, w)
     _SESSION = w
+    done = threading.Event()
+    if w.live:
+        threading.Thread(target=_refresh_bars, args=(done,), daemon=True).start()
     w.now(text)
     try:
         yield w
     finally:
+        done.set()
         w.stop()
         sys.stdout, sys.stderr, _SESSION = out, err, None
+
+
+def _refresh_bars(done: threading.Event) -> None:
+    """Redraw every open tqdm progress bar once per :data:`TICK` until ``done``, so that a bar whose steps are
+    long (a simulated sequence, a training chunk) still shows its elapsed time moving."""
+    while not done.wait(TICK):
+        std = sys.modules.get("tqdm.std")
+        if std is None:
+            continue
+        for bar in list(getattr(std.tqdm, "_instances", ())):
+            if not getattr(bar, "disable", True) and not done.is_set():
+                with contextlib.suppress(Exception):  # a bar closed meanwhile
+                    bar.refresh()
 
 
 @contextlib.contextmanager
