@@ -293,3 +293,33 @@ def test_the_session_redraws_open_progress_bars(monkeypatch):
         bar.update(1)
         bar.close()
     assert drawn >= 4, term.getvalue()
+
+
+def test_the_session_shows_its_line_again_after_idle_output_gaps(monkeypatch):
+    """With no bar open and nothing written for IDLE seconds, the command's line comes back (counting from the
+    command's start), and is ended again by the next output; feedback.settle (a server) ends that for good."""
+    import argparse
+    import io
+
+    from jaxdeform.cli import feedback
+
+    class Terminal(io.StringIO):
+        def isatty(self):
+            return True
+
+    monkeypatch.setattr(feedback, "TICK", 0.05)
+    monkeypatch.setattr(feedback, "IDLE", 0.2)
+    term, out = Terminal(), io.StringIO()
+    monkeypatch.setattr(sys, "stderr", term)
+    monkeypatch.setattr(sys, "stdout", out)
+    with feedback.session(argparse.Namespace(quiet=False), "cloth train..."):
+        print("features done")
+        time.sleep(0.6)  # a gap without output: the line is back
+        print("training")
+        shown = term.getvalue()
+        feedback.settle()
+        time.sleep(0.6)
+    lines = [ln.split("\r\x1b[K")[-1] for ln in shown.split("\n") if ln]
+    assert len(lines) == 2 and all(ln.startswith("jaxdeform: cloth train... ") for ln in lines), lines
+    assert float(lines[1].split()[-2]) >= 0.6  # the second counts from the command's start
+    assert term.getvalue() == shown  # settled: nothing more

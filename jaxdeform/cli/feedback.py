@@ -14,16 +14,19 @@ PROG = "jaxdeform"
 
 #: seconds between two updates of a live status line
 TICK = 1.0
+#: seconds without output (and no progress bar open) after which a command's status line is shown again
+IDLE = 2.0
 
 
 class _Ticker:
     """A status line on a terminal's stderr that shows the seconds elapsed until :meth:`stop`."""
 
-    def __init__(self, text: str, stream):
-        self.text, self.t0, self.stream = f"{PROG}: {text}", time.perf_counter(), stream
+    def __init__(self, text: str, stream, t0: float | None = None):
+        self.text, self.stream = f"{PROG}: {text}", stream
+        self.t0 = time.perf_counter() if t0 is None else t0
         self.done = threading.Event()
         self.lock = threading.Lock()
-        self._write(f"{self.text} 0 s")
+        self._write(f"{self.text} {time.perf_counter() - self.t0:.0f} s")
         self.thread = threading.Thread(target=self._tick, daemon=True)
         self.thread.start()
 
@@ -55,17 +58,23 @@ class Waiting:
 
     def __init__(self, live: bool, stream=None):
         self.live, self.ticker, self.stream = live, None, stream
+        self.lock = threading.RLock()
+        self.last = time.perf_counter()  # when anything else was last written (a session's streams set it)
 
-    def now(self, text: str | None) -> None:
-        """Start the status line of the next wait (``text`` None: none), ending the current one."""
-        self.stop()
-        self.ticker = _Ticker(text, self.stream or sys.stderr) if self.live and text is not None else None
+    def now(self, text: str | None, t0: float | None = None) -> None:
+        """Start the status line of the next wait (``text`` None: none), ending the current one; ``t0``: the
+        clock the line counts from (default: now)."""
+        with self.lock:
+            self.stop()
+            live = self.live and text is not None
+            self.ticker = _Ticker(text, self.stream or sys.stderr, t0) if live else None
 
     def stop(self) -> None:
         """End the current status line, if any."""
-        if self.ticker is not None:
-            self.ticker.stop()
-            self.ticker = None
+        with self.lock:
+            if self.ticker is not None:
+                self.ticker.stop()
+                self.ticker = None
 
     def __call__(self, line: str, file=None) -> None:
         self.stop()
@@ -81,6 +90,7 @@ class _EndingStatus:
     def write(self, text: str) -> int:
         if text:
             self._waiting.stop()
+            self._waiting.last = time.perf_counter()
         return self._stream.write(text)
 
     def __getattr__(self, name):
@@ -96,7 +106,8 @@ def session(args: argparse.Namespace, text: str):
     """The status line of a whole command: ``jaxdeform: <text> N s`` from its start (JAX's import included) until
     the command writes anything, on a terminal's stderr, unless ``--quiet``. Within it, :func:`waiting` shows the
     command's own waits; any other output on stdout or stderr (results, warnings, progress bars, errors) first
-    ends the status line, so lines never mix; open progress bars are redrawn once per :data:`TICK`.
+    ends the status line, so lines never mix. Open progress bars are redrawn once per :data:`TICK`; with none open
+    and nothing written for :data:`IDLE` seconds, the command's line is shown again.
     """
     global _SESSION
     out, err = sys.stdout, sys.stderr
@@ -105,7 +116,7 @@ def session(args: argparse.Namespace, text: str):
     _SESSION = w
     done = threading.Event()
     if w.live:
-        threading.Thread(target=_refresh_bars, args=(done,), daemon=True).start()
+        threading.Thread(target=_watch, args=(w, text, done), daemon=True).start()
     w.now(text)
     try:
         yield w
@@ -115,17 +126,35 @@ def session(args: argparse.Namespace, text: str):
         sys.stdout, sys.stderr, _SESSION = out, err, None
 
 
-def _refresh_bars(done: threading.Event) -> None:
-    """Redraw every open tqdm progress bar once per :data:`TICK` until ``done``, so that a bar whose steps are
-    long (a simulated sequence, a training chunk) still shows its elapsed time moving."""
+def _open_bars() -> list:
+    """The open, enabled tqdm progress bars of the process (none where tqdm was never imported)."""
+    std = sys.modules.get("tqdm.std")
+    bars = list(getattr(std.tqdm, "_instances", ())) if std is not None else []
+    return [bar for bar in bars if not getattr(bar, "disable", True)]
+
+
+def _watch(w: Waiting, text: str, done: threading.Event) -> None:
+    """Until ``done``, once per :data:`TICK`: redraw every open progress bar (a bar whose steps are long still
+    shows its elapsed time moving), or, with no bar open and nothing written for :data:`IDLE` seconds, show the
+    command's status line ``text`` again, counting from the command's start."""
+    start = time.perf_counter()
     while not done.wait(TICK):
-        std = sys.modules.get("tqdm.std")
-        if std is None:
-            continue
-        for bar in list(getattr(std.tqdm, "_instances", ())):
-            if not getattr(bar, "disable", True) and not done.is_set():
-                with contextlib.suppress(Exception):  # a bar closed meanwhile
-                    bar.refresh()
+        bars = _open_bars()
+        for bar in bars:
+            with contextlib.suppress(Exception):  # a bar closed meanwhile
+                bar.refresh()
+        with w.lock:
+            idle = time.perf_counter() - w.last > IDLE
+            if not bars and w.ticker is None and idle and not done.is_set():
+                w.now(text, t0=start)
+
+
+def settle() -> None:
+    """From here the running command waits on its user (a server), not on work: no more status lines."""
+    if _SESSION is not None:
+        with _SESSION.lock:
+            _SESSION.stop()
+            _SESSION.live = False
 
 
 @contextlib.contextmanager

@@ -36,9 +36,17 @@ def cmd_handles_serve(args: argparse.Namespace) -> int:
         field_fn=field_fn,
         port=args.port,
         block=True,
-        announce=lambda url: print(f"serving {url} (Ctrl-C stops)", flush=True),
+        announce=_announce,
     )
     return 0
+
+
+def _announce(url: str) -> None:
+    """Say where the page is; from here the command waits on its user, so no status line follows."""
+    from jaxdeform.cli import feedback
+
+    feedback.settle()
+    print(f"serving {url} (Ctrl-C stops)", flush=True)
 
 
 def register(hand_sub) -> None:
