@@ -151,6 +151,8 @@ RECORD_CASES = [
     ("cloth", "final_loss", "low", "'final_loss' field must be number or null"),
     ("cloth", "train_seconds", -1, None),  # a negative duration is odd but harmless: loads
     ("components", "fingerprint", {"n_shapes": 0}, "n_shapes must be a positive whole number"),
+    ("components", "data", 5, "'data' field must be string"),
+    ("components", "shape_sizes", "big", "'shape_sizes' field must be list"),
 ]
 
 

@@ -741,6 +741,11 @@ def _check_record(where: Path, record: dict) -> None:
 
     **Raises:** ``RunError``, one sentence naming the first field that is wrong.
     """
+    types = {"method": ("string",), "data": ("string",), "shape_sizes": ("list",), "fingerprint": ("object",)}
+    try:
+        runs.check_fields(where, record, types, optional=("shape_sizes", "fingerprint"))
+    except runs.RunFolderError as exc:
+        raise RunError(str(exc)) from None
     n = record["n_shapes"]
     if not _is_int(n) or n < 1:
         raise RunError(f"{where}: n_shapes must be a positive integer, got {n!r}.")
