@@ -2,6 +2,7 @@
 interrupted ``components train`` keeps its checkpoints and ``--resume`` ends bit-identical to an uninterrupted
 run. Each command runs in a fresh process (``python -m jaxdeform``)."""
 
+import io
 import os
 import re
 import signal
@@ -206,17 +207,19 @@ def test_cloth_train_resumes_bit_identical(tmp_path):
         np.testing.assert_array_equal(np.asarray(x), np.asarray(y))
 
 
+class Terminal(io.StringIO):
+    """A captured stderr that says it is a terminal (what the status lines draw on)."""
+
+    def isatty(self):
+        return True
+
+
 def test_the_status_line_counts_seconds_and_ends_before_other_output(monkeypatch, capsys):
     """common.waiting (cli/feedback.py) on a terminal: the line is redrawn once per TICK with the seconds elapsed, ended (a newline)
     before ``say`` prints on stdout, and not drawn again after; off the terminal or with --quiet it draws nothing."""
     import argparse
-    import io
 
     from jaxdeform.cli import common, feedback
-
-    class Terminal(io.StringIO):
-        def isatty(self):
-            return True
 
     monkeypatch.setattr(feedback, "TICK", 0.05)
     term = Terminal()
@@ -245,13 +248,8 @@ def test_the_session_status_line_ends_before_any_other_output(monkeypatch):
     """feedback.session: the command's status line runs from its start and is ended before the first write to
     stdout or stderr by anything else; the streams are restored afterwards."""
     import argparse
-    import io
 
     from jaxdeform.cli import feedback
-
-    class Terminal(io.StringIO):
-        def isatty(self):
-            return True
 
     monkeypatch.setattr(feedback, "TICK", 0.05)
     term, out = Terminal(), io.StringIO()
@@ -273,15 +271,10 @@ def test_the_session_status_line_ends_before_any_other_output(monkeypatch):
 def test_the_session_redraws_open_progress_bars(monkeypatch):
     """A bar whose step is long is redrawn once per TICK within a session (its elapsed time moves)."""
     import argparse
-    import io
 
     from tqdm.auto import tqdm
 
     from jaxdeform.cli import feedback
-
-    class Terminal(io.StringIO):
-        def isatty(self):
-            return True
 
     monkeypatch.setattr(feedback, "TICK", 0.05)
     term = Terminal()
@@ -299,13 +292,8 @@ def test_the_session_shows_its_line_again_after_idle_output_gaps(monkeypatch):
     """With no bar open and nothing written for IDLE seconds, the command's line comes back (counting from the
     command's start), and is ended again by the next output; feedback.settle (a server) ends that for good."""
     import argparse
-    import io
 
     from jaxdeform.cli import feedback
-
-    class Terminal(io.StringIO):
-        def isatty(self):
-            return True
 
     monkeypatch.setattr(feedback, "TICK", 0.05)
     monkeypatch.setattr(feedback, "IDLE", 0.2)
